@@ -1,0 +1,55 @@
+"""Options every subcommand shares, logging set-up, and error -> one line + exit code."""
+
+from __future__ import annotations
+
+import functools
+import logging
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import click
+
+STATE = {"debug": False}
+
+
+def _set_debug(ctx: click.Context, param: click.Parameter, value: bool) -> bool:
+    if value:
+        STATE["debug"] = True
+    return value
+
+
+def common_options(func: Callable[..., Any]) -> Callable[..., Any]:
+    """Add --config FILE, --set section.key=value (repeatable), --debug and --quiet."""
+
+    @click.option("--config", "config_path", type=click.Path(dir_okay=False, path_type=Path),
+                  help="TOML config; keys not given keep their defaults.")
+    @click.option("--set", "overrides", multiple=True, metavar="SECTION.KEY=VALUE",
+                  help="Override one config key (repeatable), e.g. --set registration.alpha=2.")
+    @click.option("--debug", is_flag=True, expose_value=False, is_eager=True, callback=_set_debug,
+                  help="Show tracebacks and debug logging.")
+    @click.option("--quiet", "-q", is_flag=True, help="No progress bars, warnings only.")
+    @functools.wraps(func)
+    def wrapper(*args: Any, config_path: Path | None, overrides: tuple[str, ...], quiet: bool,
+                **kwargs: Any) -> Any:
+        from ..config import load_config
+
+        setup_logging(quiet)
+        config = load_config(config_path, overrides)
+        return func(*args, config=config, quiet=quiet, **kwargs)
+
+    return wrapper
+
+
+def setup_logging(quiet: bool) -> None:
+    level = logging.DEBUG if STATE["debug"] else (logging.WARNING if quiet else logging.INFO)
+    logging.basicConfig(level=level, format="%(message)s", force=True)
+    for noisy in ("matplotlib", "PIL"):
+        logging.getLogger(noisy).setLevel(logging.WARNING)
+
+
+def progress(quiet: bool) -> Callable[..., Any]:
+    """A factory of tqdm bars (disabled with --quiet) for pipeline callbacks."""
+    from tqdm import tqdm
+
+    return functools.partial(tqdm, disable=quiet, dynamic_ncols=True, leave=False)

@@ -1,0 +1,73 @@
+"""`surgrecon` entry point: a click group of thin subcommands.
+
+Heavy imports happen inside the commands, so `--help` is instant.
+"""
+
+from __future__ import annotations
+
+import sys
+
+import click
+
+from .. import __version__
+from .common import STATE
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
+@click.version_option(__version__, prog_name="surgrecon")
+def cli() -> None:
+    """Multi-camera 3D reconstruction of dynamic surgical cavities.
+
+    \b
+    From a recorded MCAP log (several tracked endoscope cameras, robot kinematics):
+    build a 3D template of the tissue, register every later frame to it non-rigidly and
+    label every point static / shifting / deforming (Su, Huang & Hannaford, IROS 2019).
+
+    \b
+    Example, the whole pipeline on the shipped sample:
+      surgrecon run sample_data/sample.mcap -o runs/sample
+    """
+
+
+def _register_commands() -> None:
+    from . import commands
+
+    for command in commands.ALL:
+        cli.add_command(command)
+
+
+_register_commands()
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the CLI; known errors become one line on stderr and exit code 2."""
+    from ..errors import SurgReconError
+
+    try:
+        cli.main(args=argv, prog_name="surgrecon", standalone_mode=False)
+    except click.exceptions.Abort:
+        click.echo("aborted", err=True)
+        return 130
+    except click.ClickException as exc:
+        exc.show()
+        return exc.exit_code
+    except click.exceptions.Exit as exc:
+        return exc.exit_code
+    except SurgReconError as exc:
+        if STATE["debug"]:
+            raise
+        click.echo(f"error: {exc}", err=True)
+        return 2
+    except KeyboardInterrupt:
+        click.echo("interrupted", err=True)
+        return 130
+    except Exception as exc:  # noqa: BLE001 - last line of defence, one line unless --debug
+        if STATE["debug"]:
+            raise
+        click.echo(f"internal error: {type(exc).__name__}: {exc} (re-run with --debug)", err=True)
+        return 3
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,304 @@
+"""Typed, frozen configuration loaded from TOML.
+
+Defaults are the dataclass defaults below; `configs/default.toml` mirrors them (a test
+keeps the two equal). A user file needs only the keys it changes; `--set section.key=value`
+overrides single keys. Unknown sections/keys, wrong types and out-of-range values raise
+`ConfigError` naming the key. Lengths are metres unless the key name ends in `_mm`/`_px`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import tomllib
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from .errors import ConfigError
+
+
+def _doc(default: Any, doc: str) -> Any:
+    """A dataclass field with a one-line docstring (shown by `surgrecon config`)."""
+    return field(default=default, metadata={"doc": doc})
+
+
+def _require(cond: bool, key: str, message: str) -> None:
+    if not cond:
+        raise ConfigError(f"{key}: {message}")
+
+
+@dataclass(frozen=True)
+class TopicsConfig:
+    """Which topic plays which role; `{camera}` captures the camera id."""
+
+    image: str = _doc("/endoscope_{camera}/color/compressed", "image topic pattern")
+    camera_info: str = _doc("/endoscope_{camera}/calibration", "intrinsics topic pattern")
+    camera_pose: str = _doc(
+        "/navigation/endoscope_{camera}/pose",
+        "camera-to-world pose topic pattern, or the transform topic (e.g. /tf)",
+    )
+    camera_frame: str = _doc(
+        "endoscope_{camera}_optical", "child frame pattern when poses come as transforms"
+    )
+    tool_pose: str = _doc("/raven/tool_tip", "tool tip pose topic (or transform topic)")
+    tool_frame: str = _doc("raven_tool_tip", "tool child frame when poses come as transforms")
+    joint_states: str = _doc("/raven/joint_states", "robot joint states topic")
+
+    def __post_init__(self) -> None:
+        for key in ("image", "camera_info"):
+            _require("{camera}" in getattr(self, key), f"topics.{key}", "needs a {camera} placeholder")
+
+
+@dataclass(frozen=True)
+class IngestConfig:
+    """Time synchronisation and validation of the log."""
+
+    sync_tolerance_ms: float = _doc(15.0, "images within this of each other form one frame (ms)")
+    pose_gap_ms: float = _doc(
+        100.0, "largest tracker/robot gap bridged by interpolation (ms); beyond: camera unusable"
+    )
+    time_source: str = _doc("header", "'header' (message stamp, else log_time) or 'log_time'")
+
+    def __post_init__(self) -> None:
+        _require(self.sync_tolerance_ms > 0, "ingest.sync_tolerance_ms", "must be > 0")
+        _require(self.pose_gap_ms > 0, "ingest.pose_gap_ms", "must be > 0")
+        _require(
+            self.time_source in ("header", "log_time"),
+            "ingest.time_source",
+            f"must be 'header' or 'log_time', got {self.time_source!r}",
+        )
+
+
+@dataclass(frozen=True)
+class ToolConfig:
+    """Tool model: a shaft cylinder from the tip along the tool frame's +z axis."""
+
+    shaft_radius: float = _doc(0.004, "shaft radius (m)")
+    shaft_length: float = _doc(0.15, "shaft length from the tip (m)")
+    base_to_world: tuple[float, ...] = _doc(
+        (), "robot base pose in the world: [x y z qx qy qz qw] (m); empty = tool pose is in world"
+    )
+    mask_margin_px: float = _doc(6.0, "tool mask dilation in the images (px)")
+    margin: float = _doc(0.0015, "3D points closer than radius + margin to the shaft axis are dropped (m)")
+
+    def __post_init__(self) -> None:
+        _require(self.shaft_radius > 0, "tool.shaft_radius", "must be > 0")
+        _require(self.shaft_length > 0, "tool.shaft_length", "must be > 0")
+        _require(
+            len(self.base_to_world) in (0, 7),
+            "tool.base_to_world",
+            "must be empty or [x, y, z, qx, qy, qz, qw]",
+        )
+        _require(self.mask_margin_px >= 0 and self.margin >= 0, "tool.margin", "must be >= 0")
+
+
+@dataclass(frozen=True)
+class TemplateConfig:
+    """Template building: features, camera grouping / pair sequencing, triangulation."""
+
+    max_features: int = _doc(6000, "SIFT keypoints per image")
+    ratio: float = _doc(0.8, "Lowe ratio test")
+    epipolar_px: float = _doc(2.0, "largest distance of a match to its epipolar line (px)")
+    max_reprojection_px: float = _doc(1.5, "largest reprojection error of a triangulated point (px)")
+    min_angle_deg: float = _doc(3.0, "smallest triangulation angle between two rays (deg)")
+    min_pair_matches: int = _doc(40, "verified matches for two cameras to be linked")
+    min_view_overlap: float = _doc(0.15, "predicted shared-view fraction to try matching a pair")
+
+    def __post_init__(self) -> None:
+        _require(self.max_features > 0, "template.max_features", "must be > 0")
+        _require(0 < self.ratio < 1, "template.ratio", "must be in (0, 1)")
+        _require(self.epipolar_px > 0, "template.epipolar_px", "must be > 0")
+        _require(self.max_reprojection_px > 0, "template.max_reprojection_px", "must be > 0")
+        _require(0 <= self.min_angle_deg < 90, "template.min_angle_deg", "must be in [0, 90)")
+
+
+@dataclass(frozen=True)
+class TargetConfig:
+    """Target cloud: tracking template points into new images, reprojection-error check."""
+
+    gate_px: float = _doc(2.5, "reprojection-error gate of the intra/inter-camera check (px)")
+    klt_window_px: int = _doc(21, "KLT window size (px)")
+    klt_levels: int = _doc(3, "KLT pyramid levels")
+    occlusion_depth: float = _doc(0.002, "depth tolerance of the visibility test (m)")
+
+    def __post_init__(self) -> None:
+        _require(self.gate_px > 0, "target.gate_px", "must be > 0")
+        _require(self.klt_window_px >= 5, "target.klt_window_px", "must be >= 5")
+
+
+@dataclass(frozen=True)
+class RegistrationConfig:
+    """Sparse non-rigid registration (per-point affine transforms, ADMM)."""
+
+    k_neighbors: int = _doc(8, "neighbours per point in the smoothness graph")
+    alpha: float = _doc(1.0, "weight of the neighbour-difference term (final, after annealing)")
+    alpha_start: float = _doc(20.0, "stiff initial smoothness weight of the annealing schedule")
+    beta: float = _doc(0.0, "weight keeping each linear part near a rotation (0 = off)")
+    data_penalty: str = _doc("l1", "'l1' (heavy-tailed, the paper's model) or 'l2' (Gaussian)")
+    smooth_penalty: str = _doc("l1", "'l1' or 'l2' on neighbour differences")
+    admm_iterations: int = _doc(60, "ADMM iterations per outer step")
+    outer_iterations: int = _doc(4, "correspondence/annealing outer steps")
+    tolerance_mm: float = _doc(0.005, "ADMM stop: primal and dual residual RMS (mm)")
+    color_weight_mm: float = _doc(5.0, "mm of position equivalent to a full RGB unit difference")
+    max_correspondence_mm: float = _doc(5.0, "nearest-neighbour correspondences farther are dropped (mm)")
+    template_update_every: int = _doc(0, "re-base the template every N_T frames (0 = keep frame 0)")
+
+    def __post_init__(self) -> None:
+        _require(self.k_neighbors >= 2, "registration.k_neighbors", "must be >= 2")
+        for key in ("data_penalty", "smooth_penalty"):
+            _require(
+                getattr(self, key) in ("l1", "l2"), f"registration.{key}", "must be 'l1' or 'l2'"
+            )
+        _require(self.alpha > 0 and self.alpha_start >= self.alpha, "registration.alpha",
+                 "need 0 < alpha <= alpha_start")
+        _require(self.beta >= 0, "registration.beta", "must be >= 0")
+        _require(self.admm_iterations > 0, "registration.admm_iterations", "must be > 0")
+        _require(self.outer_iterations > 0, "registration.outer_iterations", "must be > 0")
+        _require(self.template_update_every >= 0, "registration.template_update_every",
+                 "must be >= 0")
+
+
+@dataclass(frozen=True)
+class ClassifyConfig:
+    """Point classification thresholds (mm), see core/classify.py for the reasoning."""
+
+    static_mm: float = _doc(1.0, "registered displacement below this is static (mm)")
+    deform_mm: float = _doc(0.5, "neighbour relative motion |(T_j - T_i) p_i| at/above: deforming (mm)")
+    hysteresis_frames: int = _doc(0, "frames a new label must persist before it is taken (0 = off)")
+
+    def __post_init__(self) -> None:
+        _require(self.static_mm > 0, "classify.static_mm", "must be > 0")
+        _require(self.deform_mm > 0, "classify.deform_mm", "must be > 0")
+        _require(self.hysteresis_frames >= 0, "classify.hysteresis_frames", "must be >= 0")
+
+
+@dataclass(frozen=True)
+class LabelsConfig:
+    """The spec's ground-truth label rule (section 6), shared by simulator and scoring."""
+
+    static_mm: float = _doc(1.0, "a vertex that moved less than this is static (mm)")
+    neighbourhood_mm: float = _doc(5.0, "neighbourhood radius at frame 0 (mm)")
+    rigid_rms_mm: float = _doc(0.25, "RMS residual of the best rigid fit above this: deforming (mm)")
+
+    def __post_init__(self) -> None:
+        for key in ("static_mm", "neighbourhood_mm", "rigid_rms_mm"):
+            _require(getattr(self, key) > 0, f"labels.{key}", "must be > 0")
+
+
+@dataclass(frozen=True)
+class Config:
+    """The whole configuration; one attribute per TOML section."""
+
+    topics: TopicsConfig = field(default_factory=TopicsConfig)
+    ingest: IngestConfig = field(default_factory=IngestConfig)
+    tool: ToolConfig = field(default_factory=ToolConfig)
+    template: TemplateConfig = field(default_factory=TemplateConfig)
+    target: TargetConfig = field(default_factory=TargetConfig)
+    registration: RegistrationConfig = field(default_factory=RegistrationConfig)
+    classify: ClassifyConfig = field(default_factory=ClassifyConfig)
+    labels: LabelsConfig = field(default_factory=LabelsConfig)
+
+
+def _coerce(value: Any, annotation: Any, key: str) -> Any:
+    """Check a TOML value against a field's type; ints are accepted for floats."""
+    origin = typing.get_origin(annotation)
+    if origin is tuple:
+        _require(isinstance(value, list | tuple), key, f"expected a list, got {value!r}")
+        return tuple(_coerce(v, float, key) for v in value)
+    if annotation is float:
+        _require(isinstance(value, int | float) and not isinstance(value, bool), key,
+                 f"expected a number, got {value!r}")
+        return float(value)
+    if annotation is int:
+        _require(isinstance(value, int) and not isinstance(value, bool), key,
+                 f"expected an integer, got {value!r}")
+        return value
+    if annotation is bool:
+        _require(isinstance(value, bool), key, f"expected true/false, got {value!r}")
+        return value
+    _require(isinstance(value, str), key, f"expected a string, got {value!r}")
+    return value
+
+
+def _section_types(section_cls: type) -> dict[str, Any]:
+    return typing.get_type_hints(section_cls)
+
+
+def from_dict(data: dict[str, Any], base: Config | None = None) -> Config:
+    """Merge a nested dict (as read from TOML) over `base` (default: the defaults)."""
+    base = base or Config()
+    sections = {}
+    section_types = _section_types(Config)
+    for name, values in data.items():
+        _require(name in section_types, name, f"unknown config section (known: {', '.join(section_types)})")
+        _require(isinstance(values, dict), name, "must be a table")
+        cls = section_types[name]
+        hints = _section_types(cls)
+        current = getattr(base, name)
+        updates = {}
+        for key, value in values.items():
+            full = f"{name}.{key}"
+            _require(key in hints, full, f"unknown key (known: {', '.join(hints)})")
+            updates[key] = _coerce(value, hints[key], full)
+        sections[name] = dataclasses.replace(current, **updates)
+    return dataclasses.replace(base, **sections)
+
+
+def parse_override(text: str) -> dict[str, Any]:
+    """`section.key=value` -> {section: {key: value}}; the value is read as TOML, else a string."""
+    if "=" not in text or "." not in text.split("=", 1)[0]:
+        raise ConfigError(f"--set {text!r}: expected section.key=value")
+    path, raw = text.split("=", 1)
+    section, key = path.strip().split(".", 1)
+    try:
+        value = tomllib.loads(f"v = {raw}")["v"]
+    except tomllib.TOMLDecodeError:
+        value = raw
+    return {section: {key: value}}
+
+
+def load_config(path: Path | None = None, overrides: typing.Sequence[str] = ()) -> Config:
+    """Defaults, then the TOML file at `path`, then each `--set` override in order."""
+    config = Config()
+    if path is not None:
+        try:
+            data = tomllib.loads(Path(path).read_text(encoding="utf-8"))
+        except FileNotFoundError as exc:
+            raise ConfigError(f"{path}: config file not found") from exc
+        except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+            raise ConfigError(f"{path}: not valid TOML ({exc})") from exc
+        config = from_dict(data, config)
+    for text in overrides:
+        config = from_dict(parse_override(text), config)
+    return config
+
+
+def _toml_value(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, str):
+        return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(value, tuple | list):
+        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
+    return repr(value)
+
+
+def to_toml(config: Config, with_docs: bool = True) -> str:
+    """Serialise a config to TOML (with each key's docstring as a comment)."""
+    lines: list[str] = []
+    for section in dataclasses.fields(config):
+        obj = getattr(config, section.name)
+        lines.append(f"[{section.name}]")
+        for f in dataclasses.fields(obj):
+            line = f"{f.name} = {_toml_value(getattr(obj, f.name))}"
+            if with_docs and f.metadata.get("doc"):
+                line = f"# {f.metadata['doc']}\n{line}"
+            lines.append(line)
+        lines.append("")
+    return "\n".join(lines)
+
+
+def to_dict(config: Config) -> dict[str, Any]:
+    """Plain nested dict of the config (for run.json)."""
+    return dataclasses.asdict(config)

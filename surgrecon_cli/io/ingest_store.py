@@ -1,0 +1,118 @@
+"""The `RUN/ingest/` folder: what ingest extracted, in a form later stages load quickly.
+
+Layout:
+  ingest/cameras.json       camera ids (sorted strings), intrinsics, per-camera report
+  ingest/frames.npz         per-frame arrays (see `IngestedLog`)
+  ingest/images/CC/FFFFFF.{jpg,png}   image of camera index CC at frame FFFFFF, as recorded
+                            (compressed bytes kept; raw images stored as PNG)
+Camera ids never become paths: folders use the camera's index in the sorted id list.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from ..core.cameras import CameraModel
+from ..errors import InputError, RunFolderError
+from .atomic import write_json, write_npz
+
+
+@dataclass(frozen=True)
+class IngestedLog:
+    """Frames of a log after time synchronisation and pose interpolation.
+
+    cameras: sorted camera ids (C,); models: intrinsics per camera index;
+    stamps_ns (T,) int64 frame times; image_stamps_ns (T, C) int64 (-1 = no image);
+    poses (T, C, 4, 4) camera-to-world at each image's stamp, NaN where unusable;
+    usable (T, C) bool: image present, decoded and pose interpolated within tolerance;
+    tool_poses (T, 4, 4) tool tip in world at the frame stamp (NaN where unknown);
+    joint_names (J,), joint_positions (T, J) (NaN where unknown);
+    image_paths[t][c]: relative path of the stored image or "".
+    """
+
+    root: Path
+    cameras: tuple[str, ...]
+    models: tuple[CameraModel, ...]
+    stamps_ns: np.ndarray
+    image_stamps_ns: np.ndarray
+    poses: np.ndarray
+    usable: np.ndarray
+    tool_poses: np.ndarray
+    joint_names: tuple[str, ...]
+    joint_positions: np.ndarray
+    image_paths: tuple[tuple[str, ...], ...]
+    report: dict = field(default_factory=dict)
+
+    @property
+    def n_frames(self) -> int:
+        return int(self.stamps_ns.shape[0])
+
+    def load_image(self, frame: int, camera_index: int) -> np.ndarray:
+        """Image (H, W, 3) uint8 RGB of one camera at one frame."""
+        rel = self.image_paths[frame][camera_index]
+        if not rel:
+            raise RunFolderError(f"frame {frame}: camera {self.cameras[camera_index]} has no image")
+        path = self.root / rel
+        data = np.fromfile(path, dtype=np.uint8)
+        bgr = cv2.imdecode(data, cv2.IMREAD_COLOR)
+        if bgr is None:
+            raise InputError(f"{path}: stored image does not decode; re-run ingest")
+        return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+
+
+def image_relpath(camera_index: int, frame: int, ext: str) -> str:
+    return f"images/{camera_index:02d}/{frame:06d}.{ext}"
+
+
+def save_ingested(log: IngestedLog) -> None:
+    """Write cameras.json and frames.npz (images are written by ingest as it streams)."""
+    root = log.root
+    write_json(
+        root / "cameras.json",
+        {
+            "cameras": list(log.cameras),
+            "models": [m.to_dict() for m in log.models],
+            "report": log.report,
+        },
+    )
+    write_npz(
+        root / "frames.npz",
+        stamps_ns=log.stamps_ns.astype(np.int64),
+        image_stamps_ns=log.image_stamps_ns.astype(np.int64),
+        poses=log.poses,
+        usable=log.usable,
+        tool_poses=log.tool_poses,
+        joint_names=np.array(log.joint_names, dtype=str),
+        joint_positions=log.joint_positions,
+        image_paths=np.array(log.image_paths, dtype=str).reshape(len(log.stamps_ns), len(log.cameras)),
+    )
+
+
+def load_ingested(root: Path) -> IngestedLog:
+    """Load `RUN/ingest/`; raises RunFolderError if ingest has not completed."""
+    root = Path(root)
+    try:
+        meta = json.loads((root / "cameras.json").read_text())
+        with np.load(root / "frames.npz", allow_pickle=False) as z:
+            arrays = {k: z[k] for k in z.files}
+    except FileNotFoundError as exc:
+        raise RunFolderError(f"{root}: no ingested data; run `surgrecon ingest` first") from exc
+    return IngestedLog(
+        root=root,
+        cameras=tuple(meta["cameras"]),
+        models=tuple(CameraModel.from_dict(m) for m in meta["models"]),
+        stamps_ns=arrays["stamps_ns"],
+        image_stamps_ns=arrays["image_stamps_ns"],
+        poses=arrays["poses"],
+        usable=arrays["usable"],
+        tool_poses=arrays["tool_poses"],
+        joint_names=tuple(str(n) for n in arrays["joint_names"]),
+        joint_positions=arrays["joint_positions"],
+        image_paths=tuple(tuple(str(p) for p in row) for row in arrays["image_paths"]),
+        report=meta.get("report", {}),
+    )
