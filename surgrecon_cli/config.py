@@ -98,12 +98,19 @@ class TemplateConfig:
     """Template building: features, camera grouping / pair sequencing, triangulation."""
 
     max_features: int = _doc(6000, "SIFT keypoints per image")
-    ratio: float = _doc(0.8, "Lowe ratio test")
+    contrast_threshold: float = _doc(0.008, "SIFT contrast threshold (OpenCV default 0.04; tissue is low-contrast)")
+    ratio: float = _doc(0.9, "Lowe ratio test (against the runner-up inside or outside the epipolar segment)")
     epipolar_px: float = _doc(2.0, "largest distance of a match to its epipolar line (px)")
     max_reprojection_px: float = _doc(1.5, "largest reprojection error of a triangulated point (px)")
     min_angle_deg: float = _doc(3.0, "smallest triangulation angle between two rays (deg)")
     min_pair_matches: int = _doc(40, "verified matches for two cameras to be linked")
     min_view_overlap: float = _doc(0.15, "predicted shared-view fraction to try matching a pair")
+    depth_range: tuple[float, ...] = _doc(
+        (0.4, 2.5), "matches must triangulate within [near, far] x the camera's working depth"
+    )
+    working_distance: float = _doc(
+        0.05, "scene depth (m) assumed for a camera whose optical axis meets no other's"
+    )
 
     def __post_init__(self) -> None:
         _require(self.max_features > 0, "template.max_features", "must be > 0")
@@ -111,6 +118,9 @@ class TemplateConfig:
         _require(self.epipolar_px > 0, "template.epipolar_px", "must be > 0")
         _require(self.max_reprojection_px > 0, "template.max_reprojection_px", "must be > 0")
         _require(0 <= self.min_angle_deg < 90, "template.min_angle_deg", "must be in [0, 90)")
+        _require(len(self.depth_range) == 2 and 0 < self.depth_range[0] < self.depth_range[1],
+                 "template.depth_range", "must be [near, far] with 0 < near < far")
+        _require(self.working_distance > 0, "template.working_distance", "must be > 0")
 
 
 @dataclass(frozen=True)
@@ -129,34 +139,63 @@ class TargetConfig:
 
 @dataclass(frozen=True)
 class RegistrationConfig:
-    """Sparse non-rigid registration (per-point affine transforms, ADMM)."""
+    """Sparse non-rigid registration (per-point affine transforms, ADMM); defaults are ours."""
 
-    k_neighbors: int = _doc(8, "neighbours per point in the smoothness graph")
-    alpha: float = _doc(1.0, "weight of the neighbour-difference term (final, after annealing)")
-    alpha_start: float = _doc(20.0, "stiff initial smoothness weight of the annealing schedule")
+    k_neighbors: int = _doc(8, "neighbours per node in the smoothness graph")
+    max_nodes: int = _doc(
+        600, "transform nodes; larger clouds are solved on this many nodes and each point's "
+        "affine is blended from its nearest nodes (0 = one node per point, the paper's model)"
+    )
+    interp_neighbors: int = _doc(4, "nodes blended into each point's transform")
+    alpha: float = _doc(0.05, "weight of the neighbour-difference term (final, after annealing)")
+    alpha_start: float = _doc(1.0, "stiff initial smoothness weight of the annealing schedule")
     beta: float = _doc(0.0, "weight keeping each linear part near a rotation (0 = off)")
     data_penalty: str = _doc("l1", "'l1' (heavy-tailed, the paper's model) or 'l2' (Gaussian)")
     smooth_penalty: str = _doc("l1", "'l1' or 'l2' on neighbour differences")
-    admm_iterations: int = _doc(60, "ADMM iterations per outer step")
+    admm_iterations: int = _doc(30, "largest number of ADMM iterations per outer step")
     outer_iterations: int = _doc(4, "correspondence/annealing outer steps")
-    tolerance_mm: float = _doc(0.005, "ADMM stop: primal and dual residual RMS (mm)")
+    mu: float = _doc(2.0, "ADMM penalty (in units of the reference node spacing)")
+    mu_growth: float = _doc(1.0, "multiply mu by this every ADMM iteration (>1 refactorises)")
+    relaxation: float = _doc(1.6, "ADMM over-relaxation factor, in [1, 2)")
+    tolerance_mm: float = _doc(0.02, "ADMM stop: primal and dual residual RMS (mm)")
     color_weight_mm: float = _doc(5.0, "mm of position equivalent to a full RGB unit difference")
     max_correspondence_mm: float = _doc(5.0, "nearest-neighbour correspondences farther are dropped (mm)")
+    mutual_spacings: float = _doc(
+        3.0, "drop a match whose target's nearest source lies farther than this many point "
+        "spacings from the querying point (0 = off)"
+    )
+    reweight_mm: float = _doc(
+        1.0, "l1 data reweighting w = e / (|r| + e) with e in mm (0 = off)"
+    )
+    outlier_mm: float = _doc(1.0, "final correspondence residual above this flags an outlier (mm)")
+    rigid_iterations: int = _doc(30, "trimmed-ICP iterations of the rigid pre-alignment")
+    rigid_trim: float = _doc(0.7, "fraction of closest pairs kept by the trimmed ICP")
     template_update_every: int = _doc(0, "re-base the template every N_T frames (0 = keep frame 0)")
 
     def __post_init__(self) -> None:
-        _require(self.k_neighbors >= 2, "registration.k_neighbors", "must be >= 2")
-        for key in ("data_penalty", "smooth_penalty"):
-            _require(
-                getattr(self, key) in ("l1", "l2"), f"registration.{key}", "must be 'l1' or 'l2'"
-            )
-        _require(self.alpha > 0 and self.alpha_start >= self.alpha, "registration.alpha",
+        key = "registration."
+        _require(self.k_neighbors >= 2, key + "k_neighbors", "must be >= 2")
+        _require(self.max_nodes == 0 or self.max_nodes >= 8, key + "max_nodes",
+                 "must be 0 or >= 8")
+        _require(self.interp_neighbors >= 1, key + "interp_neighbors", "must be >= 1")
+        for name in ("data_penalty", "smooth_penalty"):
+            _require(getattr(self, name) in ("l1", "l2"), key + name, "must be 'l1' or 'l2'")
+        _require(self.alpha > 0 and self.alpha_start >= self.alpha, key + "alpha",
                  "need 0 < alpha <= alpha_start")
-        _require(self.beta >= 0, "registration.beta", "must be >= 0")
-        _require(self.admm_iterations > 0, "registration.admm_iterations", "must be > 0")
-        _require(self.outer_iterations > 0, "registration.outer_iterations", "must be > 0")
-        _require(self.template_update_every >= 0, "registration.template_update_every",
-                 "must be >= 0")
+        _require(self.beta >= 0, key + "beta", "must be >= 0")
+        _require(self.admm_iterations > 0, key + "admm_iterations", "must be > 0")
+        _require(self.outer_iterations > 0, key + "outer_iterations", "must be > 0")
+        _require(self.mu > 0, key + "mu", "must be > 0")
+        _require(self.mu_growth >= 1, key + "mu_growth", "must be >= 1")
+        _require(1 <= self.relaxation < 2, key + "relaxation", "must be in [1, 2)")
+        _require(self.tolerance_mm > 0, key + "tolerance_mm", "must be > 0")
+        for name in ("color_weight_mm", "mutual_spacings", "reweight_mm"):
+            _require(getattr(self, name) >= 0, key + name, "must be >= 0")
+        for name in ("max_correspondence_mm", "outlier_mm"):
+            _require(getattr(self, name) > 0, key + name, "must be > 0")
+        _require(self.rigid_iterations >= 0, key + "rigid_iterations", "must be >= 0")
+        _require(0 < self.rigid_trim <= 1, key + "rigid_trim", "must be in (0, 1]")
+        _require(self.template_update_every >= 0, key + "template_update_every", "must be >= 0")
 
 
 @dataclass(frozen=True)

@@ -3,5 +3,7 @@
 from __future__ import annotations
 
 from .cmd_config import config_cmd
+from .cmd_ingest import ingest_cmd
+from .cmd_simulate import simulate_cmd
 
-ALL = [config_cmd]
+ALL = [config_cmd, ingest_cmd, simulate_cmd]

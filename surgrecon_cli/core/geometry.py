@@ -150,3 +150,10 @@ def nearest_rotation(A: np.ndarray) -> np.ndarray:
     D = np.ones(U.shape[:-1])
     D[..., -1] = d
     return U @ (D[..., :, None] * Vt)
+
+
+def point_to_segment_distance(points: np.ndarray, start: np.ndarray, end: np.ndarray) -> np.ndarray:
+    """Distance (N,) m from points (N, 3) to the segment start-end (3,)."""
+    axis = end - start
+    s = ((points - start) @ axis / max(float(axis @ axis), 1e-30)).clip(0, 1)
+    return np.linalg.norm(points - (start + s[:, None] * axis), axis=1)

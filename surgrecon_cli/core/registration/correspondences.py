@@ -1,0 +1,96 @@
+"""Correspondences c(i): known ids first, then gated nearest neighbours in position + colour.
+
+All lengths are in the solver's normalised units (see graph.Normalisation).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+
+@dataclass(frozen=True)
+class Matcher:
+    """Nearest-neighbour matcher over the target points that have no known correspondence.
+
+    `candidates` (K,) target indices searched; `tree` indexes [xyz, colour_scale * rgb]
+    (or xyz alone) of those points. `known` (N,) target index fixed per source point or -1.
+    """
+
+    target_q: np.ndarray
+    candidates: np.ndarray
+    tree: cKDTree | None
+    colour_scale: float
+    target_rgb: np.ndarray | None
+    known: np.ndarray
+
+
+def build_matcher(
+    target_q: np.ndarray,
+    n_source: int,
+    target_rgb: np.ndarray | None,
+    colour_scale: float,
+    target_ids: np.ndarray | None,
+    landmarks: np.ndarray | None,
+) -> Matcher:
+    """Known pairs (landmarks override template ids) and a KD-tree over the other targets."""
+    known = np.full(n_source, -1, np.int64)
+    free = np.ones(len(target_q), bool)
+    if target_ids is not None:
+        has = target_ids >= 0
+        # the first target point carrying an id wins; later duplicates are ignored
+        ids, first = np.unique(target_ids[has], return_index=True)
+        known[ids] = np.flatnonzero(has)[first]
+        free &= ~has
+    if landmarks is not None and len(landmarks):
+        known[landmarks[:, 0]] = landmarks[:, 1]
+        free[landmarks[:, 1]] = False
+    candidates = np.flatnonzero(free)
+    tree = None
+    use_rgb = target_rgb is not None and colour_scale > 0
+    if len(candidates):
+        feats = target_q[candidates]
+        if use_rgb:
+            assert target_rgb is not None
+            feats = np.concatenate([feats, colour_scale * target_rgb[candidates]], axis=1)
+        tree = cKDTree(feats)
+    return Matcher(target_q=target_q, candidates=candidates, tree=tree,
+                   colour_scale=colour_scale if use_rgb else 0.0,
+                   target_rgb=target_rgb if use_rgb else None, known=known)
+
+
+def match(
+    matcher: Matcher,
+    moved_q: np.ndarray,
+    source_rgb: np.ndarray | None,
+    max_distance: float,
+    mutual_distance: float,
+    allowed: np.ndarray,
+) -> np.ndarray:
+    """Target index per source point (-1 = none) for the current moved source `moved_q`.
+
+    Free points (no known pair, `allowed`) take the nearest free target in position + colour,
+    kept only if (a) its distance in position is at most `max_distance` and (b) the target's
+    nearest moved source point lies within `mutual_distance` of the querying point (a loose
+    mutual check that drops matches onto the rim of a partial target and onto stray points).
+    """
+    corr = matcher.known.copy()
+    free = np.flatnonzero((corr < 0) & allowed)
+    if matcher.tree is None or len(free) == 0:
+        return corr
+    feats = moved_q[free]
+    if matcher.target_rgb is not None and source_rgb is not None:
+        feats = np.concatenate([feats, matcher.colour_scale * source_rgb[free]], axis=1)
+    _, j = matcher.tree.query(feats, k=1)
+    tgt = matcher.candidates[j]
+    dist = np.linalg.norm(moved_q[free] - matcher.target_q[tgt], axis=1)
+    ok = dist <= max_distance
+    if mutual_distance > 0 and np.any(ok):
+        back_tree = cKDTree(moved_q)
+        _, back = back_tree.query(matcher.target_q[tgt[ok]], k=1)
+        sel = np.flatnonzero(ok)
+        ok[sel] = np.linalg.norm(moved_q[back] - moved_q[free[sel]], axis=1) <= mutual_distance
+    corr[free[ok]] = tgt[ok]
+    return corr

@@ -1,0 +1,152 @@
+"""Robust rigid pre-alignment: trimmed point-to-plane ICP on a voxel subsample.
+
+Trimmed ICP (Chetverikov et al. 2002) keeps the closest fraction of the mutually consistent
+nearest-neighbour pairs; each step minimises the point-to-plane distance (Chen & Medioni
+1992; linearised rotation) plus a small point-to-point term, which converges in a few steps
+where point-to-point ICP creeps along smooth, nearly symmetric surfaces such as a dome.
+
+Known pairs (template ids, landmarks) take part like nearest-neighbour pairs; with at least
+`MIN_KNOWN` of them the pairs alone decide (an IRLS, l1-type fit, no nearest neighbours).
+All lengths in the solver's normalised units.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from ..geometry import fit_rigid
+from .correspondences import Matcher, match
+from .graph import mean_spacing as graph_spacing
+from .graph import sample_nodes
+
+MIN_KNOWN = 6  # ours
+MAX_POINTS = 800  # ours: rigid alignment runs on at most this many source points
+
+
+PLANE_POINT_MIX = 0.3  # ours: weight of the point-to-point term in the point-to-plane step
+
+
+class _Normals:
+    """Target normals by PCA of the k nearest neighbours, computed on demand and cached."""
+
+    def __init__(self, target_q: np.ndarray, k: int = 10) -> None:
+        self.q = target_q
+        self.k = min(k, len(target_q))
+        self.tree = cKDTree(target_q)
+        self.cache = np.full((len(target_q), 3), np.nan)
+
+    def __call__(self, which: np.ndarray) -> np.ndarray:
+        todo = np.unique(which[np.isnan(self.cache[which, 0])])
+        if len(todo):
+            _, nn = self.tree.query(self.q[todo], k=self.k)
+            nb = self.q[nn.reshape(len(todo), self.k)]
+            nb = nb - nb.mean(axis=1, keepdims=True)
+            _, vecs = np.linalg.eigh(np.einsum("pki,pkj->pij", nb, nb))
+            self.cache[todo] = vecs[:, :, 0]
+        return self.cache[which]
+
+
+def _plane_step(src: np.ndarray, dst: np.ndarray, normals: np.ndarray):
+    """Small rigid motion (R, t) reducing sum ((R s + t - d) . n)^2 + mix |R s + t - d|^2."""
+    c = src.mean(axis=0)
+    s = src - c
+    a = np.concatenate([np.cross(s, normals), normals], axis=1)  # (P, 6): [omega, tau]
+    b = np.einsum("pi,pi->p", dst - src, normals)
+    H = a.T @ a
+    g = a.T @ b
+    # point-to-point part: (omega x s + tau - (d - s)) for every axis
+    skew = np.zeros((len(s), 3, 6))
+    skew[:, 0, 1], skew[:, 0, 2] = s[:, 2], -s[:, 1]
+    skew[:, 1, 0], skew[:, 1, 2] = -s[:, 2], s[:, 0]
+    skew[:, 2, 0], skew[:, 2, 1] = s[:, 1], -s[:, 0]
+    skew[:, :, 3:] = np.eye(3)
+    H += PLANE_POINT_MIX * np.einsum("pki,pkj->ij", skew, skew)
+    g += PLANE_POINT_MIX * np.einsum("pki,pk->i", skew, dst - src)
+    x = np.linalg.solve(H + 1e-9 * np.trace(H) * np.eye(6), g)
+    omega, tau = x[:3], x[3:]
+    angle = np.linalg.norm(omega)
+    K = np.array([[0, -omega[2], omega[1]], [omega[2], 0, -omega[0]], [-omega[1], omega[0], 0]])
+    if angle > 1e-12:
+        R = np.eye(3) + np.sin(angle) / angle * K + (1 - np.cos(angle)) / angle**2 * (K @ K)
+    else:
+        R = np.eye(3) + K
+    return R, c + tau - R @ c
+
+
+def _l1_fit(src: np.ndarray, dst: np.ndarray, iterations: int = 10) -> tuple[np.ndarray, np.ndarray]:
+    R, t = fit_rigid(src, dst)
+    for _ in range(iterations):
+        r = np.linalg.norm(src @ R.T + t - dst, axis=1)
+        delta = max(float(np.median(r)) * 0.1, 1e-9)
+        R, t = fit_rigid(src, dst, 1.0 / np.maximum(r, delta))
+    return R, t
+
+
+def rigid_prealign(
+    source_q: np.ndarray,
+    source_rgb: np.ndarray | None,
+    matcher: Matcher,
+    observed: np.ndarray,
+    *,
+    iterations: int,
+    keep: float,
+    spacing: float,
+    target_spacing: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Rotation R (3, 3) and translation t (3,) with target ~ source @ R.T + t.
+
+    `observed` (N,) bool: source points with a data term; `spacing`, `target_spacing`: mean
+    point spacings. Pairs must pass a mutual check, then the closest `keep` fraction is fitted. Stops when an iteration moves the
+    subsample by less than 1 % of the mean point spacing (ours).
+    """
+    known = np.flatnonzero((matcher.known >= 0) & observed)
+    if len(known) >= MIN_KNOWN:
+        return _l1_fit(source_q[known], matcher.target_q[matcher.known[known]])
+    cand = np.flatnonzero(observed)
+    if len(cand) < 3:
+        return np.eye(3), np.zeros(3)
+    sub = cand[sample_nodes(source_q[cand], MAX_POINTS)]
+    pts = source_q[sub]
+    rgb = source_rgb[sub] if source_rgb is not None else None
+    sub_matcher = Matcher(target_q=matcher.target_q, candidates=matcher.candidates,
+                          tree=matcher.tree, colour_scale=matcher.colour_scale,
+                          target_rgb=matcher.target_rgb, known=matcher.known[sub])
+    every = np.ones(len(sub), bool)
+    normals = _Normals(matcher.target_q)
+    # mutual gate on the subsample: drops pairs onto the rim of a partial target (ours: 3x)
+    sub_spacing = graph_spacing(pts)
+    mutual = 3.0 * max(sub_spacing, target_spacing)
+
+    def cost(R: np.ndarray, t: np.ndarray) -> float:
+        moved = pts @ R.T + t
+        corr = match(sub_matcher, moved, rgb, np.inf, mutual, every)
+        ok = corr >= 0
+        r = np.linalg.norm(moved[ok] - matcher.target_q[corr[ok]], axis=1)
+        return float(np.quantile(r, keep)) if len(r) else np.inf
+
+    # Start from identity (clouds from one tracked world frame are close already) unless the
+    # shift of the medians fits clearly better (ours: half the trimmed residual).
+    R, t = np.eye(3), np.zeros(3)
+    shift = np.median(matcher.target_q, axis=0) - np.median(pts, axis=0)
+    if cost(R, shift) < 0.5 * cost(R, t):
+        t = shift
+    for _ in range(iterations):
+        moved = pts @ R.T + t
+        corr = match(sub_matcher, moved, rgb, np.inf, mutual, every)
+        ok = corr >= 0
+        if ok.sum() < 3:
+            break
+        src_ok, dst_idx = moved[ok], corr[ok]
+        r = np.linalg.norm(src_ok - matcher.target_q[dst_idx], axis=1)
+        sel = r <= np.quantile(r, keep)
+        if sel.sum() < 6:
+            break
+        dR, dt = _plane_step(src_ok[sel], matcher.target_q[dst_idx[sel]],
+                             normals(dst_idx[sel]))
+        R_new, t_new = dR @ R, dR @ t + dt
+        step = np.sqrt(np.mean(np.sum((pts @ R_new.T + t_new - moved) ** 2, axis=1)))
+        R, t = R_new, t_new
+        if step < 0.01 * spacing:
+            break
+    return R, t

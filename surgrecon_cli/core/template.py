@@ -1,0 +1,129 @@
+"""Template point cloud P from the first frame (Su et al. 2019, section II.A, Fig. 3).
+
+features (tool masked) -> pair prediction from poses -> pose-guided matching -> groups and
+pair sequence -> tracks -> N-view triangulation -> outlier rejection -> tool point removal.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..config import TemplateConfig, ToolConfig
+from ..errors import GeometryError
+from .cameras import CameraModel
+from .features import Features, detect_features
+from .matching import build_tracks, match_pair
+from .outliers import surface_outliers
+from .pairing import PairPlan, PairPrediction, candidate_pairs, plan_pairs, predict_pairs
+from .tool import points_near_tool, tool_image_mask
+from .triangulate import Observations, triangulate
+
+
+@dataclass(frozen=True)
+class TemplateResult:
+    """Template cloud: points (N, 3) m, rgb (N, 3) uint8, n_views (N,), mean reprojection
+    error (N,) px; the observations of each point at frame 0 (`observations.point` indexes
+    points); the pair plan and prediction; counts of what each step kept."""
+
+    points: np.ndarray
+    rgb: np.ndarray
+    n_views: np.ndarray
+    reprojection_px: np.ndarray
+    observations: Observations
+    plan: PairPlan
+    prediction: PairPrediction
+    stats: dict
+
+
+def _observations(features: list[Features], track_ids: list[np.ndarray]) -> Observations:
+    sel = [ids >= 0 for ids in track_ids]
+    return Observations(
+        point=np.concatenate([ids[s] for ids, s in zip(track_ids, sel, strict=True)]),
+        camera=np.concatenate([np.full(s.sum(), c) for c, s in enumerate(sel)]),
+        pixels=np.concatenate([f.pixels[s] for f, s in zip(features, sel, strict=True)]),
+        normalized=np.concatenate([f.normalized[s] for f, s in zip(features, sel, strict=True)]),
+        rgb=np.concatenate([f.rgb[s] for f, s in zip(features, sel, strict=True)]),
+    )
+
+
+def build_template(
+    images: list[np.ndarray | None],
+    models: list[CameraModel],
+    poses: np.ndarray,
+    tool_pose: np.ndarray,
+    cfg: TemplateConfig,
+    tool_cfg: ToolConfig,
+    on_step: Callable[[str], None] | None = None,
+) -> TemplateResult:
+    """Build the template from one frame: images[c] (H, W, 3) uint8 RGB or None (unusable),
+    poses (C, 4, 4) camera-to-world, tool_pose (4, 4) tool tip in the world (NaN = unknown)."""
+    step = on_step or (lambda _name: None)
+    usable = np.array([im is not None and np.isfinite(p).all() for im, p in zip(images, poses, strict=True)])
+    if usable.sum() < 2:
+        raise GeometryError(f"frame 0 has {int(usable.sum())} usable camera(s); need >= 2")
+    features: list[Features] = []
+    for c, image in enumerate(images):
+        if not usable[c]:
+            features.append(detect_features(np.zeros((8, 8, 3), np.uint8), models[c], 1))
+            continue
+        mask = tool_image_mask(models[c], poses[c], tool_pose, tool_cfg)
+        features.append(detect_features(image, models[c], cfg.max_features, cfg.contrast_threshold,
+                                        exclude=mask))
+        step(f"features camera {c}")
+    prediction = predict_pairs(models, np.where(usable[:, None, None], poses, np.eye(4)), usable,
+                               cfg.working_distance)
+    focal = [m.K[0, 0] for m in models]
+    matches: dict[tuple[int, int], np.ndarray] = {}
+    weights = np.zeros((len(models), len(models)))
+    for i, j in candidate_pairs(prediction, cfg.min_view_overlap):
+        depth_range = (cfg.depth_range[0] * prediction.depth[i], cfg.depth_range[1] * prediction.depth[i])
+        m = match_pair(features[i], features[j], poses[i], poses[j], focal[i], focal[j],
+                       cfg.ratio, cfg.epipolar_px, depth_range)
+        if len(m) >= cfg.min_pair_matches:
+            matches[(i, j)] = m
+            weights[i, j] = weights[j, i] = len(m) * prediction.conditioning[i, j]
+        step(f"matched cameras {i}-{j}")
+    plan = plan_pairs(weights)
+    track_ids, n_tracks = build_tracks([len(f) for f in features], plan.pairs, matches)
+    if n_tracks == 0:
+        raise GeometryError("no feature tracks across cameras at frame 0: do the cameras overlap?")
+    obs = _observations(features, track_ids)
+    tri = triangulate(obs, poses, models, n_tracks)
+    # Drop single bad observations and re-triangulate what still has >= 2 views.
+    obs = obs.subset(tri.error_px <= cfg.max_reprojection_px)
+    counts = np.bincount(obs.point, minlength=n_tracks)
+    obs = obs.renumbered(counts >= 2)
+    n_points = int((counts >= 2).sum())
+    tri = triangulate(obs, poses, models, n_points)
+    good = (
+        np.isfinite(tri.points).all(1)
+        & tri.in_front
+        & (tri.max_error_px <= cfg.max_reprojection_px)
+        & (tri.angle_deg >= cfg.min_angle_deg)
+    )
+    on_tool = points_near_tool(np.nan_to_num(tri.points), tool_pose, tool_cfg) & good
+    off_surface = np.zeros_like(good)
+    candidates = np.flatnonzero(good & ~on_tool)
+    off_surface[candidates] = surface_outliers(tri.points[candidates])
+    keep = good & ~on_tool & ~off_surface
+    obs_kept = obs.renumbered(keep)
+    stats = {
+        "features": [len(f) for f in features],
+        "candidate_pairs": len(candidate_pairs(prediction, cfg.min_view_overlap)),
+        "verified_pairs": len(matches),
+        "matches": {f"{i}-{j}": len(m) for (i, j), m in matches.items()},
+        "tracks": n_tracks,
+        "triangulated": n_points,
+        "rejected_geometry": int((~good).sum()),
+        "removed_tool": int(on_tool.sum()),
+        "removed_off_surface": int(off_surface.sum()),
+        "points": int(keep.sum()),
+    }
+    return TemplateResult(
+        points=tri.points[keep], rgb=obs_kept.mean_rgb(int(keep.sum())), n_views=tri.n_views[keep],
+        reprojection_px=tri.mean_error_px[keep], observations=obs_kept, plan=plan,
+        prediction=prediction, stats=stats,
+    )

@@ -1,0 +1,79 @@
+"""Surgical tool removal from robot kinematics (Su et al. 2019, section II.C).
+
+The tool is modelled as a capsule: a shaft cylinder of `shaft_radius` from the tip along
+the tool frame's +z axis for `shaft_length`, with a rounded tip. A pixel is masked when its
+viewing ray passes within radius + margin of the shaft axis (margin given in px, turned
+into metres at the ray's depth); a 3D point is dropped when it lies closer than
+radius + margin to the axis.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..config import ToolConfig
+from .cameras import CameraModel, pixel_rays
+from .geometry import make_pose, point_to_segment_distance
+
+
+def shaft_segment(tool_pose: np.ndarray, cfg: ToolConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Start (tip) and end (3,) of the shaft axis in the world, from the tool-tip pose (4, 4)."""
+    tip = tool_pose[:3, 3]
+    return tip, tip + tool_pose[:3, 2] * cfg.shaft_length
+
+
+def tool_pose_in_world(tool_pose: np.ndarray, cfg: ToolConfig) -> np.ndarray:
+    """Apply `[tool] base_to_world` when the robot reports the tip in its base frame."""
+    if not cfg.base_to_world:
+        return tool_pose
+    b = np.asarray(cfg.base_to_world, float)
+    return make_pose(b[:3], b[3:]) @ tool_pose
+
+
+def ray_segment_distance(origin: np.ndarray, dirs: np.ndarray, a: np.ndarray, b: np.ndarray):
+    """Closest distance (N,) between rays origin + s*dirs (s >= 0, dirs unit (N, 3)) and the
+    segment a-b, with the ray parameter s (N,) at the closest approach."""
+    u = b - a
+    w0 = origin - a
+    uu = float(u @ u)
+    du = dirs @ u
+    dw = dirs @ w0
+    uw = float(u @ w0)
+    denom = uu - du**2  # |d|=1
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = np.where(denom > 1e-12, (du * uw - uu * dw) / denom, 0.0)
+    s = np.maximum(s, 0.0)
+    t = ((s * du + uw) / uu).clip(0.0, 1.0)
+    # Re-optimise s for the clamped t.
+    s = np.maximum(((a + t[:, None] * u - origin) * dirs).sum(1), 0.0)
+    diff = origin + s[:, None] * dirs - (a + t[:, None] * u)
+    return np.linalg.norm(diff, axis=1), s
+
+
+def tool_pixel_mask(pixels: np.ndarray, camera: CameraModel, cam_to_world: np.ndarray,
+                    tool_pose: np.ndarray, cfg: ToolConfig) -> np.ndarray:
+    """(N,) bool: pixels (N, 2) whose rays hit the tool capsule inflated by the px margin."""
+    if not np.isfinite(tool_pose).all() or len(pixels) == 0:
+        return np.zeros(len(pixels), bool)
+    a, b = shaft_segment(tool_pose, cfg)
+    origin, dirs = pixel_rays(pixels, camera, cam_to_world)
+    dist, s = ray_segment_distance(origin, dirs, a, b)
+    margin = cfg.mask_margin_px * s / camera.K[0, 0]
+    return dist <= cfg.shaft_radius + margin
+
+
+def tool_image_mask(camera: CameraModel, cam_to_world: np.ndarray, tool_pose: np.ndarray,
+                    cfg: ToolConfig) -> np.ndarray:
+    """(H, W) bool mask of the tool in one image."""
+    u, v = np.meshgrid(np.arange(camera.width), np.arange(camera.height))
+    pixels = np.stack([u.ravel(), v.ravel()], 1).astype(float)
+    return tool_pixel_mask(pixels, camera, cam_to_world, tool_pose, cfg).reshape(
+        camera.height, camera.width)
+
+
+def points_near_tool(points: np.ndarray, tool_pose: np.ndarray, cfg: ToolConfig) -> np.ndarray:
+    """(N,) bool: 3D points (N, 3) closer than radius + margin to the shaft axis."""
+    if not np.isfinite(tool_pose).all() or len(points) == 0:
+        return np.zeros(len(points), bool)
+    a, b = shaft_segment(tool_pose, cfg)
+    return point_to_segment_distance(points, a, b) <= cfg.shaft_radius + cfg.margin

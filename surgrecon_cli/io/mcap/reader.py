@@ -1,0 +1,325 @@
+"""Stream an MCAP log once, in file order, as role-tagged records, with bounded memory.
+
+Reads top-level records sequentially (`mcap.stream_reader.StreamReader`, chunk CRCs checked),
+so it works on files without a summary or footer (recorder crashed). Damage (truncation,
+bad CRC, bad compression, bad record length) raises `InputError` naming the file, the byte
+offset where valid data ends and the log time reached; with `allow_truncated` the messages
+before the damage are kept and the damage is reported in `LogReader.damage`.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import struct
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import IO, Any
+
+import zstandard
+from mcap.exceptions import EndOfFile, InvalidMagic, McapError, RecordLengthLimitExceeded
+from mcap.reader import SeekingReader
+from mcap.records import Channel, DataEnd, Footer, Message, Schema
+from mcap.stream_reader import CRCValidationError, StreamReader
+
+from ...config import TopicsConfig
+from ...errors import InputError, TopicError
+from ..records import PoseRecord, Record
+from .base import SchemaDecoder
+from .registry import DESERIALIZERS, find_decoder, supported
+from .topics import REQUIRED_ROLES, ROLE_KINDS, TopicRoles
+
+logger = logging.getLogger(__name__)
+
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+_STREAM_ERRORS = (McapError, ValueError, struct.error, EOFError, OverflowError, MemoryError,
+                  zstandard.ZstdError, RuntimeError)
+_MAX_LISTED = 40
+
+
+@dataclass(frozen=True)
+class LogItem:
+    """One record in its role: `camera` is the camera id for camera roles, else ""."""
+
+    role: str
+    camera: str
+    topic: str
+    log_time_ns: int
+    record: Record
+
+
+@dataclass
+class _ChannelInfo:
+    topic: str
+    schema_name: str
+    encoding: str
+    roles: list[tuple[str, str]] = field(default_factory=list)
+    decoder: SchemaDecoder | None = None
+    deserialize: Callable[[bytes], Any] | None = None
+
+
+class _TrackedFile:
+    """File wrapper: SHA-256 and position of everything read, progress callback."""
+
+    def __init__(self, raw: IO[bytes], on_bytes: Callable[[int], None] | None) -> None:
+        self.raw = raw
+        self.on_bytes = on_bytes
+        self.sha = hashlib.sha256()
+        self.pos = 0
+
+    def read(self, n: int = -1) -> bytes:
+        data = self.raw.read(n)
+        self.sha.update(data)
+        self.pos += len(data)
+        if self.on_bytes is not None and data:
+            self.on_bytes(len(data))
+        return data
+
+    def drain(self) -> None:
+        while self.read(1 << 20):
+            pass
+
+
+class LogReader:
+    """Iterate a log's records in the roles of `topics`; see the module docstring.
+
+    After iteration: `sha256` (of the whole file), `size`, `valid_bytes`, `damage` (None or a
+    one-line description), `last_log_time_ns`, `channels` {topic: "schema (encoding)"},
+    `message_counts` {topic: n}; `check_roles()` raises `TopicError` for missing roles.
+    require_roles: fail before streaming when the summary shows a required role missing.
+    """
+
+    def __init__(self, path: Path, topics: TopicsConfig, time_source: str = "header",
+                 allow_truncated: bool = False,
+                 on_bytes: Callable[[int], None] | None = None,
+                 require_roles: bool = True) -> None:
+        self.path = Path(path)
+        self.roles = TopicRoles(topics)
+        self.use_log_time = time_source == "log_time"
+        self.allow_truncated = allow_truncated
+        self.on_bytes = on_bytes
+        self.require_roles = require_roles
+        self.size = self.path.stat().st_size
+        self.sha256 = ""
+        self.valid_bytes = 0
+        self.damage: str | None = None
+        self.last_log_time_ns: int | None = None
+        self.channels: dict[str, str] = {}
+        self.message_counts: dict[str, int] = {}
+        self._role_topics: dict[str, set[str]] = {}
+        self._transform_frames: dict[str, set[str]] = {}
+        self._found: set[str] = set()
+        self._deserializers: dict[str, Any] = {}
+
+    # -- channels and roles --------------------------------------------------------------
+    def _classify(self, topic: str, schema_name: str, encoding: str) -> _ChannelInfo:
+        info = _ChannelInfo(topic, schema_name, encoding)
+        matches = self.roles.match(topic)
+        rejected = []
+        for m in matches:
+            decoder = find_decoder(encoding, schema_name, ROLE_KINDS[m.role])
+            if decoder is None:
+                rejected.append(m.role)
+                continue
+            if m.role == "camera_pose" and decoder.kind == "pose" and not m.camera:
+                raise TopicError(
+                    f"{self.path}: topics.camera_pose = {self.roles.patterns['camera_pose']!r} "
+                    f"has no {{camera}} placeholder, so the poses on {topic} ({schema_name}) "
+                    "belong to no camera; use a {camera} pattern, or transforms with "
+                    "topics.camera_frame")
+            info.decoder = decoder
+            info.roles.append((m.role, m.camera))
+        if rejected and not info.roles:
+            role = rejected[0]
+            raise TopicError(
+                f"{self.path}: topic {topic} matches topics.{role} = "
+                f"{self.roles.patterns[role]!r} but its schema {schema_name!r} ({encoding}) "
+                f"cannot be read as {role}; supported: {', '.join(supported(ROLE_KINDS[role]))}")
+        return info
+
+    def _missing_roles_error(self, missing: list[str], channels: dict[str, str]) -> TopicError:
+        wanted = ", ".join(f"topics.{r} = {self.roles.patterns[r]!r}" for r in missing)
+        listed = [f"{t} ({s})" for t, s in sorted(channels.items())]
+        more = f", ... ({len(listed) - _MAX_LISTED} more)" if len(listed) > _MAX_LISTED else ""
+        where = f" before the damage at byte {self.valid_bytes}" if self.damage else ""
+        return TopicError(
+            f"{self.path}: no topic{where} for {wanted}; topics in the log: "
+            f"{', '.join(listed[:_MAX_LISTED]) or 'none'}{more}; set [topics] in a --config file")
+
+    def _early_check(self) -> None:
+        """Check roles from the summary section, when the file has an intact one."""
+        try:
+            with open(self.path, "rb") as f:
+                f.seek(-len(MCAP_MAGIC), 2)
+                if f.read() != MCAP_MAGIC:
+                    return
+                f.seek(0)
+                summary = SeekingReader(f, record_size_limit=self.size).get_summary()
+        except (*_STREAM_ERRORS, OSError):
+            return
+        if summary is None or not summary.channels:
+            return
+        channels, found = {}, set()
+        for ch in summary.channels.values():
+            schema = summary.schemas.get(ch.schema_id)
+            name = schema.name if schema else ""
+            channels[ch.topic] = f"{name} ({ch.message_encoding})"
+            found.update(role for role, _ in self._classify(ch.topic, name, ch.message_encoding).roles)
+        missing = [r for r in REQUIRED_ROLES if r not in found]
+        if missing and self.require_roles:
+            raise self._missing_roles_error(missing, channels)
+
+    def check_roles(self) -> None:
+        """After iteration: every required role has a channel and (transforms) a frame."""
+        missing = [r for r in REQUIRED_ROLES if r not in self._role_topics]
+        if missing:
+            raise self._missing_roles_error(missing, self.channels)
+        for role, frame_key in (("camera_pose", "camera_frame"), ("tool_pose", "tool_frame")):
+            transform_topics = [t for t in self._role_topics[role] if t in self._transform_frames]
+            if transform_topics and role not in self._found:
+                frames = sorted(set().union(*(self._transform_frames[t] for t in transform_topics)))
+                raise TopicError(
+                    f"{self.path}: no transform on {', '.join(sorted(transform_topics))} has a "
+                    f"child frame matching topics.{frame_key} = "
+                    f"{getattr(self.roles.config, frame_key)!r}; child frames seen: "
+                    f"{', '.join(frames[:_MAX_LISTED]) or 'none'}")
+        if "joint_states" not in self._role_topics:
+            logger.warning("%s: no topic for topics.joint_states = %r; joint positions unknown",
+                           self.path, self.roles.patterns["joint_states"])
+
+    # -- streaming -----------------------------------------------------------------------
+    def check_magic(self) -> None:
+        """InputError unless the file starts with the MCAP magic bytes."""
+        with open(self.path, "rb") as f:
+            head = f.read(len(MCAP_MAGIC))
+        if head != MCAP_MAGIC:
+            raise InputError(f"{self.path}: not an MCAP file (it does not start with the "
+                             "MCAP magic bytes); pass a .mcap log")
+
+    def __iter__(self) -> Iterator[LogItem]:
+        self.check_magic()
+        self._early_check()
+        with open(self.path, "rb") as raw:
+            tracked = _TrackedFile(raw, self.on_bytes)
+            yield from self._stream(tracked)
+            tracked.drain()  # the hash covers the whole file, damaged part included
+            self.sha256 = tracked.sha.hexdigest()
+
+    def _stream(self, tracked: _TrackedFile) -> Iterator[LogItem]:
+        stream = StreamReader(tracked, validate_crcs=True, record_size_limit=self.size)
+        records = stream.records
+        schemas: dict[int, Schema] = {}
+        channels: dict[int, _ChannelInfo] = {}
+        data_complete = False
+        while True:
+            try:
+                record = next(records)
+            except StopIteration:
+                break
+            except _STREAM_ERRORS as exc:
+                self._on_damage(exc, data_complete)
+                return
+            self.valid_bytes = tracked.pos
+            if isinstance(record, Schema):
+                schemas[record.id] = record
+            elif isinstance(record, Channel):
+                if record.id not in channels:
+                    channels[record.id] = self._open_channel(record, schemas)
+            elif isinstance(record, Message):
+                info = channels.get(record.channel_id)
+                if info is None:
+                    self._on_damage(McapError(f"message on unknown channel {record.channel_id}"),
+                                    data_complete)
+                    return
+                yield from self._message(info, schemas, record)
+            elif isinstance(record, DataEnd):
+                data_complete = True
+            elif isinstance(record, Footer):
+                self.valid_bytes = self.size
+                break
+
+    def _open_channel(self, channel: Channel, schemas: dict[int, Schema]) -> _ChannelInfo:
+        schema = schemas.get(channel.schema_id)
+        name = schema.name if schema else ""
+        self.channels[channel.topic] = f"{name} ({channel.message_encoding})"
+        info = self._classify(channel.topic, name, channel.message_encoding)
+        for role, _ in info.roles:
+            self._role_topics.setdefault(role, set()).add(channel.topic)
+        if info.roles:
+            factory = DESERIALIZERS.get(channel.message_encoding)
+            try:
+                if factory is None:
+                    raise ValueError(f"no deserializer for {channel.message_encoding}")
+                if channel.message_encoding not in self._deserializers:
+                    self._deserializers[channel.message_encoding] = factory()
+                info.deserialize = self._deserializers[channel.message_encoding].for_schema(schema)
+            except Exception as exc:  # third-party schema parsers raise anything
+                raise InputError(f"{self.path}: schema {name!r} of topic {channel.topic} cannot "
+                                 f"be parsed ({_one_line(exc)})") from exc
+        return info
+
+    def _message(self, info: _ChannelInfo, schemas: dict[int, Schema],
+                 message: Message) -> Iterator[LogItem]:
+        self.message_counts[info.topic] = self.message_counts.get(info.topic, 0) + 1
+        self.last_log_time_ns = message.log_time
+        if info.decoder is None or info.deserialize is None:
+            return
+        try:
+            records = info.decoder.convert(info.deserialize(message.data))
+        except Exception as exc:  # third-party decoders raise anything on malformed bytes
+            raise InputError(
+                f"{self.path}: message on {info.topic} at log time {message.log_time / 1e9:.6f} s "
+                f"does not decode as {info.schema_name} ({_one_line(exc)})") from exc
+        for record in records:
+            if self.use_log_time or record.stamp_ns <= 0:
+                record = replace(record, stamp_ns=message.log_time)
+            for role, camera in info.roles:
+                cam = self._assign(info, role, camera, record)
+                if cam is not None:
+                    self._found.add(role)
+                    yield LogItem(role, cam, info.topic, message.log_time, record)
+
+    def _assign(self, info: _ChannelInfo, role: str, camera: str, record: Record) -> str | None:
+        """Camera id ("" for non-camera roles) this record has in `role`, or None if none."""
+        if not (isinstance(record, PoseRecord) and info.decoder is not None
+                and info.decoder.kind == "transforms"):
+            return camera
+        frames = self._transform_frames.setdefault(info.topic, set())
+        if len(frames) < 1000:
+            frames.add(record.child_frame_id)
+        if role == "camera_pose":
+            return self.roles.camera_of_frame(record.child_frame_id)
+        if role == "tool_pose":
+            return "" if self.roles.is_tool_frame(record.child_frame_id) else None
+        return None
+
+    def _on_damage(self, exc: BaseException, data_complete: bool) -> None:
+        if isinstance(exc, EndOfFile | EOFError):
+            reason = "the file ends inside a record (truncated: recorder crashed or copy incomplete)"
+        elif isinstance(exc, CRCValidationError):
+            reason = "a chunk fails its CRC check (corrupt data)"
+        elif isinstance(exc, zstandard.ZstdError | RuntimeError):
+            reason = "a chunk does not decompress (corrupt data)"
+        elif isinstance(exc, RecordLengthLimitExceeded):
+            reason = "a record length runs past the end of the file (corrupt data)"
+        elif isinstance(exc, InvalidMagic):
+            reason = "the closing magic bytes are wrong (corrupt end of file)"
+        else:
+            reason = f"a record is malformed (corrupt data: {_one_line(exc)})"
+        if data_complete:
+            logger.warning("%s: %s after the data section; all messages were read", self.path, reason)
+            return
+        t = self.last_log_time_ns
+        when = f"log time {t / 1e9:.6f} s" if t is not None else "before any message"
+        self.damage = (f"{reason}; valid data ends at byte {self.valid_bytes} of {self.size} "
+                       f"({when})")
+        if not self.allow_truncated:
+            raise InputError(f"{self.path}: {self.damage}; re-copy or repair the log, or pass "
+                             "--allow-truncated to use the data before the damage") from exc
+        logger.warning("%s: %s; using the data before it (--allow-truncated)", self.path, self.damage)
+
+
+def _one_line(exc: BaseException) -> str:
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    return text if len(text) <= 200 else text[:197] + "..."

@@ -1,0 +1,72 @@
+"""Topic roles from the `[topics]` config: which channel is which camera's image, intrinsics,
+pose, and which carries the tool pose and joint states.
+
+Patterns hold a `{camera}` placeholder that captures the camera id (`[^/]+`). A pose role whose
+topic carries transforms (TFMessage, FrameTransform(s)) picks its transforms by child frame:
+`camera_frame` (with `{camera}`) for cameras, `tool_frame` for the tool.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+
+from ...config import TopicsConfig
+
+ROLES = ("image", "camera_info", "camera_pose", "tool_pose", "joint_states")
+REQUIRED_ROLES = ("image", "camera_info", "camera_pose", "tool_pose")
+ROLE_KINDS: dict[str, tuple[str, ...]] = {
+    "image": ("image",),
+    "camera_info": ("camera_info",),
+    "camera_pose": ("pose", "transforms"),
+    "tool_pose": ("pose", "transforms"),
+    "joint_states": ("joint_states",),
+}
+CAMERA_ROLES = ("image", "camera_info", "camera_pose")
+
+
+def pattern_regex(pattern: str) -> re.Pattern[str]:
+    """`/endoscope_{camera}/pose` -> a regex matching the whole name, group `camera` = the id."""
+    parts = [re.escape(p) for p in pattern.split("{camera}")]
+    regex = parts[0]
+    for i, part in enumerate(parts[1:]):
+        regex += ("(?P<camera>[^/]+)" if i == 0 else "(?P=camera)") + part
+    return re.compile(regex + r"\Z")
+
+
+@dataclass(frozen=True)
+class RoleMatch:
+    """A channel plays `role`; `camera` is the captured id ("" if none in the pattern)."""
+
+    role: str
+    camera: str
+
+
+class TopicRoles:
+    """Compiled `[topics]` patterns."""
+
+    def __init__(self, topics: TopicsConfig) -> None:
+        self.config = topics
+        self.patterns = {role: getattr(topics, role) for role in ROLES}
+        self._topic_re = {role: pattern_regex(p) for role, p in self.patterns.items()}
+        self._camera_frame = pattern_regex(topics.camera_frame)
+        self._tool_frame = pattern_regex(topics.tool_frame)
+
+    def match(self, topic: str) -> list[RoleMatch]:
+        """Every role whose topic pattern matches `topic` in full."""
+        out = []
+        for role, regex in self._topic_re.items():
+            m = regex.match(topic)
+            if m:
+                out.append(RoleMatch(role, m.groupdict().get("camera") or ""))
+        return out
+
+    def camera_of_frame(self, child_frame_id: str) -> str | None:
+        """Camera id of a transform's child frame (`camera_frame` pattern), or None."""
+        m = self._camera_frame.match(child_frame_id)
+        if m is None:
+            return None
+        return m.groupdict().get("camera") or ""
+
+    def is_tool_frame(self, child_frame_id: str) -> bool:
+        return self._tool_frame.match(child_frame_id) is not None

@@ -1,0 +1,165 @@
+"""`RUN/run.json`: what a run folder holds, read and updated atomically by every stage.
+
+run.json layout:
+  {"surgrecon": version, "input": {"path", "sha256", "bytes"}, "config": {...},
+   "versions": {package: version}, "stages": {name: {"status": ..., ...info}},
+   "ingest": {"cameras": [...], "frames": T}}
+Stage status is "running", "done" or "failed"; only "done" means the stage's outputs are
+complete. Every update rewrites the file atomically (temporary name, then rename).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import importlib.metadata
+import json
+from pathlib import Path
+from typing import Any
+
+from .. import __version__
+from ..config import Config, to_dict, to_toml
+from ..errors import RunFolderError
+from .atomic import write_json, write_text
+
+STATUSES = ("running", "done", "failed")
+_PACKAGES = {
+    "surgrecon": ("surgrecon",),
+    "numpy": ("numpy",),
+    "scipy": ("scipy",),
+    "opencv": ("opencv-python-headless", "opencv-python", "opencv-contrib-python"),
+    "open3d": ("open3d-cpu", "open3d"),
+    "mcap": ("mcap",),
+}
+
+
+def package_versions() -> dict[str, str]:
+    """Installed versions of surgrecon and its main dependencies ("" if not installed)."""
+    out = {}
+    for key, dists in _PACKAGES.items():
+        out[key] = ""
+        for dist in dists:
+            try:
+                out[key] = importlib.metadata.version(dist)
+                break
+            except importlib.metadata.PackageNotFoundError:
+                continue
+    if not out["surgrecon"]:
+        out["surgrecon"] = __version__
+    return out
+
+
+def file_sha256(path: Path) -> str:
+    """SHA-256 hex digest of a file, read in 1 MiB blocks."""
+    sha = hashlib.sha256()
+    with open(path, "rb") as f:
+        while block := f.read(1 << 20):
+            sha.update(block)
+    return sha.hexdigest()
+
+
+def _plain(obj: Any) -> Any:
+    """JSON round trip (tuples -> lists), for comparing a config with the recorded one."""
+    return json.loads(json.dumps(obj))
+
+
+class RunFolder:
+    """A run folder and its run.json."""
+
+    def __init__(self, path: Path | str) -> None:
+        self.path = Path(path)
+
+    @property
+    def run_json(self) -> Path:
+        return self.path / "run.json"
+
+    def exists(self) -> bool:
+        return self.run_json.is_file()
+
+    def read(self) -> dict[str, Any]:
+        """Parsed run.json; RunFolderError if missing or unreadable."""
+        try:
+            data = json.loads(self.run_json.read_text(encoding="utf-8"))
+        except FileNotFoundError as exc:
+            raise RunFolderError(f"{self.path}: not a run folder (no run.json); run "
+                                 "`surgrecon ingest LOG.mcap -o RUN` first") from exc
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raise RunFolderError(f"{self.run_json}: unreadable ({exc})") from exc
+        if not isinstance(data, dict):
+            raise RunFolderError(f"{self.run_json}: not a JSON object")
+        return data
+
+    def write(self, data: dict[str, Any]) -> None:
+        self.path.mkdir(parents=True, exist_ok=True)
+        write_json(self.run_json, data)
+
+    def start(self, input_path: Path, config: Config) -> None:
+        """A fresh run.json for `input_path` (any earlier stage status is dropped) and the
+        effective config as RUN/config.toml."""
+        self.path.mkdir(parents=True, exist_ok=True)
+        write_text(self.path / "config.toml", to_toml(config))
+        self.write({
+            "surgrecon": __version__,
+            "input": {"path": str(Path(input_path).resolve()), "sha256": None,
+                      "bytes": Path(input_path).stat().st_size},
+            "config": _plain(to_dict(config)),
+            "versions": package_versions(),
+            "stages": {},
+        })
+
+    def update(self, **fields: Any) -> None:
+        """Set top-level fields of run.json (e.g. input=..., ingest=...)."""
+        data = self.read()
+        data.update(_plain(fields))
+        self.write(data)
+
+    def stage(self, name: str) -> dict[str, Any]:
+        """The stage's entry ({} if it never ran)."""
+        if not self.exists():
+            return {}
+        return dict(self.read().get("stages", {}).get(name, {}))
+
+    def stage_status(self, name: str) -> str | None:
+        return self.stage(name).get("status")
+
+    def is_done(self, name: str) -> bool:
+        return self.stage_status(name) == "done"
+
+    def require_done(self, name: str) -> None:
+        """RunFolderError unless stage `name` completed."""
+        if not self.is_done(name):
+            status = self.stage_status(name) or "not run"
+            raise RunFolderError(f"{self.path}: stage {name} is {status}; run "
+                                 f"`surgrecon {name} {self.path}` first")
+
+    def mark_stage(self, name: str, status: str, **info: Any) -> None:
+        """Record a stage's status ("running", "done", "failed") and info, atomically."""
+        if status not in STATUSES:
+            raise ValueError(f"stage status must be one of {STATUSES}, got {status!r}")
+        data = self.read()
+        data.setdefault("stages", {})[name] = {"status": status, **_plain(info)}
+        self.write(data)
+
+    @property
+    def input_hash(self) -> str | None:
+        """SHA-256 of the input log recorded at ingest (None before ingest finished)."""
+        return self.read().get("input", {}).get("sha256")
+
+    def check_input(self, input_path: Path) -> None:
+        """RunFolderError if `input_path` is not the log this run was made from."""
+        recorded = self.input_hash
+        if recorded and file_sha256(Path(input_path)) != recorded:
+            raise RunFolderError(f"{self.path} was made from another log than {input_path} "
+                                 "(SHA-256 differs); use a new run folder")
+
+    def check_config(self, config: Config, sections: tuple[str, ...] | None = None) -> None:
+        """RunFolderError naming the first key where `config` differs from the recorded one
+        (only `sections` if given, e.g. ("topics", "ingest"))."""
+        recorded = self.read().get("config", {})
+        current = _plain(to_dict(config))
+        for section in sections or tuple(current):
+            old, new = recorded.get(section, {}), current.get(section, {})
+            for key in sorted(set(old) | set(new)):
+                if old.get(key) != new.get(key):
+                    raise RunFolderError(
+                        f"{self.path} was made with {section}.{key} = {old.get(key)!r}, now "
+                        f"{new.get(key)!r}; use the run's config.toml or a new run folder")

@@ -1,0 +1,215 @@
+"""The simulated surgical cavity: a textured tissue dome, its motion, the tool and the cameras.
+
+World frame: z up, metres. The tissue is a heightfield dome over a disk; every mesh vertex
+is a material point whose frame-0 (x, y) indexes the texture. Motion (all ours, chosen to
+resemble an insufflated abdomen, not taken from the paper):
+- breathing: the part of the dome with x > `breath_edge` shifts rigidly by up to
+  `breath_amplitude` (smooth-step transition of width `breath_width`), cos² in time;
+- tool: a cylindrical shaft approaches a contact point in the still part of the dome and
+  indents it along its axis by up to `indent_depth` (Gaussian dent of width `indent_sigma`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..core.geometry import make_pose, matrix_to_quat
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    """Simulator settings (metres, seconds, pixels)."""
+
+    cameras: int = 6
+    frames: int = 20
+    width: int = 640
+    height: int = 480
+    seed: int = 7
+    frame_rate: float = 5.0          # camera frame rate (Hz)
+    tracker_rate: float = 40.0       # navigation tracker rate (Hz)
+    robot_rate: float = 100.0        # robot tool pose / joint state rate (Hz)
+    tracker_noise_pos: float = 0.1e-3  # tracker position noise, norm (m)
+    tracker_noise_deg: float = 0.05  # tracker rotation noise (deg)
+    image_noise: float = 2.0         # Gaussian pixel noise (of 255)
+    jpeg_quality: int = 92
+    dome_radius: float = 0.05        # disk radius of the tissue (m)
+    dome_height: float = 0.012       # dome bulge at the centre (m)
+    grid_spacing: float = 0.001      # mesh vertex spacing (m)
+    breath_edge: float = -0.004      # x of the breathing region's edge (m)
+    breath_width: float = 0.008      # width of the smooth transition (m)
+    breath_amplitude: float = 0.003  # peak breathing shift (m)
+    breath_period: float = 5.0       # s
+    indent_depth: float = 0.007      # peak tool indentation (m)
+    indent_sigma: float = 0.006      # dent width (m)
+    contact_xy: tuple[float, float] = (-0.022, 0.010)  # material contact point (m)
+    tool_radius: float = 0.004       # shaft radius (m), matches [tool] defaults
+    tool_length: float = 0.15        # shaft length (m)
+    camera_ring_radius: float = 0.030  # cameras on a ring around the dome axis (m)
+    camera_height: float = 0.055     # camera height above the dome base (m)
+    separated: bool = False          # place one camera far away, seeing nothing shared (tests)
+
+
+def smoothstep(x: np.ndarray) -> np.ndarray:
+    x = np.clip(x, 0.0, 1.0)
+    return x * x * (3 - 2 * x)
+
+
+@dataclass(frozen=True)
+class TissueMesh:
+    """Triangle mesh of the tissue at rest: vertices (V, 3) m, faces (F, 3) int32."""
+
+    vertices: np.ndarray
+    faces: np.ndarray
+
+    @property
+    def material_xy(self) -> np.ndarray:
+        return self.vertices[:, :2]
+
+
+def dome_height(xy: np.ndarray, cfg: SimConfig, rng_bumps: np.ndarray) -> np.ndarray:
+    """Dome profile (N,) m: a paraboloid cap plus a few low bumps (centres/amplitudes given)."""
+    r2 = (xy ** 2).sum(1) / cfg.dome_radius**2
+    z = cfg.dome_height * (1 - r2)
+    for cx, cy, amp, sig in rng_bumps:
+        z += amp * np.exp(-((xy[:, 0] - cx) ** 2 + (xy[:, 1] - cy) ** 2) / (2 * sig**2))
+    return z
+
+
+def make_tissue(cfg: SimConfig) -> TissueMesh:
+    """A regular grid over the disk, triangulated, lifted to the dome profile."""
+    rng = np.random.default_rng(cfg.seed + 101)
+    n = int(round(2 * cfg.dome_radius / cfg.grid_spacing)) + 1
+    axis = np.linspace(-cfg.dome_radius, cfg.dome_radius, n)
+    gx, gy = np.meshgrid(axis, axis, indexing="xy")
+    xy = np.stack([gx.ravel(), gy.ravel()], 1)
+    inside = (xy**2).sum(1) <= cfg.dome_radius**2 * 1.0001
+    index = np.full(n * n, -1)
+    index[inside] = np.arange(inside.sum())
+    ii, jj = np.meshgrid(np.arange(n - 1), np.arange(n - 1), indexing="ij")
+    a = (ii * n + jj).ravel()
+    quads = np.stack([a, a + 1, a + n, a + n + 1], 1)
+    tri = np.concatenate([quads[:, [0, 2, 1]], quads[:, [1, 2, 3]]])
+    tri = index[tri]
+    faces = tri[(tri >= 0).all(1)].astype(np.int32)
+    bumps = np.column_stack([
+        rng.uniform(-0.03, 0.03, 6), rng.uniform(-0.03, 0.03, 6),
+        rng.uniform(-0.002, 0.002, 6), rng.uniform(0.006, 0.012, 6),
+    ])
+    xy = xy[inside]
+    vertices = np.column_stack([xy, dome_height(xy, cfg, bumps)])
+    return TissueMesh(vertices=vertices, faces=faces)
+
+
+def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Area-weighted unit vertex normals (V, 3), oriented upward (+z) for the dome."""
+    v0, v1, v2 = (vertices[faces[:, k]] for k in range(3))
+    fn = np.cross(v1 - v0, v2 - v0)
+    normals = np.zeros_like(vertices)
+    for k in range(3):
+        np.add.at(normals, faces[:, k], fn)
+    normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+    return normals * np.where(normals[:, 2:3] < 0, -1.0, 1.0)
+
+
+class Motion:
+    """Ground-truth motion of tissue, tool and cameras as functions of time (s)."""
+
+    def __init__(self, cfg: SimConfig, mesh: TissueMesh):
+        self.cfg = cfg
+        self.mesh = mesh
+        rng = np.random.default_rng(cfg.seed + 202)
+        duration = cfg.frames / cfg.frame_rate
+        # Tool: approaches from above and to the side; axis u points from the tip up the shaft.
+        axis = np.array([-0.35, 0.25, 1.0])
+        self.tool_axis = axis / np.linalg.norm(axis)
+        contact = np.asarray(cfg.contact_xy, float)
+        self.contact_rest = np.array([*contact, 0.0])
+        nearest = np.argmin(((mesh.vertices[:, :2] - contact) ** 2).sum(1))
+        self.contact_rest[2] = mesh.vertices[nearest, 2]
+        self.t_contact = 0.1 * duration
+        self.t_full = 0.35 * duration
+        self.t_release = 0.75 * duration
+        # Cameras: a ring, each drifting slowly and independently (a few mm, a few degrees).
+        n = cfg.cameras
+        angles = np.linspace(0, 2 * np.pi, n, endpoint=False) + rng.uniform(-0.2, 0.2, n)
+        self.cam_base = np.column_stack([
+            cfg.camera_ring_radius * np.cos(angles), cfg.camera_ring_radius * np.sin(angles),
+            cfg.camera_height + rng.uniform(-0.005, 0.005, n),
+        ])
+        self.cam_look = np.column_stack([rng.uniform(-0.012, 0.012, (n, 2)), np.zeros(n)])
+        if cfg.separated and n >= 2:
+            # Last camera looks at empty space far from the dome: shares no view.
+            self.cam_base[-1] = [0.35, 0.35, cfg.camera_height]
+            self.cam_look[-1] = [0.45, 0.45, 0.0]
+        self.cam_roll = rng.uniform(-np.pi, np.pi, n)
+        self.drift_amp = rng.uniform(0.001, 0.003, (n, 6))
+        self.drift_freq = rng.uniform(0.1, 0.3, (n, 6))
+        self.drift_phase = rng.uniform(0, 2 * np.pi, (n, 6))
+
+    # ---- tissue -------------------------------------------------------------------------
+    def breathing(self, t: float) -> float:
+        """Breathing shift amplitude (m) at time t; 0 at t = 0."""
+        cfg = self.cfg
+        return cfg.breath_amplitude * 0.5 * (1 - np.cos(2 * np.pi * t / cfg.breath_period))
+
+    def indentation(self, t: float) -> float:
+        """Indentation depth (m) at time t: ramps in, holds, partly releases."""
+        cfg = self.cfg
+        duration = cfg.frames / cfg.frame_rate
+        if t <= self.t_contact:
+            return 0.0
+        if t <= self.t_full:
+            return cfg.indent_depth * smoothstep((t - self.t_contact) / (self.t_full - self.t_contact))
+        if t <= self.t_release:
+            return cfg.indent_depth
+        s = smoothstep((t - self.t_release) / max(duration - self.t_release, 1e-6))
+        return cfg.indent_depth * (1 - 0.6 * s)
+
+    def tissue_vertices(self, t: float) -> np.ndarray:
+        """Tissue vertex positions (V, 3) m at time t."""
+        cfg = self.cfg
+        rest = self.mesh.vertices
+        weight = smoothstep((rest[:, 0] - cfg.breath_edge) / cfg.breath_width + 0.5)
+        direction = np.array([0.35, 0.15, 1.0])
+        direction /= np.linalg.norm(direction)
+        moved = rest + (self.breathing(t) * weight)[:, None] * direction
+        d2 = ((rest - self.contact_rest) ** 2).sum(1)
+        dent = self.indentation(t) * np.exp(-d2 / (2 * cfg.indent_sigma**2))
+        return moved - dent[:, None] * self.tool_axis
+
+    # ---- tool ---------------------------------------------------------------------------
+    def tool_tip(self, t: float) -> np.ndarray:
+        """Tool tip position (3,) m: hovers above the contact point, then follows the dent."""
+        hover = 0.012 * (1 - smoothstep(t / max(self.t_contact, 1e-6)))
+        return self.contact_rest + (hover - self.indentation(t)) * self.tool_axis
+
+    def tool_pose(self, t: float) -> tuple[np.ndarray, np.ndarray]:
+        """Tool tip pose in the world: position (3,), quaternion (4,); its +z is the shaft."""
+        z = self.tool_axis
+        x = np.cross([0.0, 1.0, 0.0], z)
+        x /= np.linalg.norm(x)
+        R = np.column_stack([x, np.cross(z, x), z])
+        return self.tool_tip(t), matrix_to_quat(R)
+
+    def joint_positions(self, t: float) -> np.ndarray:
+        """Seven plausible joint values (rad, m) of a Raven-II-like arm following the tip."""
+        tip = self.tool_tip(t)
+        return np.array([0.3 + 5 * tip[0], -0.2 + 5 * tip[1], 0.35 - 3 * tip[2],
+                         0.1 * np.sin(t), 0.05 * np.cos(t), 0.2, 0.2])
+
+    # ---- cameras ------------------------------------------------------------------------
+    def camera_pose(self, cam: int, t: float) -> np.ndarray:
+        """True camera-to-world pose (4, 4) (optical frame) of camera `cam` at time t."""
+        a, f, p = self.drift_amp[cam], self.drift_freq[cam], self.drift_phase[cam]
+        wobble = a * np.sin(2 * np.pi * f * t + p)
+        position = self.cam_base[cam] + wobble[:3]
+        look = self.cam_look[cam] + wobble[3:]
+        z = look - position
+        z /= np.linalg.norm(z)
+        ref = np.array([np.cos(self.cam_roll[cam]), np.sin(self.cam_roll[cam]), 0.0])
+        x = np.cross(z, ref)
+        x /= np.linalg.norm(x)
+        R = np.column_stack([x, np.cross(z, x), z])
+        return make_pose(position, matrix_to_quat(R))

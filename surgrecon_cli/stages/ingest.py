@@ -1,0 +1,245 @@
+"""The ingest stage: MCAP log -> `RUN/ingest/` (frames, poses, intrinsics, images) + run.json.
+
+Streams the log once (images written to disk as they arrive), then synchronises images into
+frames, interpolates tracker poses to each image stamp and the robot to each frame stamp
+(`core.sync`), and saves `IngestedLog`. Everything is built in a hidden staging folder that
+is renamed to `RUN/ingest` only when complete; run.json says `ingest: done` only after that.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import shutil
+import tempfile
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..config import Config
+from ..core.sync import (
+    FrameGrouping,
+    base_to_world_pose,
+    group_frames,
+    interpolate_values,
+    poses_at,
+    rate_hz,
+)
+from ..errors import InputError, RunFolderError, SurgReconError
+from ..io.ingest_store import IngestedLog, image_relpath, save_ingested
+from ..io.mcap import LogReader
+from ..io.run_folder import RunFolder
+from .ingest_streams import STAGED, StreamCollector
+
+logger = logging.getLogger(__name__)
+
+STAGE = "ingest"
+
+
+@dataclass(frozen=True)
+class IngestResult:
+    """Outcome of ingest: sorted camera ids, number of frames, and the report
+    ({"cameras": {id: {...}}, "frames": T, ...}, also stored in RUN/ingest/cameras.json)."""
+
+    run_dir: Path
+    cameras: tuple[str, ...]
+    n_frames: int
+    report: dict[str, Any]
+
+
+def ingest(
+    log_path: Path,
+    run_dir: Path,
+    config: Config,
+    allow_truncated: bool = False,
+    force: bool = False,
+    on_bytes: Callable[[int], None] | None = None,
+) -> IngestResult:
+    """Ingest `log_path` into `run_dir` (created if needed).
+
+    allow_truncated: use the data before damage instead of failing (complete frames only).
+    force: replace an existing completed ingest (later stages must then re-run).
+    on_bytes: progress callback, called with the number of bytes read from the log.
+    Raises InputError / TopicError on a bad log, RunFolderError if `run_dir` is not usable.
+    """
+    log_path, run_dir = Path(log_path), Path(run_dir)
+    if not log_path.is_file():
+        raise InputError(f"{log_path}: no such file")
+    reader = LogReader(log_path, config.topics, config.ingest.time_source, allow_truncated, on_bytes)
+    reader.check_magic()
+    run = _prepare_run_folder(run_dir, log_path, config, force)
+    for leftover in run_dir.glob(".ingest-*"):
+        shutil.rmtree(leftover, ignore_errors=True)
+    staging = Path(tempfile.mkdtemp(prefix=".ingest-", dir=run_dir))
+    try:
+        collector = StreamCollector(staging)
+        for item in reader:
+            collector.add(item)
+        reader.check_roles()
+        log, report = _assemble(collector, reader, config, staging)
+        save_ingested(log)
+        _swap_in(staging, run_dir / "ingest")
+    except BaseException as exc:
+        shutil.rmtree(staging, ignore_errors=True)
+        message = str(exc) if isinstance(exc, SurgReconError) else type(exc).__name__
+        with contextlib.suppress(OSError, RunFolderError):
+            run.mark_stage(STAGE, "failed", error=message)
+        raise
+    cameras = list(log.cameras)
+    run.update(input={"path": str(log_path.resolve()), "sha256": reader.sha256,
+                      "bytes": reader.size},
+               ingest={"cameras": cameras, "frames": log.n_frames})
+    run.mark_stage(STAGE, "done", cameras=cameras, frames=log.n_frames,
+                   truncated=reader.damage, usable_views=int(log.usable.sum()))
+    return IngestResult(run_dir, log.cameras, log.n_frames, report)
+
+
+def _prepare_run_folder(run_dir: Path, log_path: Path, config: Config, force: bool) -> RunFolder:
+    run = RunFolder(run_dir)
+    if run.exists():
+        if run.is_done(STAGE) and not force:
+            raise RunFolderError(
+                f"{run_dir} already holds an ingested log; pass --force to replace it "
+                "(later stages will re-run) or use a new run folder")
+    elif run_dir.exists() and any(run_dir.iterdir()) and not force:
+        raise RunFolderError(f"{run_dir} exists, is not empty and has no run.json; "
+                             "use a new or empty folder")
+    run.start(log_path, config)
+    run.mark_stage(STAGE, "running")
+    return run
+
+
+def _swap_in(staging: Path, final: Path) -> None:
+    """Rename the staging folder to `final`, replacing an older one."""
+    if final.exists():
+        old = final.with_name(f".ingest-old-{os.getpid()}")
+        final.rename(old)
+        staging.rename(final)
+        shutil.rmtree(old, ignore_errors=True)
+    else:
+        staging.rename(final)
+
+
+def _trim_incomplete_tail(frames: FrameGrouping, usable: np.ndarray) -> int:
+    """Number of frames to keep after damage: drop trailing frames missing any camera."""
+    keep = frames.n_frames
+    while keep > 0 and not usable[keep - 1].all():
+        keep -= 1
+    return keep
+
+
+def _assemble(collector: StreamCollector, reader: LogReader, config: Config,
+              staging: Path) -> tuple[IngestedLog, dict[str, Any]]:
+    """Sync, interpolate, validate, name the images by frame; returns the log and report."""
+    with_images = {cid: cam for cid, cam in collector.cameras.items() if len(cam.stamps)}
+    if not with_images:
+        raise InputError(f"{reader.path}: no images on the image topics "
+                         f"({', '.join(sorted(reader.channels)) or 'no topics'})")
+    ids = tuple(sorted(with_images))
+    cams = [with_images[c] for c in ids]
+    for cid, cam in zip(ids, cams, strict=True):
+        if cam.model is None:
+            raise InputError(f"camera {cid}: images on {cam.image_topic} but no intrinsics on "
+                             f"a topic matching topics.camera_info = {config.topics.camera_info!r}")
+        if cam.poses is None or not len(cam.poses.stamps):
+            raise InputError(f"camera {cid}: images on {cam.image_topic} but no pose on "
+                             f"topics.camera_pose = {config.topics.camera_pose!r}")
+    pose_streams = [cam.poses.validated() for cam in cams if cam.poses is not None]
+    tool = collector.tool.validated()
+    gap_ns = int(round(config.ingest.pose_gap_ms * 1e6))
+
+    orders = [np.argsort(np.array(cam.stamps, np.int64), kind="stable") for cam in cams]
+    stamps = [np.array(cam.stamps, np.int64)[o] for cam, o in zip(cams, orders, strict=True)]
+    frames = group_frames(stamps, int(round(config.ingest.sync_tolerance_ms * 1e6)))
+    T, C = frames.image_index.shape
+    image_stamps = np.full((T, C), -1, dtype=np.int64)
+    poses = np.full((T, C, 4, 4), np.nan)
+    usable = np.zeros((T, C), dtype=bool)
+    for c in range(C):
+        rows = np.flatnonzero(frames.image_index[:, c] >= 0)
+        image_stamps[rows, c] = stamps[c][frames.image_index[rows, c]]
+        poses[rows, c], usable[rows, c] = poses_at(pose_streams[c], image_stamps[rows, c], gap_ns)
+    keep = _trim_incomplete_tail(frames, usable) if reader.damage else T
+    if keep == 0:
+        raise InputError(f"{reader.path}: no complete frame before the damage "
+                         f"({reader.damage})")
+    trimmed = T - keep
+    T = keep
+    frame_stamps = frames.stamps_ns[:T]
+    image_index, image_stamps = frames.image_index[:T], image_stamps[:T]
+    poses, usable = poses[:T], usable[:T]
+
+    tool_poses, tool_valid = poses_at(tool, frame_stamps, gap_ns)
+    if config.tool.base_to_world:
+        tool_poses = np.einsum("ij,tjk->tik", base_to_world_pose(config.tool.base_to_world),
+                               tool_poses)
+    joint_stamps, joint_values = collector.joints()
+    joint_positions = interpolate_values(joint_stamps, joint_values, frame_stamps, gap_ns)
+
+    image_paths = _place_images(staging, cams, orders, image_index)
+    report = _report(ids, cams, stamps, pose_streams, frames, image_index, usable, trimmed)
+    report.update(tool_rate_hz=rate_hz(tool.stamps_ns),
+                  tool_pose_missing=int((~tool_valid).sum()),
+                  joint_rate_hz=rate_hz(joint_stamps), joints=list(collector.joint_names),
+                  truncated=reader.damage, log=str(reader.path))
+    if report["tool_pose_missing"]:
+        logger.warning("tool pose unknown at %d of %d frames (gap > %g ms or outside the stream)",
+                       report["tool_pose_missing"], T, config.ingest.pose_gap_ms)
+    log = IngestedLog(
+        root=staging, cameras=ids, models=tuple(cam.model for cam in cams if cam.model),
+        stamps_ns=frame_stamps, image_stamps_ns=image_stamps, poses=poses, usable=usable,
+        tool_poses=tool_poses, joint_names=collector.joint_names,
+        joint_positions=joint_positions.reshape(T, len(collector.joint_names)),
+        image_paths=image_paths, report=report,
+    )
+    return log, report
+
+
+def _place_images(staging: Path, cams: list, orders: list[np.ndarray],
+                  image_index: np.ndarray) -> tuple[tuple[str, ...], ...]:
+    """Rename staged images to `images/CC/FFFFFF.ext` by frame; delete the unused ones."""
+    T, C = image_index.shape
+    paths = [["" for _ in range(C)] for _ in range(T)]
+    for c, (cam, order) in enumerate(zip(cams, orders, strict=True)):
+        for t in np.flatnonzero(image_index[:, c] >= 0):
+            staged = cam.files[int(order[image_index[t, c]])]
+            rel = image_relpath(c, int(t), staged.rsplit(".", 1)[1])
+            (staging / rel).parent.mkdir(parents=True, exist_ok=True)
+            os.replace(staging / staged, staging / rel)
+            paths[t][c] = rel
+    shutil.rmtree(staging / STAGED, ignore_errors=True)
+    return tuple(tuple(row) for row in paths)
+
+
+def _report(ids: tuple[str, ...], cams: list, stamps: list[np.ndarray], pose_streams: list,
+            frames: FrameGrouping, image_index: np.ndarray, usable: np.ndarray,
+            trimmed: int) -> dict[str, Any]:
+    T = image_index.shape[0]
+    per_camera = {}
+    for c, cid in enumerate(ids):
+        present = image_index[:, c] >= 0
+        per_camera[cid] = {
+            "index": c,
+            "image_topic": cams[c].image_topic,
+            "camera_info_topic": cams[c].info_topic,
+            "pose_topic": cams[c].poses.name if cams[c].poses else "",
+            "images": len(stamps[c]),
+            "frames": int(present.sum()),
+            "dropped": int(T - present.sum()),
+            "late": int(frames.late[c]),
+            "duplicates": int(frames.duplicates[c]),
+            "pose_gaps": int((present & ~usable[:, c]).sum()),
+            "usable": int(usable[:, c].sum()),
+            "image_rate_hz": rate_hz(stamps[c]),
+            "tracker_rate_hz": rate_hz(pose_streams[c].stamps_ns),
+        }
+        if per_camera[cid]["pose_gaps"]:
+            logger.warning("camera %s: no tracked pose within the gap limit at %d of its images; "
+                           "the camera is unusable in those frames", cid,
+                           per_camera[cid]["pose_gaps"])
+    return {"cameras": per_camera, "frames": T, "frames_all_usable": int(usable.all(axis=1).sum()),
+            "frames_dropped_after_damage": trimmed}

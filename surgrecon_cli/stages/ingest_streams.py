@@ -1,0 +1,173 @@
+"""Ingest, streaming part: consume role-tagged records once, write each image straight to a
+staging folder, keep only small arrays (stamps, sizes, poses, joint values) in memory."""
+
+from __future__ import annotations
+
+import logging
+from array import array
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..core.cameras import CameraModel
+from ..core.sync import PoseStream, validate_pose_stream
+from ..errors import GeometryError, InputError
+from ..io.images import prepare_image
+from ..io.mcap import LogItem
+from ..io.records import CameraInfoRecord, ImageRecord, JointStateRecord, PoseRecord
+
+logger = logging.getLogger(__name__)
+
+STAGED = "staged"
+_DISTORTION_MODELS = ("plumb_bob", "rational_polynomial", "")
+
+
+def fmt_stamp(stamp_ns: int) -> str:
+    """ns -> 'S.NNNNNNNNN s'."""
+    stamp = int(stamp_ns)
+    return f"{stamp // 1_000_000_000}.{stamp % 1_000_000_000:09d} s"
+
+
+@dataclass
+class _Poses:
+    """A pose stream being collected (compact arrays, not Python objects per sample)."""
+
+    name: str
+    stamps: array = field(default_factory=lambda: array("q"))
+    values: array = field(default_factory=lambda: array("d"))  # x y z qx qy qz qw per sample
+
+    def add(self, record: PoseRecord) -> None:
+        self.stamps.append(record.stamp_ns)
+        self.values.extend(np.concatenate([record.position, record.orientation]).tolist())
+
+    def validated(self) -> PoseStream:
+        v = np.array(self.values, dtype=float).reshape(-1, 7)
+        stamps = np.array(self.stamps, dtype=np.int64)
+        return validate_pose_stream(self.name, stamps, v[:, :3], v[:, 3:])
+
+
+@dataclass
+class CameraStreams:
+    """What ingest keeps of one camera while streaming."""
+
+    index: int  # discovery order; names the staging folder (camera ids never become paths)
+    image_topic: str = ""
+    stamps: array = field(default_factory=lambda: array("q"))
+    sizes: array = field(default_factory=lambda: array("q"))  # width, height per image
+    files: list[str] = field(default_factory=list)  # staged paths relative to the staging root
+    info_topic: str = ""
+    model: CameraModel | None = None
+    info_changed: bool = False
+    poses: _Poses | None = None
+
+
+class StreamCollector:
+    """Feed `add(item)` every LogItem; images go to `root/staged/CC/NNNNNNNN.ext`."""
+
+    def __init__(self, root: Path) -> None:
+        self.root = Path(root)
+        self.cameras: dict[str, CameraStreams] = {}
+        self.tool = _Poses("tool pose")
+        self.tool_topic = ""
+        self.joint_names: tuple[str, ...] = ()
+        self.joint_topic = ""
+        self.joint_stamps = array("q")
+        self.joint_values = array("d")
+
+    def _camera(self, camera: str) -> CameraStreams:
+        if camera not in self.cameras:
+            self.cameras[camera] = CameraStreams(index=len(self.cameras))
+        return self.cameras[camera]
+
+    def add(self, item: LogItem) -> None:
+        record = item.record
+        if item.role == "image" and isinstance(record, ImageRecord):
+            self._image(item, record)
+        elif item.role == "camera_info" and isinstance(record, CameraInfoRecord):
+            self._info(item, record)
+        elif item.role == "camera_pose" and isinstance(record, PoseRecord):
+            cam = self._camera(item.camera)
+            if cam.poses is None:
+                frame = f" [{record.child_frame_id}]" if record.child_frame_id else ""
+                cam.poses = _Poses(f"{item.topic}{frame}")
+            cam.poses.add(record)
+        elif item.role == "tool_pose" and isinstance(record, PoseRecord):
+            if not self.tool_topic:
+                frame = f" [{record.child_frame_id}]" if record.child_frame_id else ""
+                self.tool_topic = item.topic
+                self.tool.name = f"{item.topic}{frame}"
+            self.tool.add(record)
+        elif item.role == "joint_states" and isinstance(record, JointStateRecord):
+            self._joints(item, record)
+
+    def _image(self, item: LogItem, record: ImageRecord) -> None:
+        cam = self._camera(item.camera)
+        cam.image_topic = cam.image_topic or item.topic
+        try:
+            stored = prepare_image(record)
+        except ValueError as exc:
+            raise InputError(f"{item.topic}: image at stamp {fmt_stamp(record.stamp_ns)} "
+                             f"does not decode ({exc})") from exc
+        if cam.model is not None:
+            self._check_size(item.camera, record.stamp_ns, stored.width, stored.height)
+        rel = f"{STAGED}/{cam.index:02d}/{len(cam.files):08d}.{stored.ext}"
+        path = self.root / rel
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_bytes(stored.data)
+        cam.stamps.append(record.stamp_ns)
+        cam.sizes.extend((stored.width, stored.height))
+        cam.files.append(rel)
+
+    def _check_size(self, camera: str, stamp_ns: int, width: int, height: int) -> None:
+        cam = self.cameras[camera]
+        model = cam.model
+        if model is not None and (width, height) != (model.width, model.height):
+            raise InputError(
+                f"{cam.image_topic}: image at stamp {fmt_stamp(stamp_ns)} is {width}x{height} px "
+                f"but {cam.info_topic} gives {model.width}x{model.height} px")
+
+    def _info(self, item: LogItem, record: CameraInfoRecord) -> None:
+        cam = self._camera(item.camera)
+        where = f"{item.topic}: intrinsics at stamp {fmt_stamp(record.stamp_ns)}"
+        D = np.asarray(record.D, float).ravel()
+        model_name = record.distortion_model.strip().lower()
+        if model_name not in _DISTORTION_MODELS and np.any(D != 0):
+            raise InputError(f"{where} use distortion model {record.distortion_model!r}; "
+                             "only plumb_bob (k1 k2 p1 p2 k3) is supported")
+        if D.size > 5 and np.any(D[5:] != 0):
+            raise InputError(f"{where} have {D.size} distortion coefficients with k4..k6 "
+                             "non-zero; only plumb_bob (k1 k2 p1 p2 k3) is supported")
+        try:
+            model = CameraModel(np.asarray(record.K, float).reshape(3, 3), D[:5],
+                                int(record.width), int(record.height))
+        except (GeometryError, ValueError) as exc:
+            raise InputError(f"{where} are invalid ({exc})") from exc
+        if cam.model is None:
+            cam.model = model
+            cam.info_topic = item.topic
+            sizes = np.array(cam.sizes, dtype=np.int64).reshape(-1, 2)
+            for k, (w, h) in enumerate(sizes):
+                self._check_size(item.camera, cam.stamps[k], int(w), int(h))
+        elif not cam.info_changed and not (
+            np.allclose(model.K, cam.model.K) and np.allclose(model.dist, cam.model.dist)
+            and (model.width, model.height) == (cam.model.width, cam.model.height)
+        ):
+            cam.info_changed = True
+            logger.warning("%s changes at stamp %s; the first intrinsics are used",
+                           item.topic, fmt_stamp(record.stamp_ns))
+
+    def _joints(self, item: LogItem, record: JointStateRecord) -> None:
+        if not self.joint_names:
+            self.joint_names = tuple(record.names)
+            self.joint_topic = item.topic
+        values = dict(zip(record.names, np.asarray(record.positions, float).tolist(), strict=False))
+        self.joint_stamps.append(record.stamp_ns)
+        self.joint_values.extend(values.get(n, float("nan")) for n in self.joint_names)
+
+    def joints(self) -> tuple[np.ndarray, np.ndarray]:
+        """Joint stamps (M,) sorted and positions (M, J)."""
+        stamps = np.array(self.joint_stamps, dtype=np.int64)
+        values = np.array(self.joint_values, dtype=float).reshape(len(stamps), len(self.joint_names))
+        order = np.argsort(stamps, kind="stable")
+        return stamps[order], values[order]
