@@ -9,11 +9,12 @@ overrides single keys. Unknown sections/keys, wrong types and out-of-range value
 from __future__ import annotations
 
 import dataclasses
-import tomllib
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
+
+import tomllib
 
 from .errors import ConfigError
 
@@ -47,7 +48,9 @@ class TopicsConfig:
 
     def __post_init__(self) -> None:
         for key in ("image", "camera_info"):
-            _require("{camera}" in getattr(self, key), f"topics.{key}", "needs a {camera} placeholder")
+            _require(
+                "{camera}" in getattr(self, key), f"topics.{key}", "needs a {camera} placeholder"
+            )
 
 
 @dataclass(frozen=True)
@@ -80,7 +83,9 @@ class ToolConfig:
         (), "robot base pose in the world: [x y z qx qy qz qw] (m); empty = tool pose is in world"
     )
     mask_margin_px: float = _doc(6.0, "tool mask dilation in the images (px)")
-    margin: float = _doc(0.0015, "3D points closer than radius + margin to the shaft axis are dropped (m)")
+    margin: float = _doc(
+        0.0015, "3D points closer than radius + margin to the shaft axis are dropped (m)"
+    )
 
     def __post_init__(self) -> None:
         _require(self.shaft_radius > 0, "tool.shaft_radius", "must be > 0")
@@ -98,10 +103,16 @@ class TemplateConfig:
     """Template building: features, camera grouping / pair sequencing, triangulation."""
 
     max_features: int = _doc(6000, "SIFT keypoints per image")
-    contrast_threshold: float = _doc(0.008, "SIFT contrast threshold (OpenCV default 0.04; tissue is low-contrast)")
-    ratio: float = _doc(0.9, "Lowe ratio test (against the runner-up inside or outside the epipolar segment)")
+    contrast_threshold: float = _doc(
+        0.008, "SIFT contrast threshold (OpenCV default 0.04; tissue is low-contrast)"
+    )
+    ratio: float = _doc(
+        0.9, "Lowe ratio test (against the runner-up inside or outside the epipolar segment)"
+    )
     epipolar_px: float = _doc(2.0, "largest distance of a match to its epipolar line (px)")
-    max_reprojection_px: float = _doc(1.5, "largest reprojection error of a triangulated point (px)")
+    max_reprojection_px: float = _doc(
+        1.5, "largest reprojection error of a triangulated point (px)"
+    )
     min_angle_deg: float = _doc(3.0, "smallest triangulation angle between two rays (deg)")
     min_pair_matches: int = _doc(40, "verified matches for two cameras to be linked")
     min_view_overlap: float = _doc(0.15, "predicted shared-view fraction to try matching a pair")
@@ -118,8 +129,11 @@ class TemplateConfig:
         _require(self.epipolar_px > 0, "template.epipolar_px", "must be > 0")
         _require(self.max_reprojection_px > 0, "template.max_reprojection_px", "must be > 0")
         _require(0 <= self.min_angle_deg < 90, "template.min_angle_deg", "must be in [0, 90)")
-        _require(len(self.depth_range) == 2 and 0 < self.depth_range[0] < self.depth_range[1],
-                 "template.depth_range", "must be [near, far] with 0 < near < far")
+        _require(
+            len(self.depth_range) == 2 and 0 < self.depth_range[0] < self.depth_range[1],
+            "template.depth_range",
+            "must be [near, far] with 0 < near < far",
+        )
         _require(self.working_distance > 0, "template.working_distance", "must be > 0")
 
 
@@ -130,6 +144,7 @@ class TargetConfig:
     gate_px: float = _doc(2.5, "reprojection-error gate of the intra/inter-camera check (px)")
     klt_window_px: int = _doc(21, "KLT window size (px)")
     klt_levels: int = _doc(3, "KLT pyramid levels")
+    klt_fb_px: float = _doc(0.7, "largest forward-backward KLT disagreement (px)")
     occlusion_depth: float = _doc(0.002, "depth tolerance of the visibility test (m)")
 
     def __post_init__(self) -> None:
@@ -143,8 +158,9 @@ class RegistrationConfig:
 
     k_neighbors: int = _doc(8, "neighbours per node in the smoothness graph")
     max_nodes: int = _doc(
-        600, "transform nodes; larger clouds are solved on this many nodes and each point's "
-        "affine is blended from its nearest nodes (0 = one node per point, the paper's model)"
+        400,
+        "transform nodes; larger clouds are solved on this many nodes and each point's "
+        "affine is blended from its nearest nodes (0 = one node per point, the paper's model)",
     )
     interp_neighbors: int = _doc(4, "nodes blended into each point's transform")
     alpha: float = _doc(0.05, "weight of the neighbour-difference term (final, after annealing)")
@@ -159,29 +175,32 @@ class RegistrationConfig:
     relaxation: float = _doc(1.6, "ADMM over-relaxation factor, in [1, 2)")
     tolerance_mm: float = _doc(0.02, "ADMM stop: primal and dual residual RMS (mm)")
     color_weight_mm: float = _doc(5.0, "mm of position equivalent to a full RGB unit difference")
-    max_correspondence_mm: float = _doc(5.0, "nearest-neighbour correspondences farther are dropped (mm)")
+    max_correspondence_mm: float = _doc(
+        5.0, "nearest-neighbour correspondences farther are dropped (mm)"
+    )
     mutual_spacings: float = _doc(
-        3.0, "drop a match whose target's nearest source lies farther than this many point "
-        "spacings from the querying point (0 = off)"
+        3.0,
+        "drop a match whose target's nearest source lies farther than this many point "
+        "spacings from the querying point (0 = off)",
     )
-    reweight_mm: float = _doc(
-        1.0, "l1 data reweighting w = e / (|r| + e) with e in mm (0 = off)"
-    )
+    reweight_mm: float = _doc(1.0, "l1 data reweighting w = e / (|r| + e) with e in mm (0 = off)")
     outlier_mm: float = _doc(1.0, "final correspondence residual above this flags an outlier (mm)")
     rigid_iterations: int = _doc(30, "trimmed-ICP iterations of the rigid pre-alignment")
-    rigid_trim: float = _doc(0.7, "fraction of closest pairs kept by the trimmed ICP")
+    rigid_trim: float = _doc(0.8, "fraction of closest pairs kept by the trimmed ICP")
     template_update_every: int = _doc(0, "re-base the template every N_T frames (0 = keep frame 0)")
 
     def __post_init__(self) -> None:
         key = "registration."
         _require(self.k_neighbors >= 2, key + "k_neighbors", "must be >= 2")
-        _require(self.max_nodes == 0 or self.max_nodes >= 8, key + "max_nodes",
-                 "must be 0 or >= 8")
+        _require(self.max_nodes == 0 or self.max_nodes >= 8, key + "max_nodes", "must be 0 or >= 8")
         _require(self.interp_neighbors >= 1, key + "interp_neighbors", "must be >= 1")
         for name in ("data_penalty", "smooth_penalty"):
             _require(getattr(self, name) in ("l1", "l2"), key + name, "must be 'l1' or 'l2'")
-        _require(self.alpha > 0 and self.alpha_start >= self.alpha, key + "alpha",
-                 "need 0 < alpha <= alpha_start")
+        _require(
+            self.alpha > 0 and self.alpha_start >= self.alpha,
+            key + "alpha",
+            "need 0 < alpha <= alpha_start",
+        )
         _require(self.beta >= 0, key + "beta", "must be >= 0")
         _require(self.admm_iterations > 0, key + "admm_iterations", "must be > 0")
         _require(self.outer_iterations > 0, key + "outer_iterations", "must be > 0")
@@ -203,7 +222,9 @@ class ClassifyConfig:
     """Point classification thresholds (mm), see core/classify.py for the reasoning."""
 
     static_mm: float = _doc(1.0, "registered displacement below this is static (mm)")
-    deform_mm: float = _doc(0.5, "neighbour relative motion |(T_j - T_i) p_i| at/above: deforming (mm)")
+    deform_mm: float = _doc(
+        0.5, "neighbour relative motion |(T_j - T_i) p_i| at/above: deforming (mm)"
+    )
     hysteresis_frames: int = _doc(0, "frames a new label must persist before it is taken (0 = off)")
 
     def __post_init__(self) -> None:
@@ -218,7 +239,9 @@ class LabelsConfig:
 
     static_mm: float = _doc(1.0, "a vertex that moved less than this is static (mm)")
     neighbourhood_mm: float = _doc(5.0, "neighbourhood radius at frame 0 (mm)")
-    rigid_rms_mm: float = _doc(0.25, "RMS residual of the best rigid fit above this: deforming (mm)")
+    rigid_rms_mm: float = _doc(
+        0.25, "RMS residual of the best rigid fit above this: deforming (mm)"
+    )
 
     def __post_init__(self) -> None:
         for key in ("static_mm", "neighbourhood_mm", "rigid_rms_mm"):
@@ -246,12 +269,18 @@ def _coerce(value: Any, annotation: Any, key: str) -> Any:
         _require(isinstance(value, list | tuple), key, f"expected a list, got {value!r}")
         return tuple(_coerce(v, float, key) for v in value)
     if annotation is float:
-        _require(isinstance(value, int | float) and not isinstance(value, bool), key,
-                 f"expected a number, got {value!r}")
+        _require(
+            isinstance(value, int | float) and not isinstance(value, bool),
+            key,
+            f"expected a number, got {value!r}",
+        )
         return float(value)
     if annotation is int:
-        _require(isinstance(value, int) and not isinstance(value, bool), key,
-                 f"expected an integer, got {value!r}")
+        _require(
+            isinstance(value, int) and not isinstance(value, bool),
+            key,
+            f"expected an integer, got {value!r}",
+        )
         return value
     if annotation is bool:
         _require(isinstance(value, bool), key, f"expected true/false, got {value!r}")
@@ -270,7 +299,11 @@ def from_dict(data: dict[str, Any], base: Config | None = None) -> Config:
     sections = {}
     section_types = _section_types(Config)
     for name, values in data.items():
-        _require(name in section_types, name, f"unknown config section (known: {', '.join(section_types)})")
+        _require(
+            name in section_types,
+            name,
+            f"unknown config section (known: {', '.join(section_types)})",
+        )
         _require(isinstance(values, dict), name, "must be a table")
         cls = section_types[name]
         hints = _section_types(cls)

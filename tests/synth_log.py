@@ -127,12 +127,11 @@ def messages(spec: SynthSpec) -> list[Message]:
     """All messages of the log, sorted by log time (= stamp + 1 ms)."""
     out: list[Message] = []
     for c in spec.cameras:
-        if c in spec.skip_info:
-            continue
         t = T0 + 100 * MS if spec.info_first else spec.end() - 50 * MS
-        out.append((spec.info_topic.format(c=c), t + MS, CameraInfoRecord(
-            t, spec.camera_frame.format(c=c), W, H, intrinsics(c),
-            np.array([-0.01 * c, 0.001, 0, 0, 0]))))
+        if c not in spec.skip_info:
+            out.append((spec.info_topic.format(c=c), t + MS, CameraInfoRecord(
+                t, spec.camera_frame.format(c=c), W, H, intrinsics(c),
+                np.array([-0.01 * c, 0.001, 0, 0, 0]))))
         for k in range(spec.frames):
             rec = _image(spec, c, k)
             out.append((spec.image_topic.format(c=c), rec.stamp_ns + MS, rec))

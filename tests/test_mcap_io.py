@@ -201,3 +201,30 @@ def test_not_an_mcap_file(tmp_path: Path):
     path.write_text("this is a bag file\n")
     with pytest.raises(InputError, match="not an MCAP file"):
         list(LogReader(path, TopicsConfig()))
+
+
+def test_json_frame_transform_generic_joint_states_and_ros1_tf(tmp_path: Path):
+    import json
+
+    from mcap.writer import Writer
+
+    path = tmp_path / "log.mcap"
+    with open(path, "wb") as f:
+        w = Writer(f)
+        w.start()
+        tf = w.register_schema("foxglove.FrameTransform", "jsonschema", b"{}")
+        js = w.register_schema("dvrk.JointStateCurrent", "jsonschema", b"{}")
+        ch_tf = w.register_channel("/tf", "json", tf)
+        ch_js = w.register_channel("/joints", "json", js)
+        msg = {"timestamp": {"sec": 3, "nsec": 4}, "parent_frame_id": "world",
+               "child_frame_id": "cam_5_optical", "translation": {"x": 1, "y": 2, "z": 3},
+               "rotation": {"x": 0, "y": 0, "z": 1, "w": 0}}
+        w.add_message(ch_tf, 10, json.dumps(msg).encode(), 10)
+        w.add_message(ch_js, 11, json.dumps({"name": ["a"], "position": [0.5]}).encode(), 11)
+        w.finish()
+    items = list(LogReader(path, TOPICS, require_roles=False))
+    assert [(i.role, i.camera) for i in items] == [("camera_pose", "5"), ("joint_states", "")]
+    pose, joints = items[0].record, items[1].record
+    assert pose.stamp_ns == 3_000_000_004 and joints.stamp_ns == 11
+    np.testing.assert_array_equal(pose.orientation, [0, 0, 1, 0])
+    assert joints.names == ("a",) and joints.positions.tolist() == [0.5]

@@ -12,15 +12,25 @@ from .common import common_options, progress
 
 @click.command("ingest")
 @click.argument("log", type=click.Path(exists=True, dir_okay=False, path_type=Path))
-@click.option("-o", "--output", "run_dir", required=True,
-              type=click.Path(file_okay=False, path_type=Path), help="Run folder to create.")
-@click.option("--allow-truncated", is_flag=True,
-              help="Use the data before a truncation or corrupt chunk instead of failing "
-                   "(keeps complete frames only).")
+@click.option(
+    "-o",
+    "--output",
+    "run_dir",
+    required=True,
+    type=click.Path(file_okay=False, path_type=Path),
+    help="Run folder to create.",
+)
+@click.option(
+    "--allow-truncated",
+    is_flag=True,
+    help="Use the data before a truncation or corrupt chunk instead of failing "
+    "(keeps complete frames only).",
+)
 @click.option("--force", is_flag=True, help="Replace an existing ingest in RUN.")
 @common_options
-def ingest_cmd(log: Path, run_dir: Path, allow_truncated: bool, force: bool, config: Any,
-               quiet: bool) -> None:
+def ingest_cmd(
+    log: Path, run_dir: Path, allow_truncated: bool, force: bool, config: Any, quiet: bool
+) -> None:
     """Decode, time-synchronise and validate LOG into the run folder RUN.
 
     Images of all cameras within ingest.sync_tolerance_ms form a frame; tracker poses are
@@ -34,31 +44,60 @@ def ingest_cmd(log: Path, run_dir: Path, allow_truncated: bool, force: bool, con
     """
     from ..stages.ingest import ingest
 
-    with progress(quiet)(total=log.stat().st_size, unit="B", unit_scale=True,
-                         desc="ingest") as bar:
-        result = ingest(log, run_dir, config, allow_truncated=allow_truncated, force=force,
-                        on_bytes=bar.update)
+    with progress(quiet)(total=log.stat().st_size, unit="B", unit_scale=True, desc="ingest") as bar:
+        result = ingest(
+            log, run_dir, config, allow_truncated=allow_truncated, force=force, on_bytes=bar.update
+        )
     if not quiet:
         click.echo(format_report(result.report))
-        click.echo(f"{result.n_frames} frames from {len(result.cameras)} cameras -> "
-                   f"{run_dir / 'ingest'}")
+        click.echo(
+            f"{result.n_frames} frames from {len(result.cameras)} cameras -> {run_dir / 'ingest'}"
+        )
 
 
 def format_report(report: dict[str, Any]) -> str:
     """The per-camera ingest table (one line per camera) as text."""
-    head = ("camera", "images", "frames", "dropped", "late", "dup", "pose gaps", "usable",
-            "image Hz", "tracker Hz")
+    head = (
+        "camera",
+        "images",
+        "frames",
+        "dropped",
+        "late",
+        "dup",
+        "pose gaps",
+        "usable",
+        "image Hz",
+        "tracker Hz",
+    )
     rows = [head]
     for cid, r in report["cameras"].items():
-        rows.append((cid, str(r["images"]), str(r["frames"]), str(r["dropped"]), str(r["late"]),
-                     str(r["duplicates"]), str(r["pose_gaps"]), str(r["usable"]),
-                     f"{r['image_rate_hz']:.1f}", f"{r['tracker_rate_hz']:.1f}"))
+        rows.append(
+            (
+                cid,
+                str(r["images"]),
+                str(r["frames"]),
+                str(r["dropped"]),
+                str(r["late"]),
+                str(r["duplicates"]),
+                str(r["pose_gaps"]),
+                str(r["usable"]),
+                f"{r['image_rate_hz']:.1f}",
+                f"{r['tracker_rate_hz']:.1f}",
+            )
+        )
     widths = [max(len(row[i]) for row in rows) for i in range(len(head))]
-    lines = ["  ".join(v.ljust(w) if i == 0 else v.rjust(w)
-                       for i, (v, w) in enumerate(zip(row, widths, strict=True))) for row in rows]
-    extra = (f"tool {report['tool_rate_hz']:.1f} Hz (pose unknown at "
-             f"{report['tool_pose_missing']} frames), joints {report['joint_rate_hz']:.1f} Hz; "
-             f"{report['frames_all_usable']} of {report['frames']} frames with every camera usable")
+    lines = [
+        "  ".join(
+            v.ljust(w) if i == 0 else v.rjust(w)
+            for i, (v, w) in enumerate(zip(row, widths, strict=True))
+        )
+        for row in rows
+    ]
+    extra = (
+        f"tool {report['tool_rate_hz']:.1f} Hz (pose unknown at "
+        f"{report['tool_pose_missing']} frames), joints {report['joint_rate_hz']:.1f} Hz; "
+        f"{report['frames_all_usable']} of {report['frames']} frames with every camera usable"
+    )
     if report.get("truncated"):
         extra += f"\ntruncated log: {report['truncated']}; "
         extra += f"{report['frames_dropped_after_damage']} incomplete frames dropped at the end"

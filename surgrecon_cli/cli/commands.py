@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+from .cmd_build_template import build_template_cmd
 from .cmd_config import config_cmd
 from .cmd_ingest import ingest_cmd
+from .cmd_register import register_cmd
 from .cmd_simulate import simulate_cmd
 
-ALL = [config_cmd, ingest_cmd, simulate_cmd]
+ALL = [build_template_cmd, config_cmd, ingest_cmd, register_cmd, simulate_cmd]

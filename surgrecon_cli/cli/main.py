@@ -61,7 +61,7 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         click.echo("interrupted", err=True)
         return 130
-    except Exception as exc:  # noqa: BLE001 - last line of defence, one line unless --debug
+    except Exception as exc:
         if STATE["debug"]:
             raise
         click.echo(f"internal error: {type(exc).__name__}: {exc} (re-run with --debug)", err=True)

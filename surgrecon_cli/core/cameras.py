@@ -37,8 +37,12 @@ class CameraModel:
         object.__setattr__(self, "dist", dist)
 
     def to_dict(self) -> dict:
-        return {"K": self.K.tolist(), "dist": self.dist.tolist(), "width": self.width,
-                "height": self.height}
+        return {
+            "K": self.K.tolist(),
+            "dist": self.dist.tolist(),
+            "width": self.width,
+            "height": self.height,
+        }
 
     @classmethod
     def from_dict(cls, d: dict) -> CameraModel:
@@ -97,13 +101,19 @@ def undistort_pixels(uv: np.ndarray, camera: CameraModel) -> np.ndarray:
         return np.zeros((0, 2))
     pts = np.ascontiguousarray(uv, dtype=np.float64).reshape(-1, 1, 2)
     out = cv2.undistortPointsIter(
-        pts, camera.K, camera.dist, None, None,
+        pts,
+        camera.K,
+        camera.dist,
+        None,
+        None,
         (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-10),
     )
     return out.reshape(-1, 2)
 
 
-def pixel_rays(uv: np.ndarray, camera: CameraModel, cam_to_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def pixel_rays(
+    uv: np.ndarray, camera: CameraModel, cam_to_world: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Rays through distorted pixels (N, 2): origin (3,) and unit directions (N, 3) in world."""
     xy = undistort_pixels(uv, camera)
     d = np.concatenate([xy, np.ones((len(xy), 1))], axis=1)

@@ -24,7 +24,9 @@ class Features:
         return len(self.pixels)
 
     def subset(self, keep: np.ndarray) -> Features:
-        return Features(self.pixels[keep], self.normalized[keep], self.descriptors[keep], self.rgb[keep])
+        return Features(
+            self.pixels[keep], self.normalized[keep], self.descriptors[keep], self.rgb[keep]
+        )
 
 
 def sample_rgb(image: np.ndarray, pixels: np.ndarray) -> np.ndarray:
@@ -32,13 +34,19 @@ def sample_rgb(image: np.ndarray, pixels: np.ndarray) -> np.ndarray:
     if len(pixels) == 0:
         return np.zeros((0, 3), np.uint8)
     maps = pixels.astype(np.float32).reshape(-1, 1, 2)
-    out = cv2.remap(image, maps[..., 0], maps[..., 1], cv2.INTER_LINEAR,
-                    borderMode=cv2.BORDER_REPLICATE)
+    out = cv2.remap(
+        image, maps[..., 0], maps[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
+    )
     return out.reshape(-1, 3)
 
 
-def detect_features(image: np.ndarray, camera: CameraModel, max_features: int,
-                    contrast_threshold: float, exclude: np.ndarray | None = None) -> Features:
+def detect_features(
+    image: np.ndarray,
+    camera: CameraModel,
+    max_features: int,
+    contrast_threshold: float,
+    exclude: np.ndarray | None = None,
+) -> Features:
     """SIFT on an RGB image (H, W, 3) uint8; `exclude` (H, W) bool masks pixels out (tool).
 
     The contrast threshold is half OpenCV's default: endoscopic tissue is low-contrast and we
@@ -49,12 +57,20 @@ def detect_features(image: np.ndarray, camera: CameraModel, max_features: int,
     sift = cv2.SIFT_create(nfeatures=max_features, contrastThreshold=contrast_threshold)
     keypoints, descriptors = sift.detectAndCompute(gray, mask)
     if not keypoints:
-        return Features(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros((0, 128), np.float32),
-                        np.zeros((0, 3), np.uint8))
+        return Features(
+            np.zeros((0, 2)),
+            np.zeros((0, 2)),
+            np.zeros((0, 128), np.float32),
+            np.zeros((0, 3), np.uint8),
+        )
     pixels = np.array([k.pt for k in keypoints], dtype=np.float64)
     # SIFT may return one location twice with different orientations: keep the first.
     _, first = np.unique(np.round(pixels, 2), axis=0, return_index=True)
     first = np.sort(first)
     pixels = pixels[first]
-    return Features(pixels, undistort_pixels(pixels, camera), descriptors[first].astype(np.float32),
-                    sample_rgb(image, pixels))
+    return Features(
+        pixels,
+        undistort_pixels(pixels, camera),
+        descriptors[first].astype(np.float32),
+        sample_rgb(image, pixels),
+    )

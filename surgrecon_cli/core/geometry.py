@@ -43,13 +43,13 @@ def matrix_to_quat(R: np.ndarray) -> np.ndarray:
     _, vecs = np.linalg.eigh(K / 3.0)
     q = vecs[:, :, -1]
     q = q * np.where(q[:, 3:4] < 0, -1.0, 1.0)
-    return q.reshape(R.shape[:-2] + (4,))
+    return q.reshape((*R.shape[:-2], 4))
 
 
 def make_pose(position: np.ndarray, quat: np.ndarray) -> np.ndarray:
     """Positions (..., 3) and quaternions (..., 4) -> homogeneous poses (..., 4, 4)."""
     position = np.asarray(position, dtype=float)
-    T = np.zeros(position.shape[:-1] + (4, 4))
+    T = np.zeros((*position.shape[:-1], 4, 4))
     T[..., :3, :3] = quat_to_matrix(quat)
     T[..., :3, 3] = position
     T[..., 3, 3] = 1.0
@@ -131,7 +131,9 @@ def fit_rigid(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = Non
     src = np.asarray(src, float)
     dst = np.asarray(dst, float)
     if src.shape != dst.shape or src.shape[-2] < 3:
-        raise GeometryError(f"fit_rigid needs matching (..., N>=3, 3) arrays, got {src.shape}, {dst.shape}")
+        raise GeometryError(
+            f"fit_rigid needs matching (..., N>=3, 3) arrays, got {src.shape}, {dst.shape}"
+        )
     if weights is None:
         weights = np.ones(src.shape[:-1])
     w = weights / np.maximum(weights.sum(-1, keepdims=True), 1e-300)

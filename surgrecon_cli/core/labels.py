@@ -36,7 +36,9 @@ def radius_neighbourhoods(points: np.ndarray, radius: float) -> tuple[np.ndarray
     return index, mask
 
 
-def rigid_fit_rms(reference: np.ndarray, moved: np.ndarray, index: np.ndarray, mask: np.ndarray) -> np.ndarray:
+def rigid_fit_rms(
+    reference: np.ndarray, moved: np.ndarray, index: np.ndarray, mask: np.ndarray
+) -> np.ndarray:
     """RMS residual (N,) m of the best rigid fit of each neighbourhood from reference to moved."""
     src = reference[index]
     dst = moved[index]
@@ -65,10 +67,11 @@ def label_rule(
     return labels
 
 
-def true_labels(vertices: np.ndarray, static_mm: float, neighbourhood_mm: float,
-                rigid_rms_mm: float) -> np.ndarray:
+def true_labels(
+    vertices: np.ndarray, static_mm: float, neighbourhood_mm: float, rigid_rms_mm: float
+) -> np.ndarray:
     """Spec label rule over a sequence: vertices (T, V, 3) m -> labels (T, V) uint8."""
     index, mask = radius_neighbourhoods(vertices[0], neighbourhood_mm * 1e-3)
-    return np.stack([
-        label_rule(vertices[0], frame, index, mask, static_mm, rigid_rms_mm) for frame in vertices
-    ])
+    return np.stack(
+        [label_rule(vertices[0], frame, index, mask, static_mm, rigid_rms_mm) for frame in vertices]
+    )

@@ -21,7 +21,9 @@ def essential_matrix(pose_i: np.ndarray, pose_j: np.ndarray) -> np.ndarray:
     return tx @ R
 
 
-def epipolar_distance_px(E: np.ndarray, xi: np.ndarray, xj: np.ndarray, f_i: float, f_j: float) -> np.ndarray:
+def epipolar_distance_px(
+    E: np.ndarray, xi: np.ndarray, xj: np.ndarray, f_i: float, f_j: float
+) -> np.ndarray:
     """Symmetric epipolar distance (Ni, Nj) in px between all normalised points xi (Ni, 2)
     and xj (Nj, 2); focal lengths convert normalised units to pixels."""
     hi = np.column_stack([xi, np.ones(len(xi))])
@@ -34,7 +36,9 @@ def epipolar_distance_px(E: np.ndarray, xi: np.ndarray, xj: np.ndarray, f_i: flo
     return 0.5 * np.abs(alg) * (f_j / nj + f_i / ni)
 
 
-def ray_depths(xi: np.ndarray, xj: np.ndarray, pose_i: np.ndarray, pose_j: np.ndarray) -> np.ndarray:
+def ray_depths(
+    xi: np.ndarray, xj: np.ndarray, pose_i: np.ndarray, pose_j: np.ndarray
+) -> np.ndarray:
     """Depth (M,) m in camera i of the closest approach of the rays through normalised
     points xi (M, 2) of camera i and xj (M, 2) of camera j (NaN for parallel rays)."""
     di = np.column_stack([xi, np.ones(len(xi))]) @ pose_i[:3, :3].T
@@ -47,9 +51,17 @@ def ray_depths(xi: np.ndarray, xj: np.ndarray, pose_i: np.ndarray, pose_j: np.nd
         return np.where(denom > 1e-12, (b * e - c * d) / denom, np.nan)  # z of x̃ = (x, y, 1)
 
 
-def match_pair(fi: Features, fj: Features, pose_i: np.ndarray, pose_j: np.ndarray,
-               f_i: float, f_j: float, ratio: float, epipolar_px: float,
-               depth_range: tuple[float, float]) -> np.ndarray:
+def match_pair(
+    fi: Features,
+    fj: Features,
+    pose_i: np.ndarray,
+    pose_j: np.ndarray,
+    f_i: float,
+    f_j: float,
+    ratio: float,
+    epipolar_px: float,
+    depth_range: tuple[float, float],
+) -> np.ndarray:
     """Indices (M, 2) of mutual, ratio-tested matches between two images that lie within
     `epipolar_px` of each other's epipolar lines and triangulate inside `depth_range` (m)
     of camera i: the candidates of a feature are a short epipolar segment, not a line."""
@@ -81,8 +93,11 @@ def match_pair(fi: Features, fj: Features, pose_i: np.ndarray, pose_j: np.ndarra
     return np.column_stack([rows[keep], best_idx[keep]])
 
 
-def build_tracks(n_features: list[int], sequence: list[tuple[int, int]],
-                 pair_matches: dict[tuple[int, int], np.ndarray]) -> tuple[list[np.ndarray], int]:
+def build_tracks(
+    n_features: list[int],
+    sequence: list[tuple[int, int]],
+    pair_matches: dict[tuple[int, int], np.ndarray],
+) -> tuple[list[np.ndarray], int]:
     """Chain pairwise matches into tracks, merging pairs in `sequence` order (union-find).
 
     A merge that would put two features of one image into one track is refused, so
@@ -115,4 +130,4 @@ def build_tracks(n_features: list[int], sequence: list[tuple[int, int]],
     ids = np.full(total, -1)
     ids[tracked] = track
     n_tracks = int(track.max()) + 1 if tracked.any() else 0
-    return [ids[offsets[k]:offsets[k + 1]] for k in range(len(n_features))], n_tracks
+    return [ids[offsets[k] : offsets[k + 1]] for k in range(len(n_features))], n_tracks

@@ -28,8 +28,9 @@ def local_plane_distance(points: np.ndarray, k: int = 12) -> np.ndarray:
     return np.abs(((points - centre) * normal).sum(1))
 
 
-def surface_outliers(points: np.ndarray, k: int = 12, factor: float = 6.0, floor: float = 3e-4,
-                     rounds: int = 2) -> np.ndarray:
+def surface_outliers(
+    points: np.ndarray, k: int = 12, factor: float = 6.0, floor: float = 3e-4, rounds: int = 2
+) -> np.ndarray:
     """(N,) bool: points farther than max(floor, factor * median) from their local plane.
 
     `floor` (m) keeps noise-level scatter (tenths of a mm) from being cut on clean clouds;

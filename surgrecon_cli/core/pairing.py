@@ -81,8 +81,13 @@ def working_depths(poses: np.ndarray, usable: np.ndarray, fallback: float) -> np
     return np.array([np.median(d) if d else fallback for d in depths])
 
 
-def predict_pairs(models: list[CameraModel], poses: np.ndarray, usable: np.ndarray,
-                  fallback_depth: float, grid: int = 12) -> PairPrediction:
+def predict_pairs(
+    models: list[CameraModel],
+    poses: np.ndarray,
+    usable: np.ndarray,
+    fallback_depth: float,
+    grid: int = 12,
+) -> PairPrediction:
     """Shared-view and conditioning predictions for all camera pairs from poses alone."""
     n = len(models)
     depth = working_depths(poses, usable, fallback_depth)
@@ -141,8 +146,12 @@ def plan_pairs(weights: np.ndarray) -> PairPlan:
             p, q = group[inside[r]], group[outside[c]]
             tree.append((min(p, q), max(p, q)))
             joined.add(outside[c])
-        rest = [(group[r], group[c]) for r in range(len(group)) for c in range(r + 1, len(group))
-                if sub[r, c] > 0 and (group[r], group[c]) not in tree]
+        rest = [
+            (group[r], group[c])
+            for r in range(len(group))
+            for c in range(r + 1, len(group))
+            if sub[r, c] > 0 and (group[r], group[c]) not in tree
+        ]
         rest.sort(key=lambda e: -w[e])
         sequences.append(tree + rest)
     return PairPlan(groups, sequences, w)

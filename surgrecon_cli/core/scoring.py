@@ -72,8 +72,9 @@ def closest_point_on_triangles(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: n
     return closest, bary
 
 
-def map_to_surface(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray,
-                   candidates: int = 12) -> SurfaceMapping:
+def map_to_surface(
+    points: np.ndarray, vertices: np.ndarray, faces: np.ndarray, candidates: int = 12
+) -> SurfaceMapping:
     """Nearest point on the mesh (vertices (V, 3), faces (F, 3)) for every point (N, 3).
 
     Candidate triangles are the `candidates` nearest by centroid; exact on smooth meshes
@@ -101,11 +102,20 @@ def distance_stats_mm(distances_m: np.ndarray) -> dict[str, float]:
     d = np.asarray(distances_m, float)
     d = d[np.isfinite(d)] * 1e3
     if d.size == 0:
-        return {"count": 0, "median_mm": float("nan"), "p95_mm": float("nan"),
-                "max_mm": float("nan"), "mean_mm": float("nan")}
-    return {"count": int(d.size), "median_mm": float(np.median(d)),
-            "p95_mm": float(np.percentile(d, 95)), "max_mm": float(d.max()),
-            "mean_mm": float(d.mean())}
+        return {
+            "count": 0,
+            "median_mm": float("nan"),
+            "p95_mm": float("nan"),
+            "max_mm": float("nan"),
+            "mean_mm": float("nan"),
+        }
+    return {
+        "count": int(d.size),
+        "median_mm": float(np.median(d)),
+        "p95_mm": float(np.percentile(d, 95)),
+        "max_mm": float(d.max()),
+        "mean_mm": float(d.mean()),
+    }
 
 
 def label_scores(predicted: np.ndarray, truth: np.ndarray) -> dict:
@@ -130,10 +140,19 @@ def label_scores(predicted: np.ndarray, truth: np.ndarray) -> dict:
         precision = tp / n_pred if n_pred else float("nan")
         recall = tp / n_true if n_true else float("nan")
         f1 = 2 * precision * recall / (precision + recall) if (precision + recall) > 0 else 0.0
-        per_class[CLASS_NAMES[t]] = {"precision": float(precision), "recall": float(recall),
-                                     "f1": float(f1), "support": int(n_true)}
+        per_class[CLASS_NAMES[t]] = {
+            "precision": float(precision),
+            "recall": float(recall),
+            "f1": float(f1),
+            "support": int(n_true),
+        }
     f1s = [v["f1"] for v in per_class.values() if v["support"] > 0]
-    return {"per_class": per_class, "macro_f1": float(np.mean(f1s)) if f1s else float("nan"),
-            "confusion": confusion.tolist(),
-            "confusion_axes": {"rows": [CLASS_NAMES[c] for c in classes],
-                               "cols": [CLASS_NAMES[c] for c in classes] + ["unknown"]}}
+    return {
+        "per_class": per_class,
+        "macro_f1": float(np.mean(f1s)) if f1s else float("nan"),
+        "confusion": confusion.tolist(),
+        "confusion_axes": {
+            "rows": [CLASS_NAMES[c] for c in classes],
+            "cols": [CLASS_NAMES[c] for c in classes] + ["unknown"],
+        },
+    }

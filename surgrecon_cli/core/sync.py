@@ -81,7 +81,7 @@ def group_frames(image_stamps_ns: Sequence[np.ndarray], tolerance_ns: int) -> Fr
         if len(used) == 1 and n_cams > 1:
             late[int(all_c[used[0]])] += 1
         rows.append(row)
-        frame_stamps.append(int(np.round(np.median(all_t[used]))))
+        frame_stamps.append(_median_ns(all_t[used]))
         start = stop
     image_index = np.array(rows, dtype=np.int64).reshape(len(rows), n_cams)
     return FrameGrouping(np.array(frame_stamps, dtype=np.int64), image_index, duplicates, late)
@@ -136,7 +136,9 @@ def validate_pose_stream(
     return PoseStream(stamps[keep], pos[keep], q[keep] / norms[keep, None])
 
 
-def poses_at(stream: PoseStream, query_ns: np.ndarray, max_gap_ns: int) -> tuple[np.ndarray, np.ndarray]:
+def poses_at(
+    stream: PoseStream, query_ns: np.ndarray, max_gap_ns: int
+) -> tuple[np.ndarray, np.ndarray]:
     """Interpolated poses (Q, 4, 4) at stamps (Q,) ns, NaN where invalid, and valid (Q,) bool.
 
     Invalid: before the first / after the last sample, or inside a gap > `max_gap_ns`.
@@ -162,7 +164,10 @@ def interpolate_values(
     NaN samples stay NaN in the result wherever they are used.
     """
     stamps = np.asarray(stamps_ns, dtype=np.int64).reshape(-1)
-    vals = np.asarray(values, dtype=float).reshape(len(stamps), -1)
+    vals = np.asarray(values, dtype=float)
+    vals = vals[:, None] if vals.ndim == 1 else vals
+    if vals.ndim != 2 or len(vals) != len(stamps):
+        raise ValueError(f"values must be (M, J) with M = {len(stamps)}, got {vals.shape}")
     query = np.asarray(query_ns, dtype=np.int64).reshape(-1)
     out = np.full((len(query), vals.shape[1]), np.nan)
     if len(stamps) == 0 or len(query) == 0:
@@ -200,6 +205,14 @@ def rate_hz(stamps_ns: np.ndarray) -> float:
     if len(stamps) < 2 or stamps[-1] <= stamps[0]:
         return 0.0
     return float((len(stamps) - 1) / ((stamps[-1] - stamps[0]) * 1e-9))
+
+
+def _median_ns(stamps: np.ndarray) -> int:
+    """Median of int64 ns stamps in integer arithmetic (floats lose ns at epoch scale)."""
+    s = np.sort(stamps)
+    n = len(s)
+    lo, hi = int(s[(n - 1) // 2]), int(s[n // 2])
+    return lo + (hi - lo) // 2
 
 
 def _fmt_stamp(stamp_ns: int | np.integer) -> str:

@@ -61,7 +61,9 @@ def build_template(
     """Build the template from one frame: images[c] (H, W, 3) uint8 RGB or None (unusable),
     poses (C, 4, 4) camera-to-world, tool_pose (4, 4) tool tip in the world (NaN = unknown)."""
     step = on_step or (lambda _name: None)
-    usable = np.array([im is not None and np.isfinite(p).all() for im, p in zip(images, poses, strict=True)])
+    usable = np.array(
+        [im is not None and np.isfinite(p).all() for im, p in zip(images, poses, strict=True)]
+    )
     if usable.sum() < 2:
         raise GeometryError(f"frame 0 has {int(usable.sum())} usable camera(s); need >= 2")
     features: list[Features] = []
@@ -70,18 +72,34 @@ def build_template(
             features.append(detect_features(np.zeros((8, 8, 3), np.uint8), models[c], 1))
             continue
         mask = tool_image_mask(models[c], poses[c], tool_pose, tool_cfg)
-        features.append(detect_features(image, models[c], cfg.max_features, cfg.contrast_threshold,
-                                        exclude=mask))
+        features.append(
+            detect_features(
+                image, models[c], cfg.max_features, cfg.contrast_threshold, exclude=mask
+            )
+        )
         step(f"features camera {c}")
-    prediction = predict_pairs(models, np.where(usable[:, None, None], poses, np.eye(4)), usable,
-                               cfg.working_distance)
+    prediction = predict_pairs(
+        models, np.where(usable[:, None, None], poses, np.eye(4)), usable, cfg.working_distance
+    )
     focal = [m.K[0, 0] for m in models]
     matches: dict[tuple[int, int], np.ndarray] = {}
     weights = np.zeros((len(models), len(models)))
     for i, j in candidate_pairs(prediction, cfg.min_view_overlap):
-        depth_range = (cfg.depth_range[0] * prediction.depth[i], cfg.depth_range[1] * prediction.depth[i])
-        m = match_pair(features[i], features[j], poses[i], poses[j], focal[i], focal[j],
-                       cfg.ratio, cfg.epipolar_px, depth_range)
+        depth_range = (
+            cfg.depth_range[0] * prediction.depth[i],
+            cfg.depth_range[1] * prediction.depth[i],
+        )
+        m = match_pair(
+            features[i],
+            features[j],
+            poses[i],
+            poses[j],
+            focal[i],
+            focal[j],
+            cfg.ratio,
+            cfg.epipolar_px,
+            depth_range,
+        )
         if len(m) >= cfg.min_pair_matches:
             matches[(i, j)] = m
             weights[i, j] = weights[j, i] = len(m) * prediction.conditioning[i, j]
@@ -123,7 +141,12 @@ def build_template(
         "points": int(keep.sum()),
     }
     return TemplateResult(
-        points=tri.points[keep], rgb=obs_kept.mean_rgb(int(keep.sum())), n_views=tri.n_views[keep],
-        reprojection_px=tri.mean_error_px[keep], observations=obs_kept, plan=plan,
-        prediction=prediction, stats=stats,
+        points=tri.points[keep],
+        rgb=obs_kept.mean_rgb(int(keep.sum())),
+        n_views=tri.n_views[keep],
+        reprojection_px=tri.mean_error_px[keep],
+        observations=obs_kept,
+        plan=plan,
+        prediction=prediction,
+        stats=stats,
     )

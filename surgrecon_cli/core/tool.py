@@ -50,8 +50,13 @@ def ray_segment_distance(origin: np.ndarray, dirs: np.ndarray, a: np.ndarray, b:
     return np.linalg.norm(diff, axis=1), s
 
 
-def tool_pixel_mask(pixels: np.ndarray, camera: CameraModel, cam_to_world: np.ndarray,
-                    tool_pose: np.ndarray, cfg: ToolConfig) -> np.ndarray:
+def tool_pixel_mask(
+    pixels: np.ndarray,
+    camera: CameraModel,
+    cam_to_world: np.ndarray,
+    tool_pose: np.ndarray,
+    cfg: ToolConfig,
+) -> np.ndarray:
     """(N,) bool: pixels (N, 2) whose rays hit the tool capsule inflated by the px margin."""
     if not np.isfinite(tool_pose).all() or len(pixels) == 0:
         return np.zeros(len(pixels), bool)
@@ -62,13 +67,15 @@ def tool_pixel_mask(pixels: np.ndarray, camera: CameraModel, cam_to_world: np.nd
     return dist <= cfg.shaft_radius + margin
 
 
-def tool_image_mask(camera: CameraModel, cam_to_world: np.ndarray, tool_pose: np.ndarray,
-                    cfg: ToolConfig) -> np.ndarray:
+def tool_image_mask(
+    camera: CameraModel, cam_to_world: np.ndarray, tool_pose: np.ndarray, cfg: ToolConfig
+) -> np.ndarray:
     """(H, W) bool mask of the tool in one image."""
     u, v = np.meshgrid(np.arange(camera.width), np.arange(camera.height))
     pixels = np.stack([u.ravel(), v.ravel()], 1).astype(float)
     return tool_pixel_mask(pixels, camera, cam_to_world, tool_pose, cfg).reshape(
-        camera.height, camera.width)
+        camera.height, camera.width
+    )
 
 
 def points_near_tool(points: np.ndarray, tool_pose: np.ndarray, cfg: ToolConfig) -> np.ndarray:

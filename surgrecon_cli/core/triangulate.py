@@ -27,8 +27,13 @@ class Observations:
     rgb: np.ndarray
 
     def subset(self, keep: np.ndarray) -> Observations:
-        return Observations(self.point[keep], self.camera[keep], self.pixels[keep],
-                            self.normalized[keep], self.rgb[keep])
+        return Observations(
+            self.point[keep],
+            self.camera[keep],
+            self.pixels[keep],
+            self.normalized[keep],
+            self.rgb[keep],
+        )
 
     def renumbered(self, keep_point: np.ndarray) -> Observations:
         """Observations of the kept points (bool (N,)), points renumbered 0..K-1."""
@@ -39,8 +44,13 @@ class Observations:
     def mean_rgb(self, n_points: int) -> np.ndarray:
         """Mean observed colour (N, 3) uint8 per point."""
         count = np.maximum(np.bincount(self.point, minlength=n_points), 1)[:, None]
-        total = np.stack([np.bincount(self.point, weights=self.rgb[:, k].astype(float),
-                                      minlength=n_points) for k in range(3)], 1)
+        total = np.stack(
+            [
+                np.bincount(self.point, weights=self.rgb[:, k].astype(float), minlength=n_points)
+                for k in range(3)
+            ],
+            1,
+        )
         return np.round(total / count).astype(np.uint8)
 
 
@@ -75,8 +85,9 @@ def triangulate_linear(obs: Observations, poses: np.ndarray, n_points: int) -> n
         return h[:, :3] / h[:, 3:4]
 
 
-def refine_points(points: np.ndarray, obs: Observations, poses: np.ndarray,
-                  focal: np.ndarray, iterations: int = 6) -> np.ndarray:
+def refine_points(
+    points: np.ndarray, obs: Observations, poses: np.ndarray, focal: np.ndarray, iterations: int = 6
+) -> np.ndarray:
     """Gauss-Newton on Σ (f_c · ‖π(R_c X + t_c) − x‖)² per point (≈ pixel error), damped."""
     P = _world_to_camera(poses)
     R, t = P[obs.camera, :, :3], P[obs.camera, :, 3]
@@ -100,8 +111,9 @@ def refine_points(points: np.ndarray, obs: Observations, poses: np.ndarray,
     return X
 
 
-def triangulate(obs: Observations, poses: np.ndarray, models: list[CameraModel],
-                n_points: int) -> Triangulation:
+def triangulate(
+    obs: Observations, poses: np.ndarray, models: list[CameraModel], n_points: int
+) -> Triangulation:
     """Triangulate every point seen in >= 2 observations and measure its quality."""
     focal = np.array([m.K[0, 0] for m in models])
     X = triangulate_linear(obs, poses, n_points)
@@ -124,7 +136,9 @@ def triangulate(obs: Observations, poses: np.ndarray, models: list[CameraModel],
     np.maximum.at(max_err, obs.point, error)
     in_front = np.ones(n_points, bool)
     np.logical_and.at(in_front, obs.point, depth > 0)
-    return Triangulation(X, mean_err, max_err, n_views, max_ray_angle(X, obs, poses), in_front, error)
+    return Triangulation(
+        X, mean_err, max_err, n_views, max_ray_angle(X, obs, poses), in_front, error
+    )
 
 
 def max_ray_angle(points: np.ndarray, obs: Observations, poses: np.ndarray) -> np.ndarray:

@@ -46,7 +46,8 @@ def prepare_image(record: ImageRecord) -> StoredImage:
         raise ValueError("empty image data")
     bgr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
     if bgr is None:
-        raise ValueError(f"{record.format or 'compressed'} data ({len(data)} bytes) does not decode")
+        kind = record.format or "compressed"
+        raise ValueError(f"{kind} data ({len(data)} bytes) does not decode")
     height, width = bgr.shape[:2]
     if data.startswith(_JPEG_MAGIC):
         return StoredImage(data, "jpg", width, height)

@@ -89,7 +89,9 @@ def save_ingested(log: IngestedLog) -> None:
         tool_poses=log.tool_poses,
         joint_names=np.array(log.joint_names, dtype=str),
         joint_positions=log.joint_positions,
-        image_paths=np.array(log.image_paths, dtype=str).reshape(len(log.stamps_ns), len(log.cameras)),
+        image_paths=np.array(log.image_paths, dtype=str).reshape(
+            len(log.stamps_ns), len(log.cameras)
+        ),
     )
 
 

@@ -85,7 +85,8 @@ def _convert_times(obj: Any, json_mode: bool) -> Any:
         for key, value in obj.items():
             if key == "timestamp":
                 sec, nsec = value
-                out[key] = {"sec": sec, "nsec": nsec} if json_mode else {"seconds": sec, "nanos": nsec}
+                out[key] = ({"sec": sec, "nsec": nsec} if json_mode
+                            else {"seconds": sec, "nanos": nsec})
             else:
                 out[key] = _convert_times(value, json_mode)
         return out

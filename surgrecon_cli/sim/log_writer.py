@@ -1,12 +1,13 @@
 """Write records into an MCAP log, in any encoding surgrecon reads.
 
-| record              | ros2 (cdr)                          | ros1 (ros1msg)                  | foxglove (protobuf / json)   |
-| ImageRecord jpeg/png| sensor_msgs/msg/CompressedImage     | sensor_msgs/CompressedImage     | foxglove.CompressedImage     |
-| ImageRecord raw     | sensor_msgs/msg/Image               | sensor_msgs/Image               | foxglove.RawImage            |
-| CameraInfoRecord    | sensor_msgs/msg/CameraInfo (d k r p)| sensor_msgs/CameraInfo (D K R P)| foxglove.CameraCalibration   |
-| PoseRecord          | geometry_msgs/msg/PoseStamped       | geometry_msgs/PoseStamped       | foxglove.PoseInFrame         |
-| PoseRecord + child  | tf2_msgs/msg/TFMessage              | tf2_msgs/TFMessage              | foxglove.FrameTransforms     |
-| JointStateRecord    | sensor_msgs/msg/JointState          | sensor_msgs/JointState          | foxglove.JointStates (protobuf) / surgrecon.JointStates (json) |
+record          ROS (ros2: pkg/msg/Type; ros1: pkg/Type)      Foxglove (protobuf or json)
+image jpeg/png  sensor_msgs/CompressedImage                   foxglove.CompressedImage
+image raw       sensor_msgs/Image                             foxglove.RawImage
+camera info     sensor_msgs/CameraInfo (ROS 1: D K R P)       foxglove.CameraCalibration
+pose            geometry_msgs/PoseStamped                     foxglove.PoseInFrame
+pose + child    tf2_msgs/TFMessage                            foxglove.FrameTransforms
+joint states    sensor_msgs/JointState                        foxglove.JointStates (protobuf),
+                                                              surgrecon.JointStates (json)
 
 Deterministic: no wall clock anywhere (log and publish time = the given log time, per-topic
 sequence numbers), fixed chunk size and zstd compression, so the same records give the same
@@ -71,7 +72,8 @@ class _Sink:
             self.channels[topic] = (channel_id, schema_name)
         channel_id, channel_schema = self.channels[topic]
         if channel_schema != schema_name:
-            raise ValueError(f"topic {topic}: has schema {channel_schema}, cannot write {schema_name}")
+            raise ValueError(
+                f"topic {topic}: has schema {channel_schema}, cannot write {schema_name}")
         self.writer.add_message(channel_id=channel_id, log_time=log_time_ns, data=data,
                                 publish_time=log_time_ns, sequence=seq)
 
@@ -106,7 +108,8 @@ class _Ros2Sink:
         self.sequence[topic] = seq + 1
         short, msg = ros_message(record, ros1=False)
         if self.topic_types.setdefault(topic, short) != short:
-            raise ValueError(f"topic {topic}: has type {self.topic_types[topic]}, cannot write {short}")
+            raise ValueError(
+                f"topic {topic}: has type {self.topic_types[topic]}, cannot write {short}")
         pkg, name = short.split("/")
         full = f"{pkg}/msg/{name}"
         if full not in self.schemas:

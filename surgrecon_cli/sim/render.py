@@ -23,9 +23,13 @@ def pixel_grid(camera: CameraModel) -> np.ndarray:
     return np.stack([u.ravel(), v.ravel()], 1).astype(np.float64)
 
 
-def tool_mesh(tip: np.ndarray, axis: np.ndarray, radius: float, length: float) -> o3d.t.geometry.TriangleMesh:
+def tool_mesh(
+    tip: np.ndarray, axis: np.ndarray, radius: float, length: float
+) -> o3d.t.geometry.TriangleMesh:
     """The shaft: a cylinder from the tip along `axis`, with a hemispherical end at the tip."""
-    cyl = o3d.geometry.TriangleMesh.create_cylinder(radius=radius, height=length, resolution=48, split=4)
+    cyl = o3d.geometry.TriangleMesh.create_cylinder(
+        radius=radius, height=length, resolution=48, split=4
+    )
     cyl.translate([0, 0, length / 2 + radius])
     cap = o3d.geometry.TriangleMesh.create_sphere(radius=radius, resolution=24)
     cap.translate([0, 0, radius])
@@ -95,7 +99,9 @@ class Renderer:
         n /= np.linalg.norm(n, axis=1, keepdims=True)
         albedo = self.texture.sample(mat)
         wet = 0.35 + 0.65 * albedo[:, 1]  # glossier on pale tissue, a patchy wet look
-        color[on_tissue] = self._shade(albedo, n, view[on_tissue], t_hit[on_tissue], 0.55 * wet, 80.0)
+        color[on_tissue] = self._shade(
+            albedo, n, view[on_tissue], t_hit[on_tissue], 0.55 * wet, 80.0
+        )
         # Tool: brushed metal.
         on_tool = np.isfinite(t_hit) & (geom == TOOL)
         if on_tool.any():

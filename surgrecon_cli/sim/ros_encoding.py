@@ -95,7 +95,9 @@ def ros1_serialize(type_name: str, msg: dict[str, Any], msgs: dict[str, str] = M
     return b"".join(out)
 
 
-def _write_struct(type_name: str, msg: dict[str, Any], msgs: dict[str, str], out: list[bytes]) -> None:
+def _write_struct(
+    type_name: str, msg: dict[str, Any], msgs: dict[str, str], out: list[bytes]
+) -> None:
     for ftype, name in _fields(msgs[type_name]):
         value = msg.get(name)
         base = _base(ftype)

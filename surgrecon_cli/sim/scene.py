@@ -27,28 +27,28 @@ class SimConfig:
     width: int = 640
     height: int = 480
     seed: int = 7
-    frame_rate: float = 5.0          # camera frame rate (Hz)
-    tracker_rate: float = 40.0       # navigation tracker rate (Hz)
-    robot_rate: float = 100.0        # robot tool pose / joint state rate (Hz)
+    frame_rate: float = 5.0  # camera frame rate (Hz)
+    tracker_rate: float = 40.0  # navigation tracker rate (Hz)
+    robot_rate: float = 100.0  # robot tool pose / joint state rate (Hz)
     tracker_noise_pos: float = 0.1e-3  # tracker position noise, norm (m)
     tracker_noise_deg: float = 0.05  # tracker rotation noise (deg)
-    image_noise: float = 2.0         # Gaussian pixel noise (of 255)
+    image_noise: float = 2.0  # Gaussian pixel noise (of 255)
     jpeg_quality: int = 92
-    dome_radius: float = 0.05        # disk radius of the tissue (m)
-    dome_height: float = 0.012       # dome bulge at the centre (m)
-    grid_spacing: float = 0.001      # mesh vertex spacing (m)
-    breath_edge: float = -0.004      # x of the breathing region's edge (m)
-    breath_width: float = 0.008      # width of the smooth transition (m)
+    dome_radius: float = 0.05  # disk radius of the tissue (m)
+    dome_height: float = 0.012  # dome bulge at the centre (m)
+    grid_spacing: float = 0.001  # mesh vertex spacing (m)
+    breath_edge: float = -0.004  # x of the breathing region's edge (m)
+    breath_width: float = 0.008  # width of the smooth transition (m)
     breath_amplitude: float = 0.003  # peak breathing shift (m)
-    breath_period: float = 5.0       # s
-    indent_depth: float = 0.007      # peak tool indentation (m)
-    indent_sigma: float = 0.006      # dent width (m)
+    breath_period: float = 5.0  # s
+    indent_depth: float = 0.007  # peak tool indentation (m)
+    indent_sigma: float = 0.006  # dent width (m)
     contact_xy: tuple[float, float] = (-0.022, 0.010)  # material contact point (m)
-    tool_radius: float = 0.004       # shaft radius (m), matches [tool] defaults
-    tool_length: float = 0.15        # shaft length (m)
+    tool_radius: float = 0.004  # shaft radius (m), matches [tool] defaults
+    tool_length: float = 0.15  # shaft length (m)
     camera_ring_radius: float = 0.030  # cameras on a ring around the dome axis (m)
-    camera_height: float = 0.055     # camera height above the dome base (m)
-    separated: bool = False          # place one camera far away, seeing nothing shared (tests)
+    camera_height: float = 0.055  # camera height above the dome base (m)
+    separated: bool = False  # place one camera far away, seeing nothing shared (tests)
 
 
 def smoothstep(x: np.ndarray) -> np.ndarray:
@@ -70,7 +70,7 @@ class TissueMesh:
 
 def dome_height(xy: np.ndarray, cfg: SimConfig, rng_bumps: np.ndarray) -> np.ndarray:
     """Dome profile (N,) m: a paraboloid cap plus a few low bumps (centres/amplitudes given)."""
-    r2 = (xy ** 2).sum(1) / cfg.dome_radius**2
+    r2 = (xy**2).sum(1) / cfg.dome_radius**2
     z = cfg.dome_height * (1 - r2)
     for cx, cy, amp, sig in rng_bumps:
         z += amp * np.exp(-((xy[:, 0] - cx) ** 2 + (xy[:, 1] - cy) ** 2) / (2 * sig**2))
@@ -80,7 +80,7 @@ def dome_height(xy: np.ndarray, cfg: SimConfig, rng_bumps: np.ndarray) -> np.nda
 def make_tissue(cfg: SimConfig) -> TissueMesh:
     """A regular grid over the disk, triangulated, lifted to the dome profile."""
     rng = np.random.default_rng(cfg.seed + 101)
-    n = int(round(2 * cfg.dome_radius / cfg.grid_spacing)) + 1
+    n = round(2 * cfg.dome_radius / cfg.grid_spacing) + 1
     axis = np.linspace(-cfg.dome_radius, cfg.dome_radius, n)
     gx, gy = np.meshgrid(axis, axis, indexing="xy")
     xy = np.stack([gx.ravel(), gy.ravel()], 1)
@@ -93,10 +93,14 @@ def make_tissue(cfg: SimConfig) -> TissueMesh:
     tri = np.concatenate([quads[:, [0, 2, 1]], quads[:, [1, 2, 3]]])
     tri = index[tri]
     faces = tri[(tri >= 0).all(1)].astype(np.int32)
-    bumps = np.column_stack([
-        rng.uniform(-0.03, 0.03, 6), rng.uniform(-0.03, 0.03, 6),
-        rng.uniform(-0.002, 0.002, 6), rng.uniform(0.006, 0.012, 6),
-    ])
+    bumps = np.column_stack(
+        [
+            rng.uniform(-0.03, 0.03, 6),
+            rng.uniform(-0.03, 0.03, 6),
+            rng.uniform(-0.002, 0.002, 6),
+            rng.uniform(0.006, 0.012, 6),
+        ]
+    )
     xy = xy[inside]
     vertices = np.column_stack([xy, dome_height(xy, cfg, bumps)])
     return TissueMesh(vertices=vertices, faces=faces)
@@ -134,10 +138,13 @@ class Motion:
         # Cameras: a ring, each drifting slowly and independently (a few mm, a few degrees).
         n = cfg.cameras
         angles = np.linspace(0, 2 * np.pi, n, endpoint=False) + rng.uniform(-0.2, 0.2, n)
-        self.cam_base = np.column_stack([
-            cfg.camera_ring_radius * np.cos(angles), cfg.camera_ring_radius * np.sin(angles),
-            cfg.camera_height + rng.uniform(-0.005, 0.005, n),
-        ])
+        self.cam_base = np.column_stack(
+            [
+                cfg.camera_ring_radius * np.cos(angles),
+                cfg.camera_ring_radius * np.sin(angles),
+                cfg.camera_height + rng.uniform(-0.005, 0.005, n),
+            ]
+        )
         self.cam_look = np.column_stack([rng.uniform(-0.012, 0.012, (n, 2)), np.zeros(n)])
         if cfg.separated and n >= 2:
             # Last camera looks at empty space far from the dome: shares no view.
@@ -161,7 +168,9 @@ class Motion:
         if t <= self.t_contact:
             return 0.0
         if t <= self.t_full:
-            return cfg.indent_depth * smoothstep((t - self.t_contact) / (self.t_full - self.t_contact))
+            return cfg.indent_depth * smoothstep(
+                (t - self.t_contact) / (self.t_full - self.t_contact)
+            )
         if t <= self.t_release:
             return cfg.indent_depth
         s = smoothstep((t - self.t_release) / max(duration - self.t_release, 1e-6))
@@ -196,8 +205,17 @@ class Motion:
     def joint_positions(self, t: float) -> np.ndarray:
         """Seven plausible joint values (rad, m) of a Raven-II-like arm following the tip."""
         tip = self.tool_tip(t)
-        return np.array([0.3 + 5 * tip[0], -0.2 + 5 * tip[1], 0.35 - 3 * tip[2],
-                         0.1 * np.sin(t), 0.05 * np.cos(t), 0.2, 0.2])
+        return np.array(
+            [
+                0.3 + 5 * tip[0],
+                -0.2 + 5 * tip[1],
+                0.35 - 3 * tip[2],
+                0.1 * np.sin(t),
+                0.05 * np.cos(t),
+                0.2,
+                0.2,
+            ]
+        )
 
     # ---- cameras ------------------------------------------------------------------------
     def camera_pose(self, cam: int, t: float) -> np.ndarray:

@@ -49,15 +49,29 @@ def camera_models(cfg: SimConfig, rng: np.random.Generator) -> list[CameraModel]
     models = []
     for _ in range(cfg.cameras):
         f = cfg.width / (2 * np.tan(np.radians(35))) * rng.uniform(0.97, 1.03)
-        K = np.array([[f, 0, cfg.width / 2 - 0.5 + rng.uniform(-3, 3)],
-                      [0, f, cfg.height / 2 - 0.5 + rng.uniform(-3, 3)], [0, 0, 1]])
-        dist = np.array([rng.uniform(-0.16, -0.10), rng.uniform(0.02, 0.05),
-                         rng.uniform(-5e-4, 5e-4), rng.uniform(-5e-4, 5e-4), 0.0])
+        K = np.array(
+            [
+                [f, 0, cfg.width / 2 - 0.5 + rng.uniform(-3, 3)],
+                [0, f, cfg.height / 2 - 0.5 + rng.uniform(-3, 3)],
+                [0, 0, 1],
+            ]
+        )
+        dist = np.array(
+            [
+                rng.uniform(-0.16, -0.10),
+                rng.uniform(0.02, 0.05),
+                rng.uniform(-5e-4, 5e-4),
+                rng.uniform(-5e-4, 5e-4),
+                0.0,
+            ]
+        )
         models.append(CameraModel(K, dist, cfg.width, cfg.height))
     return models
 
 
-def _noisy_pose(T: np.ndarray, cfg: SimConfig, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+def _noisy_pose(
+    T: np.ndarray, cfg: SimConfig, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray]:
     """Tracker measurement of a true pose: isotropic position and rotation noise."""
     p = T[:3, 3] + rng.normal(0, cfg.tracker_noise_pos / np.sqrt(3), 3)
     rotvec = rng.normal(0, np.radians(cfg.tracker_noise_deg) / np.sqrt(3), 3)
@@ -66,7 +80,7 @@ def _noisy_pose(T: np.ndarray, cfg: SimConfig, rng: np.random.Generator) -> tupl
 
 
 def _ns(t: float) -> int:
-    return T0_NS + int(round(t * 1e9))
+    return T0_NS + round(t * 1e9)
 
 
 class LogBuilder:
@@ -100,13 +114,23 @@ class LogBuilder:
         for cam in range(cfg.cameras):
             for t in np.arange(-0.1 + self.tracker_phase[cam], t_end, 1 / cfg.tracker_rate):
                 p, q = _noisy_pose(motion.camera_pose(cam, t), cfg, self.noise_rng)
-                out.append((f"/navigation/endoscope_{cam}/pose", _ns(t) + 1_000_000,
-                            PoseRecord(_ns(t), WORLD, "", p, q)))
+                out.append(
+                    (
+                        f"/navigation/endoscope_{cam}/pose",
+                        _ns(t) + 1_000_000,
+                        PoseRecord(_ns(t), WORLD, "", p, q),
+                    )
+                )
         for t in np.arange(-0.1, t_end, 1 / cfg.robot_rate):
             p, q = motion.tool_pose(t)
             out.append(("/raven/tool_tip", _ns(t) + 500_000, PoseRecord(_ns(t), WORLD, "", p, q)))
-            out.append(("/raven/joint_states", _ns(t) + 500_000,
-                        JointStateRecord(_ns(t), JOINTS, motion.joint_positions(t))))
+            out.append(
+                (
+                    "/raven/joint_states",
+                    _ns(t) + 500_000,
+                    JointStateRecord(_ns(t), JOINTS, motion.joint_positions(t)),
+                )
+            )
         out.sort(key=lambda m: (m[1], m[0]))
         return out
 
@@ -121,19 +145,42 @@ class LogBuilder:
             batch = []
             for cam in range(cfg.cameras):
                 stamp = self.image_stamp(frame, cam)
-                rgb = renderer.render(cam, self.models[cam], motion.camera_pose(cam, stamp), vertices,
-                                      normals, mesh.faces, mesh.material_xy, tool)
-                ok, jpeg = cv2.imencode(".jpg", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR),
-                                        [cv2.IMWRITE_JPEG_QUALITY, cfg.jpeg_quality])
+                rgb = renderer.render(
+                    cam,
+                    self.models[cam],
+                    motion.camera_pose(cam, stamp),
+                    vertices,
+                    normals,
+                    mesh.faces,
+                    mesh.material_xy,
+                    tool,
+                )
+                ok, jpeg = cv2.imencode(
+                    ".jpg",
+                    cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR),
+                    [cv2.IMWRITE_JPEG_QUALITY, cfg.jpeg_quality],
+                )
                 if not ok:  # pragma: no cover - OpenCV cannot fail on a valid uint8 image
                     raise RuntimeError("JPEG encoding failed")
                 model = self.models[cam]
                 log_ns = _ns(stamp) + 3_000_000
                 frame_id = f"endoscope_{cam}_optical"
-                batch.append((f"/endoscope_{cam}/calibration", log_ns, CameraInfoRecord(
-                    _ns(stamp), frame_id, model.width, model.height, model.K, model.dist)))
-                batch.append((f"/endoscope_{cam}/color/compressed", log_ns,
-                              ImageRecord(_ns(stamp), frame_id, "jpeg", jpeg.tobytes())))
+                batch.append(
+                    (
+                        f"/endoscope_{cam}/calibration",
+                        log_ns,
+                        CameraInfoRecord(
+                            _ns(stamp), frame_id, model.width, model.height, model.K, model.dist
+                        ),
+                    )
+                )
+                batch.append(
+                    (
+                        f"/endoscope_{cam}/color/compressed",
+                        log_ns,
+                        ImageRecord(_ns(stamp), frame_id, "jpeg", jpeg.tobytes()),
+                    )
+                )
             batch.sort(key=lambda m: (m[1], m[0]))
             yield from batch
             if on_frame is not None:
@@ -141,8 +188,9 @@ class LogBuilder:
 
     def messages(self, on_frame: Callable[[int], None] | None = None) -> Iterator[Message]:
         """All messages merged in log-time order; images are rendered lazily, frame by frame."""
-        return heapq.merge(self._pose_messages(), self._image_messages(on_frame),
-                           key=lambda m: (m[1], m[0]))
+        return heapq.merge(
+            self._pose_messages(), self._image_messages(on_frame), key=lambda m: (m[1], m[0])
+        )
 
 
 def tf_messages(messages: Iterator[Message]) -> Iterator[Message]:
@@ -150,11 +198,25 @@ def tf_messages(messages: Iterator[Message]) -> Iterator[Message]:
     for topic, log_ns, record in messages:
         if topic.startswith("/navigation/endoscope_") and isinstance(record, PoseRecord):
             cam = topic.split("/")[2].removeprefix("endoscope_")
-            yield "/tf", log_ns, PoseRecord(record.stamp_ns, WORLD, f"endoscope_{cam}_optical",
-                                            record.position, record.orientation)
+            yield (
+                "/tf",
+                log_ns,
+                PoseRecord(
+                    record.stamp_ns,
+                    WORLD,
+                    f"endoscope_{cam}_optical",
+                    record.position,
+                    record.orientation,
+                ),
+            )
         elif topic == "/raven/tool_tip" and isinstance(record, PoseRecord):
-            yield "/tf", log_ns, PoseRecord(record.stamp_ns, WORLD, "raven_tool_tip",
-                                            record.position, record.orientation)
+            yield (
+                "/tf",
+                log_ns,
+                PoseRecord(
+                    record.stamp_ns, WORLD, "raven_tool_tip", record.position, record.orientation
+                ),
+            )
         else:
             yield topic, log_ns, record
 
@@ -187,7 +249,9 @@ def simulate(
     counted = _Counter(stream)
     write_log(Path(out), counted, encoding)
     vertices = builder.true_vertices()
-    gt_labels = true_labels(vertices, labels.static_mm, labels.neighbourhood_mm, labels.rigid_rms_mm)
+    gt_labels = true_labels(
+        vertices, labels.static_mm, labels.neighbourhood_mm, labels.rigid_rms_mm
+    )
     gt_path = gt_path_for(Path(out))
     write_npz(
         gt_path,

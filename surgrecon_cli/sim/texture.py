@@ -28,8 +28,13 @@ class Texture:
         maps = np.zeros((rows * 1024, 2), np.float32)
         maps[:n] = (material_xy + self.half_extent) * scale
         maps = maps.reshape(rows, 1024, 2)
-        out = cv2.remap(self.image, maps[..., 0], maps[..., 1], interpolation=cv2.INTER_LINEAR,
-                        borderMode=cv2.BORDER_REFLECT)
+        out = cv2.remap(
+            self.image,
+            maps[..., 0],
+            maps[..., 1],
+            interpolation=cv2.INTER_LINEAR,
+            borderMode=cv2.BORDER_REFLECT,
+        )
         return out.reshape(-1, 3)[:n]
 
 
@@ -56,7 +61,12 @@ def make_texture(seed: int, half_extent: float = 0.055, size: int = 2048) -> Tex
     low = _value_noise(rng, size, 8)
     mid = _value_noise(rng, size, 40)
     fine = _value_noise(rng, size, 300)
-    shade = 0.75 + 0.25 * low[..., None] + 0.12 * (mid[..., None] - 0.5) + 0.10 * (fine[..., None] - 0.5)
+    shade = (
+        0.75
+        + 0.25 * low[..., None]
+        + 0.12 * (mid[..., None] - 0.5)
+        + 0.10 * (fine[..., None] - 0.5)
+    )
     tint = np.stack([np.zeros_like(low), 0.08 * (mid - 0.5), 0.06 * (low - 0.5)], -1)
     image = (base * shade + tint).astype(np.float32)
 
@@ -65,12 +75,24 @@ def make_texture(seed: int, half_extent: float = 0.055, size: int = 2048) -> Tex
     for _ in range(90):
         pts = _vessel_polyline(rng, size, int(rng.integers(80, 400)))
         width = int(rng.choice([1, 2, 2, 3, 4, 6]))
-        cv2.polylines(vessels, [pts.reshape(-1, 1, 2)], False, float(rng.uniform(0.5, 1.0)), width,
-                      lineType=cv2.LINE_AA)
+        cv2.polylines(
+            vessels,
+            [pts.reshape(-1, 1, 2)],
+            False,
+            float(rng.uniform(0.5, 1.0)),
+            width,
+            lineType=cv2.LINE_AA,
+        )
         for branch_at in rng.integers(0, len(pts), 2):
             twig = _vessel_polyline(rng, size, int(rng.integers(30, 120))) - pts[0] + pts[branch_at]
-            cv2.polylines(vessels, [twig.reshape(-1, 1, 2)], False, float(rng.uniform(0.4, 0.9)),
-                          max(1, width - 1), lineType=cv2.LINE_AA)
+            cv2.polylines(
+                vessels,
+                [twig.reshape(-1, 1, 2)],
+                False,
+                float(rng.uniform(0.4, 0.9)),
+                max(1, width - 1),
+                lineType=cv2.LINE_AA,
+            )
     vessels = cv2.GaussianBlur(vessels, (0, 0), 1.0)[..., None]
     vessel_rgb = np.array([0.45, 0.06, 0.10], np.float32)
     image = image * (1 - vessels) + vessel_rgb * vessels
@@ -81,8 +103,17 @@ def make_texture(seed: int, half_extent: float = 0.055, size: int = 2048) -> Tex
     for target in [blobs] * 250 + [spots] * 350:
         centre = tuple(int(c) for c in rng.integers(0, size, 2))
         axes = tuple(int(a) for a in rng.integers(4, 28, 2))
-        cv2.ellipse(target, centre, axes, float(rng.uniform(0, 180)), 0, 360,
-                    float(rng.uniform(0.4, 1.0)), -1, lineType=cv2.LINE_AA)
+        cv2.ellipse(
+            target,
+            centre,
+            axes,
+            float(rng.uniform(0, 180)),
+            0,
+            360,
+            float(rng.uniform(0.4, 1.0)),
+            -1,
+            lineType=cv2.LINE_AA,
+        )
     blobs = cv2.GaussianBlur(blobs, (0, 0), 2.0).clip(0, 1)[..., None]
     spots = cv2.GaussianBlur(spots, (0, 0), 1.5).clip(0, 1)[..., None]
     image = image * (1 - 0.8 * blobs) + np.array([0.93, 0.80, 0.52], np.float32) * 0.8 * blobs

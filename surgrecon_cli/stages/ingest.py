@@ -12,7 +12,7 @@ import contextlib
 import logging
 import os
 import shutil
-import tempfile
+import uuid
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -69,12 +69,14 @@ def ingest(
     log_path, run_dir = Path(log_path), Path(run_dir)
     if not log_path.is_file():
         raise InputError(f"{log_path}: no such file")
-    reader = LogReader(log_path, config.topics, config.ingest.time_source, allow_truncated, on_bytes)
+    reader = LogReader(log_path, config.topics, config.ingest.time_source, allow_truncated,
+                       on_bytes)
     reader.check_magic()
     run = _prepare_run_folder(run_dir, log_path, config, force)
     for leftover in run_dir.glob(".ingest-*"):
         shutil.rmtree(leftover, ignore_errors=True)
-    staging = Path(tempfile.mkdtemp(prefix=".ingest-", dir=run_dir))
+    staging = run_dir / f".ingest-{uuid.uuid4().hex[:12]}"
+    staging.mkdir()  # (mkdtemp would make it 0700; this respects the umask)
     try:
         collector = StreamCollector(staging)
         for item in reader:
@@ -89,6 +91,10 @@ def ingest(
         with contextlib.suppress(OSError, RunFolderError):
             run.mark_stage(STAGE, "failed", error=message)
         raise
+    if reader.damage:
+        logger.warning("%s: %s; used the data before it (--allow-truncated): %d frames, %d "
+                       "incomplete ones dropped", log_path, reader.damage, log.n_frames,
+                       report["frames_dropped_after_damage"])
     cameras = list(log.cameras)
     run.update(input={"path": str(log_path.resolve()), "sha256": reader.sha256,
                       "bytes": reader.size},
@@ -150,11 +156,11 @@ def _assemble(collector: StreamCollector, reader: LogReader, config: Config,
                              f"topics.camera_pose = {config.topics.camera_pose!r}")
     pose_streams = [cam.poses.validated() for cam in cams if cam.poses is not None]
     tool = collector.tool.validated()
-    gap_ns = int(round(config.ingest.pose_gap_ms * 1e6))
+    gap_ns = round(config.ingest.pose_gap_ms * 1e6)
 
     orders = [np.argsort(np.array(cam.stamps, np.int64), kind="stable") for cam in cams]
     stamps = [np.array(cam.stamps, np.int64)[o] for cam, o in zip(cams, orders, strict=True)]
-    frames = group_frames(stamps, int(round(config.ingest.sync_tolerance_ms * 1e6)))
+    frames = group_frames(stamps, round(config.ingest.sync_tolerance_ms * 1e6))
     T, C = frames.image_index.shape
     image_stamps = np.full((T, C), -1, dtype=np.int64)
     poses = np.full((T, C, 4, 4), np.nan)

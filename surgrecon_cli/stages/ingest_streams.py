@@ -168,6 +168,7 @@ class StreamCollector:
     def joints(self) -> tuple[np.ndarray, np.ndarray]:
         """Joint stamps (M,) sorted and positions (M, J)."""
         stamps = np.array(self.joint_stamps, dtype=np.int64)
-        values = np.array(self.joint_values, dtype=float).reshape(len(stamps), len(self.joint_names))
+        values = np.array(self.joint_values, dtype=float)
+        values = values.reshape(len(stamps), len(self.joint_names))
         order = np.argsort(stamps, kind="stable")
         return stamps[order], values[order]

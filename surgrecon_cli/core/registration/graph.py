@@ -81,23 +81,26 @@ def sample_nodes(q: np.ndarray, n_nodes: int) -> np.ndarray:
     lo = q.min(axis=0)
     extent = np.ptp(q, axis=0).max()
     size = extent / np.sqrt(n_nodes)  # a surface: count ~ area / size^2
-    best: np.ndarray | None = None
-    for _ in range(8):
-        keys = np.floor((q - lo) / size).astype(np.int64)
-        _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
-        inverse = inverse.ravel()
-        found = len(counts)
-        if best is None or abs(found - n_nodes) < abs(len(best) - n_nodes):
-            centres = lo + (keys + 0.5) * size
-            dist = np.linalg.norm(q - centres, axis=1)
-            order = np.lexsort((dist, inverse))
-            first = np.ones(n, bool)
-            first[1:] = inverse[order[1:]] != inverse[order[:-1]]
-            best = np.sort(order[first])
+    best = np.arange(n)
+    for attempt in range(8):
+        cells = np.floor((q - lo) / size).astype(np.int64)
+        dims = cells.max(axis=0) + 1
+        keys = cells[:, 0] + dims[0] * (cells[:, 1] + dims[1] * cells[:, 2])
+        order = np.argsort(keys, kind="stable")
+        sorted_keys = keys[order]
+        first = np.ones(n, bool)
+        first[1:] = sorted_keys[1:] != sorted_keys[:-1]
+        found = int(first.sum())
+        if attempt == 0 or abs(found - n_nodes) < abs(len(best) - n_nodes):
+            # within each voxel keep the point nearest the voxel centre
+            dist = np.linalg.norm(q - (lo + (cells + 0.5) * size), axis=1)
+            pick = np.lexsort((dist, keys))
+            keep = np.ones(n, bool)
+            keep[1:] = keys[pick[1:]] != keys[pick[:-1]]
+            best = np.sort(pick[keep])
         if abs(found - n_nodes) <= 0.05 * n_nodes:
             break
         size *= np.sqrt(found / n_nodes)
-    assert best is not None
     return best
 
 
@@ -131,11 +134,12 @@ def neighbour_edges(nodes_q: np.ndarray, node_tree: cKDTree, k: int) -> tuple[np
     if kk < 2:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
     _, idx = node_tree.query(nodes_q, k=kk)
-    a = np.repeat(np.arange(m), kk - 1)
-    b = idx[:, 1:].ravel()
-    pairs = np.unique(np.concatenate([np.c_[a, b], np.c_[b, a]]), axis=0)
-    pairs = pairs[pairs[:, 0] != pairs[:, 1]]
-    return pairs[:, 0].astype(np.int64), pairs[:, 1].astype(np.int64)
+    a = np.repeat(np.arange(m, dtype=np.int64), kk - 1)
+    b = idx[:, 1:].ravel().astype(np.int64)
+    keys = np.unique(np.concatenate([a * m + b, b * m + a]))
+    a, b = keys // m, keys % m
+    keep = a != b
+    return a[keep], b[keep]
 
 
 def data_operator(

@@ -35,7 +35,9 @@ class RegistrationResult:
     registered (N, 3); residuals (N,): distance to the correspondence, NaN if none;
     correspondences (N,): target index or -1; outliers (N,) bool: the point had a data term
     but no correspondence passed the gates, or its final residual exceeds `outlier_mm`;
-    stats: one dict per outer step (alpha, ADMM iterations, residuals in mm, time).
+    stats: one dict per step: step 0 the rigid pre-alignment (rotation, translation_m, nodes,
+    seconds), then one per outer step (alpha, ADMM iterations, residuals in mm, seconds);
+    the last carries total_seconds.
     """
 
     transforms: np.ndarray
@@ -168,15 +170,18 @@ def register(
     observed = base_w > 0
     colour_scale = norm.mm(cfg.color_weight_mm)
     matcher = build_matcher(tq, n, tgt_rgb, colour_scale, ids, lm)
-    tgt_spacing = float(np.median(cKDTree(tq).query(tq, k=2)[0][:, 1]))
+    tgt_tree = cKDTree(tq)
+    tgt_spacing = float(np.median(tgt_tree.query(tq, k=2)[0][:, 1]))
     mutual = cfg.mutual_spacings * max(norm.spacing, tgt_spacing)
     gate = norm.mm(cfg.max_correspondence_mm)
 
     # --- rigid pre-alignment, X initialised to it ---
+    t_rigid = time.perf_counter()
     if cfg.rigid_iterations > 0:
         R, t = rigid_prealign(q, src_rgb, matcher, observed, iterations=cfg.rigid_iterations,
                               keep=cfg.rigid_trim, spacing=norm.spacing,
-                              target_spacing=tgt_spacing)
+                              target_spacing=tgt_spacing, target_tree=tgt_tree,
+                              gate=gate)
     else:
         R, t = np.eye(3), np.zeros(3)
     X = np.zeros((n_nodes, 4, 3))
@@ -184,10 +189,13 @@ def register(
     X[:, 3, :] = nodes_q @ R.T + t
     X = X.reshape(-1, 3)
     A0 = np.tile(R.T, (n_nodes, 1))
-    stats: list[dict[str, Any]] = []
+    stats: list[dict[str, Any]] = [{
+        "step": 0, "stage": "rigid", "rotation": R, "translation_m": t * norm.unit,
+        "nodes": n_nodes, "seconds": time.perf_counter() - t_rigid,
+        "setup_seconds": t_rigid - t_start,
+    }]
     if callback is not None:
-        callback(0, {"stage": "rigid", "total": cfg.outer_iterations,
-                     "rotation": R, "translation_m": t * norm.unit})
+        callback(0, {"total": cfg.outer_iterations, **stats[0]})
 
     # --- outer loop: correspondences, reweighting, ADMM with annealed alpha ---
     data_l1 = cfg.data_penalty == "l1"
@@ -230,7 +238,7 @@ def register(
         moved = D_full @ X
         res = np.linalg.norm(moved[rows[matched]] - G[matched], axis=1) * norm.unit * 1e3
         record = {
-            "step": step + 1, "alpha": alpha, "admm_iterations": info.iterations,
+            "step": step + 1, "stage": "nonrigid", "alpha": alpha, "admm_iterations": info.iterations,
             "factorisations": info.factorisations, "converged": info.converged,
             "primal_mm": info.primal * norm.unit * 1e3, "dual_mm": info.dual * norm.unit * 1e3,
             "correspondences": int(matched.sum()),
@@ -239,7 +247,7 @@ def register(
         }
         stats.append(record)
         if callback is not None:
-            callback(step + 1, {"stage": "nonrigid", "total": cfg.outer_iterations, **record})
+            callback(step + 1, {"total": cfg.outer_iterations, **record})
 
     # --- outputs in metres ---
     node_T = _global_node_transforms(X, nodes_q, norm)
@@ -250,8 +258,7 @@ def register(
     corr = np.where(has, corr, -1)
     residuals[has] = np.linalg.norm(registered[has] - tgt[corr[has]], axis=1)
     outliers = observed & (~has | (residuals > cfg.outlier_mm * 1e-3))
-    if stats:
-        stats[-1]["total_seconds"] = time.perf_counter() - t_start
+    stats[-1]["total_seconds"] = time.perf_counter() - t_start
     return RegistrationResult(transforms=transforms, registered=registered, residuals=residuals,
                               correspondences=corr, outliers=outliers, stats=stats)
 

@@ -24,16 +24,17 @@ MIN_KNOWN = 6  # ours
 MAX_POINTS = 800  # ours: rigid alignment runs on at most this many source points
 
 
-PLANE_POINT_MIX = 0.3  # ours: weight of the point-to-point term in the point-to-plane step
+PLANE_POINT_MIX = 0.3
+CAUCHY_SCALE = 2.0
 
 
 class _Normals:
     """Target normals by PCA of the k nearest neighbours, computed on demand and cached."""
 
-    def __init__(self, target_q: np.ndarray, k: int = 10) -> None:
+    def __init__(self, target_q: np.ndarray, tree: cKDTree, k: int = 10) -> None:
         self.q = target_q
         self.k = min(k, len(target_q))
-        self.tree = cKDTree(target_q)
+        self.tree = tree
         self.cache = np.full((len(target_q), 3), np.nan)
 
     def __call__(self, which: np.ndarray) -> np.ndarray:
@@ -47,22 +48,22 @@ class _Normals:
         return self.cache[which]
 
 
-def _plane_step(src: np.ndarray, dst: np.ndarray, normals: np.ndarray):
-    """Small rigid motion (R, t) reducing sum ((R s + t - d) . n)^2 + mix |R s + t - d|^2."""
-    c = src.mean(axis=0)
+def _plane_step(src: np.ndarray, dst: np.ndarray, normals: np.ndarray, w: np.ndarray):
+    """Small rigid motion (R, t) reducing sum w ((R s + t - d) . n)^2 + mix w |R s + t - d|^2."""
+    c = (w @ src) / w.sum()
     s = src - c
     a = np.concatenate([np.cross(s, normals), normals], axis=1)  # (P, 6): [omega, tau]
     b = np.einsum("pi,pi->p", dst - src, normals)
-    H = a.T @ a
-    g = a.T @ b
+    H = a.T @ (a * w[:, None])
+    g = a.T @ (b * w)
     # point-to-point part: (omega x s + tau - (d - s)) for every axis
     skew = np.zeros((len(s), 3, 6))
     skew[:, 0, 1], skew[:, 0, 2] = s[:, 2], -s[:, 1]
     skew[:, 1, 0], skew[:, 1, 2] = -s[:, 2], s[:, 0]
     skew[:, 2, 0], skew[:, 2, 1] = s[:, 1], -s[:, 0]
     skew[:, :, 3:] = np.eye(3)
-    H += PLANE_POINT_MIX * np.einsum("pki,pkj->ij", skew, skew)
-    g += PLANE_POINT_MIX * np.einsum("pki,pk->i", skew, dst - src)
+    H += PLANE_POINT_MIX * np.einsum("p,pki,pkj->ij", w, skew, skew)
+    g += PLANE_POINT_MIX * np.einsum("p,pki,pk->i", w, skew, dst - src)
     x = np.linalg.solve(H + 1e-9 * np.trace(H) * np.eye(6), g)
     omega, tau = x[:3], x[3:]
     angle = np.linalg.norm(omega)
@@ -93,12 +94,15 @@ def rigid_prealign(
     keep: float,
     spacing: float,
     target_spacing: float,
+    target_tree: cKDTree,
+    gate: float,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Rotation R (3, 3) and translation t (3,) with target ~ source @ R.T + t.
 
     `observed` (N,) bool: source points with a data term; `spacing`, `target_spacing`: mean
-    point spacings. Pairs must pass a mutual check, then the closest `keep` fraction is fitted. Stops when an iteration moves the
-    subsample by less than 1 % of the mean point spacing (ours).
+    point spacings; `target_tree` indexes the target positions; `gate`: the correspondence distance gate.
+    Pairs must pass a mutual check, then the closest `keep` fraction is fitted with Cauchy
+    weights. Stops when a step moves the subsample by < 1 % of the point spacing (ours).
     """
     known = np.flatnonzero((matcher.known >= 0) & observed)
     if len(known) >= MIN_KNOWN:
@@ -113,7 +117,7 @@ def rigid_prealign(
                           tree=matcher.tree, colour_scale=matcher.colour_scale,
                           target_rgb=matcher.target_rgb, known=matcher.known[sub])
     every = np.ones(len(sub), bool)
-    normals = _Normals(matcher.target_q)
+    normals = _Normals(matcher.target_q, target_tree)
     # mutual gate on the subsample: drops pairs onto the rim of a partial target (ours: 3x)
     sub_spacing = graph_spacing(pts)
     mutual = 3.0 * max(sub_spacing, target_spacing)
@@ -125,11 +129,14 @@ def rigid_prealign(
         r = np.linalg.norm(moved[ok] - matcher.target_q[corr[ok]], axis=1)
         return float(np.quantile(r, keep)) if len(r) else np.inf
 
-    # Start from identity (clouds from one tracked world frame are close already) unless the
-    # shift of the medians fits clearly better (ours: half the trimmed residual).
+    # Start from identity (clouds from one tracked world frame are close already). Only when
+    # they are farther apart than the correspondence gate, start from the shift of the medians
+    # if it fits better: on a smooth cap the median shift includes a tangential slide that
+    # ICP cannot undo, so it is a last resort (ours).
     R, t = np.eye(3), np.zeros(3)
     shift = np.median(matcher.target_q, axis=0) - np.median(pts, axis=0)
-    if cost(R, shift) < 0.5 * cost(R, t):
+    start_cost = cost(R, t)
+    if start_cost > gate and cost(R, shift) < start_cost:
         t = shift
     for _ in range(iterations):
         moved = pts @ R.T + t
@@ -142,8 +149,11 @@ def rigid_prealign(
         sel = r <= np.quantile(r, keep)
         if sel.sum() < 6:
             break
+        # Cauchy weights on top of the trimming (scale ours: CAUCHY_SCALE x median residual)
+        scale = CAUCHY_SCALE * max(float(np.median(r[sel])), 1e-12)
+        w = 1.0 / (1.0 + (r[sel] / scale) ** 2)
         dR, dt = _plane_step(src_ok[sel], matcher.target_q[dst_idx[sel]],
-                             normals(dst_idx[sel]))
+                             normals(dst_idx[sel]), w)
         R_new, t_new = dR @ R, dR @ t + dt
         step = np.sqrt(np.mean(np.sum((pts @ R_new.T + t_new - moved) ** 2, axis=1)))
         R, t = R_new, t_new

@@ -138,13 +138,15 @@ class LogReader:
                 f"cannot be read as {role}; supported: {', '.join(supported(ROLE_KINDS[role]))}")
         return info
 
-    def _missing_roles_error(self, missing: list[str], channels: dict[str, str]) -> TopicError:
+    def _missing_roles_error(self, missing: list[str], channels: dict[str, str]) -> InputError:
         wanted = ", ".join(f"topics.{r} = {self.roles.patterns[r]!r}" for r in missing)
+        if self.damage:
+            return InputError(f"{self.path}: no complete frame before the damage "
+                              f"({self.damage}); nothing read for {wanted}")
         listed = [f"{t} ({s})" for t, s in sorted(channels.items())]
         more = f", ... ({len(listed) - _MAX_LISTED} more)" if len(listed) > _MAX_LISTED else ""
-        where = f" before the damage at byte {self.valid_bytes}" if self.damage else ""
         return TopicError(
-            f"{self.path}: no topic{where} for {wanted}; topics in the log: "
+            f"{self.path}: no topic for {wanted}; topics in the log: "
             f"{', '.join(listed[:_MAX_LISTED]) or 'none'}{more}; set [topics] in a --config file")
 
     def _early_check(self) -> None:
@@ -165,7 +167,8 @@ class LogReader:
             schema = summary.schemas.get(ch.schema_id)
             name = schema.name if schema else ""
             channels[ch.topic] = f"{name} ({ch.message_encoding})"
-            found.update(role for role, _ in self._classify(ch.topic, name, ch.message_encoding).roles)
+            info = self._classify(ch.topic, name, ch.message_encoding)
+            found.update(role for role, _ in info.roles)
         missing = [r for r in REQUIRED_ROLES if r not in found]
         if missing and self.require_roles:
             raise self._missing_roles_error(missing, channels)
@@ -232,7 +235,7 @@ class LogReader:
                     self._on_damage(McapError(f"message on unknown channel {record.channel_id}"),
                                     data_complete)
                     return
-                yield from self._message(info, schemas, record)
+                yield from self._message(info, record)
             elif isinstance(record, DataEnd):
                 data_complete = True
             elif isinstance(record, Footer):
@@ -259,8 +262,7 @@ class LogReader:
                                  f"be parsed ({_one_line(exc)})") from exc
         return info
 
-    def _message(self, info: _ChannelInfo, schemas: dict[int, Schema],
-                 message: Message) -> Iterator[LogItem]:
+    def _message(self, info: _ChannelInfo, message: Message) -> Iterator[LogItem]:
         self.message_counts[info.topic] = self.message_counts.get(info.topic, 0) + 1
         self.last_log_time_ns = message.log_time
         if info.decoder is None or info.deserialize is None:
@@ -296,19 +298,22 @@ class LogReader:
 
     def _on_damage(self, exc: BaseException, data_complete: bool) -> None:
         if isinstance(exc, EndOfFile | EOFError):
-            reason = "the file ends inside a record (truncated: recorder crashed or copy incomplete)"
+            reason = ("the file ends inside a record (truncated: recorder crashed or copy "
+                      "incomplete)")
         elif isinstance(exc, CRCValidationError):
             reason = "a chunk fails its CRC check (corrupt data)"
         elif isinstance(exc, zstandard.ZstdError | RuntimeError):
             reason = "a chunk does not decompress (corrupt data)"
         elif isinstance(exc, RecordLengthLimitExceeded):
-            reason = "a record length runs past the end of the file (corrupt data)"
+            reason = ("a record runs past the end of the file (truncated: recorder crashed or "
+                      "copy incomplete; or a corrupt record length)")
         elif isinstance(exc, InvalidMagic):
             reason = "the closing magic bytes are wrong (corrupt end of file)"
         else:
             reason = f"a record is malformed (corrupt data: {_one_line(exc)})"
         if data_complete:
-            logger.warning("%s: %s after the data section; all messages were read", self.path, reason)
+            logger.warning("%s: %s after the data section; all messages were read",
+                           self.path, reason)
             return
         t = self.last_log_time_ns
         when = f"log time {t / 1e9:.6f} s" if t is not None else "before any message"
@@ -317,7 +322,6 @@ class LogReader:
         if not self.allow_truncated:
             raise InputError(f"{self.path}: {self.damage}; re-copy or repair the log, or pass "
                              "--allow-truncated to use the data before the damage") from exc
-        logger.warning("%s: %s; using the data before it (--allow-truncated)", self.path, self.damage)
 
 
 def _one_line(exc: BaseException) -> str:

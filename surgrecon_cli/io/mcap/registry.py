@@ -59,7 +59,9 @@ DESERIALIZERS: dict[str, Callable[[], Deserializer]] = {
 }
 
 
-def find_decoder(message_encoding: str, schema_name: str, kinds: tuple[str, ...]) -> SchemaDecoder | None:
+def find_decoder(
+    message_encoding: str, schema_name: str, kinds: tuple[str, ...]
+) -> SchemaDecoder | None:
     """The decoder for a channel if its schema carries one of `kinds`, else None."""
     decoder = DECODERS.get((message_encoding, schema_name))
     if decoder is None and message_encoding == "json" and "joint_states" in kinds:

@@ -1,0 +1,37 @@
+"""`surgrecon register RUN`: target cloud + sparse non-rigid registration of every frame."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import click
+
+from .common import common_options, progress
+
+
+@click.command("register")
+@click.argument("run_dir", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@common_options
+def register_cmd(run_dir: Path, config: Any, quiet: bool) -> None:
+    """Register the template to every later frame of a run (resumable).
+
+    Template points are tracked into each frame's images, sorted by the reprojection-error
+    check into static / dynamic / outlier, and the template is registered to that target
+    cloud with one affine transform per point (l1 data and smoothness terms, ADMM).
+    Writes RUN/clouds/NNNNNN.ply and RUN/registration/NNNNNN.npz per frame.
+
+    \b
+    Example:
+      surgrecon register runs/sample --set registration.alpha=2
+    """
+    from ..io.ingest_store import load_ingested
+    from ..stages.register import run_register
+
+    n_frames = load_ingested(run_dir / "ingest").n_frames
+    with progress(quiet)(total=max(n_frames - 1, 0), desc="register", unit="frame") as bar:
+        processed = run_register(run_dir, config, on_frame=lambda _f, _n: bar.update(1))
+    click.echo(
+        f"registered {len(processed)} frame(s) ({n_frames - 1 - len(processed)} already "
+        f"done) -> {run_dir / 'clouds'}"
+    )

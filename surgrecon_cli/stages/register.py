@@ -1,0 +1,197 @@
+"""Stage `register`: target cloud and non-rigid registration of every frame k >= 1.
+
+Per frame k: the target cloud G_k (template points tracked into the new images and sorted
+by the reprojection-error check, core/target.py), then the template P registered to G_k
+(core/registration). Outputs, written atomically frame by frame so a killed run resumes:
+  RUN/registration/NNNNNN.npz   transforms (N,3,4) f32, registered (N,3), target (N,3),
+                                status (N,) u8, residual (N,) f32, pixels (N,C,2) f32,
+                                seconds_target, seconds_register
+  RUN/clouds/NNNNNN.ply         registered positions, template colours, point_id,
+                                label 255 (until classified), residual
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from ..config import Config, to_dict
+from ..core.registration import register
+from ..core.target import INTER, INTRA, build_target
+from ..core.tool import tool_pose_in_world
+from ..errors import RunFolderError
+from ..io.atomic import write_npz
+from ..io.ingest_store import IngestedLog, load_ingested
+from ..io.ply import read_ply, write_cloud_ply
+from ..io.run_folder import RunFolder
+from .common import stage_run
+from .template import cloud_path
+
+STAGE = "register"
+UNKNOWN_LABEL = 255
+
+
+def registration_path(run_dir: Path, frame: int) -> Path:
+    return Path(run_dir) / "registration" / f"{frame:06d}.npz"
+
+
+def compose(outer: np.ndarray, inner: np.ndarray) -> np.ndarray:
+    """Affine composition (N, 3, 4): x -> outer(inner(x))."""
+    A = outer[:, :, :3] @ inner[:, :, :3]
+    b = np.einsum("nij,nj->ni", outer[:, :, :3], inner[:, :, 3]) + outer[:, :, 3]
+    return np.concatenate([A, b[:, :, None]], axis=2)
+
+
+def load_template(run_dir: Path) -> tuple[np.ndarray, np.ndarray]:
+    """Template points (N, 3) m and colours (N, 3) uint8 from RUN/template.ply."""
+    cloud = read_ply(Path(run_dir) / "template.ply")
+    order = np.argsort(cloud["point_id"])
+    xyz = np.column_stack([cloud["x"], cloud["y"], cloud["z"]]).astype(float)[order]
+    rgb = np.column_stack([cloud["red"], cloud["green"], cloud["blue"]]).astype(np.uint8)[order]
+    return xyz, rgb
+
+
+def _frame_images(log: IngestedLog, frame: int) -> list[np.ndarray | None]:
+    return [
+        log.load_image(frame, c) if log.usable[frame, c] else None for c in range(len(log.cameras))
+    ]
+
+
+def _initial_pixels(run_dir: Path, n_points: int, n_cams: int) -> np.ndarray:
+    """Where each template point was seen at frame 0 (N, C, 2), NaN where not."""
+    with np.load(Path(run_dir) / "template" / "observations.npz", allow_pickle=False) as z:
+        pixels = np.full((n_points, n_cams, 2), np.nan)
+        pixels[z["point"], z["camera"]] = z["pixels"]
+    return pixels
+
+
+def run_register(
+    run_dir: Path, config: Config, on_frame: Callable[[int, int], None] | None = None
+) -> list[int]:
+    """Register every frame not yet done; returns the frames processed by this call.
+
+    `on_frame(frame, n_frames)` is called after each frame (progress).
+    """
+    run_dir = Path(run_dir)
+    run = RunFolder(run_dir)
+    previous = run.stage(STAGE)
+    done_before = (
+        set(previous.get("frames_done", []))
+        if previous.get("config") == _fingerprint(config)
+        else set()
+    )
+    with stage_run(
+        run_dir,
+        STAGE,
+        config,
+        needs=("ingest", "build-template"),
+        config_sections=("topics", "ingest", "tool", "template"),
+    ) as info:
+        log = load_ingested(run_dir / "ingest")
+        template, rgb = load_template(run_dir)
+        n, n_cams = len(template), len(log.cameras)
+        models = list(log.models)
+        latest = template.copy()
+        pixels = _initial_pixels(run_dir, n, n_cams)
+        base = np.tile(np.eye(3, 4), (n, 1, 1))  # transform of the current template base
+        source = template
+        processed: list[int] = []
+        frames_done: list[int] = []
+        prev_images = _frame_images(log, 0)
+        update_every = config.registration.template_update_every
+        for frame in range(1, log.n_frames):
+            path = registration_path(run_dir, frame)
+            cur_images: list[np.ndarray | None] | None = None
+            if frame in done_before and path.is_file() and cloud_path(run_dir, frame).is_file():
+                with np.load(path, allow_pickle=False) as z:
+                    transforms, registered = z["transforms"].astype(float), z["registered"]
+                    target_pos, pixels = z["target"], z["pixels"].astype(float)
+            else:
+                cur_images = _frame_images(log, frame)
+                start = time.perf_counter()
+                target = build_target(
+                    template,
+                    latest,
+                    prev_images,
+                    cur_images,
+                    _poses(log, frame - 1),
+                    _poses(log, frame),
+                    pixels,
+                    models,
+                    tool_pose_in_world(log.tool_poses[frame], config.tool),
+                    config.target,
+                    config.tool,
+                )
+                seconds_target = time.perf_counter() - start
+                start = time.perf_counter()
+                has_target = (target.status == INTRA) | (target.status == INTER)
+                ids = np.flatnonzero(has_target)
+                result = register(
+                    source,
+                    target.positions[ids],
+                    source_rgb=rgb,
+                    target_rgb=rgb[ids],
+                    config=config.registration,
+                    target_ids=ids,
+                    weights=has_target.astype(float),
+                )
+                seconds_register = time.perf_counter() - start
+                transforms = compose(result.transforms, base)
+                registered = result.registered
+                residual = np.nan_to_num(result.residuals, nan=0.0).astype(np.float32)
+                target_pos, pixels = target.positions, target.pixels
+                write_npz(
+                    path,
+                    transforms=transforms.astype(np.float32),
+                    registered=registered,
+                    target=target_pos,
+                    status=target.status,
+                    residual=residual,
+                    pixels=pixels.astype(np.float32),
+                    seconds_target=np.float64(seconds_target),
+                    seconds_register=np.float64(seconds_register),
+                )
+                write_cloud_ply(
+                    cloud_path(run_dir, frame),
+                    registered,
+                    rgb=rgb,
+                    point_id=np.arange(n, dtype=np.int32),
+                    label=np.full(n, UNKNOWN_LABEL, np.uint8),
+                    residual=residual,
+                    extra={
+                        "status": target.status.astype(np.uint8),
+                        "views": target.views.astype(np.uint8),
+                    },
+                )
+                processed.append(frame)
+            frames_done.append(frame)
+            run.mark_stage(STAGE, "running", frames_done=frames_done, config=_fingerprint(config))
+            latest = np.where(np.isfinite(target_pos), target_pos, registered)
+            if update_every and frame % update_every == 0:
+                base, source = transforms, registered
+            prev_images = cur_images if cur_images is not None else _frame_images(log, frame)
+            if on_frame is not None:
+                on_frame(frame, log.n_frames)
+        info.update(frames_done=frames_done, config=_fingerprint(config))
+    return processed
+
+
+def _poses(log: IngestedLog, frame: int) -> np.ndarray:
+    return np.where(log.usable[frame][:, None, None], log.poses[frame], np.nan)
+
+
+def _fingerprint(config: Config) -> dict:
+    """The config sections whose change invalidates registered frames."""
+    d = json.loads(json.dumps(to_dict(config)))
+    return {k: d[k] for k in ("target", "registration", "tool")}
+
+
+def require_registered(run_dir: Path) -> None:
+    if not RunFolder(run_dir).is_done(STAGE):
+        raise RunFolderError(
+            f"{run_dir}: frames are not registered; run `surgrecon register {run_dir}`"
+        )

@@ -1,0 +1,87 @@
+"""Stage `build-template`: the template cloud P from the run's first frame.
+
+Writes RUN/template.ply, RUN/clouds/000000.ply (all points static) and
+RUN/template/observations.npz (where each template point was seen at frame 0, for tracking).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from ..config import Config
+from ..core.labels import STATIC
+from ..core.template import TemplateResult, build_template
+from ..core.tool import tool_pose_in_world
+from ..errors import InputError
+from ..io.atomic import write_json, write_npz
+from ..io.ingest_store import load_ingested
+from ..io.ply import write_cloud_ply
+from .common import stage_run
+
+STAGE = "build-template"
+
+
+def cloud_path(run_dir: Path, frame: int) -> Path:
+    return Path(run_dir) / "clouds" / f"{frame:06d}.ply"
+
+
+def run_build_template(
+    run_dir: Path, config: Config, on_step: Callable[[str], None] | None = None
+) -> TemplateResult:
+    """Build and write the template of frame 0 of an ingested run."""
+    run_dir = Path(run_dir)
+    with stage_run(run_dir, STAGE, config, config_sections=("topics", "ingest")) as info:
+        log = load_ingested(run_dir / "ingest")
+        if log.n_frames == 0:
+            raise InputError(f"{run_dir}: the ingested log has no frames")
+        images = [
+            log.load_image(0, c) if log.usable[0, c] else None for c in range(len(log.cameras))
+        ]
+        poses = np.where(log.usable[0][:, None, None], log.poses[0], np.nan)
+        tool_pose = tool_pose_in_world(log.tool_poses[0], config.tool)
+        result = build_template(
+            images,
+            list(log.models),
+            poses,
+            tool_pose,
+            config.template,
+            config.tool,
+            on_step=on_step,
+        )
+        n = len(result.points)
+        extra = {
+            "n_views": result.n_views.astype(np.uint8),
+            "reprojection_px": result.reprojection_px.astype(np.float32),
+        }
+        for path in (run_dir / "template.ply", cloud_path(run_dir, 0)):
+            write_cloud_ply(
+                path,
+                result.points,
+                rgb=result.rgb,
+                point_id=np.arange(n, dtype=np.int32),
+                label=np.full(n, STATIC, np.uint8),
+                residual=np.zeros(n, np.float32),
+                extra=extra,
+            )
+        obs = result.observations
+        write_npz(
+            run_dir / "template" / "observations.npz",
+            point=obs.point.astype(np.int32),
+            camera=obs.camera.astype(np.int16),
+            pixels=obs.pixels.astype(np.float32),
+        )
+        plan = {
+            "groups": [[log.cameras[c] for c in g] for g in result.plan.groups],
+            "sequence": [
+                [[log.cameras[i], log.cameras[j]] for i, j in seq] for seq in result.plan.sequences
+            ],
+            "predicted_overlap": result.prediction.overlap.round(3).tolist(),
+            "view_angle_deg": result.prediction.angle_deg.round(1).tolist(),
+            "baseline_ratio": result.prediction.baseline_ratio.round(3).tolist(),
+        }
+        write_json(run_dir / "template" / "summary.json", {"stats": result.stats, "pairs": plan})
+        info.update(points=n, groups=plan["groups"], sequence=plan["sequence"], stats=result.stats)
+    return result

@@ -1,0 +1,143 @@
+"""Template building against the simulator's ground truth."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from surgrecon_cli.config import Config
+from surgrecon_cli.core.cameras import CameraModel, project, undistort_pixels
+from surgrecon_cli.core.geometry import make_pose, point_to_segment_distance
+from surgrecon_cli.core.pairing import plan_pairs
+from surgrecon_cli.core.scoring import distance_stats_mm, map_to_surface
+from surgrecon_cli.core.template import build_template
+from surgrecon_cli.core.tool import points_near_tool, shaft_segment, tool_image_mask
+from surgrecon_cli.core.triangulate import Observations, triangulate
+from surgrecon_cli.errors import GeometryError
+from surgrecon_cli.sim.scene import SimConfig
+
+from .scenes import render_frames
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return render_frames(SimConfig(cameras=4, frames=4, width=480, height=360, seed=3), [0])
+
+
+def _camera_ring(n=4, radius=0.03, height=0.05):
+    models, poses = [], []
+    for k in range(n):
+        a = 2 * np.pi * k / n
+        centre = np.array([radius * np.cos(a), radius * np.sin(a), height])
+        z = -centre / np.linalg.norm(centre)
+        x = np.cross(z, [0.0, 0.0, 1.0])
+        x /= np.linalg.norm(x)
+        R = np.column_stack([x, np.cross(z, x), z])
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = R, centre
+        poses.append(T)
+        models.append(
+            CameraModel(
+                np.array([[450.0, 0, 319.5], [0, 450.0, 239.5], [0, 0, 1]]),
+                np.array([-0.12, 0.03, 0.0003, -0.0002, 0.0]),
+                640,
+                480,
+            )
+        )
+    return models, np.array(poses)
+
+
+def test_triangulation_with_noisy_poses_is_within_tracker_noise():
+    rng = np.random.default_rng(0)
+    models, poses = _camera_ring()
+    points = rng.uniform([-0.01, -0.01, -0.003], [0.01, 0.01, 0.003], (300, 3))
+    noisy = poses.copy()
+    for T in noisy:  # tracker noise: ~0.1 mm, ~0.05 deg
+        T[:3, 3] += rng.normal(0, 0.1e-3 / np.sqrt(3), 3)
+        angle = np.radians(0.05) / np.sqrt(3) * rng.normal(size=3)
+        K = np.array([[0, -angle[2], angle[1]], [angle[2], 0, -angle[0]], [-angle[1], angle[0], 0]])
+        T[:3, :3] = (np.eye(3) + K) @ T[:3, :3]
+    rows = []
+    for c in range(len(models)):
+        uv, _ = project(points, poses[c], models[c])
+        uv += rng.normal(0, 0.3, uv.shape)  # 0.3 px feature noise
+        rows.append(
+            (np.arange(len(points)), np.full(len(points), c), uv, undistort_pixels(uv, models[c]))
+        )
+    obs = Observations(
+        *(np.concatenate([r[k] for r in rows]) for k in range(4)),
+        rgb=np.zeros((4 * len(points), 3), np.uint8),
+    )
+    tri = triangulate(obs, noisy, models, len(points))
+    err_mm = np.linalg.norm(tri.points - points, axis=1) * 1e3
+    # 0.1 mm tracker noise and 0.05 deg at ~55 mm (0.05 mm) bound the error: median < 0.15 mm.
+    assert np.median(err_mm) < 0.15
+    assert err_mm.max() < 0.5
+    assert tri.in_front.all() and (tri.n_views == 4).all()
+    assert np.median(tri.mean_error_px) < 1.5
+
+
+def test_pair_plan_covers_connected_group_and_splits_disconnected_cameras():
+    w = np.zeros((5, 5))
+    for (i, j), v in {(0, 1): 100, (1, 2): 300, (0, 2): 50, (2, 3): 80}.items():
+        w[i, j] = w[j, i] = v
+    plan = plan_pairs(w)
+    assert plan.groups == [[0, 1, 2, 3], [4]]
+    tree = plan.sequences[0][:3]
+    assert tree[0] == (1, 2)  # grown from the best pair
+    covered = {c for pair in tree for c in pair}
+    assert covered == {0, 1, 2, 3}
+    assert set(plan.sequences[0]) == {(0, 1), (1, 2), (0, 2), (2, 3)}
+    assert plan.sequences[1] == []
+
+
+def test_template_accuracy_and_tool_removal(scene):
+    cfg = Config()
+    images = scene.images[0]
+    tool_pose = scene.tool_poses[0]
+    result = build_template(images, scene.models, scene.poses[0], tool_pose, cfg.template, cfg.tool)
+    mapping = map_to_surface(result.points, scene.vertices[0], scene.faces)
+    stats = distance_stats_mm(mapping.distance)
+    assert len(result.points) >= 500
+    assert stats["median_mm"] <= 0.3
+    assert stats["p95_mm"] <= 1.0
+    a, b = shaft_segment(tool_pose, cfg.tool)
+    assert (point_to_segment_distance(result.points, a, b) < cfg.tool.shaft_radius).sum() == 0
+    assert result.plan.groups == [list(range(4))]
+    assert (result.n_views >= 2).all()
+    # Colours are observed colours of tissue: reddish.
+    assert np.median(result.rgb[:, 0]) > np.median(result.rgb[:, 2])
+
+
+def test_tool_mask_and_3d_removal(scene):
+    cfg = Config()
+    tool_pose = scene.tool_poses[0]
+    masks = [
+        tool_image_mask(m, p, tool_pose, cfg.tool)
+        for m, p in zip(scene.models, scene.true_poses[0], strict=True)
+    ]
+    # The rendered tool is metallic grey: masked pixels are far less red than tissue.
+    for image, mask in zip(scene.images[0], masks, strict=True):
+        if mask.sum() > 200:
+            tool_px = image[mask].astype(float)
+            assert np.median(tool_px[:, 0] - tool_px[:, 2]) < 30
+    a, b = shaft_segment(tool_pose, cfg.tool)
+    axis = (b - a) / np.linalg.norm(b - a)
+    on_axis = a + np.outer(np.linspace(0.001, 0.05, 20), axis)
+    assert points_near_tool(on_axis, tool_pose, cfg.tool).all()
+    far = on_axis + np.cross(axis, [0, 0, 1.0]) / np.linalg.norm(np.cross(axis, [0, 0, 1.0])) * 0.02
+    assert not points_near_tool(far, tool_pose, cfg.tool).any()
+
+
+def test_template_needs_two_cameras(scene):
+    cfg = Config()
+    images = [scene.images[0][0], None, None, None]
+    with pytest.raises(GeometryError, match="usable camera"):
+        build_template(
+            images,
+            scene.models,
+            scene.poses[0],
+            make_pose(np.zeros(3), np.array([0, 0, 0, 1.0])),
+            cfg.template,
+            cfg.tool,
+        )
