@@ -8,16 +8,17 @@ indentation, 0.2 mm noise; variants with 20 % gross outliers (extra target point
 the surface), with colour (texture), and with 30 % of the target removed (partial overlap).
 The target holds the same material points as the source (shuffled), so the error of a
 registered point is its distance to its true moved position. Every method runs on the same
-pairs in this process; peers run in a worker thread and are reported "capped" past the time
-cap (the thread is left to finish in the background and its result discarded). Peak memory
+pairs; peers run in a forked worker process, terminated and reported "capped" past the time
+cap. Peak memory
 of our run is measured with tracemalloc (numpy allocations). All numbers are ours.
 """
 
 from __future__ import annotations
 
 import argparse
+import multiprocessing as mp
+import queue as queue_mod
 import sys
-import threading
 import time
 import tracemalloc
 from collections.abc import Callable
@@ -78,7 +79,7 @@ def make_pair(n: int, *, outliers: float = 0.0, colour: bool = False, partial: f
         keep = tgt[:, 0] > np.quantile(tgt[:, 0], partial)
         tgt, trgb = tgt[keep], trgb[keep]
     if outliers > 0:
-        k = int(round(outliers * len(tgt)))
+        k = round(outliers * len(tgt))
         base = tgt[rng.integers(0, len(tgt), k)]
         d = rng.normal(size=(k, 3))
         d /= np.linalg.norm(d, axis=1, keepdims=True)
@@ -120,25 +121,31 @@ def run_probreg(pair: Pair, method: str) -> np.ndarray:
 
 
 def timed(fn: Callable[[], np.ndarray], cap: float) -> tuple[np.ndarray | None, float, str]:
-    """Run fn in a worker thread; (result, seconds, status) with status 'ok'/'capped'/error."""
-    out: dict[str, object] = {}
+    """Run fn in a forked worker process; (result, seconds, status: 'ok'/'capped'/error).
+
+    A run past `cap` seconds is terminated, so a slow peer cannot eat the CPU of later runs.
+    """
+    ctx = mp.get_context("fork")
+    queue = ctx.Queue()
 
     def work() -> None:
         t0 = time.perf_counter()
         try:
-            out["res"] = fn()
-        except Exception as exc:  # noqa: BLE001 - a peer failing is a benchmark result
-            out["err"] = f"{type(exc).__name__}"
-        out["t"] = time.perf_counter() - t0
+            res = fn()
+            queue.put(("ok", res, time.perf_counter() - t0))
+        except Exception as exc:
+            queue.put((type(exc).__name__, None, time.perf_counter() - t0))
 
-    th = threading.Thread(target=work, daemon=True)
-    th.start()
-    th.join(cap)
-    if th.is_alive():
+    proc = ctx.Process(target=work, daemon=True)
+    proc.start()
+    try:
+        status, res, secs = queue.get(timeout=cap)
+    except queue_mod.Empty:
+        proc.terminate()
+        proc.join()
         return None, cap, "capped"
-    if "err" in out:
-        return None, float(out["t"]), str(out["err"])  # type: ignore[arg-type]
-    return out["res"], float(out["t"]), "ok"  # type: ignore[return-value]
+    proc.join()
+    return res, secs, status
 
 
 def errors_mm(reg: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
@@ -161,8 +168,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--sizes", type=int, nargs="+", default=[2000, 5000, 10000, 50000])
     ap.add_argument("--cases", nargs="+", default=list(CASES), choices=list(CASES))
     ap.add_argument("--peers", nargs="*", default=["pycpd", "cpd", "bcpd"])
-    ap.add_argument("--peer-max-points", type=int, default=10000,
+    ap.add_argument("--peer-max-points", type=int, default=5000,
                     help="peers are not run above this size (reported capped)")
+    ap.add_argument("--peer-cases", nargs="+", default=["clean", "outliers20", "partial30"],
+                    choices=list(CASES), help="cases the peers run (geometry only)")
     ap.add_argument("--cap", type=float, default=60.0, help="time cap per peer run (s)")
     ap.add_argument("--mu-study", action="store_true", help="also time growing mu (x2/iter)")
     args = ap.parse_args(argv)
@@ -179,10 +188,11 @@ def main(argv: list[str] | None = None) -> int:
         for case in args.cases:
             pair = make_pair(n, **CASES[case])  # type: ignore[arg-type]
             run_ours(make_pair(500, **CASES[case]))  # warm-up: imports, caches
-            tracemalloc.start()
             t0 = time.perf_counter()
             reg = run_ours(pair)
             t_ours = time.perf_counter() - t0
+            tracemalloc.start()  # a second run for memory: tracing slows numpy down
+            run_ours(pair)
             peak = tracemalloc.get_traced_memory()[1] / 2**20
             tracemalloc.stop()
             med, p95 = errors_mm(reg, pair.truth)
@@ -194,11 +204,11 @@ def main(argv: list[str] | None = None) -> int:
                 med, p95 = errors_mm(reg, pair.truth)
                 print(f"| {n} | {case} | ours, mu x2/iter | {med:.3f} | {p95:.3f} | {t_mu:.3f} "
                       "| | |")
-            for name in args.peers:
+            for name in args.peers if case in args.peer_cases else ():
                 if n > args.peer_max_points:
                     print(f"| {n} | {case} | {name} | capped | | > {args.cap:.0f} (not run) | | |")
                     continue
-                res, secs, status = timed(lambda f=peers[name]: f(pair), args.cap)
+                res, secs, status = timed(lambda f=peers[name], p=pair: f(p), args.cap)
                 if res is None:
                     print(f"| {n} | {case} | {name} | {status} | | {secs:.1f} | | |")
                     continue

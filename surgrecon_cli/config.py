@@ -219,18 +219,40 @@ class RegistrationConfig:
 
 @dataclass(frozen=True)
 class ClassifyConfig:
-    """Point classification thresholds (mm), see core/classify.py for the reasoning."""
+    """Point classification (mm); thresholds are ours, see core/classify.py for the reasoning."""
 
-    static_mm: float = _doc(1.0, "registered displacement below this is static (mm)")
-    deform_mm: float = _doc(
-        0.5, "neighbour relative motion |(T_j - T_i) p_i| at/above: deforming (mm)"
+    static_mm: float = _doc(1.0, "registered displacement |T_i p_i - p_i| below this is static (mm)")
+    status_band_mm: float = _doc(
+        0.3, "within this of static_mm the reprojection check decides: intra-camera inlier "
+        "static, inter-camera inlier dynamic (mm; 0 = displacement only)"
     )
-    hysteresis_frames: int = _doc(0, "frames a new label must persist before it is taken (0 = off)")
+    measure: str = _doc(
+        "rigid_rms", "shifting/deforming measure: 'rigid_rms' (RMS of the neighbourhood's best "
+        "rigid fit to its registered positions) or 'transform_diff' (|(T_j - T_i) p_i|)"
+    )
+    deform_mm: float = _doc(0.25, "measure at/above this: deforming, below: shifting (mm)")
+    neighbour_percentile: float = _doc(
+        100.0, "transform_diff: percentile over the neighbours j (100 = max)"
+    )
+    neighbourhood_mm: float = _doc(5.0, "neighbours: template points within this at frame 0 (mm)")
+    min_neighbours: int = _doc(6, "fewer neighbours inside the radius: take this many nearest")
+    max_neighbours: int = _doc(64, "at most this many nearest neighbours inside the radius")
+    hysteresis_frames: int = _doc(0, "a label run shorter than this many frames is undone (0 = off)")
 
     def __post_init__(self) -> None:
-        _require(self.static_mm > 0, "classify.static_mm", "must be > 0")
-        _require(self.deform_mm > 0, "classify.deform_mm", "must be > 0")
-        _require(self.hysteresis_frames >= 0, "classify.hysteresis_frames", "must be >= 0")
+        key = "classify."
+        for name in ("static_mm", "deform_mm", "neighbourhood_mm"):
+            _require(getattr(self, name) > 0, key + name, "must be > 0")
+        _require(0 <= self.status_band_mm < self.static_mm, key + "status_band_mm",
+                 "must be in [0, static_mm)")
+        _require(self.measure in ("rigid_rms", "transform_diff"), key + "measure",
+                 f"must be 'rigid_rms' or 'transform_diff', got {self.measure!r}")
+        _require(0 < self.neighbour_percentile <= 100, key + "neighbour_percentile",
+                 "must be in (0, 100]")
+        _require(self.min_neighbours >= 2, key + "min_neighbours", "must be >= 2")
+        _require(self.max_neighbours >= self.min_neighbours, key + "max_neighbours",
+                 "must be >= min_neighbours")
+        _require(self.hysteresis_frames >= 0, key + "hysteresis_frames", "must be >= 0")
 
 
 @dataclass(frozen=True)

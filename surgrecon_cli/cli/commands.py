@@ -6,6 +6,7 @@ from .cmd_build_template import build_template_cmd
 from .cmd_config import config_cmd
 from .cmd_ingest import ingest_cmd
 from .cmd_register import register_cmd
+from .cmd_register_pair import register_pair_cmd
 from .cmd_simulate import simulate_cmd
 
-ALL = [build_template_cmd, config_cmd, ingest_cmd, register_cmd, simulate_cmd]
+ALL = [build_template_cmd, config_cmd, ingest_cmd, register_cmd, register_pair_cmd, simulate_cmd]

@@ -186,12 +186,10 @@ def build_target(
     n, n_cams = len(template), len(models)
     pixels = np.full((n, n_cams, 2), np.nan)
     found = np.zeros((n, n_cams), bool)
-    near_tool = points_near_tool(np.nan_to_num(latest), tool_pose, tool_cfg)
     for c in range(n_cams):
         if cur_images[c] is None or prev_images[c] is None:
             continue
         guess, visible = visible_points(latest, models[c], cur_poses[c], cfg.occlusion_depth)
-        visible &= ~near_tool
         start = prev_pixels[:, c].copy()
         missing = ~np.isfinite(start).all(1)
         if missing.any() and np.isfinite(prev_poses[c]).all():
@@ -206,6 +204,11 @@ def build_target(
         pixels[idx[ok], c] = tracked[ok]
         found[idx[ok], c] = True
     status, positions = reprojection_check(template, found, pixels, models, cur_poses, cfg.gate_px)
+    # Tissue is pushed away by the tool, so visibility is judged in the images (mask);
+    # a re-triangulated point inside the tool's capsule is a tool point, not tissue.
+    on_tool = (status == INTER) & points_near_tool(np.nan_to_num(positions), tool_pose, tool_cfg)
+    status[on_tool] = OUTLIER
+    positions[on_tool] = np.nan
     unobserved = status == UNOBSERVED
     positions[unobserved] = latest[unobserved]
     return TargetCloud(positions, status, found.sum(1), pixels)

@@ -52,8 +52,7 @@ def build_matcher(
     use_rgb = target_rgb is not None and colour_scale > 0
     if len(candidates):
         feats = target_q[candidates]
-        if use_rgb:
-            assert target_rgb is not None
+        if use_rgb and target_rgb is not None:
             feats = np.concatenate([feats, colour_scale * target_rgb[candidates]], axis=1)
         tree = cKDTree(feats)
     return Matcher(target_q=target_q, candidates=candidates, tree=tree,

@@ -73,7 +73,8 @@ def _validate_extras(n: int, m: int, target_ids: Any, weights: Any, landmarks: A
     if target_ids is not None:
         ids = np.asarray(target_ids)
         if ids.shape != (m,) or not np.issubdtype(ids.dtype, np.integer):
-            raise GeometryError(f"target_ids: expected ({m},) integers, got {ids.shape} {ids.dtype}")
+            raise GeometryError(
+                f"target_ids: expected ({m},) integers, got {ids.shape} {ids.dtype}")
         if ids.size and ids.max() >= n:
             raise GeometryError(f"target_ids: id {int(ids.max())} >= number of source points {n}")
         ids = ids.astype(np.int64)
@@ -238,7 +239,8 @@ def register(
         moved = D_full @ X
         res = np.linalg.norm(moved[rows[matched]] - G[matched], axis=1) * norm.unit * 1e3
         record = {
-            "step": step + 1, "stage": "nonrigid", "alpha": alpha, "admm_iterations": info.iterations,
+            "step": step + 1, "stage": "nonrigid", "alpha": alpha,
+            "admm_iterations": info.iterations,
             "factorisations": info.factorisations, "converged": info.converged,
             "primal_mm": info.primal * norm.unit * 1e3, "dual_mm": info.dual * norm.unit * 1e3,
             "correspondences": int(matched.sum()),

@@ -75,7 +75,8 @@ def _plane_step(src: np.ndarray, dst: np.ndarray, normals: np.ndarray, w: np.nda
     return R, c + tau - R @ c
 
 
-def _l1_fit(src: np.ndarray, dst: np.ndarray, iterations: int = 10) -> tuple[np.ndarray, np.ndarray]:
+def _l1_fit(src: np.ndarray, dst: np.ndarray, iterations: int = 10):
+    """Rigid fit minimising sum |R s + t - d| (IRLS; floor 0.1 x median residual, ours)."""
     R, t = fit_rigid(src, dst)
     for _ in range(iterations):
         r = np.linalg.norm(src @ R.T + t - dst, axis=1)
@@ -100,7 +101,8 @@ def rigid_prealign(
     """Rotation R (3, 3) and translation t (3,) with target ~ source @ R.T + t.
 
     `observed` (N,) bool: source points with a data term; `spacing`, `target_spacing`: mean
-    point spacings; `target_tree` indexes the target positions; `gate`: the correspondence distance gate.
+    point spacings; `target_tree` indexes the target positions; `gate`: the correspondence
+    distance gate.
     Pairs must pass a mutual check, then the closest `keep` fraction is fitted with Cauchy
     weights. Stops when a step moves the subsample by < 1 % of the point spacing (ours).
     """
