@@ -86,11 +86,7 @@ def sample_nodes(q: np.ndarray, n_nodes: int) -> np.ndarray:
         cells = np.floor((q - lo) / size).astype(np.int64)
         dims = cells.max(axis=0) + 1
         keys = cells[:, 0] + dims[0] * (cells[:, 1] + dims[1] * cells[:, 2])
-        order = np.argsort(keys, kind="stable")
-        sorted_keys = keys[order]
-        first = np.ones(n, bool)
-        first[1:] = sorted_keys[1:] != sorted_keys[:-1]
-        found = int(first.sum())
+        found = len(np.unique(keys))
         if attempt == 0 or abs(found - n_nodes) < abs(len(best) - n_nodes):
             # within each voxel keep the point nearest the voxel centre
             dist = np.linalg.norm(q - (lo + (cells + 0.5) * size), axis=1)

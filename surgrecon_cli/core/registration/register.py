@@ -170,6 +170,8 @@ def register(
         is_landmark[lm[:, 0]] = True
     observed = base_w > 0
     colour_scale = norm.mm(cfg.color_weight_mm)
+    if src_rgb is None or tgt_rgb is None:  # colour is used only when both clouds have it
+        src_rgb = tgt_rgb = None
     matcher = build_matcher(tq, n, tgt_rgb, colour_scale, ids, lm)
     tgt_tree = cKDTree(tq)
     tgt_spacing = float(np.median(tgt_tree.query(tq, k=2)[0][:, 1]))

@@ -21,7 +21,7 @@ from .graph import mean_spacing as graph_spacing
 from .graph import sample_nodes
 
 MIN_KNOWN = 6  # ours
-MAX_POINTS = 800  # ours: rigid alignment runs on at most this many source points
+MAX_POINTS = 500  # ours: rigid alignment runs on at most this many source points
 
 
 PLANE_POINT_MIX = 0.3
