@@ -158,9 +158,7 @@ class RegistrationConfig:
 
     k_neighbors: int = _doc(8, "neighbours per node in the smoothness graph")
     max_nodes: int = _doc(
-        400,
-        "transform nodes; larger clouds are solved on this many nodes and each point's "
-        "affine is blended from its nearest nodes (0 = one node per point, the paper's model)",
+        400, "nodes solved for; each point's affine blends its nearest nodes' (0 = one per point)"
     )
     interp_neighbors: int = _doc(4, "nodes blended into each point's transform")
     alpha: float = _doc(0.05, "weight of the neighbour-difference term (final, after annealing)")
@@ -179,11 +177,9 @@ class RegistrationConfig:
         5.0, "nearest-neighbour correspondences farther are dropped (mm)"
     )
     mutual_spacings: float = _doc(
-        3.0,
-        "drop a match whose target's nearest source lies farther than this many point "
-        "spacings from the querying point (0 = off)",
+        3.0, "drop a match whose target's nearest source is this many spacings away (0 = off)"
     )
-    reweight_mm: float = _doc(1.0, "l1 data reweighting w = e / (|r| + e) with e in mm (0 = off)")
+    reweight_mm: float = _doc(1.0, "l1 data reweighting w = e / (|r| + e), e in mm (0 = off)")
     outlier_mm: float = _doc(1.0, "final correspondence residual above this flags an outlier (mm)")
     rigid_iterations: int = _doc(30, "trimmed-ICP iterations of the rigid pre-alignment")
     rigid_trim: float = _doc(0.8, "fraction of closest pairs kept by the trimmed ICP")

@@ -128,8 +128,9 @@ class RunFolder:
         """RunFolderError unless stage `name` completed."""
         if not self.is_done(name):
             status = self.stage_status(name) or "not run"
-            raise RunFolderError(f"{self.path}: stage {name} is {status}; run "
-                                 f"`surgrecon {name} {self.path}` first")
+            hint = (f"surgrecon ingest LOG.mcap -o {self.path}" if name == "ingest"
+                    else f"surgrecon {name} {self.path}")
+            raise RunFolderError(f"{self.path}: stage {name} is {status}; run `{hint}` first")
 
     def mark_stage(self, name: str, status: str, **info: Any) -> None:
         """Record a stage's status ("running", "done", "failed") and info, atomically."""

@@ -130,14 +130,14 @@ def run_admm(
     tol: float,
     relax: float = 1.6,
     mu_growth: float = 1.0,
-    mu_max_factor: float = 64.0,
+    mu1_max: float = np.inf,
 ) -> tuple[AdmmState, AdmmInfo, Factor]:
     """Iterate until primal and dual RMS residuals are both below `tol` (normalised units).
 
     `factor` must be `factorise(prob.D, prob.B, prob.L, prob.beta, mu1, mu2)`; rows of D with
     w = 0 carry no data term (their split absorbs the residual), so one factor serves every
     outer step whatever the correspondences. `mu_growth` > 1 multiplies both penalties every
-    iteration (up to `mu_max_factor` times the start), rescaling the duals and refactorising.
+    iteration while mu1 < `mu1_max`, rescaling the duals and refactorising each time.
     Returns the new state, the info and the factor in use at the end.
     """
     D, B, G, L = prob.D, prob.B, prob.G, prob.L
@@ -145,7 +145,6 @@ def run_admm(
     Bt = B.T.tocsr()
     solve, eps, mu1, mu2 = factor.solve, factor.eps, factor.mu1, factor.mu2
     n_fact = 0
-    mu1_max = mu1 * mu_max_factor
     X, U1, U2 = state.X, state.U1, state.U2
     DX, BX = D @ X, B @ X
     C, Z = DX - G, BX.copy()

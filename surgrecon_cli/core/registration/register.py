@@ -25,6 +25,7 @@ from .correspondences import build_matcher, match
 from .rigid import rigid_prealign
 
 Callback = Callable[[int, dict[str, Any]], None]
+MU_GROWTH_LIMIT = 64.0  # ours: with mu_growth > 1, mu stops growing at 64 x its start
 
 
 @dataclass(frozen=True)
@@ -33,8 +34,9 @@ class RegistrationResult:
 
     transforms (N, 3, 4): per-point affine T_i, registered_i = T_i @ [p_i, 1].
     registered (N, 3); residuals (N,): distance to the correspondence, NaN if none;
-    correspondences (N,): target index or -1; outliers (N,) bool: the point had a data term
-    but no correspondence passed the gates, or its final residual exceeds `outlier_mm`;
+    correspondences (N,): target index or -1 (unobserved, or no match passed the gates);
+    outliers (N,) bool: matched, but the final residual exceeds `outlier_mm` (the l1 data
+    term let the point stay away from its match);
     stats: one dict per step: step 0 the rigid pre-alignment (rotation, translation_m, nodes,
     seconds), then one per outer step (alpha, ADMM iterations, residuals in mm, seconds);
     the last carries total_seconds.
@@ -236,7 +238,8 @@ def register(
                            beta=cfg.beta, data_l1=data_l1, smooth_l1=smooth_l1)
         state, info, factor = run_admm(
             prob, AdmmState(X=X, U1=U1, U2=U2), factor, max_iter=cfg.admm_iterations, tol=tol,
-            relax=cfg.relaxation, mu_growth=cfg.mu_growth)
+            relax=cfg.relaxation, mu_growth=cfg.mu_growth,
+            mu1_max=cfg.mu * MU_GROWTH_LIMIT)
         X, U1, U2 = state.X, state.U1, state.U2
         moved = D_full @ X
         res = np.linalg.norm(moved[rows[matched]] - G[matched], axis=1) * norm.unit * 1e3
@@ -261,7 +264,7 @@ def register(
     has = (corr >= 0) & observed
     corr = np.where(has, corr, -1)
     residuals[has] = np.linalg.norm(registered[has] - tgt[corr[has]], axis=1)
-    outliers = observed & (~has | (residuals > cfg.outlier_mm * 1e-3))
+    outliers = has & (residuals > cfg.outlier_mm * 1e-3)
     stats[-1]["total_seconds"] = time.perf_counter() - t_start
     return RegistrationResult(transforms=transforms, registered=registered, residuals=residuals,
                               correspondences=corr, outliers=outliers, stats=stats)

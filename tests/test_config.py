@@ -1,0 +1,58 @@
+"""Typed config: defaults file, overrides, rejection of bad keys and values."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from surgrecon_cli.config import Config, load_config, to_toml
+from surgrecon_cli.errors import ConfigError
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_default_toml_mirrors_the_dataclass_defaults():
+    assert load_config(ROOT / "configs" / "default.toml") == Config()
+    body = (ROOT / "configs" / "default.toml").read_text()
+    assert to_toml(Config()).strip() in body
+
+
+def test_example_config_is_valid():
+    load_config(ROOT / "configs" / "example.toml")
+
+
+def test_user_file_and_set_overrides(tmp_path):
+    path = tmp_path / "user.toml"
+    path.write_text('[topics]\nimage = "/cam_{camera}/image"\n[registration]\nalpha = 0.03\n')
+    config = load_config(path, ["registration.alpha=0.02", "tool.base_to_world=[0,0,0,0,0,0,1]"])
+    assert config.topics.image == "/cam_{camera}/image"
+    assert config.registration.alpha == 0.02
+    assert config.tool.base_to_world == (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)
+    assert config.template == Config().template  # untouched sections keep their defaults
+
+
+@pytest.mark.parametrize(
+    ("override", "message"),
+    [
+        ("registration.nope=1", "registration.nope: unknown key"),
+        ("nosection.key=1", "nosection: unknown config section"),
+        ("registration.k_neighbors=2.5", "registration.k_neighbors: expected an integer"),
+        ("tool.shaft_radius=-1", "tool.shaft_radius: must be > 0"),
+        ("ingest.time_source=wall", "ingest.time_source"),
+        ("topics.image=/no/placeholder", "topics.image: needs a {camera} placeholder"),
+        ("registration", "expected section.key=value"),
+    ],
+)
+def test_bad_overrides_name_the_key(override, message):
+    with pytest.raises(ConfigError, match=message.replace("{", r"\{").replace("}", r"\}")):
+        load_config(None, [override])
+
+
+def test_bad_file(tmp_path):
+    path = tmp_path / "bad.toml"
+    path.write_text("[topics\n")
+    with pytest.raises(ConfigError, match="not valid TOML"):
+        load_config(path)
+    with pytest.raises(ConfigError, match="not found"):
+        load_config(tmp_path / "missing.toml")

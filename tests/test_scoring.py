@@ -1,0 +1,43 @@
+"""Ground-truth scoring helpers."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from surgrecon_cli.core.labels import DEFORMING, SHIFTING, STATIC, UNKNOWN
+from surgrecon_cli.core.scoring import distance_stats_mm, label_scores, map_to_surface
+from surgrecon_cli.sim.scene import SimConfig, make_tissue
+
+
+def test_points_on_the_mesh_map_to_themselves_and_follow_the_motion():
+    mesh = make_tissue(SimConfig())
+    rng = np.random.default_rng(1)
+    face = rng.integers(0, len(mesh.faces), 500)
+    bary = rng.dirichlet([1, 1, 1], 500)
+    points = np.einsum("nk,nkd->nd", bary, mesh.vertices[mesh.faces[face]])
+    mapping = map_to_surface(points, mesh.vertices, mesh.faces)
+    assert mapping.distance.max() < 1e-9
+    moved = mesh.vertices + [0.001, 0.0, 0.002]
+    np.testing.assert_allclose(
+        mapping.follow(moved, mesh.faces), points + [0.001, 0.0, 0.002], atol=1e-12
+    )
+    lifted = map_to_surface(points + [0, 0, 0.0005], mesh.vertices, mesh.faces)
+    assert np.all(lifted.distance <= 0.0005 + 1e-9)
+    assert np.median(lifted.distance) > 0.0004  # the dome is nearly flat at this scale
+
+
+def test_distance_stats_and_label_scores():
+    stats = distance_stats_mm(np.array([0.0001, 0.0002, 0.0003, np.nan]))
+    assert stats["count"] == 3 and abs(stats["median_mm"] - 0.2) < 1e-12
+    truth = np.array([STATIC] * 4 + [SHIFTING] * 4 + [DEFORMING] * 2)
+    pred = np.array([STATIC] * 3 + [SHIFTING] + [SHIFTING] * 4 + [DEFORMING, UNKNOWN])
+    scores = label_scores(pred, truth)
+    assert scores["per_class"]["static"] == {
+        "precision": 1.0,
+        "recall": 0.75,
+        "f1": 6 / 7,
+        "support": 4,
+    }
+    assert scores["per_class"]["shifting"]["precision"] == 0.8
+    assert scores["per_class"]["deforming"]["recall"] == 0.5
+    assert scores["confusion"][2] == [0, 0, 1, 1]
