@@ -217,22 +217,26 @@ class RegistrationConfig:
 class ClassifyConfig:
     """Point classification (mm); thresholds are ours, see core/classify.py for the reasoning."""
 
-    static_mm: float = _doc(1.0, "registered displacement |T_i p_i - p_i| below this is static (mm)")
+    static_mm: float = _doc(
+        0.9, "registered displacement |T_i p_i - p_i| below this is static (mm; truth rule: 1.0)"
+    )
     status_band_mm: float = _doc(
-        0.3, "within this of static_mm the reprojection check decides: intra-camera inlier "
+        0.0, "within this of static_mm the reprojection check decides: intra-camera inlier "
         "static, inter-camera inlier dynamic (mm; 0 = displacement only)"
     )
     measure: str = _doc(
         "rigid_rms", "shifting/deforming measure: 'rigid_rms' (RMS of the neighbourhood's best "
         "rigid fit to its registered positions) or 'transform_diff' (|(T_j - T_i) p_i|)"
     )
-    deform_mm: float = _doc(0.25, "measure at/above this: deforming, below: shifting (mm)")
+    deform_mm: float = _doc(
+        0.12, "measure at/above this: deforming, below: shifting (mm; truth rule: 0.25)"
+    )
     neighbour_percentile: float = _doc(
         100.0, "transform_diff: percentile over the neighbours j (100 = max)"
     )
     neighbourhood_mm: float = _doc(5.0, "neighbours: template points within this at frame 0 (mm)")
     min_neighbours: int = _doc(6, "fewer neighbours inside the radius: take this many nearest")
-    max_neighbours: int = _doc(64, "at most this many nearest neighbours inside the radius")
+    max_neighbours: int = _doc(128, "at most this many nearest neighbours inside the radius")
     hysteresis_frames: int = _doc(0, "a label run shorter than this many frames is undone (0 = off)")
 
     def __post_init__(self) -> None:

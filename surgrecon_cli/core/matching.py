@@ -21,19 +21,46 @@ def essential_matrix(pose_i: np.ndarray, pose_j: np.ndarray) -> np.ndarray:
     return tx @ R
 
 
-def epipolar_distance_px(
-    E: np.ndarray, xi: np.ndarray, xj: np.ndarray, f_i: float, f_j: float
-) -> np.ndarray:
-    """Symmetric epipolar distance (Ni, Nj) in px between all normalised points xi (Ni, 2)
-    and xj (Nj, 2); focal lengths convert normalised units to pixels."""
+def epipolar_candidates(
+    E: np.ndarray, xi: np.ndarray, xj: np.ndarray, f_i: float, f_j: float, tol_px: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """All pairs (ia, jb) of normalised points xi (Ni, 2), xj (Nj, 2) whose symmetric epipolar
+    distance is at most `tol_px` (focal lengths f convert normalised units to pixels).
+
+    One dense float32 pass over the algebraic error x_j^T E x_i with a per-row bound that
+    never misses a pair, then the exact distance on the few survivors.
+    """
     hi = np.column_stack([xi, np.ones(len(xi))])
     hj = np.column_stack([xj, np.ones(len(xj))])
-    lines_j = hi @ E.T  # epipolar lines in image j of points of i (Ni, 3)
-    lines_i = hj @ E  # lines in image i of points of j (Nj, 3)
-    alg = lines_j @ hj.T  # x_j^T E x_i  (Ni, Nj)
-    nj = np.linalg.norm(lines_j[:, :2], axis=1)[:, None]
-    ni = np.linalg.norm(lines_i[:, :2], axis=1)[None, :]
-    return 0.5 * np.abs(alg) * (f_j / nj + f_i / ni)
+    lines_j = hi @ E.T  # epipolar lines in image j of the points of i (Ni, 3)
+    lines_i = hj @ E  # lines in image i of the points of j (Nj, 3)
+    nj = np.linalg.norm(lines_j[:, :2], axis=1)
+    ni = np.linalg.norm(lines_i[:, :2], axis=1)
+    alg = lines_j.astype(np.float32) @ hj.T.astype(np.float32)  # (Ni, Nj)
+    # distance = 0.5 |alg| (f_j / nj[i] + f_i / ni[j]) >= 0.5 |alg| (f_j / nj[i] + f_i / max ni)
+    bound = tol_px / (0.5 * (f_j / nj + f_i / ni.max())) * 1.0001
+    ia, jb = np.nonzero(np.abs(alg) <= bound[:, None].astype(np.float32))
+    exact = 0.5 * np.abs((lines_j[ia] * hj[jb]).sum(1)) * (f_j / nj[ia] + f_i / ni[jb])
+    keep = exact <= tol_px
+    return ia[keep], jb[keep]
+
+
+def _first_per_group(group: np.ndarray, value: np.ndarray, n_groups: int):
+    """Per group id: index of the smallest value and the two smallest values (inf if none)."""
+    order = np.lexsort((value, group))
+    g, v = group[order], value[order]
+    start = np.ones(len(g), bool)
+    start[1:] = g[1:] != g[:-1]
+    best_pos = np.flatnonzero(start)
+    best_idx = np.full(n_groups, -1)
+    best = np.full(n_groups, np.inf)
+    second = np.full(n_groups, np.inf)
+    best_idx[g[best_pos]] = order[best_pos]
+    best[g[best_pos]] = v[best_pos]
+    has_second = best_pos + 1 < len(g)
+    has_second[has_second] &= ~start[best_pos[has_second] + 1]
+    second[g[best_pos[has_second]]] = v[best_pos[has_second] + 1]
+    return best_idx, best, second
 
 
 def ray_depths(
@@ -68,29 +95,29 @@ def match_pair(
     if len(fi) < 2 or len(fj) < 2:
         return np.zeros((0, 2), int)
     E = essential_matrix(pose_i, pose_j)
-    geometric_ok = epipolar_distance_px(E, fi.normalized, fj.normalized, f_i, f_j) <= epipolar_px
-    ia, jb = np.nonzero(geometric_ok)
+    ia, jb = epipolar_candidates(E, fi.normalized, fj.normalized, f_i, f_j, epipolar_px)
     z = ray_depths(fi.normalized[ia], fj.normalized[jb], pose_i, pose_j)
-    outside = ~((z >= depth_range[0]) & (z <= depth_range[1]))
-    geometric_ok[ia[outside], jb[outside]] = False
+    inside = (z >= depth_range[0]) & (z <= depth_range[1])
+    ia, jb = ia[inside], jb[inside]
     di, dj = fi.descriptors, fj.descriptors
-    d2 = (di**2).sum(1)[:, None] + (dj**2).sum(1)[None, :] - 2.0 * (di @ dj.T)
-    d2 = np.maximum(d2, 0.0)
+    # Squared descriptor distances of all pairs in float32 (one BLAS product, Ni x Nj).
+    full = (di * di).sum(1)[:, None] + (dj * dj).sum(1)[None, :] - 2.0 * (di @ dj.T)
+    d2 = np.maximum(full[ia, jb], 0.0).astype(float)
+    best_c, best, second = _first_per_group(ia, d2, len(di))
     # Ambiguity is judged against every other feature: the runner-up is the second best
-    # inside the epipolar segment or the best outside it, whichever is closer. (A lone
-    # candidate in the segment would otherwise always pass the ratio test.)
-    best_outside = np.where(geometric_ok, np.inf, d2).min(axis=1)
-    d2 = np.where(geometric_ok, d2, np.inf)
-    order = np.argpartition(d2, 1, axis=1)[:, :2]
+    # inside the epipolar segment or the best outside it, whichever is closer (a lone
+    # candidate in the segment would otherwise always pass the ratio test).
+    full[ia, jb] = np.inf
+    second = np.minimum(second, np.maximum(full.min(axis=1), 0.0))
+    has = best_c >= 0
+    best_j = np.where(has, jb[np.maximum(best_c, 0)], -1)
+    passes = has & (best < (ratio**2) * second)  # squared distances
+    col_best, _, _ = _first_per_group(jb, d2, len(dj))
     rows = np.arange(len(di))
-    best, second = d2[rows, order[:, 0]], d2[rows, order[:, 1]]
-    swap = second < best
-    best_idx = np.where(swap, order[:, 1], order[:, 0])
-    best, second = np.minimum(best, second), np.minimum(np.maximum(best, second), best_outside)
-    passes = np.isfinite(best) & (best < (ratio**2) * second)  # squared distances
-    mutual = np.argmin(d2, axis=0)[best_idx] == rows
+    mutual = np.zeros(len(di), bool)
+    mutual[has] = ia[col_best[best_j[has]]] == rows[has]
     keep = passes & mutual
-    return np.column_stack([rows[keep], best_idx[keep]])
+    return np.column_stack([rows[keep], best_j[keep]])
 
 
 def build_tracks(

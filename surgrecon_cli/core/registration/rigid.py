@@ -20,12 +20,11 @@ from .correspondences import Matcher, match
 from .graph import mean_spacing as graph_spacing
 from .graph import sample_nodes
 
-MIN_KNOWN = 6  # ours
-MAX_POINTS = 500  # ours: rigid alignment runs on at most this many source points
-
-
-PLANE_POINT_MIX = 0.3
-CAUCHY_SCALE = 2.0
+# All numbers here are ours, tuned on synthetic domes (benchmarks/registration.py).
+MIN_KNOWN = 6  # known pairs needed to skip nearest neighbours
+MAX_POINTS = 500  # rigid alignment runs on at most this many (voxel-subsampled) source points
+PLANE_POINT_MIX = 0.3  # weight of the point-to-point term in the point-to-plane step
+CAUCHY_SCALE = 2.0  # Cauchy weight scale, x the median residual of the kept pairs
 
 
 class _Normals:

@@ -1,0 +1,128 @@
+"""Stage `classify`: label every template point at every frame (core/classify.py).
+
+Reads RUN/template.ply and RUN/registration/NNNNNN.npz, writes
+  RUN/classify/labels.npz   labels (T, N) uint8 (after hysteresis), raw_labels (T, N) uint8,
+                            displacement_mm (T, N) f32, deformation_mm (T, N) f32,
+                            status (T, N) u8 (reprojection check; frame 0: intra)
+and rewrites every RUN/clouds/NNNNNN.ply with its labels (atomically; the other properties
+the registration wrote are kept). Frame 0 is the reference: all static.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from ..config import Config, to_dict
+from ..core.classify import (
+    STATUS_INTRA,
+    FrameClasses,
+    apply_hysteresis,
+    classify_frame,
+    template_neighbourhoods,
+)
+from ..core.labels import CLASS_NAMES, STATIC, UNKNOWN
+from ..errors import RunFolderError
+from ..io.atomic import write_npz
+from ..io.ingest_store import load_ingested
+from ..io.ply import read_ply, write_cloud_ply
+from .common import stage_run
+from .register import load_template, registration_path
+from .template import cloud_path
+
+logger = logging.getLogger(__name__)
+
+STAGE = "classify"
+_CLOUD_COLUMNS = ("x", "y", "z", "red", "green", "blue", "point_id", "label", "residual")
+
+
+def labels_path(run_dir: Path) -> Path:
+    return Path(run_dir) / "classify" / "labels.npz"
+
+
+def load_registration_frame(run_dir: Path, frame: int, n_points: int) -> dict[str, np.ndarray]:
+    """Registration arrays of one frame >= 1 (see stages/register.py); RunFolderError if the
+    file is missing or does not match the template's N points."""
+    path = registration_path(run_dir, frame)
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            data = {k: z[k] for k in z.files}
+    except FileNotFoundError as exc:
+        raise RunFolderError(f"{path}: frame {frame} is not registered; run "
+                             f"`surgrecon register {run_dir}`") from exc
+    except (OSError, ValueError) as exc:
+        raise RunFolderError(f"{path}: unreadable ({exc}); re-run register") from exc
+    for key, shape in (("registered", (n_points, 3)), ("transforms", (n_points, 3, 4)),
+                       ("status", (n_points,))):
+        if key not in data or data[key].shape != shape:
+            got = data[key].shape if key in data else "missing"
+            raise RunFolderError(f"{path}: {key} should be {shape} for the {n_points}-point "
+                                 f"template, got {got}; re-run register")
+    return data
+
+
+def run_classify(run_dir: Path, config: Config,
+                 on_step: Callable[[int, int], None] | None = None) -> dict:
+    """Classify every frame of a registered run; returns the stage info (class counts etc.).
+
+    `on_step(done, total)` reports progress over 2T steps (T frames classified, T clouds
+    written)."""
+    run_dir = Path(run_dir)
+    cfg = config.classify
+    with stage_run(run_dir, STAGE, config, needs=("ingest", "build-template", "register")) as info:
+        n_frames = load_ingested(run_dir / "ingest").n_frames
+        template, _ = load_template(run_dir)
+        n = len(template)
+        total = 2 * n_frames
+        step = on_step or (lambda _d, _t: None)
+        nb = template_neighbourhoods(template, cfg.neighbourhood_mm, cfg.min_neighbours,
+                                     cfg.max_neighbours)
+        frames = [FrameClasses(labels=np.full(n, STATIC, np.uint8),
+                               displacement_mm=np.zeros(n), deformation_mm=np.full(n, np.nan))]
+        status = [np.full(n, STATUS_INTRA, np.uint8)]
+        step(1, total)
+        for k in range(1, n_frames):
+            reg = load_registration_frame(run_dir, k, n)
+            transforms = reg["transforms"].astype(float) if cfg.measure == "transform_diff" else None
+            frames.append(classify_frame(template, reg["registered"].astype(float), nb, cfg,
+                                         transforms=transforms, status=reg["status"]))
+            status.append(reg["status"].astype(np.uint8))
+            step(k + 1, total)
+        raw = np.stack([f.labels for f in frames])
+        labels = apply_hysteresis(raw, cfg.hysteresis_frames)
+        write_npz(labels_path(run_dir), labels=labels, raw_labels=raw,
+                  displacement_mm=np.stack([f.displacement_mm for f in frames]).astype(np.float32),
+                  deformation_mm=np.stack([f.deformation_mm for f in frames]).astype(np.float32),
+                  status=np.stack(status))
+        for k in range(n_frames):
+            relabel_cloud(cloud_path(run_dir, k), labels[k])
+            step(n_frames + k + 1, total)
+        later = labels[1:]
+        counts = {name: int((later == code).sum()) for code, name in CLASS_NAMES.items()}
+        counts["unknown"] = int((later == UNKNOWN).sum())
+        info.update(frames=n_frames, points=n, counts_frames_1_on=counts,
+                    changed_by_hysteresis=int((labels != raw).sum()),
+                    config={"classify": to_dict(config)["classify"]})
+        logger.debug("classified %d frames x %d points: %s", n_frames, n, counts)
+        result = dict(info)
+    return result
+
+
+def relabel_cloud(path: Path, labels: np.ndarray) -> None:
+    """Rewrite one per-frame cloud with `labels` (N,) indexed by point_id, keeping every
+    other property; atomic."""
+    if not path.is_file():
+        raise RunFolderError(f"{path}: cloud missing; re-run register")
+    cloud = read_ply(path)
+    ids = cloud["point_id"].astype(np.int64)
+    if ids.size and (ids.min() < 0 or ids.max() >= len(labels)):
+        raise RunFolderError(f"{path}: point_id outside the template (0..{len(labels) - 1}); "
+                             "re-run register")
+    extra = {k: v for k, v in cloud.items() if k not in _CLOUD_COLUMNS}
+    write_cloud_ply(path, np.column_stack([cloud["x"], cloud["y"], cloud["z"]]),
+                    rgb=np.column_stack([cloud["red"], cloud["green"], cloud["blue"]]),
+                    point_id=ids.astype(np.int32), label=labels[ids].astype(np.uint8),
+                    residual=cloud.get("residual"), extra=extra)
