@@ -217,11 +217,14 @@ def main(argv: list[str] | None = None) -> int:
                     print(f"| {n} | {case} | {name} | not run (size > {args.peer_max_points}) "
                           "| | | | | |")
                     continue
-                out, _, status = timed(
+                out, secs, status = timed(
                     lambda f=peers[name], p=pair: measured(lambda: f(p)), args.cap)
-                if out is None:
-                    print(f"| {n} | {case} | {name} | {status} | | > {args.cap:.0f} | | "
+                if status == "capped":
+                    print(f"| {n} | {case} | {name} | capped | | > {args.cap:.0f} | | "
                           f"< {t_ours / args.cap:.4f} | |")
+                    continue
+                if out is None:
+                    print(f"| {n} | {case} | {name} | failed: {status} | | {secs:.1f} | | | |")
                     continue
                 res, wall, cpu, rss = out
                 med, p95 = errors_mm(res, pair.truth)

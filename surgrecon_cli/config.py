@@ -237,7 +237,9 @@ class ClassifyConfig:
     neighbourhood_mm: float = _doc(5.0, "neighbours: template points within this at frame 0 (mm)")
     min_neighbours: int = _doc(6, "fewer neighbours inside the radius: take this many nearest")
     max_neighbours: int = _doc(128, "at most this many nearest neighbours inside the radius")
-    hysteresis_frames: int = _doc(0, "a label run shorter than this many frames is undone (0 = off)")
+    hysteresis_frames: int = _doc(
+        0, "a label run shorter than this many frames is undone (0 = off)"
+    )
 
     def __post_init__(self) -> None:
         key = "classify."

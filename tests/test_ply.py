@@ -141,7 +141,7 @@ def test_missing_file(tmp_path):
 
 # ----------------------------------------------------------------------------- CLI
 def _dome_pair(n: int = 1500):
-    from tests.test_registration import make
+    from test_registration import make
 
     src, tgt, srgb, trgb, truth, order = make(n, seed=21)
     return src, tgt, (srgb * 255).astype(np.uint8), (trgb * 255).astype(np.uint8), truth, order

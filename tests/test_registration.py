@@ -203,3 +203,17 @@ def test_config_validation():
         from_dict({"registration": {"alpha": 5.0, "alpha_start": 1.0}})
     with pytest.raises(ConfigError, match="relaxation"):
         from_dict({"registration": {"relaxation": 2.5}})
+
+
+def test_scale_invariant_when_mm_thresholds_scale_too():
+    src, tgt, srgb, trgb, _, _ = make(1200, seed=14)
+    cfg = RegistrationConfig()
+    a = register(src, tgt, srgb, trgb, cfg)
+    s = 4.0
+    scaled = dataclasses.replace(
+        cfg, **{k: getattr(cfg, k) * s for k in (
+            "tolerance_mm", "color_weight_mm", "max_correspondence_mm", "reweight_mm",
+            "outlier_mm")})
+    b = register(src * s, tgt * s, srgb, trgb, scaled)
+    assert err_mm(b.registered / s, a.registered).max() < 1e-3
+    np.testing.assert_allclose(b.transforms[:, :, :3], a.transforms[:, :, :3], atol=1e-6)

@@ -11,7 +11,7 @@ from surgrecon_cli.core.target import INTER, INTRA, OUTLIER, UNOBSERVED, build_t
 from surgrecon_cli.core.template import build_template
 from surgrecon_cli.sim.scene import SimConfig
 
-from .scenes import render_frames
+from scenes import render_frames
 
 
 @pytest.fixture(scope="module")

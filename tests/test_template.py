@@ -16,7 +16,7 @@ from surgrecon_cli.core.triangulate import Observations, triangulate
 from surgrecon_cli.errors import GeometryError
 from surgrecon_cli.sim.scene import SimConfig
 
-from .scenes import render_frames
+from scenes import render_frames
 
 
 @pytest.fixture(scope="module")

@@ -102,8 +102,8 @@ def format_evaluation(ev: dict[str, Any]) -> str:
                          f"{'-' if r is None else f'{r:.3f}':>7} {s['f1']:>6.3f} "
                          f"{s['support']:>8}")
         axes = o["confusion_axes"]
-        lines.append("  confusion (rows truth, columns predicted): "
-                     + " ".join(f"{c:>9}" for c in axes["cols"]))
+        lines.append("  confusion (rows: truth, columns: predicted)")
+        lines.append(f"  {'':<10}" + "".join(f"{c:>10}" for c in axes["cols"]))
         for name, row in zip(axes["rows"], o["confusion"], strict=True):
-            lines.append(f"  {name:>42} " + " ".join(f"{v:>9}" for v in row))
+            lines.append(f"  {name:<10}" + "".join(f"{v:>10}" for v in row))
     return "\n".join(lines)

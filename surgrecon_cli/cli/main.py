@@ -43,6 +43,7 @@ def main(argv: list[str] | None = None) -> int:
     """Run the CLI; known errors become one line on stderr and exit code 2."""
     from ..errors import SurgReconError
 
+    STATE["debug"] = False  # set again by --debug while parsing this call's arguments
     try:
         cli.main(args=argv, prog_name="surgrecon", standalone_mode=False)
     except click.exceptions.Abort:

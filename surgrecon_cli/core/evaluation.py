@@ -33,7 +33,8 @@ def error_summary(errors_m: np.ndarray) -> dict[str, float]:
     stats: dict[str, float] = distance_stats_mm(errors_m)
     finite = np.asarray(errors_m, float)
     finite = finite[np.isfinite(finite)]
-    stats["within_1mm"] = float((finite <= CLINICAL_MM * 1e-3).mean()) if finite.size else float("nan")
+    within = float((finite <= CLINICAL_MM * 1e-3).mean()) if finite.size else float("nan")
+    stats["within_1mm"] = within
     return stats
 
 
@@ -50,9 +51,3 @@ def true_point_labels(mapping: SurfaceMapping, faces: np.ndarray, labels: np.nda
     for vertex labels (..., V)."""
     return np.asarray(labels)[..., mapping.nearest_vertex(faces)]
 
-
-def histogram(values: np.ndarray, edges: np.ndarray) -> list[int]:
-    """Counts of finite values in bins `edges`; values beyond the last edge go in the last bin."""
-    v = np.asarray(values, float)
-    v = v[np.isfinite(v)]
-    return np.histogram(np.minimum(v, edges[-1]), bins=edges)[0].astype(int).tolist()

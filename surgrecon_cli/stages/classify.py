@@ -86,7 +86,8 @@ def run_classify(run_dir: Path, config: Config,
         step(1, total)
         for k in range(1, n_frames):
             reg = load_registration_frame(run_dir, k, n)
-            transforms = reg["transforms"].astype(float) if cfg.measure == "transform_diff" else None
+            transforms = (reg["transforms"].astype(float) if cfg.measure == "transform_diff"
+                          else None)
             frames.append(classify_frame(template, reg["registered"].astype(float), nb, cfg,
                                          transforms=transforms, status=reg["status"]))
             status.append(reg["status"].astype(np.uint8))

@@ -24,8 +24,8 @@ from ..core.scoring import distance_stats_mm, label_scores, map_to_surface
 from ..errors import InputError, RunFolderError
 from ..io.atomic import write_npz
 from ..io.ground_truth import GroundTruth, load_ground_truth
-from ..io.metrics import finite_json, write_metrics_json
 from ..io.ingest_store import load_ingested
+from ..io.metrics import finite_json, write_metrics_json
 from ..io.run_folder import RunFolder
 from .classify import labels_path, load_registration_frame
 from .common import stage_run
@@ -79,7 +79,8 @@ def run_evaluate(run_dir: Path, config: Config, gt_path: Path,
             result["registration"] = _registration_part(run_dir, gt, mapping, errors, step)
         if run.is_done("classify"):
             result["labels"] = _labels_part(run_dir, truth)
-        write_npz(errors_path(run_dir), template_error_mm=(mapping.distance * 1e3).astype(np.float32),
+        write_npz(errors_path(run_dir),
+                  template_error_mm=(mapping.distance * 1e3).astype(np.float32),
                   on_tool=np.zeros(n, bool) if tool_mask is None else tool_mask,
                   registration_error_mm=errors, true_labels=truth)
         result = finite_json(result)
@@ -92,7 +93,7 @@ def run_evaluate(run_dir: Path, config: Config, gt_path: Path,
 
 def _template_part(distance_m: np.ndarray, tool_mask: np.ndarray | None,
                    config: Config) -> dict[str, Any]:
-    part: dict[str, Any] = {"points": int(len(distance_m)), "error": distance_stats_mm(distance_m)}
+    part: dict[str, Any] = {"points": len(distance_m), "error": distance_stats_mm(distance_m)}
     if tool_mask is None:
         part["on_tool"] = None
         logger.warning("frame-0 tool pose unknown: template points on the tool not counted")
@@ -110,10 +111,11 @@ def _registration_part(run_dir: Path, gt: GroundTruth, mapping: Any, errors: np.
     per_frame = []
     for k in range(1, n_frames):
         reg = load_registration_frame(run_dir, k, n)
-        errors[k] = registration_errors(mapping, gt.vertices[k], gt.faces, reg["registered"])
-        per_frame.append({"frame": k, **error_summary(errors[k])})
+        err_m = registration_errors(mapping, gt.vertices[k], gt.faces, reg["registered"])
+        errors[k] = err_m * 1e3
+        per_frame.append({"frame": k, **error_summary(err_m)})
         step(k, n_frames)
-    return {"overall": error_summary(errors[1:]), "per_frame": per_frame}
+    return {"overall": error_summary(errors[1:].astype(float) * 1e-3), "per_frame": per_frame}
 
 
 def _labels_part(run_dir: Path, truth: np.ndarray) -> dict[str, Any]:
