@@ -56,6 +56,10 @@ OUTPUTS = {
     "evaluate": ("metrics/evaluation.json", "metrics/evaluation_errors.npz"),
     "report": ("metrics/frames.csv", "metrics/summary.json", "report.html"),
 }
+# A finished stage whose key output is missing is not finished (e.g. a file deleted by hand).
+KEY_OUTPUT = {"ingest": "ingest/frames.npz", "build-template": "template.ply",
+              "register": "registration", "classify": "classify/labels.npz",
+              "evaluate": "metrics/evaluation.json", "report": "report.html"}
 # Share of the overall progress bar per stage (normalised over the stages that run).
 WEIGHTS = {"ingest": 10, "build-template": 20, "register": 50, "classify": 5, "evaluate": 5,
            "report": 10}
@@ -119,6 +123,8 @@ class _Planner:
                 continue  # resumable frame by frame (it checks its own config fingerprint)
             if not self.run.is_done(stage):
                 return stage, "not done"
+            if not (self.run.path / KEY_OUTPUT[stage]).exists():
+                return stage, f"{KEY_OUTPUT[stage]} is missing"
             if stage == "evaluate":
                 recorded = entry.get("ground_truth", {}).get("sha256")
                 if recorded != self.gt_sha:
@@ -191,8 +197,6 @@ def run_pipeline(log: Path, run_dir: Path, config: Config, ground_truth: Path | 
             if why != "not done" or stale != "report":
                 logger.info("%s: %s", stale, why)
             _invalidate(run, config, STAGES[index:])
-        else:
-            _invalidate(run, config, ())  # record the (equivalent) config as the run's
     total_weight = sum(WEIGHTS[s] for s in wanted)
     base = 0.0
 

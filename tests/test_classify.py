@@ -97,7 +97,7 @@ def _indentation(p: np.ndarray, depth: float = 0.006, sigma: float = 0.005):
 @pytest.mark.parametrize("measure,threshold", [("rigid_rms", 0.25), ("transform_diff", 0.8)])
 def test_local_indentation_is_deforming_and_its_surroundings_static(measure, threshold):
     p = _patch(1600)
-    moved, T, g = _indentation(p)
+    moved, T, _ = _indentation(p)
     cfg = dataclasses.replace(RULE, measure=measure, deform_mm=threshold)
     nb = template_neighbourhoods(p, cfg.neighbourhood_mm, cfg.min_neighbours, cfg.max_neighbours)
     out = classify_frame(p, moved, nb, cfg, transforms=T)
@@ -169,7 +169,7 @@ def test_hysteresis_drops_short_runs():
 
 def test_unknown_positions_and_status_band():
     p = _patch(300)
-    moved = p + [0.0, 0.0, 0.00095]  # just below 1.0 mm
+    moved = p + np.array([0.0, 0.0, 0.00095])  # just below 1.0 mm
     moved[0] = np.nan
     nb = template_neighbourhoods(p, 5.0, 6, 128)
     status = np.zeros(len(p), np.uint8)
@@ -190,7 +190,13 @@ def test_bad_inputs_raise_named_errors():
         classify_frame(p, p, nb, dataclasses.replace(RULE, measure="transform_diff"))
     with pytest.raises(GeometryError, match="NaN"):
         template_neighbourhoods(np.full((5, 3), np.nan), 5.0, 2, 4)
-    with pytest.raises(ConfigError, match="classify.status_band_mm"):
+    with pytest.raises(ConfigError, match=r"classify\.status_band_mm"):
         load_config(overrides=["classify.status_band_mm=2.0"])
-    with pytest.raises(ConfigError, match="classify.measure"):
+    with pytest.raises(ConfigError, match=r"classify\.measure"):
         load_config(overrides=["classify.measure='max'"])
+
+
+def test_status_codes_match_the_target_module():
+    from surgrecon_cli.core import classify, target
+
+    assert (classify.STATUS_INTRA, classify.STATUS_INTER) == (target.INTRA, target.INTER)

@@ -14,7 +14,7 @@ import numpy as np
 from matplotlib import rc_context
 from matplotlib.colors import LinearSegmentedColormap
 from matplotlib.figure import Figure
-from matplotlib.ticker import FuncFormatter
+from matplotlib.ticker import FuncFormatter, MaxNLocator
 
 CLASS_COLOURS = {"static": "#4C78A8", "shifting": "#F2A541", "deforming": "#D1495B",
                  "unknown": "#BAB0AC"}
@@ -61,6 +61,7 @@ def stacked_counts(frames: np.ndarray, counts: dict[str, np.ndarray], colours: d
         ax.set_ylabel(ylabel)
         ax.set_title(title, loc="left")
         ax.legend(loc="upper left", bbox_to_anchor=(1.0, 1.0))
+        _thin_ticks(ax, frames)
         return _png(fig)
 
 
@@ -231,6 +232,7 @@ def labelled_views(title: str, image: np.ndarray | None, uv: np.ndarray | None,
         ax3.set_ylabel("y (mm)", labelpad=-4)
         ax3.set_zlabel("z (mm)", labelpad=-6)
         ax3.tick_params(labelsize=6, pad=-2)
+        ax3.zaxis.set_major_locator(MaxNLocator(3))
         handles = [ax3.scatter([], [], color=CLASS_COLOURS[n], label=n, s=20)
                    for n in ("static", "shifting", "deforming", "unknown")]
         ax3.legend(handles=handles, loc="upper right", bbox_to_anchor=(1.05, 1.0))

@@ -350,7 +350,7 @@ def _html(run_dir: Path, data: _RunData, rows: list[dict[str, Any]], summary: di
     overview.add(rh.tiles(items))
     inp = data.run.get("input", {})
     stage_rows = [(name, entry.get("status"), entry.get("seconds"))
-                  for name, entry in data.run.get("stages", {}).items()]
+                  for name, entry in data.run.get("stages", {}).items() if name != STAGE]
     overview.add(rh.table(("input", ""), [
         ("log", inp.get("path")), ("SHA-256", (inp.get("sha256") or "")[:16] + "…"),
         ("size", f"{(inp.get('bytes') or 0) / 1e6:.1f} MB"),

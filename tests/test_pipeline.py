@@ -1,0 +1,107 @@
+"""`surgrecon run`: all stages in order; resume, skip, and rerun what a change affects."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from surgrecon_cli.cli.main import main
+from surgrecon_cli.config import load_config
+from surgrecon_cli.core.labels import STATIC, UNKNOWN
+from surgrecon_cli.io.ply import read_ply
+from surgrecon_cli.io.run_folder import RunFolder, file_sha256
+from surgrecon_cli.pipeline import STAGES, run_pipeline
+
+SPEC_TYPES = {"x": "f4", "y": "f4", "z": "f4", "red": "u1", "green": "u1", "blue": "u1",
+              "point_id": "i4", "label": "u1", "residual": "f4"}
+
+
+def _mtimes(run_dir: Path, pattern: str) -> dict[str, int]:
+    return {p.name: p.stat().st_mtime_ns for p in sorted(run_dir.glob(pattern))}
+
+
+def test_fresh_run_writes_every_stage(pipeline_run):
+    run_dir, result = pipeline_run
+    assert result.actions == {stage: "ran" for stage in STAGES}
+    run = RunFolder(run_dir)
+    assert all(run.is_done(stage) for stage in STAGES)
+    n_frames = run.read()["ingest"]["frames"]
+    with np.load(run_dir / "classify" / "labels.npz") as z:
+        labels = z["labels"]
+    assert labels.shape[0] == n_frames and (labels[0] == STATIC).all()
+    assert not (labels == UNKNOWN).all(axis=1).any()
+    clouds = sorted((run_dir / "clouds").glob("*.ply"))
+    assert [p.name for p in clouds] == [f"{k:06d}.ply" for k in range(n_frames)]
+    for k, path in enumerate(clouds):
+        cloud = read_ply(path)
+        for name, dtype in SPEC_TYPES.items():
+            assert cloud[name].dtype == np.dtype(dtype), (path, name)
+        np.testing.assert_array_equal(cloud["label"], labels[k][cloud["point_id"]])
+    assert result.evaluation["labels"]["overall"]["macro_f1"] > 0.4
+
+
+def test_rerun_skips_everything(copy_run, pipeline_log, capsys):
+    before = _mtimes(copy_run, "**/*.*")
+    assert main(["run", str(pipeline_log), "-o", str(copy_run), "-q"]) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert lines[:len(STAGES)] == [f"{stage:<15} skipped" for stage in STAGES]
+    assert lines[-1] == f"report: {copy_run / 'report.html'}"
+    after = _mtimes(copy_run, "**/*.*")
+    assert {k: v for k, v in after.items() if k != "run.json"} == \
+        {k: v for k, v in before.items() if k != "run.json"}
+
+
+def test_config_changes_rerun_the_stages_they_affect(copy_run, pipeline_log):
+    registered = _mtimes(copy_run, "registration/*.npz")
+    config = load_config(overrides=["classify.deform_mm=0.2"])
+    result = run_pipeline(pipeline_log, copy_run, config)
+    assert result.actions == {"ingest": "skipped", "build-template": "skipped",
+                              "register": "skipped", "classify": "ran", "evaluate": "ran",
+                              "report": "ran"}
+    assert _mtimes(copy_run, "registration/*.npz") == registered
+    run = RunFolder(copy_run)
+    assert run.read()["config"]["classify"]["deform_mm"] == 0.2
+    assert load_config(copy_run / "config.toml") == config
+
+    config = load_config(overrides=["classify.deform_mm=0.2", "registration.alpha=0.1"])
+    result = run_pipeline(pipeline_log, copy_run, config)
+    assert result.actions == {"ingest": "skipped", "build-template": "skipped",
+                              "register": "ran", "classify": "ran", "evaluate": "ran",
+                              "report": "ran"}
+    again = _mtimes(copy_run, "registration/*.npz")
+    assert again.keys() == registered.keys()
+    assert all(again[k] != registered[k] for k in again)
+    assert run.stage("register")["config"]["registration"]["alpha"] == 0.1
+
+
+def test_killed_register_resumes_at_the_next_frame(copy_run, pipeline_log):
+    run = RunFolder(copy_run)
+    data = run.read()
+    n_frames = data["ingest"]["frames"]
+    for k in (n_frames - 2, n_frames - 1):  # as if killed before the last two frames
+        (copy_run / "registration" / f"{k:06d}.npz").unlink()
+        (copy_run / "clouds" / f"{k:06d}.ply").unlink()
+    kept = _mtimes(copy_run, "registration/*.npz")
+    entry = data["stages"]["register"]
+    data["stages"]["register"] = {"status": "running", "config": entry["config"],
+                                  "frames_done": list(range(1, n_frames - 2))}
+    run.write(data)
+    result = run_pipeline(pipeline_log, copy_run, load_config())
+    assert result.actions["register"] == "resumed"
+    assert result.actions["ingest"] == result.actions["build-template"] == "skipped"
+    assert result.actions["classify"] == result.actions["report"] == "ran"
+    now = _mtimes(copy_run, "registration/*.npz")
+    assert len(now) == n_frames - 1 and all(now[k] == v for k, v in kept.items())
+    assert run.stage("register")["frames_done"] == list(range(1, n_frames))
+
+
+def test_another_input_starts_over(copy_run, pipeline_log):
+    run = RunFolder(copy_run)
+    data = run.read()
+    data["input"]["sha256"] = "0" * 64  # as if the run had been made from another log
+    run.write(data)
+    result = run_pipeline(pipeline_log, copy_run, load_config())
+    assert result.actions == {stage: "ran" for stage in STAGES}
+    assert run.input_hash == file_sha256(pipeline_log)
+    assert all(run.is_done(stage) for stage in STAGES)
