@@ -17,11 +17,11 @@ def test_points_on_the_mesh_map_to_themselves_and_follow_the_motion():
     points = np.einsum("nk,nkd->nd", bary, mesh.vertices[mesh.faces[face]])
     mapping = map_to_surface(points, mesh.vertices, mesh.faces)
     assert mapping.distance.max() < 1e-9
-    moved = mesh.vertices + [0.001, 0.0, 0.002]
+    moved = mesh.vertices + np.array([0.001, 0.0, 0.002])
     np.testing.assert_allclose(
-        mapping.follow(moved, mesh.faces), points + [0.001, 0.0, 0.002], atol=1e-12
+        mapping.follow(moved, mesh.faces), points + np.array([0.001, 0.0, 0.002]), atol=1e-12
     )
-    lifted = map_to_surface(points + [0, 0, 0.0005], mesh.vertices, mesh.faces)
+    lifted = map_to_surface(points + np.array([0, 0, 0.0005]), mesh.vertices, mesh.faces)
     assert np.all(lifted.distance <= 0.0005 + 1e-9)
     assert np.median(lifted.distance) > 0.0004  # the dome is nearly flat at this scale
 

@@ -62,7 +62,7 @@ def test_label_rule_on_synthetic_motions():
     xy = rng.uniform(-0.02, 0.02, (1500, 2))
     ref = np.column_stack([xy, np.zeros(len(xy))])
     index, mask = radius_neighbourhoods(ref, 0.005)
-    translated = ref + [0.0, 0.0, 0.002]
+    translated = ref + np.array([0.0, 0.0, 0.002])
     assert (label_rule(ref, translated, index, mask, 1.0, 0.25) == SHIFTING).all()
     assert (label_rule(ref, ref + 0.0002, index, mask, 1.0, 0.25) == STATIC).all()
     dent = ref.copy()

@@ -4,14 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scenes import render_frames
 
 from surgrecon_cli.config import Config
 from surgrecon_cli.core.scoring import map_to_surface
 from surgrecon_cli.core.target import INTER, INTRA, OUTLIER, UNOBSERVED, build_target
 from surgrecon_cli.core.template import build_template
 from surgrecon_cli.sim.scene import SimConfig
-
-from scenes import render_frames
 
 
 @pytest.fixture(scope="module")
@@ -22,15 +21,26 @@ def tracked():
     sim = SimConfig(cameras=6, frames=20, width=480, height=360, seed=5, breath_amplitude=0.010)
     scene = render_frames(sim, [5, 6])
     cfg = Config()
-    template = build_template(scene.images[0], scene.models, scene.poses[0], scene.tool_poses[0],
-                              cfg.template, cfg.tool)
+    template = build_template(
+        scene.images[0], scene.models, scene.poses[0], scene.tool_poses[0], cfg.template, cfg.tool
+    )
     n, n_cams = len(template.points), len(scene.models)
     pixels = np.full((n, n_cams, 2), np.nan)
     obs = template.observations
     pixels[obs.point, obs.camera] = obs.pixels
-    target = build_target(template.points, template.points, scene.images[0], scene.images[1],
-                          scene.poses[0], scene.poses[1], pixels, scene.models,
-                          scene.tool_poses[1], cfg.target, cfg.tool)
+    target = build_target(
+        template.points,
+        template.points,
+        scene.images[0],
+        scene.images[1],
+        scene.poses[0],
+        scene.poses[1],
+        pixels,
+        scene.models,
+        scene.tool_poses[1],
+        cfg.target,
+        cfg.tool,
+    )
     mapping = map_to_surface(template.points, scene.vertices[0], scene.faces)
     truth0 = mapping.follow(scene.vertices[0], scene.faces)
     truth1 = mapping.follow(scene.vertices[1], scene.faces)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scenes import render_frames
 
 from surgrecon_cli.config import Config
 from surgrecon_cli.core.cameras import CameraModel, project, undistort_pixels
@@ -15,8 +16,6 @@ from surgrecon_cli.core.tool import points_near_tool, shaft_segment, tool_image_
 from surgrecon_cli.core.triangulate import Observations, triangulate
 from surgrecon_cli.errors import GeometryError
 from surgrecon_cli.sim.scene import SimConfig
-
-from scenes import render_frames
 
 
 @pytest.fixture(scope="module")
