@@ -229,7 +229,7 @@ class ClassifyConfig:
         "rigid fit to its registered positions) or 'transform_diff' (|(T_j - T_i) p_i|)"
     )
     deform_mm: float = _doc(
-        0.12, "measure at/above this: deforming, below: shifting (mm; truth rule: 0.25)"
+        0.15, "measure at/above this: deforming, below: shifting (mm; truth rule: 0.25)"
     )
     neighbour_percentile: float = _doc(
         100.0, "transform_diff: percentile over the neighbours j (100 = max)"
