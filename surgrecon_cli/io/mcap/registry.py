@@ -12,36 +12,40 @@ from .base import Deserializer, SchemaDecoder
 
 DECODERS: dict[tuple[str, str], SchemaDecoder] = {
     # ROS 2
-    ("cdr", "sensor_msgs/msg/CompressedImage"): SchemaDecoder("image", ros2.compressed_image),
-    ("cdr", "sensor_msgs/msg/Image"): SchemaDecoder("image", ros2.raw_image),
-    ("cdr", "sensor_msgs/msg/CameraInfo"): SchemaDecoder("camera_info", ros2.camera_info),
-    ("cdr", "geometry_msgs/msg/PoseStamped"): SchemaDecoder("pose", ros2.pose_stamped),
-    ("cdr", "tf2_msgs/msg/TFMessage"): SchemaDecoder("transforms", ros2.tf_message),
-    ("cdr", "sensor_msgs/msg/JointState"): SchemaDecoder("joint_states", ros2.joint_state),
+    ("cdr", "sensor_msgs/msg/CompressedImage"): SchemaDecoder(
+        "image", ros2.DECODE.compressed_image
+    ),
+    ("cdr", "sensor_msgs/msg/Image"): SchemaDecoder("image", ros2.DECODE.raw_image),
+    ("cdr", "sensor_msgs/msg/CameraInfo"): SchemaDecoder("camera_info", ros2.DECODE.camera_info),
+    ("cdr", "geometry_msgs/msg/PoseStamped"): SchemaDecoder("pose", ros2.DECODE.pose_stamped),
+    ("cdr", "tf2_msgs/msg/TFMessage"): SchemaDecoder("transforms", ros2.DECODE.tf_message),
+    ("cdr", "sensor_msgs/msg/JointState"): SchemaDecoder("joint_states", ros2.DECODE.joint_state),
     # ROS 1 (converted bags, e.g. Raven-II / dVRK recordings)
-    ("ros1", "sensor_msgs/CompressedImage"): SchemaDecoder("image", ros1.compressed_image),
-    ("ros1", "sensor_msgs/Image"): SchemaDecoder("image", ros1.raw_image),
-    ("ros1", "sensor_msgs/CameraInfo"): SchemaDecoder("camera_info", ros1.camera_info),
-    ("ros1", "geometry_msgs/PoseStamped"): SchemaDecoder("pose", ros1.pose_stamped),
-    ("ros1", "tf2_msgs/TFMessage"): SchemaDecoder("transforms", ros1.tf_message),
-    ("ros1", "tf/tfMessage"): SchemaDecoder("transforms", ros1.tf_message),
-    ("ros1", "sensor_msgs/JointState"): SchemaDecoder("joint_states", ros1.joint_state),
+    ("ros1", "sensor_msgs/CompressedImage"): SchemaDecoder("image", ros1.DECODE.compressed_image),
+    ("ros1", "sensor_msgs/Image"): SchemaDecoder("image", ros1.DECODE.raw_image),
+    ("ros1", "sensor_msgs/CameraInfo"): SchemaDecoder("camera_info", ros1.DECODE.camera_info),
+    ("ros1", "geometry_msgs/PoseStamped"): SchemaDecoder("pose", ros1.DECODE.pose_stamped),
+    ("ros1", "tf2_msgs/TFMessage"): SchemaDecoder("transforms", ros1.DECODE.tf_message),
+    ("ros1", "tf/tfMessage"): SchemaDecoder("transforms", ros1.DECODE.tf_message),
+    ("ros1", "sensor_msgs/JointState"): SchemaDecoder("joint_states", ros1.DECODE.joint_state),
     # Foxglove, protobuf
     ("protobuf", "foxglove.CompressedImage"): SchemaDecoder("image", foxglove.compressed_image),
     ("protobuf", "foxglove.RawImage"): SchemaDecoder("image", foxglove.raw_image),
     ("protobuf", "foxglove.CameraCalibration"): SchemaDecoder(
-        "camera_info", foxglove.camera_calibration),
+        "camera_info", foxglove.camera_calibration
+    ),
     ("protobuf", "foxglove.PoseInFrame"): SchemaDecoder("pose", foxglove.pose_in_frame),
-    ("protobuf", "foxglove.FrameTransform"): SchemaDecoder(
-        "transforms", foxglove.frame_transform),
+    ("protobuf", "foxglove.FrameTransform"): SchemaDecoder("transforms", foxglove.frame_transform),
     ("protobuf", "foxglove.FrameTransforms"): SchemaDecoder(
-        "transforms", foxglove.frame_transforms),
+        "transforms", foxglove.frame_transforms
+    ),
     ("protobuf", "foxglove.JointStates"): SchemaDecoder("joint_states", foxglove.joint_states),
     # Foxglove, JSON
     ("json", "foxglove.CompressedImage"): SchemaDecoder("image", foxglove.compressed_image),
     ("json", "foxglove.RawImage"): SchemaDecoder("image", foxglove.raw_image),
     ("json", "foxglove.CameraCalibration"): SchemaDecoder(
-        "camera_info", foxglove.camera_calibration),
+        "camera_info", foxglove.camera_calibration
+    ),
     ("json", "foxglove.PoseInFrame"): SchemaDecoder("pose", foxglove.pose_in_frame),
     ("json", "foxglove.FrameTransform"): SchemaDecoder("transforms", foxglove.frame_transform),
     ("json", "foxglove.FrameTransforms"): SchemaDecoder("transforms", foxglove.frame_transforms),

@@ -5,38 +5,17 @@ Differences from ROS 2 handled here: stamps are `secs/nsecs`, CameraInfo uses `D
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from functools import partial
-from typing import Any
 
-from mcap.records import Schema
 from mcap_ros1.decoder import DecoderFactory
 
 from . import ros_common
 from .base import stamp_ns
 
-
-class Ros1Deserializer:
-    """ROS 1 bytes -> genpy message objects (one generated class per schema)."""
-
-    message_encoding = "ros1"
-
-    def __init__(self) -> None:
-        self._factory = DecoderFactory()
-
-    def for_schema(self, schema: Schema | None) -> Callable[[bytes], Any]:
-        decoder = self._factory.decoder_for(self.message_encoding, schema)
-        if decoder is None:
-            raise ValueError("ROS 1 messages need a ros1msg schema")
-        return decoder
-
+Ros1Deserializer = partial(ros_common.FactoryDeserializer, DecoderFactory, "ros1", "ros1msg")
+"""ROS 1 bytes -> message objects with attribute access."""
 
 FLAVOR = ros_common.RosFlavor(
     stamp=lambda header: stamp_ns(header.stamp.secs, header.stamp.nsecs), d="D", k="K")
 
-compressed_image = partial(ros_common.compressed_image, ros=FLAVOR)
-raw_image = partial(ros_common.raw_image, ros=FLAVOR)
-camera_info = partial(ros_common.camera_info, ros=FLAVOR)
-pose_stamped = partial(ros_common.pose_stamped, ros=FLAVOR)
-tf_message = partial(ros_common.tf_message, ros=FLAVOR)
-joint_state = partial(ros_common.joint_state, ros=FLAVOR)
+DECODE = ros_common.bind(FLAVOR)

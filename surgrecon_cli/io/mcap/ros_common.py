@@ -5,11 +5,29 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import partial
 from typing import Any
 
 import numpy as np
+from mcap.records import Schema
 
 from ..records import CameraInfoRecord, ImageRecord, JointStateRecord, PoseRecord, Record
+
+
+class FactoryDeserializer:
+    """Message bytes -> message objects through an mcap_ros* `DecoderFactory` (one generated
+    decoder per schema); `schema_kind` names the schema encoding in errors."""
+
+    def __init__(self, factory: Any, message_encoding: str, schema_kind: str) -> None:
+        self._factory = factory()
+        self.message_encoding = message_encoding
+        self._schema_kind = schema_kind
+
+    def for_schema(self, schema: Schema | None) -> Callable[[bytes], Any]:
+        decoder = self._factory.decoder_for(self.message_encoding, schema)
+        if decoder is None:
+            raise ValueError(f"{self.message_encoding} messages need a {self._schema_kind} schema")
+        return decoder
 
 
 @dataclass(frozen=True)
@@ -65,3 +83,21 @@ def joint_state(msg: Any, ros: RosFlavor) -> list[Record]:
     positions = np.asarray(msg.position, dtype=float)
     names = tuple(str(n) for n in msg.name) or tuple(f"joint_{i}" for i in range(len(positions)))
     return [JointStateRecord(ros.stamp(msg.header), names, positions)]
+
+
+@dataclass(frozen=True)
+class RosDecoders:
+    """The decoders of one ROS flavour (message -> records)."""
+
+    compressed_image: Callable[[Any], list[Record]]
+    raw_image: Callable[[Any], list[Record]]
+    camera_info: Callable[[Any], list[Record]]
+    pose_stamped: Callable[[Any], list[Record]]
+    tf_message: Callable[[Any], list[Record]]
+    joint_state: Callable[[Any], list[Record]]
+
+
+def bind(ros: RosFlavor) -> RosDecoders:
+    """All decoders with the flavour's field names and stamp convention bound."""
+    return RosDecoders(*(partial(f, ros=ros) for f in (
+        compressed_image, raw_image, camera_info, pose_stamped, tf_message, joint_state)))
