@@ -146,9 +146,16 @@ class TargetConfig:
     klt_levels: int = _doc(3, "KLT pyramid levels")
     klt_fb_px: float = _doc(0.7, "largest forward-backward KLT disagreement (px)")
     occlusion_depth: float = _doc(0.002, "depth tolerance of the visibility test (m)")
+    new_points_every: int = _doc(
+        0, "triangulate new features into G (no id) every N frames (0 = off; ~3 s a frame)"
+    )
+    new_point_spacing_mm: float = _doc(
+        1.0, "a new point closer than this to a tracked template point is not added (mm)"
+    )
 
     def __post_init__(self) -> None:
         _require(self.gate_px > 0, "target.gate_px", "must be > 0")
+        _require(self.new_points_every >= 0, "target.new_points_every", "must be >= 0")
         _require(self.klt_window_px >= 5, "target.klt_window_px", "must be >= 5")
 
 

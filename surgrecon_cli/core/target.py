@@ -18,6 +18,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from scipy.spatial import cKDTree
 
 from ..config import TargetConfig, ToolConfig
 from .cameras import CameraModel, in_image, project, undistort_pixels
@@ -212,3 +213,16 @@ def build_target(
     unobserved = status == UNOBSERVED
     positions[unobserved] = latest[unobserved]
     return TargetCloud(positions, status, found.sum(1), pixels)
+
+
+def new_target_points(candidates: np.ndarray, candidate_rgb: np.ndarray, tracked: np.ndarray,
+                      min_spacing: float) -> tuple[np.ndarray, np.ndarray]:
+    """New features of this frame (Su et al. 2019, Fig. 4: "feature points ... not yet
+    associated with a 3D point are triangulated"): candidates (M, 3) m triangulated from the
+    current images (e.g. by core/template.build_template) that lie farther than
+    `min_spacing` m from every tracked template point (K, 3). Returns points and colours."""
+    if len(candidates) == 0 or len(tracked) == 0:
+        return candidates, candidate_rgb
+    distance, _ = cKDTree(tracked).query(candidates)
+    keep = distance > min_spacing
+    return candidates[keep], candidate_rgb[keep]

@@ -21,9 +21,10 @@ import numpy as np
 
 from ..config import Config, to_dict
 from ..core.registration import register
-from ..core.target import INTER, INTRA, build_target
+from ..core.target import INTER, INTRA, UNOBSERVED, build_target, new_target_points
+from ..core.template import build_template
 from ..core.tool import tool_pose_in_world
-from ..errors import RunFolderError
+from ..errors import GeometryError, RunFolderError
 from ..io.atomic import write_npz
 from ..io.ingest_store import IngestedLog, load_ingested
 from ..io.ply import read_ply, write_cloud_ply
@@ -126,18 +127,28 @@ def run_register(
                     config.target,
                     config.tool,
                 )
-                seconds_target = time.perf_counter() - start
-                start = time.perf_counter()
                 has_target = (target.status == INTRA) | (target.status == INTER)
                 ids = np.flatnonzero(has_target)
+                target_xyz, target_rgb = target.positions[ids], rgb[ids]
+                n_new = 0
+                every = config.target.new_points_every
+                if every and frame % every == 0:
+                    new_xyz, new_rgb = _new_points(cur_images, _poses(log, frame), models, log,
+                                                   frame, target_xyz, config)
+                    n_new = len(new_xyz)
+                    target_xyz = np.concatenate([target_xyz, new_xyz])
+                    target_rgb = np.concatenate([target_rgb, new_rgb])
+                    ids = np.concatenate([ids, np.full(n_new, -1)])
+                seconds_target = time.perf_counter() - start
+                start = time.perf_counter()
                 result = register(
                     source,
-                    target.positions[ids],
+                    target_xyz,
                     source_rgb=rgb,
-                    target_rgb=rgb[ids],
+                    target_rgb=target_rgb,
                     config=config.registration,
                     target_ids=ids,
-                    weights=has_target.astype(float),
+                    weights=_data_weights(target.status, has_new=n_new > 0),
                 )
                 seconds_register = time.perf_counter() - start
                 transforms = compose(result.transforms, base)
@@ -154,6 +165,7 @@ def run_register(
                     pixels=pixels.astype(np.float32),
                     seconds_target=np.float64(seconds_target),
                     seconds_register=np.float64(seconds_register),
+                    new_points=np.int64(n_new),
                 )
                 write_cloud_ply(
                     cloud_path(run_dir, frame),
@@ -178,6 +190,29 @@ def run_register(
                 on_frame(frame, log.n_frames)
         info.update(frames_done=frames_done, config=_fingerprint(config))
     return processed
+
+
+def _data_weights(status: np.ndarray, has_new: bool) -> np.ndarray:
+    """Data weight per template point: tracked points (intra/inter) 1; unobserved points 0,
+    so they follow their neighbours, unless new points were triangulated this frame: then
+    they may match one by nearest neighbour (gated). Outliers always 0."""
+    tracked = (status == INTRA) | (status == INTER)
+    if has_new:
+        tracked |= status == UNOBSERVED
+    return tracked.astype(float)
+
+
+def _new_points(images: list[np.ndarray | None], poses: np.ndarray, models: list,
+                log: IngestedLog, frame: int, tracked: np.ndarray, config: Config):
+    """New features of the frame triangulated as in the template build, away from the
+    tracked points: (M, 3) m and colours (M, 3) uint8."""
+    tool_pose = tool_pose_in_world(log.tool_poses[frame], config.tool)
+    try:
+        fresh = build_template(images, models, poses, tool_pose, config.template, config.tool)
+    except GeometryError:
+        return np.zeros((0, 3)), np.zeros((0, 3), np.uint8)
+    return new_target_points(fresh.points, fresh.rgb, tracked,
+                             config.target.new_point_spacing_mm * 1e-3)
 
 
 def _poses(log: IngestedLog, frame: int) -> np.ndarray:
