@@ -12,7 +12,12 @@ from surgrecon_cli.core.geometry import make_pose, point_to_segment_distance
 from surgrecon_cli.core.pairing import plan_pairs
 from surgrecon_cli.core.scoring import distance_stats_mm, map_to_surface
 from surgrecon_cli.core.template import build_template
-from surgrecon_cli.core.tool import points_near_tool, shaft_segment, tool_image_mask
+from surgrecon_cli.core.tool import (
+    points_near_tool,
+    push_out_of_tool,
+    shaft_segment,
+    tool_image_mask,
+)
 from surgrecon_cli.core.triangulate import Observations, triangulate
 from surgrecon_cli.errors import GeometryError
 from surgrecon_cli.sim.scene import SimConfig
@@ -140,3 +145,18 @@ def test_template_needs_two_cameras(scene):
             cfg.template,
             cfg.tool,
         )
+
+
+def test_tissue_inside_the_tool_is_pushed_onto_its_surface():
+    cfg = Config().tool
+    tip_down = make_pose(np.zeros(3), np.array([0.0, 0.0, 0.0, 1.0]))  # shaft along +z from the tip
+    points = np.array(
+        [[0, 0, 1e-3], [2e-3, 0, 0.5e-3], [5e-3, 0, 1e-3], [0, 0, -1e-3], [0, 1e-3, 0.05]]
+    )
+    inside, pushed = push_out_of_tool(points, tip_down, cfg)
+    np.testing.assert_array_equal(inside, [True, False, False, False, True])
+    np.testing.assert_allclose(pushed[0], [0, 0, 0], atol=2e-6)  # onto the tip
+    r = cfg.shaft_radius
+    np.testing.assert_allclose(pushed[4], [0, 1e-3, r - np.sqrt(r**2 - 1e-6)], atol=2e-6)
+    np.testing.assert_array_equal(pushed[~inside], points[~inside])
+    assert not push_out_of_tool(pushed, tip_down, cfg)[0].any()

@@ -18,9 +18,31 @@ from .geometry import make_pose, point_to_segment_distance
 
 
 def shaft_segment(tool_pose: np.ndarray, cfg: ToolConfig) -> tuple[np.ndarray, np.ndarray]:
-    """Start (tip) and end (3,) of the shaft axis in the world, from the tool-tip pose (4, 4)."""
-    tip = tool_pose[:3, 3]
-    return tip, tip + tool_pose[:3, 2] * cfg.shaft_length
+    """Ends (3,) of the capsule's axis in the world, from the tool-tip pose (4, 4): from the
+    centre of the rounded end (one radius up the shaft, so the surface touches the tip) to
+    `shaft_length` from the tip."""
+    tip, axis = tool_pose[:3, 3], tool_pose[:3, 2]
+    return tip + axis * cfg.shaft_radius, tip + axis * max(cfg.shaft_length, cfg.shaft_radius)
+
+
+def push_out_of_tool(points: np.ndarray, tool_pose: np.ndarray, cfg: ToolConfig
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """Tissue cannot be inside the tool: points (N, 3) m inside the capsule are moved along
+    the shaft axis, towards the tip, onto the capsule's surface (where the tool presses
+    the tissue). Returns inside (N,) bool and the pushed points (N, 3)."""
+    pushed = np.array(points, dtype=float)
+    if not np.isfinite(tool_pose).all() or len(points) == 0:
+        return np.zeros(len(points), bool), pushed
+    a, b = shaft_segment(tool_pose, cfg)
+    axis = (b - a) / np.linalg.norm(b - a)
+    rel = pushed - a
+    along = rel @ axis
+    radial2 = (rel**2).sum(1) - along**2
+    inside = (radial2 < cfg.shaft_radius**2) & (along <= np.linalg.norm(b - a))
+    surface = -np.sqrt(np.maximum(cfg.shaft_radius**2 - radial2, 0.0))  # rounded end, below a
+    inside &= along > surface
+    pushed[inside] -= ((along - surface)[inside] + 1e-6)[:, None] * axis  # 1 µm clear
+    return inside, pushed
 
 
 def tool_pose_in_world(tool_pose: np.ndarray, cfg: ToolConfig) -> np.ndarray:

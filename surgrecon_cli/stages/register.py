@@ -23,7 +23,7 @@ from ..config import Config, to_dict
 from ..core.registration import register
 from ..core.target import INTER, INTRA, UNOBSERVED, build_target, new_target_points
 from ..core.template import build_template
-from ..core.tool import tool_pose_in_world
+from ..core.tool import push_out_of_tool, tool_pose_in_world
 from ..errors import GeometryError, RunFolderError
 from ..io.atomic import write_npz
 from ..io.ingest_store import IngestedLog, load_ingested
@@ -141,15 +141,10 @@ def run_register(
                     ids = np.concatenate([ids, np.full(n_new, -1)])
                 seconds_target = time.perf_counter() - start
                 start = time.perf_counter()
-                result = register(
-                    source,
-                    target_xyz,
-                    source_rgb=rgb,
-                    target_rgb=target_rgb,
-                    config=config.registration,
-                    target_ids=ids,
-                    weights=_data_weights(target.status, has_new=n_new > 0),
-                )
+                result, n_contact = register_with_contact(
+                    source, rgb, target_xyz, target_rgb, ids,
+                    _data_weights(target.status, has_new=n_new > 0),
+                    tool_pose_in_world(log.tool_poses[frame], config.tool), config)
                 seconds_register = time.perf_counter() - start
                 transforms = compose(result.transforms, base)
                 registered = result.registered
@@ -166,6 +161,7 @@ def run_register(
                     seconds_target=np.float64(seconds_target),
                     seconds_register=np.float64(seconds_register),
                     new_points=np.int64(n_new),
+                    contact_points=np.int64(n_contact),
                 )
                 write_cloud_ply(
                     cloud_path(run_dir, frame),
@@ -190,6 +186,33 @@ def run_register(
                 on_frame(frame, log.n_frames)
         info.update(frames_done=frames_done, config=_fingerprint(config))
     return processed
+
+
+def register_with_contact(source: np.ndarray, source_rgb: np.ndarray, target_xyz: np.ndarray,
+                          target_rgb: np.ndarray, target_ids: np.ndarray, weights: np.ndarray,
+                          tool_pose: np.ndarray, config: Config, passes: int = 2):
+    """Register, then keep the tissue out of the tool (robot kinematics, Su et al. 2019
+    section II.C): points without data (unobserved: under the tool, hidden by it) that the
+    registration leaves inside the tool's capsule get a target on the capsule's surface,
+    pushed along the shaft, and the registration is run again (up to `passes` times).
+    Returns the result and the number of such contact points."""
+    result = register(source, target_xyz, source_rgb=source_rgb, target_rgb=target_rgb,
+                      config=config.registration, target_ids=target_ids, weights=weights)
+    contact = np.zeros(len(source), bool)
+    for _ in range(passes):
+        inside, pushed = push_out_of_tool(result.registered, tool_pose, config.tool)
+        new = inside & (weights == 0) & ~contact
+        if not new.any():
+            break
+        contact |= new
+        fresh = np.flatnonzero(new)
+        target_xyz = np.concatenate([target_xyz, pushed[fresh]])
+        target_rgb = np.concatenate([target_rgb, source_rgb[fresh]])
+        target_ids = np.concatenate([target_ids, fresh])
+        weights = np.where(new, 1.0, weights)
+        result = register(source, target_xyz, source_rgb=source_rgb, target_rgb=target_rgb,
+                          config=config.registration, target_ids=target_ids, weights=weights)
+    return result, int(contact.sum())
 
 
 def _data_weights(status: np.ndarray, has_new: bool) -> np.ndarray:
