@@ -26,38 +26,10 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-MM = 1e-3
+from surgrecon_cli.sim.pairs import MM, dome, texture, warp
 
 
 # ----------------------------------------------------------------------------- data
-def dome(n: int, rng: np.random.Generator) -> np.ndarray:
-    """n points on a bumpy dome: radius 25 mm, 8 mm high, 0.6 mm bumps (metres)."""
-    r = 25.0 * np.sqrt(rng.uniform(0, 1, n))
-    th = rng.uniform(0, 2 * np.pi, n)
-    x, y = r * np.cos(th), r * np.sin(th)
-    z = 8.0 * (1 - (r / 25.0) ** 2) + 0.6 * np.sin(x / 4.0) * np.cos(y / 5.0)
-    return np.c_[x, y, z] * MM
-
-
-def warp(p: np.ndarray) -> np.ndarray:
-    """True motion (metres): smooth breathing shift (<= 3 mm) + 5 mm Gaussian indentation."""
-    x, y = p[:, 0] / MM, p[:, 1] / MM
-    breath = 3.0 * np.exp(-((x - 8) ** 2 + y**2) / (2 * 15.0**2))
-    u = np.c_[0.3 * breath, 0.1 * breath, breath]
-    dent = 5.0 * np.exp(-((x + 6) ** 2 + (y - 4) ** 2) / (2 * 4.0**2))
-    u[:, 2] -= dent
-    return p + u * MM
-
-
-def texture(p: np.ndarray) -> np.ndarray:
-    """Colour (0..1) painted on the material point: blob/vessel-like pattern."""
-    x, y = p[:, 0] / MM, p[:, 1] / MM
-    r = 0.55 + 0.35 * np.sin(x / 2.1 + 0.7 * np.sin(y / 3.3))
-    g = 0.45 + 0.35 * np.cos(y / 1.7 - 0.5 * np.cos(x / 2.9))
-    b = 0.5 + 0.35 * np.sin((x + y) / 2.6)
-    return np.clip(np.c_[r, g, b], 0, 1)
-
-
 @dataclass(frozen=True)
 class Pair:
     source: np.ndarray

@@ -16,31 +16,7 @@ from surgrecon_cli.config import ConfigError, RegistrationConfig, from_dict
 from surgrecon_cli.core.geometry import quat_to_matrix
 from surgrecon_cli.errors import GeometryError
 from surgrecon_cli.registration import apply_transforms, register
-
-MM = 1e-3
-
-
-def dome(n: int, rng: np.random.Generator) -> np.ndarray:
-    r = 25.0 * np.sqrt(rng.uniform(0, 1, n))
-    th = rng.uniform(0, 2 * np.pi, n)
-    x, y = r * np.cos(th), r * np.sin(th)
-    z = 8.0 * (1 - (r / 25.0) ** 2) + 0.6 * np.sin(x / 4.0) * np.cos(y / 5.0)
-    return np.c_[x, y, z] * MM
-
-
-def warp(p: np.ndarray) -> np.ndarray:
-    x, y = p[:, 0] / MM, p[:, 1] / MM
-    breath = 3.0 * np.exp(-((x - 8) ** 2 + y**2) / (2 * 15.0**2))
-    u = np.c_[0.3 * breath, 0.1 * breath, breath]
-    u[:, 2] -= 5.0 * np.exp(-((x + 6) ** 2 + (y - 4) ** 2) / (2 * 4.0**2))
-    return p + u * MM
-
-
-def texture(p: np.ndarray) -> np.ndarray:
-    x, y = p[:, 0] / MM, p[:, 1] / MM
-    return np.clip(np.c_[0.55 + 0.35 * np.sin(x / 2.1 + 0.7 * np.sin(y / 3.3)),
-                         0.45 + 0.35 * np.cos(y / 1.7 - 0.5 * np.cos(x / 2.9)),
-                         0.5 + 0.35 * np.sin((x + y) / 2.6)], 0, 1)
+from surgrecon_cli.sim.pairs import MM, dome, texture, warp
 
 
 def make(n: int = 2500, seed: int = 0, noise_mm: float = 0.2):
