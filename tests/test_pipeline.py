@@ -79,7 +79,10 @@ def test_killed_register_resumes_at_the_next_frame(copy_run, pipeline_log):
     run = RunFolder(copy_run)
     data = run.read()
     n_frames = data["ingest"]["frames"]
+    uninterrupted = {}
     for k in (n_frames - 2, n_frames - 1):  # as if killed before the last two frames
+        with np.load(copy_run / "registration" / f"{k:06d}.npz") as z:
+            uninterrupted[k] = {name: z[name] for name in ("transforms", "registered", "status")}
         (copy_run / "registration" / f"{k:06d}.npz").unlink()
         (copy_run / "clouds" / f"{k:06d}.ply").unlink()
     kept = _mtimes(copy_run, "registration/*.npz")
@@ -94,6 +97,10 @@ def test_killed_register_resumes_at_the_next_frame(copy_run, pipeline_log):
     now = _mtimes(copy_run, "registration/*.npz")
     assert len(now) == n_frames - 1 and all(now[k] == v for k, v in kept.items())
     assert run.stage("register")["frames_done"] == list(range(1, n_frames))
+    for k, arrays in uninterrupted.items():  # resumed frames equal the uninterrupted ones
+        with np.load(copy_run / "registration" / f"{k:06d}.npz") as z:
+            for name, value in arrays.items():
+                np.testing.assert_array_equal(z[name], value)
 
 
 def test_another_input_starts_over(copy_run, pipeline_log):

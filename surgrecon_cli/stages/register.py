@@ -4,7 +4,7 @@ Per frame k: the target cloud G_k (template points tracked into the new images a
 by the reprojection-error check, core/target.py), then the template P registered to G_k
 (core/registration). Outputs, written atomically frame by frame so a killed run resumes:
   RUN/registration/NNNNNN.npz   transforms (N,3,4) f32, registered (N,3), target (N,3),
-                                status (N,) u8, residual (N,) f32, pixels (N,C,2) f32,
+                                status (N,) u8, residual (N,) f32, pixels (N,C,2) f64,
                                 seconds_target, seconds_register
   RUN/clouds/NNNNNN.ply         registered positions, template colours, point_id,
                                 label 255 (until classified), residual
@@ -146,7 +146,9 @@ def run_register(
                     _data_weights(target.status, has_new=n_new > 0),
                     tool_pose_in_world(log.tool_poses[frame], config.tool), config)
                 seconds_register = time.perf_counter() - start
-                transforms = compose(result.transforms, base)
+                # Stored as float32; use the stored values from here on so that a resumed
+                # run continues from exactly what an uninterrupted one had in memory.
+                transforms = compose(result.transforms, base).astype(np.float32).astype(float)
                 registered = result.registered
                 residual = np.nan_to_num(result.residuals, nan=0.0).astype(np.float32)
                 target_pos, pixels = target.positions, target.pixels
@@ -157,7 +159,7 @@ def run_register(
                     target=target_pos,
                     status=target.status,
                     residual=residual,
-                    pixels=pixels.astype(np.float32),
+                    pixels=pixels,
                     seconds_target=np.float64(seconds_target),
                     seconds_register=np.float64(seconds_register),
                     new_points=np.int64(n_new),
