@@ -195,8 +195,3 @@ def test_bad_inputs_raise_named_errors():
     with pytest.raises(ConfigError, match=r"classify\.measure"):
         load_config(overrides=["classify.measure='max'"])
 
-
-def test_status_codes_match_the_target_module():
-    from surgrecon_cli.core import classify, target
-
-    assert (classify.STATUS_INTRA, classify.STATUS_INTER) == (target.INTRA, target.INTER)

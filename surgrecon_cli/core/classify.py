@@ -60,11 +60,7 @@ from scipy.spatial import cKDTree
 from ..config import ClassifyConfig
 from ..errors import GeometryError
 from .geometry import fit_rigid
-from .labels import DEFORMING, SHIFTING, STATIC, UNKNOWN
-
-# Reprojection status codes of core/target.py (repeated here so that classification does
-# not import OpenCV through the target module).
-STATUS_INTRA, STATUS_INTER = 0, 1
+from .labels import DEFORMING, INTER, INTRA, SHIFTING, STATIC, UNKNOWN
 
 
 @dataclass(frozen=True)
@@ -201,8 +197,8 @@ def classify_frame(template: np.ndarray, registered: np.ndarray, nb: Neighbourho
     if status is not None and cfg.status_band_mm > 0:
         status = np.asarray(status)
         near = known & (np.abs(disp - cfg.static_mm) < cfg.status_band_mm)
-        dynamic[near & (status == STATUS_INTRA)] = False
-        dynamic[near & (status == STATUS_INTER)] = True
+        dynamic[near & (status == INTRA)] = False
+        dynamic[near & (status == INTER)] = True
 
     labels = np.full(n, UNKNOWN, np.uint8)
     labels[known] = STATIC

@@ -16,6 +16,10 @@ from .geometry import fit_rigid
 STATIC, SHIFTING, DEFORMING, UNKNOWN = 0, 1, 2, 255
 CLASS_NAMES = {STATIC: "static", SHIFTING: "shifting", DEFORMING: "deforming"}
 
+# What the reprojection-error check (core/target.py) found for a point in a frame.
+INTRA, INTER, OUTLIER, UNOBSERVED = 0, 1, 2, 3
+STATUS_NAMES = {INTRA: "intra", INTER: "inter", OUTLIER: "outlier", UNOBSERVED: "unobserved"}
+
 
 def radius_neighbourhoods(points: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
     """Neighbours of every point within `radius` (m), padded.

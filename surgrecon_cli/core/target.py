@@ -22,11 +22,9 @@ from scipy.spatial import cKDTree
 
 from ..config import TargetConfig, ToolConfig
 from .cameras import CameraModel, in_image, project, undistort_pixels
+from .labels import INTER, INTRA, OUTLIER, STATUS_NAMES, UNOBSERVED
 from .tool import points_near_tool, tool_pixel_mask
 from .triangulate import Observations, triangulate
-
-INTRA, INTER, OUTLIER, UNOBSERVED = 0, 1, 2, 3
-STATUS_NAMES = {INTRA: "intra", INTER: "inter", OUTLIER: "outlier", UNOBSERVED: "unobserved"}
 
 
 @dataclass(frozen=True)

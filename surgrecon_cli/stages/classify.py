@@ -18,13 +18,12 @@ import numpy as np
 
 from ..config import Config, to_dict
 from ..core.classify import (
-    STATUS_INTRA,
     FrameClasses,
     apply_hysteresis,
     classify_frame,
     template_neighbourhoods,
 )
-from ..core.labels import CLASS_NAMES, STATIC, UNKNOWN
+from ..core.labels import CLASS_NAMES, INTRA, STATIC, UNKNOWN
 from ..errors import RunFolderError
 from ..io.atomic import write_npz
 from ..io.ingest_store import load_ingested
@@ -82,7 +81,7 @@ def run_classify(run_dir: Path, config: Config,
                                      cfg.max_neighbours)
         frames = [FrameClasses(labels=np.full(n, STATIC, np.uint8),
                                displacement_mm=np.zeros(n), deformation_mm=np.full(n, np.nan))]
-        status = [np.full(n, STATUS_INTRA, np.uint8)]
+        status = [np.full(n, INTRA, np.uint8)]
         step(1, total)
         for k in range(1, n_frames):
             reg = load_registration_frame(run_dir, k, n)

@@ -20,8 +20,9 @@ from pathlib import Path
 import numpy as np
 
 from ..config import Config, to_dict
+from ..core.labels import INTER, INTRA, UNOBSERVED
 from ..core.registration import register
-from ..core.target import INTER, INTRA, UNOBSERVED, build_target, new_target_points
+from ..core.target import build_target, new_target_points
 from ..core.template import build_template
 from ..core.tool import push_out_of_tool, tool_pose_in_world
 from ..errors import GeometryError, RunFolderError

@@ -22,8 +22,7 @@ import numpy as np
 from .. import __version__
 from ..config import Config, ToolConfig
 from ..core.cameras import in_image, project
-from ..core.labels import CLASS_NAMES, DEFORMING, SHIFTING, STATIC, UNKNOWN
-from ..core.target import STATUS_NAMES
+from ..core.labels import CLASS_NAMES, DEFORMING, SHIFTING, STATIC, STATUS_NAMES, UNKNOWN
 from ..core.tool import tool_pixel_mask, tool_pose_in_world
 from ..errors import RunFolderError
 from ..io import plots
