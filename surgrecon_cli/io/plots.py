@@ -57,11 +57,7 @@ def stacked_counts(frames: np.ndarray, counts: dict[str, np.ndarray], colours: d
                 bottom += v
         ax.set_xlim(frames.min() - 0.5 if len(frames) == 1 else frames.min(),
                     frames.max() + 0.5 if len(frames) == 1 else frames.max())
-        ax.set_xlabel("frame")
-        ax.set_ylabel(ylabel)
-        ax.set_title(title, loc="left")
-        ax.legend(loc="upper left", bbox_to_anchor=(1.0, 1.0))
-        _thin_ticks(ax, frames)
+        _label_frame_axes(ax, frames, ylabel, title, legend=True)
         return _png(fig)
 
 
@@ -87,10 +83,7 @@ def per_frame_boxes(frames: np.ndarray, values: Sequence[np.ndarray], title: str
             ax.legend(loc="upper left", bbox_to_anchor=(1.0, 1.0))
         if log:
             ax.set_yscale("symlog", linthresh=0.1)
-        ax.set_xlabel("frame")
-        ax.set_ylabel(ylabel)
-        ax.set_title(title, loc="left")
-        _thin_ticks(ax, frames)
+        _label_frame_axes(ax, frames, ylabel, title)
         return _png(fig)
 
 
@@ -259,11 +252,8 @@ def error_over_time(frames: np.ndarray, median: np.ndarray, p95: np.ndarray, max
         ax.set_ylim(min(low, limit_mm / 2), max(float(finite.max()) * 1.5 if finite.size else 1,
                                                 limit_mm * 2))
         ax.yaxis.set_major_formatter(FuncFormatter(lambda y, _p: f"{y:g}"))
-        ax.set_xlabel("frame")
-        ax.set_ylabel("error (mm, log scale)")
-        ax.set_title("registration error vs. followed material point", loc="left")
-        ax.legend(loc="upper left", bbox_to_anchor=(1.0, 1.0))
-        _thin_ticks(ax, frames)
+        _label_frame_axes(ax, frames, "error (mm, log scale)",
+                          "registration error vs. followed material point", legend=True)
         return _png(fig)
 
 
@@ -330,12 +320,19 @@ def f1_over_time(frames: np.ndarray, per_class: dict[str, np.ndarray], macro: np
             ax.plot(frames, values, color=CLASS_COLOURS[name], marker="o", markersize=3, label=name)
         ax.plot(frames, macro, color="#222222", linewidth=2, label="macro-F1")
         ax.set_ylim(-0.02, 1.02)
-        ax.set_xlabel("frame")
-        ax.set_ylabel("F1")
-        ax.set_title("label F1 per frame", loc="left")
-        ax.legend(loc="upper left", bbox_to_anchor=(1.0, 1.0))
-        _thin_ticks(ax, frames)
+        _label_frame_axes(ax, frames, "F1", "label F1 per frame", legend=True)
         return _png(fig)
+
+
+def _label_frame_axes(ax, frames: np.ndarray, ylabel: str, title: str,
+                      legend: bool = False) -> None:
+    """Frame on x, `ylabel` on y, a left title, the legend outside on the right."""
+    ax.set_xlabel("frame")
+    ax.set_ylabel(ylabel)
+    ax.set_title(title, loc="left")
+    if legend:
+        ax.legend(loc="upper left", bbox_to_anchor=(1.0, 1.0))
+    _thin_ticks(ax, frames)
 
 
 def _thin_ticks(ax, frames: np.ndarray) -> None:
