@@ -377,11 +377,15 @@ def load_config(path: Path | None = None, overrides: typing.Sequence[str] = ()) 
     return config
 
 
+_TOML_ESCAPES = {"\\": "\\\\", '"': '\\"'}
+
+
 def _toml_value(value: Any) -> str:
     if isinstance(value, bool):
         return "true" if value else "false"
-    if isinstance(value, str):
-        return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(value, str):  # TOML forbids control characters: escape all non-printables
+        return '"' + "".join(_TOML_ESCAPES.get(c) or (c if c.isprintable() else f"\\U{ord(c):08x}")
+                             for c in value) + '"'
     if isinstance(value, tuple | list):
         return "[" + ", ".join(_toml_value(v) for v in value) + "]"
     return repr(value)

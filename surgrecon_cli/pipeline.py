@@ -27,7 +27,7 @@ from typing import Any
 
 from .config import Config, to_dict, to_toml
 from .errors import InputError
-from .io.atomic import write_text
+from .io.atomic import remove_leftovers, write_text
 from .io.ground_truth import gt_path_beside
 from .io.run_folder import RunFolder, file_sha256
 
@@ -179,6 +179,8 @@ def run_pipeline(log: Path, run_dir: Path, config: Config, ground_truth: Path | 
     run = RunFolder(run_dir)
     force_ingest = False
     if run.exists():
+        if remove_leftovers(run_dir):
+            logger.info("%s: removed the temporary files of an interrupted run", run_dir)
         recorded = run.input_hash
         if recorded and recorded != file_sha256(log):
             logger.warning("%s was made from another log than %s (SHA-256 differs): starting "

@@ -48,6 +48,10 @@ def _read_weights(path: Path, n: int) -> Any:
         raise InputError(f"{path}: cannot read weights ({exc})") from exc
     if values.shape != (n,):
         raise InputError(f"{path}: expected {n} weights (one per source point), got {values.size}")
+    bad = np.flatnonzero(~np.isfinite(values) | (values < 0))
+    if bad.size:
+        raise InputError(f"{path}: weight {bad[0] + 1} is {values[bad[0]]}; weights must be "
+                         "finite and >= 0")
     return values
 
 
@@ -108,6 +112,10 @@ def register_pair_cmd(source: Path, target: Path, output: Path, apply_path: Path
     src, src_rgb, src_ids = _cloud(source)
     dst, dst_rgb, dst_ids = _cloud(target)
     lm = _read_indices_csv(landmarks) if landmarks else None
+    if lm is not None and lm.size and (lm.min() < 0 or lm[:, 0].max() >= len(src)
+                                       or lm[:, 1].max() >= len(dst)):
+        raise InputError(f"{landmarks}: indices must be in 0..{len(src) - 1} (source) and "
+                         f"0..{len(dst) - 1} (target)")
     w = _read_weights(weights, len(src)) if weights else None
     target_ids = None
     if use_ids:

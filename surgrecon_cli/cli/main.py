@@ -57,7 +57,7 @@ def main(argv: list[str] | None = None) -> int:
     except SurgReconError as exc:
         if STATE["debug"]:
             raise
-        click.echo(f"error: {exc}", err=True)
+        click.echo(f"error: {_one_line(exc)}", err=True)
         return 2
     except KeyboardInterrupt:
         click.echo("interrupted", err=True)
@@ -65,9 +65,16 @@ def main(argv: list[str] | None = None) -> int:
     except Exception as exc:
         if STATE["debug"]:
             raise
-        click.echo(f"internal error: {type(exc).__name__}: {exc} (re-run with --debug)", err=True)
+        click.echo(f"internal error: {type(exc).__name__}: {_one_line(exc)} (re-run with --debug)",
+                   err=True)
         return 3
     return 0
+
+
+def _one_line(exc: BaseException) -> str:
+    """The message on one line: line breaks and other control characters escaped (names
+    taken from a log may hold any character)."""
+    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in str(exc).strip())
 
 
 if __name__ == "__main__":

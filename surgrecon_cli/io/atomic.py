@@ -38,6 +38,17 @@ def atomic_open(path: Path | str, mode: str = "wb") -> Iterator[IO[Any]]:
         raise
 
 
+def remove_leftovers(folder: Path | str) -> int:
+    """Delete the temporary files of killed writes (`.NAME.*.tmp`) anywhere under `folder`;
+    returns how many. Only for a folder no other process is writing to."""
+    removed = 0
+    for tmp in Path(folder).rglob(".*.tmp"):
+        if tmp.is_file():
+            tmp.unlink(missing_ok=True)
+            removed += 1
+    return removed
+
+
 def write_bytes(path: Path | str, data: bytes) -> None:
     with atomic_open(path, "wb") as f:
         f.write(data)

@@ -1,8 +1,21 @@
 """Image messages -> bytes to store: compressed JPEG/PNG kept as recorded, anything else
-(raw `rgb8`/`bgr8`/`mono8`/..., other compressed formats) stored as PNG."""
+(raw `rgb8`/`bgr8`/`mono8`/..., other compressed formats) stored as PNG.
+
+The size an image claims (raw width/height, PNG/JPEG header) is checked against
+`MAX_IMAGE_PIXELS` before anything is allocated for it. What the C decoders print while
+decoding (libjpeg's "Corrupt JPEG data: ...", libpng's errors) is collected instead of landing
+on stderr: corrupt data is a ValueError naming the decoder's message, anything else a logged
+warning."""
 
 from __future__ import annotations
 
+import contextlib
+import logging
+import os
+import struct
+import sys
+import tempfile
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import cv2
@@ -10,8 +23,13 @@ import numpy as np
 
 from .records import ImageRecord
 
+logger = logging.getLogger(__name__)
+
+MAX_IMAGE_PIXELS = 1 << 26
+"""Largest image accepted (67 Mpx; an 8K camera has 33 Mpx)."""
 _JPEG_MAGIC = b"\xff\xd8\xff"
 _PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+_CORRUPT = ("Corrupt JPEG data", "Premature end of JPEG file")  # libjpeg: data was damaged
 # encoding -> (channels, dtype, cv2 conversion to BGR or None)
 _RAW = {
     "rgb8": (3, np.uint8, cv2.COLOR_RGB2BGR),
@@ -44,10 +62,20 @@ def prepare_image(record: ImageRecord) -> StoredImage:
     data = bytes(record.data)
     if not data:
         raise ValueError("empty image data")
-    bgr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+    claimed = _header_size(data)
+    if claimed is not None:
+        _check_pixels(*claimed)
+    with _native_stderr() as native:
+        bgr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+    kind = record.format or "compressed"
     if bgr is None:
-        kind = record.format or "compressed"
-        raise ValueError(f"{kind} data ({len(data)} bytes) does not decode")
+        why = f" ({native[-1]})" if native else ""
+        raise ValueError(f"{kind} data ({len(data)} bytes) does not decode{why}")
+    corrupt = [line for line in native if line.startswith(_CORRUPT)]
+    if corrupt:
+        raise ValueError(f"{kind} data ({len(data)} bytes) is corrupt ({corrupt[0]})")
+    for line in native:
+        logger.warning("%s image: %s", kind, line)
     height, width = bgr.shape[:2]
     if data.startswith(_JPEG_MAGIC):
         return StoredImage(data, "jpg", width, height)
@@ -63,6 +91,7 @@ def _raw(record: ImageRecord) -> StoredImage:
                          f"(supported: {', '.join(sorted(_RAW))})")
     channels, dtype, conversion = spec
     width, height = int(record.width), int(record.height)
+    _check_pixels(width, height)
     row = width * channels * np.dtype(dtype).itemsize
     step = int(record.step) or row
     if width <= 0 or height <= 0 or step < row or len(record.data) < step * height:
@@ -73,6 +102,60 @@ def _raw(record: ImageRecord) -> StoredImage:
     if conversion is not None:
         img = cv2.cvtColor(img, conversion)
     return StoredImage(_png(img), "png", width, height)
+
+
+def _check_pixels(width: int, height: int) -> None:
+    if width <= 0 or height <= 0:
+        raise ValueError(f"it claims {width}x{height} px")
+    if width * height > MAX_IMAGE_PIXELS:
+        raise ValueError(f"it claims {width}x{height} px, more than the "
+                         f"{MAX_IMAGE_PIXELS / 1e6:.0f} Mpx limit")
+
+
+def _header_size(data: bytes) -> tuple[int, int] | None:
+    """(width, height) from a PNG IHDR or a JPEG SOFn header, None for other data."""
+    if data.startswith(_PNG_MAGIC) and len(data) >= 24 and data[12:16] == b"IHDR":
+        width, height = struct.unpack(">II", data[16:24])
+        return width, height
+    if not data.startswith(_JPEG_MAGIC):
+        return None
+    pos = 2
+    while pos + 9 <= len(data) and data[pos] == 0xFF:
+        marker = data[pos + 1]
+        if marker == 0xFF:  # fill byte
+            pos += 1
+        elif 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):  # start of frame
+            height, width = struct.unpack(">HH", data[pos + 5: pos + 9])
+            return width, height
+        else:
+            pos += 2 + struct.unpack(">H", data[pos + 2: pos + 4])[0]
+    return None
+
+
+@contextlib.contextmanager
+def _native_stderr() -> Iterator[list[str]]:
+    """Collect the lines C libraries write to file descriptor 2 meanwhile (single-threaded
+    use: anything else written to stderr meanwhile is collected too)."""
+    lines: list[str] = []
+    with contextlib.ExitStack() as stack:
+        try:
+            sys.stderr.flush()
+            tmp = stack.enter_context(tempfile.TemporaryFile())
+            saved: int | None = os.dup(2)
+        except (OSError, ValueError, AttributeError):  # no usable stderr or temp dir
+            saved = None
+        if saved is None:
+            yield lines
+            return
+        os.dup2(tmp.fileno(), 2)
+        try:
+            yield lines
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            tmp.seek(0)
+            text = tmp.read().decode("utf-8", errors="replace")
+            lines.extend(line.strip() for line in text.splitlines() if line.strip())
 
 
 def _png(img: np.ndarray) -> bytes:

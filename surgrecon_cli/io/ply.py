@@ -190,6 +190,8 @@ def _skip_binary(path: Path, data: bytes, pos: int, el: _Element, order: str) ->
             if pos + cdt.itemsize > len(data):
                 raise InputError(f"{path}: truncated PLY file (element {el.name!r})")
             count = int(np.frombuffer(data, cdt, 1, pos)[0])
+            if count < 0:
+                raise InputError(f"{path}: negative list length {count} in element {el.name!r}")
             pos += cdt.itemsize + count * np.dtype(itype).itemsize
     return pos
 

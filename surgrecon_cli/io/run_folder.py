@@ -94,9 +94,9 @@ class RunFolder:
 
     def start(self, input_path: Path, config: Config) -> None:
         """A fresh run.json for `input_path` (any earlier stage status is dropped) and the
-        effective config as RUN/config.toml."""
+        effective config as RUN/config.toml (written second: a folder with a config.toml and
+        no run.json would not be recognised as a run folder)."""
         self.path.mkdir(parents=True, exist_ok=True)
-        write_text(self.path / "config.toml", to_toml(config))
         self.write({
             "surgrecon": __version__,
             "input": {"path": str(Path(input_path).resolve()), "sha256": None,
@@ -105,6 +105,7 @@ class RunFolder:
             "versions": package_versions(),
             "stages": {},
         })
+        write_text(self.path / "config.toml", to_toml(config))
 
     def update(self, **fields: Any) -> None:
         """Set top-level fields of run.json (e.g. input=..., ingest=...)."""

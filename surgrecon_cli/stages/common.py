@@ -20,19 +20,23 @@ def stage_run(
     config: Config,
     needs: tuple[str, ...] = ("ingest",),
     config_sections: tuple[str, ...] = (),
+    keep: tuple[str, ...] = (),
 ) -> Iterator[dict[str, Any]]:
     """Mark stage `name` running; on success mark it done with the info the body put in the
     yielded dict (plus its wall time); on a SurgReconError mark it failed and re-raise.
 
     Earlier stages in `needs` must be done; `config_sections` must match the run's config
-    (they shaped earlier outputs this stage builds on).
+    (they shaped earlier outputs this stage builds on). `keep`: keys of the stage's previous
+    entry carried into the "running" one (a resumable stage's progress, so that a run killed
+    before it records new progress does not lose the old).
     """
     run = RunFolder(run_dir)
     for stage in needs:
         run.require_done(stage)
     if config_sections:
         run.check_config(config, config_sections)
-    run.mark_stage(name, "running")
+    previous = run.stage(name)
+    run.mark_stage(name, "running", **{k: previous[k] for k in keep if k in previous})
     info: dict[str, Any] = {}
     start = time.perf_counter()
     try:

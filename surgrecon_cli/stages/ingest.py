@@ -111,12 +111,25 @@ def _prepare_run_folder(run_dir: Path, log_path: Path, config: Config, force: bo
             raise RunFolderError(
                 f"{run_dir} already holds an ingested log; pass --force to replace it "
                 "(later stages will re-run) or use a new run folder")
-    elif run_dir.exists() and any(run_dir.iterdir()) and not force:
-        raise RunFolderError(f"{run_dir} exists, is not empty and has no run.json; "
-                             "use a new or empty folder")
+    elif run_dir.exists() and not force:
+        entries = list(run_dir.iterdir())
+        if any(not _leftover(p) for p in entries):
+            raise RunFolderError(f"{run_dir} exists, is not empty and has no run.json; "
+                                 "use a new or empty folder")
+        for path in entries:  # of a run killed before it wrote run.json
+            if path.is_dir():
+                shutil.rmtree(path)
+            else:
+                path.unlink()
     run.start(log_path, config)
     run.mark_stage(STAGE, "running")
     return run
+
+
+def _leftover(path: Path) -> bool:
+    """A temporary file or staging folder of a run killed before it wrote run.json."""
+    return path.name.startswith(".") and (path.name.endswith(".tmp")
+                                          or path.name.startswith(".ingest-"))
 
 
 def _swap_in(staging: Path, final: Path) -> None:

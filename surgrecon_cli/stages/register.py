@@ -92,6 +92,7 @@ def run_register(
         config,
         needs=("ingest", "build-template"),
         config_sections=("topics", "ingest", "tool", "template"),
+        keep=("frames_done", "config"),
     ) as info:
         log = load_ingested(run_dir / "ingest")
         template, rgb = load_template(run_dir)
@@ -180,7 +181,8 @@ def run_register(
                 )
                 processed.append(frame)
             frames_done.append(frame)
-            run.mark_stage(STAGE, "running", frames_done=frames_done, config=_fingerprint(config))
+            run.mark_stage(STAGE, "running", frames_done=sorted(done_before.union(frames_done)),
+                           config=_fingerprint(config))  # frames still to load stay recorded
             latest = np.where(np.isfinite(target_pos), target_pos, registered)
             if update_every and frame % update_every == 0:
                 base, source = transforms, registered

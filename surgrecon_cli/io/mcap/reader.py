@@ -19,14 +19,14 @@ from typing import IO, Any
 
 import zstandard
 from mcap.exceptions import EndOfFile, InvalidMagic, McapError, RecordLengthLimitExceeded
-from mcap.reader import SeekingReader
-from mcap.records import Channel, DataEnd, Footer, Message, Schema
+from mcap.records import Channel, Chunk, DataEnd, Footer, McapRecord, Message, Schema
 from mcap.stream_reader import CRCValidationError, StreamReader
 
 from ...config import TopicsConfig
 from ...errors import InputError, TopicError
 from ..records import PoseRecord, Record
 from .base import SchemaDecoder
+from .bounded import BoundedFile, chunk_records, read_summary
 from .registry import DESERIALIZERS, find_decoder, supported
 from .topics import REQUIRED_ROLES, ROLE_KINDS, TopicRoles
 
@@ -62,7 +62,8 @@ class _ChannelInfo:
 class _TrackedFile:
     """File wrapper: SHA-256 and position of everything read, progress callback."""
 
-    def __init__(self, raw: IO[bytes], on_bytes: Callable[[int], None] | None) -> None:
+    def __init__(self, raw: IO[bytes] | BoundedFile,
+                 on_bytes: Callable[[int], None] | None) -> None:
         self.raw = raw
         self.on_bytes = on_bytes
         self.sha = hashlib.sha256()
@@ -156,15 +157,14 @@ class LogReader:
                 f.seek(-len(MCAP_MAGIC), 2)
                 if f.read() != MCAP_MAGIC:
                     return
-                f.seek(0)
-                summary = SeekingReader(f, record_size_limit=self.size).get_summary()
+                summary = read_summary(BoundedFile(f, self.size))
         except (*_STREAM_ERRORS, OSError):
             return
-        if summary is None or not summary.channels:
+        if summary is None or not summary[1]:
             return
         channels, found = {}, set()
-        for ch in summary.channels.values():
-            schema = summary.schemas.get(ch.schema_id)
+        for ch in summary[1].values():
+            schema = summary[0].get(ch.schema_id)
             name = schema.name if schema else ""
             channels[ch.topic] = f"{name} ({ch.message_encoding})"
             info = self._classify(ch.topic, name, ch.message_encoding)
@@ -204,14 +204,15 @@ class LogReader:
         self.check_magic()
         self._early_check()
         with open(self.path, "rb") as raw:
-            tracked = _TrackedFile(raw, self.on_bytes)
+            tracked = _TrackedFile(BoundedFile(raw, self.size), self.on_bytes)
             yield from self._stream(tracked)
             tracked.drain()  # the hash covers the whole file, damaged part included
             self.sha256 = tracked.sha.hexdigest()
 
     def _stream(self, tracked: _TrackedFile) -> Iterator[LogItem]:
-        stream = StreamReader(tracked, validate_crcs=True, record_size_limit=self.size)
-        records = stream.records
+        stream = StreamReader(tracked, validate_crcs=True, emit_chunks=True,
+                              record_size_limit=self.size)
+        records = _expand_chunks(stream.records)
         schemas: dict[int, Schema] = {}
         channels: dict[int, _ChannelInfo] = {}
         data_complete = False
@@ -322,6 +323,15 @@ class LogReader:
         if not self.allow_truncated:
             raise InputError(f"{self.path}: {self.damage}; re-copy or repair the log, or pass "
                              "--allow-truncated to use the data before the damage") from exc
+
+
+def _expand_chunks(records: Iterator[McapRecord]) -> Iterator[McapRecord]:
+    """Top-level records with each chunk replaced by its records (bounded decompression)."""
+    for record in records:
+        if isinstance(record, Chunk):
+            yield from chunk_records(record)
+        else:
+            yield record
 
 
 def _one_line(exc: BaseException) -> str:
