@@ -59,8 +59,7 @@ from scipy.spatial import cKDTree
 
 from ..config import ClassifyConfig
 from ..errors import GeometryError
-from .geometry import fit_rigid
-from .labels import DEFORMING, INTER, INTRA, SHIFTING, STATIC, UNKNOWN
+from .labels import DEFORMING, INTER, INTRA, SHIFTING, STATIC, UNKNOWN, rigid_fit_rms
 
 
 @dataclass(frozen=True)
@@ -132,17 +131,8 @@ def rigid_rms_mm(template: np.ndarray, registered: np.ndarray, nb: Neighbourhood
     if len(rows) == 0:
         return np.zeros(0)
     index = np.concatenate([rows[:, None], nb.index[rows]], axis=1)
-    weight = np.concatenate([np.ones((len(rows), 1), bool), nb.mask[rows]], axis=1)
-    moved = registered[index]
-    weight &= np.isfinite(moved).all(-1)
-    moved = np.where(weight[..., None], moved, 0.0)
-    src = template[index]
-    w = weight.astype(float)
-    R, t = fit_rigid(src, moved, w)
-    pred = np.einsum("nij,nkj->nki", R, src) + t[:, None, :]
-    err2 = ((pred - moved) ** 2).sum(-1)
-    rms = np.sqrt((err2 * w).sum(1) / np.maximum(w.sum(1), 1.0)) * 1e3
-    return np.where(weight.sum(1) >= 3, rms, np.nan)
+    mask = np.concatenate([np.ones((len(rows), 1), bool), nb.mask[rows]], axis=1)
+    return rigid_fit_rms(template, registered, index, mask) * 1e3
 
 
 def transform_difference_mm(template: np.ndarray, transforms: np.ndarray, nb: Neighbourhoods,

@@ -43,14 +43,19 @@ def radius_neighbourhoods(points: np.ndarray, radius: float) -> tuple[np.ndarray
 def rigid_fit_rms(
     reference: np.ndarray, moved: np.ndarray, index: np.ndarray, mask: np.ndarray
 ) -> np.ndarray:
-    """RMS residual (N,) m of the best rigid fit of each neighbourhood from reference to moved."""
+    """RMS residual (N,) m of the best rigid fit of each neighbourhood (index (N, K), mask
+    (N, K)) from reference to moved positions. Members without a finite moved position are
+    left out; a neighbourhood with fewer than 3 members left gets NaN."""
     src = reference[index]
     dst = moved[index]
-    w = mask.astype(float)
+    keep = mask & np.isfinite(dst).all(-1)
+    dst = np.where(keep[..., None], dst, 0.0)
+    w = keep.astype(float)
     R, t = fit_rigid(src, dst, w)
     pred = np.einsum("nij,nkj->nki", R, src) + t[:, None, :]
     err2 = ((pred - dst) ** 2).sum(-1)
-    return np.sqrt((err2 * w).sum(1) / w.sum(1))
+    rms = np.sqrt((err2 * w).sum(1) / np.maximum(w.sum(1), 1.0))
+    return np.where(keep.sum(1) >= 3, rms, np.nan)
 
 
 def label_rule(

@@ -52,6 +52,15 @@ class IngestedLog:
     def n_frames(self) -> int:
         return int(self.stamps_ns.shape[0])
 
+    def frame_images(self, frame: int) -> list[np.ndarray | None]:
+        """Images of every camera at a frame (None where the camera is unusable)."""
+        return [self.load_image(frame, c) if self.usable[frame, c] else None
+                for c in range(len(self.cameras))]
+
+    def usable_poses(self, frame: int) -> np.ndarray:
+        """Camera-to-world poses (C, 4, 4) at a frame, NaN where the camera is unusable."""
+        return np.where(self.usable[frame][:, None, None], self.poses[frame], np.nan)
+
     def load_image(self, frame: int, camera_index: int) -> np.ndarray:
         """Image (H, W, 3) uint8 RGB of one camera at one frame."""
         rel = self.image_paths[frame][camera_index]

@@ -27,7 +27,7 @@ from ..core.template import build_template
 from ..core.tool import push_out_of_tool, tool_pose_in_world
 from ..errors import GeometryError, RunFolderError
 from ..io.atomic import write_npz
-from ..io.ingest_store import IngestedLog, load_ingested
+from ..io.ingest_store import load_ingested
 from ..io.ply import read_ply, write_cloud_ply
 from ..io.run_folder import RunFolder
 from .common import stage_run
@@ -55,12 +55,6 @@ def load_template(run_dir: Path) -> tuple[np.ndarray, np.ndarray]:
     xyz = np.column_stack([cloud["x"], cloud["y"], cloud["z"]]).astype(float)[order]
     rgb = np.column_stack([cloud["red"], cloud["green"], cloud["blue"]]).astype(np.uint8)[order]
     return xyz, rgb
-
-
-def _frame_images(log: IngestedLog, frame: int) -> list[np.ndarray | None]:
-    return [
-        log.load_image(frame, c) if log.usable[frame, c] else None for c in range(len(log.cameras))
-    ]
 
 
 def _initial_pixels(run_dir: Path, n_points: int, n_cams: int) -> np.ndarray:
@@ -104,7 +98,7 @@ def run_register(
         source = template
         processed: list[int] = []
         frames_done: list[int] = []
-        prev_images = _frame_images(log, 0)
+        prev_images = log.frame_images(0)
         update_every = config.registration.template_update_every
         for frame in range(1, log.n_frames):
             path = registration_path(run_dir, frame)
@@ -114,18 +108,20 @@ def run_register(
                     transforms, registered = z["transforms"].astype(float), z["registered"]
                     target_pos, pixels = z["target"], z["pixels"].astype(float)
             else:
-                cur_images = _frame_images(log, frame)
+                cur_images = log.frame_images(frame)
+                cur_poses = log.usable_poses(frame)
+                tool_pose = tool_pose_in_world(log.tool_poses[frame], config.tool)
                 start = time.perf_counter()
                 target = build_target(
                     template,
                     latest,
                     prev_images,
                     cur_images,
-                    _poses(log, frame - 1),
-                    _poses(log, frame),
+                    log.usable_poses(frame - 1),
+                    cur_poses,
                     pixels,
                     models,
-                    tool_pose_in_world(log.tool_poses[frame], config.tool),
+                    tool_pose,
                     config.target,
                     config.tool,
                 )
@@ -135,8 +131,8 @@ def run_register(
                 n_new = 0
                 every = config.target.new_points_every
                 if every and frame % every == 0:
-                    new_xyz, new_rgb = _new_points(cur_images, _poses(log, frame), models, log,
-                                                   frame, target_xyz, config)
+                    new_xyz, new_rgb = _new_points(cur_images, cur_poses, models, tool_pose,
+                                                   target_xyz, config)
                     n_new = len(new_xyz)
                     target_xyz = np.concatenate([target_xyz, new_xyz])
                     target_rgb = np.concatenate([target_rgb, new_rgb])
@@ -146,7 +142,7 @@ def run_register(
                 result, n_contact = register_with_contact(
                     source, rgb, target_xyz, target_rgb, ids,
                     _data_weights(target.status, has_new=n_new > 0),
-                    tool_pose_in_world(log.tool_poses[frame], config.tool), config)
+                    tool_pose, config)
                 seconds_register = time.perf_counter() - start
                 # Stored as float32; use the stored values from here on so that a resumed
                 # run continues from exactly what an uninterrupted one had in memory.
@@ -186,7 +182,7 @@ def run_register(
             latest = np.where(np.isfinite(target_pos), target_pos, registered)
             if update_every and frame % update_every == 0:
                 base, source = transforms, registered
-            prev_images = cur_images if cur_images is not None else _frame_images(log, frame)
+            prev_images = cur_images if cur_images is not None else log.frame_images(frame)
             if on_frame is not None:
                 on_frame(frame, log.n_frames)
         info.update(frames_done=frames_done, config=_fingerprint(config))
@@ -231,20 +227,15 @@ def _data_weights(status: np.ndarray, has_new: bool) -> np.ndarray:
 
 
 def _new_points(images: list[np.ndarray | None], poses: np.ndarray, models: list,
-                log: IngestedLog, frame: int, tracked: np.ndarray, config: Config):
+                tool_pose: np.ndarray, tracked: np.ndarray, config: Config):
     """New features of the frame triangulated as in the template build, away from the
     tracked points: (M, 3) m and colours (M, 3) uint8."""
-    tool_pose = tool_pose_in_world(log.tool_poses[frame], config.tool)
     try:
         fresh = build_template(images, models, poses, tool_pose, config.template, config.tool)
     except GeometryError:
         return np.zeros((0, 3)), np.zeros((0, 3), np.uint8)
     return new_target_points(fresh.points, fresh.rgb, tracked,
                              config.target.new_point_spacing_mm * 1e-3)
-
-
-def _poses(log: IngestedLog, frame: int) -> np.ndarray:
-    return np.where(log.usable[frame][:, None, None], log.poses[frame], np.nan)
 
 
 def _fingerprint(config: Config) -> dict:

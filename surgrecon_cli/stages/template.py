@@ -37,10 +37,7 @@ def run_build_template(
         log = load_ingested(run_dir / "ingest")
         if log.n_frames == 0:
             raise InputError(f"{run_dir}: the ingested log has no frames")
-        images = [
-            log.load_image(0, c) if log.usable[0, c] else None for c in range(len(log.cameras))
-        ]
-        poses = np.where(log.usable[0][:, None, None], log.poses[0], np.nan)
+        images, poses = log.frame_images(0), log.usable_poses(0)
         tool_pose = tool_pose_in_world(log.tool_poses[0], config.tool)
         result = build_template(
             images,
