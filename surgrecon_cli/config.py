@@ -190,7 +190,10 @@ class RegistrationConfig:
     outlier_mm: float = _doc(1.0, "final correspondence residual above this flags an outlier (mm)")
     rigid_iterations: int = _doc(30, "trimmed-ICP iterations of the rigid pre-alignment")
     rigid_trim: float = _doc(0.8, "fraction of closest pairs kept by the trimmed ICP")
-    template_update_every: int = _doc(0, "re-base the template every N_T frames (0 = keep frame 0)")
+    template_update_every: int = _doc(
+        2, "re-base the template every N_T frames (0 = keep frame 0); frames are tracked and "
+        "registered from their base, so N_T also bounds the tracking baseline and the chain "
+        "of frames that must run in order")
 
     def __post_init__(self) -> None:
         key = "registration."
@@ -280,6 +283,25 @@ class LabelsConfig:
 
 
 @dataclass(frozen=True)
+class RunConfig:
+    """Where the per-frame tasks run (surgrecon_cli/executors); outputs do not depend on it."""
+
+    executor: str = _doc("serial", "'serial', 'processes' (local worker pool) or 'dask'")
+    workers: int = _doc(
+        0, "worker processes for 'processes' or a Dask LocalCluster (0 = one per core)")
+    scheduler: str = _doc("", "Dask scheduler address, e.g. tcp://host:8786 (empty = LocalCluster)")
+    retries: int = _doc(2, "Dask: reruns of a failed or lost task")
+
+    def __post_init__(self) -> None:
+        _require(self.executor in ("serial", "processes", "dask"), "run.executor",
+                 f"must be 'serial', 'processes' or 'dask', got {self.executor!r}")
+        _require(self.workers >= 0, "run.workers", "must be >= 0")
+        _require(self.retries >= 0, "run.retries", "must be >= 0")
+        _require(not self.scheduler or self.executor == "dask", "run.scheduler",
+                 f"a scheduler address needs run.executor = 'dask', not {self.executor!r}")
+
+
+@dataclass(frozen=True)
 class Config:
     """The whole configuration; one attribute per TOML section."""
 
@@ -291,6 +313,7 @@ class Config:
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
     classify: ClassifyConfig = field(default_factory=ClassifyConfig)
     labels: LabelsConfig = field(default_factory=LabelsConfig)
+    run: RunConfig = field(default_factory=RunConfig)
 
 
 def _coerce(value: Any, annotation: Any, key: str) -> Any:

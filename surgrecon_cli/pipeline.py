@@ -1,4 +1,5 @@
-"""`surgrecon run`: every stage in order on one run folder, resumable.
+"""`surgrecon run`: every stage in order on one run folder, resumable; `run_many`: many
+logs, one run folder each, over one executor.
 
 ingest -> build-template -> register -> classify -> [evaluate] -> report
 
@@ -21,12 +22,16 @@ import logging
 import shutil
 import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import closing
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Any
 
 from .config import Config, to_dict, to_toml
-from .errors import InputError
+from .errors import InputError, SurgReconError
+from .executors import Executor, make_executor
 from .io.atomic import remove_leftovers, write_text
 from .io.ground_truth import gt_path_beside
 from .io.run_folder import RunFolder, file_sha256
@@ -157,12 +162,19 @@ def _invalidate(run: RunFolder, config: Config, stages: tuple[str, ...]) -> None
 
 def run_pipeline(log: Path, run_dir: Path, config: Config, ground_truth: Path | None = None,
                  allow_truncated: bool = False, on_progress: Progress | None = None,
-                 on_stage: Callable[[str, str], None] | None = None) -> PipelineResult:
+                 on_stage: Callable[[str, str], None] | None = None,
+                 executor: Executor | None = None) -> PipelineResult:
     """Run (or resume) every stage on `run_dir` for `log`.
 
     ground_truth: GT file to evaluate against (default: NAME.gt.npz beside the log if any).
     on_progress(stage, fraction_of_whole_run) and on_stage(stage, action) report progress.
+    executor: where per-frame tasks run (default: the config's `[run]` executor, started
+    and closed by this call).
     """
+    if executor is None:
+        with closing(make_executor(config.run)) as own:
+            return run_pipeline(log, run_dir, config, ground_truth, allow_truncated,
+                                on_progress, on_stage, own)
     from .stages.classify import run_classify
     from .stages.evaluate import run_evaluate
     from .stages.ingest import ingest
@@ -243,10 +255,17 @@ def run_pipeline(log: Path, run_dir: Path, config: Config, ground_truth: Path | 
 
                 run_build_template(run_dir, config, on_step=on_step)
             elif stage == "register":
-                run_register(run_dir, config,
-                             on_frame=lambda f, n, progress=progress: progress(f / max(n - 1, 1)))
+                frames = [0]
+
+                def on_frame(_frame: int, n: int, frames: list[int] = frames,
+                             progress: Callable[[float], None] = progress) -> None:
+                    frames[0] += 1
+                    progress(frames[0] / max(n - 1, 1))
+
+                run_register(run_dir, config, on_frame=on_frame, executor=executor)
             elif stage == "classify":
-                run_classify(run_dir, config, on_step=lambda d, t, p=progress: p(d / t))
+                run_classify(run_dir, config, on_step=lambda d, t, p=progress: p(d / t),
+                             executor=executor)
             elif stage == "evaluate" and gt is not None:  # only wanted with ground truth
                 result.evaluation = run_evaluate(run_dir, config, gt,
                                                  on_step=lambda d, t, p=progress: p(d / t))
@@ -278,3 +297,47 @@ def _record_seconds(run: RunFolder, stage: str, seconds: float) -> None:
     data = run.read()
     data.setdefault("pipeline", {}).setdefault("seconds", {})[stage] = seconds
     run.write(data)
+
+
+def run_folders_for(logs: list[Path], runs_root: Path) -> list[Path]:
+    """One run folder per log under `runs_root`, named after the log's file name without
+    `.mcap`; InputError when two logs would share a folder."""
+    folders = [Path(runs_root) / Path(log).name.removesuffix(".mcap") for log in logs]
+    seen: dict[Path, Path] = {}
+    for log, folder in zip(logs, folders, strict=True):
+        if folder in seen:
+            raise InputError(f"{log} and {seen[folder]} would share the run folder {folder}; "
+                             "rename one of them")
+        seen[folder] = log
+    return folders
+
+
+def run_many(logs: list[Path], runs_root: Path, config: Config,
+             allow_truncated: bool = False, executor: Executor | None = None,
+             on_progress: Callable[[Path, str, float], None] | None = None,
+             ) -> list[PipelineResult | SurgReconError]:
+    """`run_pipeline` for each log into RUNS/NAME/, every log's frames on one executor.
+
+    Logs run concurrently (one driver thread each, as many as the executor has workers),
+    so that the per-frame tasks of all logs keep the workers busy. A log that fails (e.g.
+    corrupt) does not stop the others: its entry in the returned list is the error.
+    on_progress(log, stage, fraction) reports each log's progress.
+    """
+    if executor is None:
+        with closing(make_executor(config.run)) as own:
+            return run_many(logs, runs_root, config, allow_truncated, own, on_progress)
+    folders = run_folders_for(logs, runs_root)
+    Path(runs_root).mkdir(parents=True, exist_ok=True)
+
+    def one(log: Path, folder: Path) -> PipelineResult | SurgReconError:
+        report = None if on_progress is None else partial(on_progress, log)
+        try:
+            return run_pipeline(log, folder, config, allow_truncated=allow_truncated,
+                                on_progress=report, executor=executor)
+        except SurgReconError as exc:
+            logger.error("%s: %s", log, exc)
+            return exc
+
+    threads = 1 if executor.kind == "serial" else max(min(len(logs), executor.workers), 1)
+    with ThreadPoolExecutor(max_workers=threads) as pool:
+        return list(pool.map(one, logs, folders))

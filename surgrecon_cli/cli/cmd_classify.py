@@ -7,12 +7,13 @@ from typing import Any
 
 import click
 
-from .common import common_options, progress
+from .common import common_options, executor_options, progress
 
 
 @click.command("classify")
 @click.argument("run_dir", type=click.Path(exists=True, file_okay=False, path_type=Path))
 @common_options
+@executor_options
 def classify_cmd(run_dir: Path, config: Any, quiet: bool) -> None:
     """Label every point of every frame static / shifting / deforming.
 
@@ -27,14 +28,18 @@ def classify_cmd(run_dir: Path, config: Any, quiet: bool) -> None:
       surgrecon classify runs/sample
       surgrecon classify runs/sample --set classify.deform_mm=0.2 --set classify.hysteresis_frames=2
     """
+    from contextlib import closing
+
+    from ..executors import make_executor
     from ..stages.classify import labels_path, run_classify
 
-    with progress(quiet)(desc="classify", unit="step") as bar:
+    with closing(make_executor(config.run)) as executor, \
+            progress(quiet)(desc="classify", unit="step") as bar:
         def on_step(done: int, total: int) -> None:
             bar.total = total
             bar.update(done - bar.n)
 
-        info = run_classify(run_dir, config, on_step=on_step)
+        info = run_classify(run_dir, config, on_step=on_step, executor=executor)
     counts = info["counts_frames_1_on"]
     total = max(sum(counts.values()), 1)
     shares = ", ".join(f"{name} {n / total:.1%}" for name, n in counts.items())

@@ -7,12 +7,13 @@ from typing import Any
 
 import click
 
-from .common import common_options, progress
+from .common import common_options, executor_options, progress
 
 
 @click.command("register")
 @click.argument("run_dir", type=click.Path(exists=True, file_okay=False, path_type=Path))
 @common_options
+@executor_options
 def register_cmd(run_dir: Path, config: Any, quiet: bool) -> None:
     """Register the template to every later frame of a run (resumable).
 
@@ -24,13 +25,19 @@ def register_cmd(run_dir: Path, config: Any, quiet: bool) -> None:
     \b
     Example:
       surgrecon register runs/sample --set registration.alpha=2
+      surgrecon register runs/sample --executor processes --workers 2
     """
+    from contextlib import closing
+
+    from ..executors import make_executor
     from ..io.ingest_store import load_ingested
     from ..stages.register import run_register
 
     n_frames = load_ingested(run_dir / "ingest").n_frames
-    with progress(quiet)(total=max(n_frames - 1, 0), desc="register", unit="frame") as bar:
-        processed = run_register(run_dir, config, on_frame=lambda _f, _n: bar.update(1))
+    with closing(make_executor(config.run)) as executor, \
+            progress(quiet)(total=max(n_frames - 1, 0), desc="register", unit="frame") as bar:
+        processed = run_register(run_dir, config, on_frame=lambda _f, _n: bar.update(1),
+                                 executor=executor)
     click.echo(
         f"registered {len(processed)} frame(s) ({n_frames - 1 - len(processed)} already "
         f"done) -> {run_dir / 'clouds'}"

@@ -1,28 +1,34 @@
-"""`surgrecon run LOG.mcap -o RUN`: the whole pipeline, resumable."""
+"""`surgrecon run LOG.mcap -o RUN`: the whole pipeline, resumable; `surgrecon run LOG... -o
+RUNS/`: many logs, one run folder each, over one executor."""
 
 from __future__ import annotations
 
+from contextlib import closing
 from pathlib import Path
 from typing import Any
 
 import click
 
-from .common import common_options, progress
+from ..errors import InputError
+from .common import common_options, executor_options, progress
 
 
 @click.command("run")
-@click.argument("log", type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.argument("logs", nargs=-1, required=True,
+                type=click.Path(exists=True, dir_okay=False, path_type=Path))
 @click.option("-o", "--output", "run_dir", required=True,
               type=click.Path(file_okay=False, path_type=Path),
-              help="Run folder (created, or resumed if it exists).")
+              help="Run folder (created, or resumed if it exists); with several logs, the "
+                   "folder that holds one run folder per log (RUNS/NAME for NAME.mcap).")
 @click.option("--ground-truth", "gt_path", type=click.Path(dir_okay=False, path_type=Path),
               help="Evaluate against this ground truth (default: NAME.gt.npz beside the log, "
-                   "if there is one).")
+                   "if there is one). One log only.")
 @click.option("--allow-truncated", is_flag=True,
               help="Use the data before a truncation or corrupt chunk instead of failing.")
 @common_options
-def run_cmd(log: Path, run_dir: Path, gt_path: Path | None, allow_truncated: bool, config: Any,
-            quiet: bool) -> None:
+@executor_options
+def run_cmd(logs: tuple[Path, ...], run_dir: Path, gt_path: Path | None, allow_truncated: bool,
+            config: Any, quiet: bool) -> None:
     """Run every stage on LOG: ingest, build-template, register, classify, report
     (and evaluate when ground truth is available).
 
@@ -31,11 +37,32 @@ def run_cmd(log: Path, run_dir: Path, gt_path: Path | None, allow_truncated: boo
     stage that depends on it and all later ones (e.g. registration.* reruns register,
     classify and report, not ingest or the template). Prints the report's path at the end.
 
+    Per-frame work runs on --executor (serial, processes, or dask on a LocalCluster or the
+    cluster at --scheduler); the outputs are the same whichever runs them. Several logs
+    run at once over the same workers; a log that fails does not stop the others, and the
+    exit code is non-zero if any failed.
+
     \b
     Example:
       surgrecon run sample_data/sample.mcap -o runs/sample
       surgrecon run sample_data/sample.mcap -o runs/sample --set classify.deform_mm=0.2
+      surgrecon run logs/*.mcap -o runs/ --executor processes --workers 2
+      surgrecon run logs/*.mcap -o runs/ --scheduler tcp://10.0.0.5:8786
     """
+    from ..executors import make_executor
+
+    if len(logs) > 1 and gt_path is not None:
+        raise InputError("--ground-truth goes with one log; with several, each log's "
+                         "NAME.gt.npz beside it is used")
+    with closing(make_executor(config.run)) as executor:
+        if len(logs) == 1:
+            _run_one(logs[0], run_dir, gt_path, allow_truncated, config, quiet, executor)
+        else:
+            _run_many(list(logs), run_dir, allow_truncated, config, quiet, executor)
+
+
+def _run_one(log: Path, run_dir: Path, gt_path: Path | None, allow_truncated: bool,
+             config: Any, quiet: bool, executor: Any) -> None:
     from ..pipeline import run_pipeline
     from .cmd_evaluate import format_evaluation
 
@@ -46,7 +73,8 @@ def run_cmd(log: Path, run_dir: Path, gt_path: Path | None, allow_truncated: boo
             bar.update(max(round(fraction * 100, 1) - bar.n, 0))
 
         result = run_pipeline(log, run_dir, config, ground_truth=gt_path,
-                              allow_truncated=allow_truncated, on_progress=on_progress)
+                              allow_truncated=allow_truncated, on_progress=on_progress,
+                              executor=executor)
     for stage, action in result.actions.items():
         seconds = result.seconds.get(stage)
         timing = f" in {seconds:.1f} s" if seconds is not None else ""
@@ -54,3 +82,36 @@ def run_cmd(log: Path, run_dir: Path, gt_path: Path | None, allow_truncated: boo
     if result.evaluation is not None and not quiet:
         click.echo(format_evaluation(result.evaluation))
     click.echo(f"report: {result.report}")
+
+
+def _run_many(logs: list[Path], runs_root: Path, allow_truncated: bool, config: Any,
+              quiet: bool, executor: Any) -> None:
+    import threading
+
+    from ..pipeline import run_many
+
+    fractions = dict.fromkeys(logs, 0.0)
+    lock = threading.Lock()
+    with progress(quiet)(total=100 * len(logs), desc=f"run: {len(logs)} logs", unit="%",
+                         bar_format="{desc:<22}{percentage:3.0f}%|{bar}| {elapsed}") as bar:
+        def on_progress(log: Path, _stage: str, fraction: float) -> None:
+            with lock:
+                fractions[log] = fraction
+                bar.update(max(round(sum(fractions.values()) * 100, 1) - bar.n, 0))
+
+        results = run_many(logs, runs_root, config, allow_truncated=allow_truncated,
+                           executor=executor, on_progress=on_progress)
+    failed = 0
+    for log, result in zip(logs, results, strict=True):
+        if isinstance(result, Exception):
+            failed += 1
+            click.echo(f"{log}: failed: {result}")
+            continue
+        summary = ""
+        overall = ((result.evaluation or {}).get("labels") or {}).get("overall")
+        if overall:
+            summary = f"  macro-F1 {overall['macro_f1']:.3f}"
+        click.echo(f"{log}: report {result.report}{summary}")
+    if failed:
+        raise InputError(f"{failed} of {len(logs)} logs failed (see above); the others are "
+                         f"complete under {runs_root}")

@@ -53,3 +53,29 @@ def progress(quiet: bool) -> Callable[..., Any]:
     from tqdm import tqdm
 
     return functools.partial(tqdm, disable=quiet, dynamic_ncols=True, leave=False)
+
+
+def executor_options(func: Callable[..., Any]) -> Callable[..., Any]:
+    """Add --executor, --workers and --scheduler (shortcuts for the `[run]` config keys);
+    goes below `common_options`, whose config it updates."""
+
+    @click.option("--executor", type=click.Choice(["serial", "processes", "dask"]),
+                  help="Where per-frame tasks run (default: run.executor, 'serial').")
+    @click.option("--workers", type=click.IntRange(min=0),
+                  help="Worker processes for processes / a Dask LocalCluster (0 = one per core).")
+    @click.option("--scheduler", metavar="ADDRESS",
+                  help="Dask scheduler to use, e.g. tcp://10.0.0.5:8786 (implies --executor dask).")
+    @functools.wraps(func)
+    def wrapper(*args: Any, config: Any, executor: str | None, workers: int | None,
+                scheduler: str | None, **kwargs: Any) -> Any:
+        from ..config import from_dict
+
+        chosen = {"executor": executor, "workers": workers, "scheduler": scheduler}
+        if scheduler and executor is None:
+            chosen["executor"] = "dask"
+        updates = {k: v for k, v in chosen.items() if v is not None}
+        if updates:
+            config = from_dict({"run": updates}, config)
+        return func(*args, config=config, **kwargs)
+
+    return wrapper

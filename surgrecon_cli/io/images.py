@@ -15,6 +15,7 @@ import os
 import struct
 import sys
 import tempfile
+import threading
 from collections.abc import Iterator
 from dataclasses import dataclass
 
@@ -25,6 +26,7 @@ from .records import ImageRecord
 
 logger = logging.getLogger(__name__)
 
+_STDERR_LOCK = threading.Lock()
 MAX_IMAGE_PIXELS = 1 << 26
 """Largest image accepted (67 Mpx; an 8K camera has 33 Mpx)."""
 _JPEG_MAGIC = b"\xff\xd8\xff"
@@ -134,10 +136,11 @@ def _header_size(data: bytes) -> tuple[int, int] | None:
 
 @contextlib.contextmanager
 def _native_stderr() -> Iterator[list[str]]:
-    """Collect the lines C libraries write to file descriptor 2 meanwhile (single-threaded
-    use: anything else written to stderr meanwhile is collected too)."""
+    """Collect the lines C libraries write to file descriptor 2 meanwhile. File descriptors
+    are per process: one thread at a time redirects (several logs may be ingested by
+    threads at once); anything else written to stderr meanwhile is collected too."""
     lines: list[str] = []
-    with contextlib.ExitStack() as stack:
+    with _STDERR_LOCK, contextlib.ExitStack() as stack:
         try:
             sys.stderr.flush()
             tmp = stack.enter_context(tempfile.TemporaryFile())

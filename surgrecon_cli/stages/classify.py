@@ -25,6 +25,8 @@ from ..core.classify import (
 )
 from ..core.labels import CLASS_NAMES, INTRA, STATIC, UNKNOWN
 from ..errors import RunFolderError
+from ..executors import Executor, Task
+from ..executors.serial import SerialExecutor
 from ..io.atomic import write_npz
 from ..io.ingest_store import load_ingested
 from ..io.ply import read_ply, write_cloud_ply
@@ -63,43 +65,60 @@ def load_registration_frame(run_dir: Path, frame: int, n_points: int) -> dict[st
     return data
 
 
+def classify_one_frame(run_dir: Path, frame: int, config: Config) -> tuple[FrameClasses,
+                                                                          np.ndarray]:
+    """Labels of one frame k >= 1 from its registration (a task), and its reprojection
+    check status (N,) uint8."""
+    cfg = config.classify
+    template, _ = load_template(run_dir)
+    nb = template_neighbourhoods(template, cfg.neighbourhood_mm, cfg.min_neighbours,
+                                 cfg.max_neighbours)
+    reg = load_registration_frame(run_dir, frame, len(template))
+    transforms = reg["transforms"].astype(float) if cfg.measure == "transform_diff" else None
+    classes = classify_frame(template, reg["registered"].astype(float), nb, cfg,
+                             transforms=transforms, status=reg["status"])
+    return classes, reg["status"].astype(np.uint8)
+
+
 def run_classify(run_dir: Path, config: Config,
-                 on_step: Callable[[int, int], None] | None = None) -> dict:
+                 on_step: Callable[[int, int], None] | None = None,
+                 executor: Executor | None = None) -> dict:
     """Classify every frame of a registered run; returns the stage info (class counts etc.).
 
-    `on_step(done, total)` reports progress over 2T steps (T frames classified, T clouds
-    written)."""
+    Frames are classified as independent tasks on `executor` (default: serial), then the
+    hysteresis runs over time and every cloud is relabelled (tasks again). `on_step(done,
+    total)` reports progress over 2T steps (T frames classified, T clouds written)."""
     run_dir = Path(run_dir)
     cfg = config.classify
+    executor = executor or SerialExecutor()
     with stage_run(run_dir, STAGE, config, needs=("ingest", "build-template", "register")) as info:
         n_frames = load_ingested(run_dir / "ingest").n_frames
-        template, _ = load_template(run_dir)
-        n = len(template)
+        n = len(load_template(run_dir)[0])
         total = 2 * n_frames
         step = on_step or (lambda _d, _t: None)
-        nb = template_neighbourhoods(template, cfg.neighbourhood_mm, cfg.min_neighbours,
-                                     cfg.max_neighbours)
+        count = [1]
+
+        def advance(_key: str, _value: object) -> None:
+            count[0] += 1
+            step(count[0], total)
+
+        step(1, total)
+        done = executor.run([Task(str(k), classify_one_frame, (run_dir, k, config))
+                             for k in range(1, n_frames)], advance)
         frames = [FrameClasses(labels=np.full(n, STATIC, np.uint8),
                                displacement_mm=np.zeros(n), deformation_mm=np.full(n, np.nan))]
         status = [np.full(n, INTRA, np.uint8)]
-        step(1, total)
         for k in range(1, n_frames):
-            reg = load_registration_frame(run_dir, k, n)
-            transforms = (reg["transforms"].astype(float) if cfg.measure == "transform_diff"
-                          else None)
-            frames.append(classify_frame(template, reg["registered"].astype(float), nb, cfg,
-                                         transforms=transforms, status=reg["status"]))
-            status.append(reg["status"].astype(np.uint8))
-            step(k + 1, total)
+            frames.append(done[str(k)][0])
+            status.append(done[str(k)][1])
         raw = np.stack([f.labels for f in frames])
         labels = apply_hysteresis(raw, cfg.hysteresis_frames)
         write_npz(labels_path(run_dir), labels=labels, raw_labels=raw,
                   displacement_mm=np.stack([f.displacement_mm for f in frames]).astype(np.float32),
                   deformation_mm=np.stack([f.deformation_mm for f in frames]).astype(np.float32),
                   status=np.stack(status))
-        for k in range(n_frames):
-            relabel_cloud(cloud_path(run_dir, k), labels[k])
-            step(n_frames + k + 1, total)
+        executor.run([Task(str(k), relabel_cloud, (cloud_path(run_dir, k), labels[k]))
+                      for k in range(n_frames)], advance)
         later = labels[1:]
         counts = {name: int((later == code).sum()) for code, name in CLASS_NAMES.items()}
         counts["unknown"] = int((later == UNKNOWN).sum())

@@ -15,6 +15,7 @@ from __future__ import annotations
 import json
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -26,6 +27,8 @@ from ..core.target import build_target, new_target_points
 from ..core.template import build_template
 from ..core.tool import push_out_of_tool, tool_pose_in_world
 from ..errors import GeometryError, RunFolderError
+from ..executors import Executor, Task
+from ..executors.serial import SerialExecutor
 from ..io.atomic import write_npz
 from ..io.ingest_store import load_ingested
 from ..io.ply import read_ply, write_cloud_ply
@@ -65,20 +68,116 @@ def _initial_pixels(run_dir: Path, n_points: int, n_cams: int) -> np.ndarray:
     return pixels
 
 
+def base_frame(frame: int, update_every: int) -> int:
+    """The template base of `frame`: 0, or with re-basing every N_T frames the last
+    multiple of N_T before it. Frame k is tracked from its base's images and registered
+    from its base's registered cloud, so frames only depend on their base."""
+    return ((frame - 1) // update_every) * update_every if update_every else 0
+
+
+@dataclass(frozen=True)
+class _Base:
+    """What frames are registered against: the base frame's images, transforms from the
+    frame-0 template (N, 3, 4), registered points (N, 3) m, latest positions (N, 3) m
+    (target where observed, else registered) and where points were seen (N, C, 2) px."""
+
+    frame: int
+    transforms: np.ndarray
+    source: np.ndarray
+    latest: np.ndarray
+    pixels: np.ndarray
+
+
+def _load_base(run_dir: Path, frame: int, template: np.ndarray, n_cams: int) -> _Base:
+    n = len(template)
+    if frame == 0:
+        return _Base(0, np.tile(np.eye(3, 4), (n, 1, 1)), template, template,
+                     _initial_pixels(run_dir, n, n_cams))
+    with np.load(registration_path(run_dir, frame), allow_pickle=False) as z:
+        registered, target = z["registered"], z["target"]
+        return _Base(frame, z["transforms"].astype(float), registered,
+                     np.where(np.isfinite(target), target, registered), z["pixels"].astype(float))
+
+
+def register_frame(run_dir: Path, frame: int, config: Config) -> dict:
+    """Target cloud and registration of one frame k >= 1 against its base (a task: reads
+    the run folder, writes RUN/registration/k.npz and RUN/clouds/k.ply atomically).
+    Returns the frame's timings and counts."""
+    run_dir = Path(run_dir)
+    log = load_ingested(run_dir / "ingest")
+    template, rgb = load_template(run_dir)
+    n, models = len(template), list(log.models)
+    base = _load_base(run_dir, base_frame(frame, config.registration.template_update_every),
+                      template, len(models))
+    cur_images = log.frame_images(frame)
+    cur_poses = log.usable_poses(frame)
+    tool_pose = tool_pose_in_world(log.tool_poses[frame], config.tool)
+    start = time.perf_counter()
+    target = build_target(template, base.latest, log.frame_images(base.frame), cur_images,
+                          log.usable_poses(base.frame), cur_poses, base.pixels, models,
+                          tool_pose, config.target, config.tool)
+    has_target = (target.status == INTRA) | (target.status == INTER)
+    ids = np.flatnonzero(has_target)
+    target_xyz, target_rgb = target.positions[ids], rgb[ids]
+    n_new = 0
+    every = config.target.new_points_every
+    if every and frame % every == 0:
+        new_xyz, new_rgb = _new_points(cur_images, cur_poses, models, tool_pose, target_xyz,
+                                       config)
+        n_new = len(new_xyz)
+        target_xyz = np.concatenate([target_xyz, new_xyz])
+        target_rgb = np.concatenate([target_rgb, new_rgb])
+        ids = np.concatenate([ids, np.full(n_new, -1)])
+    seconds_target = time.perf_counter() - start
+    start = time.perf_counter()
+    result, n_contact = register_with_contact(
+        base.source, rgb, target_xyz, target_rgb, ids,
+        _data_weights(target.status, has_new=n_new > 0), tool_pose, config)
+    seconds_register = time.perf_counter() - start
+    residual = np.nan_to_num(result.residuals, nan=0.0).astype(np.float32)
+    write_npz(
+        registration_path(run_dir, frame),
+        transforms=compose(result.transforms, base.transforms).astype(np.float32),
+        registered=result.registered,
+        target=target.positions,
+        status=target.status,
+        residual=residual,
+        pixels=target.pixels,
+        seconds_target=np.float64(seconds_target),
+        seconds_register=np.float64(seconds_register),
+        new_points=np.int64(n_new),
+        contact_points=np.int64(n_contact),
+    )
+    write_cloud_ply(
+        cloud_path(run_dir, frame),
+        result.registered,
+        rgb=rgb,
+        point_id=np.arange(n, dtype=np.int32),
+        label=np.full(n, UNKNOWN_LABEL, np.uint8),
+        residual=residual,
+        extra={"status": target.status.astype(np.uint8), "views": target.views.astype(np.uint8)},
+    )
+    return {"frame": frame, "seconds_target": seconds_target,
+            "seconds_register": seconds_register, **target.counts()}
+
+
 def run_register(
-    run_dir: Path, config: Config, on_frame: Callable[[int, int], None] | None = None
+    run_dir: Path, config: Config, on_frame: Callable[[int, int], None] | None = None,
+    executor: Executor | None = None,
 ) -> list[int]:
     """Register every frame not yet done; returns the frames processed by this call.
 
-    `on_frame(frame, n_frames)` is called after each frame (progress).
+    Frames are independent tasks except for their base (`base_frame`): with re-basing
+    every N_T frames, a frame waits for its base frame, a dependency chain over the bases.
+    `executor` runs the tasks (default: serial); `on_frame(frame, n_frames)` is called as
+    each frame finishes (progress), and run.json records every finished frame at once.
     """
     run_dir = Path(run_dir)
     run = RunFolder(run_dir)
     previous = run.stage(STAGE)
+    fingerprint = _fingerprint(config)
     done_before = (
-        set(previous.get("frames_done", []))
-        if previous.get("config") == _fingerprint(config)
-        else set()
+        set(previous.get("frames_done", [])) if previous.get("config") == fingerprint else set()
     )
     with stage_run(
         run_dir,
@@ -88,105 +187,26 @@ def run_register(
         config_sections=("topics", "ingest", "tool", "template"),
         keep=("frames_done", "config"),
     ) as info:
-        log = load_ingested(run_dir / "ingest")
-        template, rgb = load_template(run_dir)
-        n, n_cams = len(template), len(log.cameras)
-        models = list(log.models)
-        latest = template.copy()
-        pixels = _initial_pixels(run_dir, n, n_cams)
-        base = np.tile(np.eye(3, 4), (n, 1, 1))  # transform of the current template base
-        source = template
-        processed: list[int] = []
-        frames_done: list[int] = []
-        prev_images = log.frame_images(0)
-        update_every = config.registration.template_update_every
-        for frame in range(1, log.n_frames):
-            path = registration_path(run_dir, frame)
-            cur_images: list[np.ndarray | None] | None = None
-            if frame in done_before and path.is_file() and cloud_path(run_dir, frame).is_file():
-                with np.load(path, allow_pickle=False) as z:
-                    transforms, registered = z["transforms"].astype(float), z["registered"]
-                    target_pos, pixels = z["target"], z["pixels"].astype(float)
-            else:
-                cur_images = log.frame_images(frame)
-                cur_poses = log.usable_poses(frame)
-                tool_pose = tool_pose_in_world(log.tool_poses[frame], config.tool)
-                start = time.perf_counter()
-                target = build_target(
-                    template,
-                    latest,
-                    prev_images,
-                    cur_images,
-                    log.usable_poses(frame - 1),
-                    cur_poses,
-                    pixels,
-                    models,
-                    tool_pose,
-                    config.target,
-                    config.tool,
-                )
-                has_target = (target.status == INTRA) | (target.status == INTER)
-                ids = np.flatnonzero(has_target)
-                target_xyz, target_rgb = target.positions[ids], rgb[ids]
-                n_new = 0
-                every = config.target.new_points_every
-                if every and frame % every == 0:
-                    new_xyz, new_rgb = _new_points(cur_images, cur_poses, models, tool_pose,
-                                                   target_xyz, config)
-                    n_new = len(new_xyz)
-                    target_xyz = np.concatenate([target_xyz, new_xyz])
-                    target_rgb = np.concatenate([target_rgb, new_rgb])
-                    ids = np.concatenate([ids, np.full(n_new, -1)])
-                seconds_target = time.perf_counter() - start
-                start = time.perf_counter()
-                result, n_contact = register_with_contact(
-                    source, rgb, target_xyz, target_rgb, ids,
-                    _data_weights(target.status, has_new=n_new > 0),
-                    tool_pose, config)
-                seconds_register = time.perf_counter() - start
-                # Stored as float32; use the stored values from here on so that a resumed
-                # run continues from exactly what an uninterrupted one had in memory.
-                transforms = compose(result.transforms, base).astype(np.float32).astype(float)
-                registered = result.registered
-                residual = np.nan_to_num(result.residuals, nan=0.0).astype(np.float32)
-                target_pos, pixels = target.positions, target.pixels
-                write_npz(
-                    path,
-                    transforms=transforms.astype(np.float32),
-                    registered=registered,
-                    target=target_pos,
-                    status=target.status,
-                    residual=residual,
-                    pixels=pixels,
-                    seconds_target=np.float64(seconds_target),
-                    seconds_register=np.float64(seconds_register),
-                    new_points=np.int64(n_new),
-                    contact_points=np.int64(n_contact),
-                )
-                write_cloud_ply(
-                    cloud_path(run_dir, frame),
-                    registered,
-                    rgb=rgb,
-                    point_id=np.arange(n, dtype=np.int32),
-                    label=np.full(n, UNKNOWN_LABEL, np.uint8),
-                    residual=residual,
-                    extra={
-                        "status": target.status.astype(np.uint8),
-                        "views": target.views.astype(np.uint8),
-                    },
-                )
-                processed.append(frame)
-            frames_done.append(frame)
-            run.mark_stage(STAGE, "running", frames_done=sorted(done_before.union(frames_done)),
-                           config=_fingerprint(config))  # frames still to load stay recorded
-            latest = np.where(np.isfinite(target_pos), target_pos, registered)
-            if update_every and frame % update_every == 0:
-                base, source = transforms, registered
-            prev_images = cur_images if cur_images is not None else log.frame_images(frame)
+        n_frames = load_ingested(run_dir / "ingest").n_frames
+        done = {k for k in done_before if 0 < k < n_frames and registration_path(run_dir, k)
+                .is_file() and cloud_path(run_dir, k).is_file()}
+        every = config.registration.template_update_every
+        tasks = []
+        for frame in range(1, n_frames):
+            if frame not in done:
+                base = base_frame(frame, every)
+                deps = (str(base),) if base and base not in done else ()
+                tasks.append(Task(str(frame), register_frame, (run_dir, frame, config), deps))
+
+        def on_done(key: str, _summary: dict) -> None:
+            done.add(int(key))
+            run.mark_stage(STAGE, "running", frames_done=sorted(done), config=fingerprint)
             if on_frame is not None:
-                on_frame(frame, log.n_frames)
-        info.update(frames_done=frames_done, config=_fingerprint(config))
-    return processed
+                on_frame(int(key), n_frames)
+
+        (executor or SerialExecutor()).run(tasks, on_done)
+        info.update(frames_done=sorted(done), config=fingerprint)
+    return sorted(int(t.key) for t in tasks)
 
 
 def register_with_contact(source: np.ndarray, source_rgb: np.ndarray, target_xyz: np.ndarray,

@@ -1,0 +1,144 @@
+"""Executors: where the per-frame tasks of a run are computed.
+
+A stage describes its work as a small task graph — `Task`s with keys and dependencies —
+and hands it to an executor:
+- `serial`: in this process, in dependency order (the reference);
+- `processes`: a local pool of worker processes (`concurrent.futures`, spawn);
+- `dask`: Dask distributed, on a `LocalCluster` or on the scheduler at `--scheduler`.
+
+Tasks exchange data through the run folder (each task reads its inputs from it and writes
+its outputs atomically), so a task's result depends only on files, never on which process
+or machine ran it: every executor gives the same outputs. A task's return value is small
+(a summary or per-frame arrays) and reaches the driver through `on_done(key, value)`,
+called in the driver as tasks complete, in completion order. Workers run numerical
+libraries single-threaded (`single_threaded`) so that results do not depend on thread
+counts and workers do not oversubscribe the cores.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+from ..config import RunConfig
+from ..errors import SurgReconError
+
+_THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+class ExecutorError(SurgReconError):
+    """An executor could not start, lost its workers, or a task failed unexpectedly."""
+
+
+@dataclass(frozen=True)
+class Task:
+    """One unit of work: `fn(*args)`, run after every task named in `deps` succeeded.
+
+    fn must be a module-level function (it is pickled by reference for worker processes);
+    args must be picklable (paths, ints, frozen config dataclasses, numpy arrays)."""
+
+    key: str
+    fn: Callable[..., Any]
+    args: tuple[Any, ...] = ()
+    deps: tuple[str, ...] = field(default=())
+
+
+OnDone = Callable[[str, Any], None]
+
+
+class Executor(Protocol):
+    """Runs task graphs; `run` may be called from several driver threads at once."""
+
+    kind: str
+    workers: int
+
+    def run(self, tasks: Sequence[Task], on_done: OnDone | None = None) -> dict[str, Any]:
+        """Run every task (respecting deps); return {key: value}. The first failing task's
+        exception is raised after the other running tasks are cancelled or finished."""
+        ...
+
+    def close(self) -> None:
+        """Release workers (idempotent)."""
+        ...
+
+
+def check_graph(tasks: Sequence[Task]) -> dict[str, Task]:
+    """Tasks by key; ExecutorError on a duplicate key or a dependency outside the graph."""
+    by_key: dict[str, Task] = {}
+    for task in tasks:
+        if task.key in by_key:
+            raise ExecutorError(f"task {task.key!r} appears twice in one graph")
+        by_key[task.key] = task
+    for task in tasks:
+        missing = [d for d in task.deps if d not in by_key]
+        if missing:
+            raise ExecutorError(f"task {task.key!r} depends on unknown task(s) {missing}")
+    return by_key
+
+
+def topological_order(tasks: Sequence[Task]) -> Iterator[Task]:
+    """Tasks so that every task comes after its dependencies (stable for the rest);
+    ExecutorError on a cycle."""
+    by_key = check_graph(tasks)
+    done: set[str] = set()
+    pending = list(by_key)
+    while pending:
+        ready = [k for k in pending if all(d in done for d in by_key[k].deps)]
+        if not ready:
+            raise ExecutorError(f"tasks {pending[:5]} depend on each other in a cycle")
+        for key in ready:
+            done.add(key)
+            yield by_key[key]
+        pending = [k for k in pending if k not in done]
+
+
+_LIMITED = {"done": False}
+
+
+def single_threaded() -> None:
+    """Limit BLAS/OpenMP and OpenCV to one thread in this process (idempotent)."""
+    if _LIMITED["done"]:
+        return
+    for name in _THREAD_VARIABLES:
+        os.environ.setdefault(name, "1")
+    import cv2
+    import numpy  # noqa: F401  (load the BLAS before limiting it)
+    import scipy.linalg  # noqa: F401
+    from threadpoolctl import threadpool_limits
+
+    threadpool_limits(limits=1)
+    cv2.setNumThreads(1)
+    _LIMITED["done"] = True
+
+
+def call_task(fn: Callable[..., Any], args: tuple[Any, ...], *_deps: Any) -> Any:
+    """What a worker runs for a task: single-threaded numerics, then `fn(*args)`; the
+    dependency results in `_deps` only order the call."""
+    single_threaded()
+    return fn(*args)
+
+
+def default_workers() -> int:
+    """The cores this process may use."""
+    try:
+        return max(len(os.sched_getaffinity(0)), 1)
+    except AttributeError:  # not on Linux
+        return max(os.cpu_count() or 1, 1)
+
+
+def make_executor(cfg: RunConfig) -> Executor:
+    """The executor the `[run]` config section asks for (workers 0 = one per core)."""
+    workers = cfg.workers or default_workers()
+    if cfg.executor == "serial":
+        from .serial import SerialExecutor
+
+        return SerialExecutor()
+    if cfg.executor == "processes":
+        from .processes import ProcessExecutor
+
+        return ProcessExecutor(workers)
+    from .dask import DaskExecutor
+
+    return DaskExecutor(workers, cfg.scheduler, cfg.retries)
