@@ -18,8 +18,8 @@ Length: the log spans `minutes` of log time and holds about `target_bytes` (the 
 rate is chosen to get both, unless given). With 640x480 JPEG at quality 92 (~64 KB an
 image), 2.1 GB in 30 minutes means ~3 Hz per camera.
 
-Measuring: `measure_ingest` runs `surgrecon ingest` in a child process and takes its peak
-RSS from the kernel's rusage of that child (`os.wait4`).
+Measuring: `measure_ingest` runs `surgrecon ingest --quiet` in a child process and takes its
+peak RSS from the kernel's rusage of that child (ru_maxrss, through a tiny launcher process).
 """
 
 from __future__ import annotations
@@ -47,12 +47,13 @@ from surgrecon_cli.sim.simulate import JOINTS, T0_NS, WORLD, LogBuilder
 
 Message = tuple[str, int, object]
 GB = 1e9
-# Bytes a message adds to the file beyond its payload: MCAP message record (31) + its
-# message-index entry (16) + CDR encapsulation/header (~40); small messages before zstd.
-_IMAGE_OVERHEAD = 90
-_POSE_BYTES = 175
-_JOINT_BYTES = 260
-_INFO_BYTES = 420
+# File bytes per message, measured on these logs: an image adds its CDR payload + ~50 B
+# (record header, message index entry; JPEG does not compress); the small messages compress
+# (zstd, ~3x) to ~50 B each with their headers, a CameraInfo to ~100 B.
+_IMAGE_OVERHEAD = 50
+_SMALL_BYTES = 50
+_INFO_BYTES = 100
+_SIZE_MARGIN = 1.005  # aim 0.5 % above target_bytes: the estimate is within ~1 %
 
 
 @dataclass(frozen=True)
@@ -199,19 +200,19 @@ def write_long_log(path: Path, minutes: float = 30.0, target_bytes: float = 2.1 
                      jpeg_quality=jpeg_quality)
     # Render at the final frame rate, so that the replayed frames' scene times match their
     # stamps; that rate depends on the image size, measured first on one rendered frame.
-    stream_bytes = (cameras * base.tracker_rate * _POSE_BYTES
-                    + base.robot_rate * (_POSE_BYTES + _JOINT_BYTES))  # per second of log
+    stream_bytes = (cameras * base.tracker_rate + 2 * base.robot_rate) * _SMALL_BYTES  # per s
     rate = frame_rate
     if rate is None and minutes > 0 and target_bytes > 0:
         probe = _render(dataclasses.replace(base, frames=1))
         frame_bytes = _frame_bytes(probe)
-        rate = max((target_bytes / (minutes * 60) - stream_bytes) / frame_bytes, 0.5)
+        per_second = target_bytes * _SIZE_MARGIN / (minutes * 60)
+        rate = max((per_second - stream_bytes) / frame_bytes, 0.5)
     rendered = _render(dataclasses.replace(base, frame_rate=rate or base.frame_rate))
     rate = rate or base.frame_rate
     frame_bytes = _frame_bytes(rendered)
     # Frames for each condition: bytes(n) ~ n * frame_bytes + n / rate * stream_bytes.
     by_time = math.ceil(minutes * 60 * rate)
-    by_size = math.ceil(target_bytes / (frame_bytes + stream_bytes / rate))
+    by_size = math.ceil(target_bytes * _SIZE_MARGIN / (frame_bytes + stream_bytes / rate))
     n_frames = max(by_time, by_size, 1)
     t_end = (n_frames - 1) / rate + 0.1
     order = _schedule(len(rendered.images))

@@ -18,6 +18,8 @@ from typing import Any
 
 from . import ExecutorError, OnDone, Task, call_task, topological_order
 
+logger = logging.getLogger(__name__)
+
 
 class DaskExecutor:
     """A Dask `Client` on a LocalCluster or on the scheduler at `scheduler`."""
@@ -37,12 +39,19 @@ class DaskExecutor:
                 self._client = Client(scheduler, timeout="20s")
             else:
                 self._cluster = LocalCluster(n_workers=workers, threads_per_worker=1,
-                                             processes=True, dashboard_address=None,
+                                             processes=True, dashboard_address=":0",
                                              silence_logs=logging.WARNING)
                 self._client = Client(self._cluster)
+                logger.info("Dask LocalCluster: %d workers, dashboard %s", workers,
+                            self._client.dashboard_link)
         except (OSError, TimeoutError) as exc:
             raise ExecutorError(f"cannot reach the Dask scheduler {scheduler!r}: {exc}") from exc
         self.workers = max(len(self._client.scheduler_info().get("workers", {})), 1)
+
+    @property
+    def client(self) -> Any:
+        """The `distributed.Client` (e.g. to inspect or restart workers)."""
+        return self._client
 
     def run(self, tasks: Sequence[Task], on_done: OnDone | None = None) -> dict[str, Any]:
         from distributed import as_completed

@@ -1,0 +1,133 @@
+"""Executors: task graphs in dependency order, errors, and the same outputs from serial,
+processes and Dask LocalCluster runs of the pipeline (and with a Dask worker killed)."""
+
+from __future__ import annotations
+
+import os
+import signal
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from surgrecon_cli.config import Config, RunConfig, load_config
+from surgrecon_cli.errors import ConfigError
+from surgrecon_cli.executors import ExecutorError, Task, make_executor, topological_order
+from surgrecon_cli.pipeline import run_pipeline
+from surgrecon_cli.stages.register import base_frame
+
+KINDS = ("serial", "processes", "dask")
+
+
+@pytest.fixture(scope="module", params=KINDS)
+def executor(request):
+    ex = make_executor(RunConfig(executor=request.param, workers=2))
+    yield ex
+    ex.close()
+
+
+def _chain(tmp_path: Path) -> list[Task]:
+    """a writes a file, b (after a) reads it back, c (after b) appends to it."""
+    f = tmp_path / "chain.txt"
+    return [Task("c", Path.read_text, (f,), deps=("b",)),
+            Task("b", Path.write_text, (f, "ab"), deps=("a",)),
+            Task("a", Path.write_text, (f, "a"))]
+
+
+def test_graph_runs_in_dependency_order_on_every_executor(executor, tmp_path):
+    seen: list[str] = []
+    results = executor.run(_chain(tmp_path), on_done=lambda key, _v: seen.append(key))
+    assert seen == ["a", "b", "c"]  # each waits for the one before it
+    assert results == {"a": 1, "b": 2, "c": "ab"}
+
+
+def test_independent_tasks_all_complete(executor):
+    tasks = [Task(str(i), pow, (i, 2)) for i in range(20)]
+    assert executor.run(tasks) == {str(i): i * i for i in range(20)}
+
+
+def test_failing_task_raises_its_error(executor, tmp_path):
+    tasks = [Task("ok", pow, (2, 3)), Task("bad", Path.read_text, (tmp_path / "missing",))]
+    with pytest.raises(FileNotFoundError):
+        executor.run(tasks)
+
+
+def test_graph_errors_are_named():
+    with pytest.raises(ExecutorError, match="twice"):
+        list(topological_order([Task("a", pow, (1, 1)), Task("a", pow, (1, 1))]))
+    with pytest.raises(ExecutorError, match="unknown"):
+        list(topological_order([Task("a", pow, (1, 1), deps=("z",))]))
+    with pytest.raises(ExecutorError, match="cycle"):
+        list(topological_order([Task("a", pow, (1, 1), deps=("b",)),
+                                Task("b", pow, (1, 1), deps=("a",))]))
+
+
+def test_config_rejects_unknown_executor_and_scheduler_without_dask():
+    with pytest.raises(ConfigError, match=r"run\.executor"):
+        load_config(overrides=["run.executor=threads"])
+    with pytest.raises(ConfigError, match=r"run\.scheduler"):
+        load_config(overrides=["run.scheduler=tcp://127.0.0.1:8786"])
+
+
+def test_frames_depend_only_on_their_base():
+    assert [base_frame(k, 2) for k in range(1, 8)] == [0, 0, 2, 2, 4, 4, 6]
+    assert [base_frame(k, 0) for k in range(1, 5)] == [0, 0, 0, 0]
+
+
+# ---- the pipeline on every executor ---------------------------------------------------
+def _outputs(run_dir: Path) -> dict[str, np.ndarray | bytes]:
+    """Everything a run computes: cloud bytes, registration and label arrays, evaluation."""
+    out: dict[str, np.ndarray | bytes] = {}
+    for ply in sorted((run_dir / "clouds").glob("*.ply")):
+        out[f"clouds/{ply.name}"] = ply.read_bytes()
+    for npz in [*sorted((run_dir / "registration").glob("*.npz")),
+                run_dir / "classify" / "labels.npz"]:
+        with np.load(npz) as z:
+            for key in z.files:
+                if not key.startswith("seconds"):  # wall times differ by nature
+                    out[f"{npz.parent.name}/{npz.name}:{key}"] = z[key]
+    out["evaluation"] = (run_dir / "metrics" / "evaluation.json").read_bytes()
+    return out
+
+
+def _assert_same(a: dict, b: dict) -> None:
+    assert a.keys() == b.keys()
+    for key in a:
+        if isinstance(a[key], bytes):
+            assert a[key] == b[key], key
+        else:
+            np.testing.assert_array_equal(a[key], b[key], err_msg=key)
+
+
+@pytest.mark.parametrize("kind", ["processes", "dask"])
+def test_pipeline_outputs_identical_across_executors(kind, pipeline_run, pipeline_log,
+                                                     tmp_path):
+    reference, _ = pipeline_run  # serial (the default)
+    config = load_config(overrides=[f"run.executor={kind}", "run.workers=2"])
+    result = run_pipeline(pipeline_log, tmp_path / kind, config)
+    assert result.actions["register"] == "ran"
+    assert len(list((tmp_path / kind / "clouds").glob("*.ply"))) == 6
+    _assert_same(_outputs(reference), _outputs(tmp_path / kind))
+
+
+def test_dask_worker_killed_mid_run_loses_nothing(pipeline_run, pipeline_log, tmp_path):
+    """SIGKILL one LocalCluster worker during register: its tasks are rerun elsewhere and
+    the outputs equal the serial run's."""
+    reference, _ = pipeline_run
+    ex = make_executor(RunConfig(executor="dask", workers=2))
+    try:
+        pids = list(ex.client.run(os.getpid).values())
+        killed = threading.Event()
+
+        def on_progress(stage: str, _fraction: float) -> None:
+            if stage == "register" and not killed.is_set():
+                killed.set()
+                os.kill(pids[0], signal.SIGKILL)
+
+        run_pipeline(pipeline_log, tmp_path / "run", Config(), on_progress=on_progress,
+                     executor=ex)
+        assert killed.is_set()
+    finally:
+        ex.close()
+    _assert_same(_outputs(reference), _outputs(tmp_path / "run"))
