@@ -72,8 +72,8 @@ class LongLogInfo:
 
 @dataclass(frozen=True)
 class _Rendered:
-    """Images of the distinct frames: records[k][c], and each camera's clock offset +
-    jitter (ns) relative to the frame time, offsets[k][c]."""
+    """The rendered frames: images[k][c], intrinsics infos[c], each image's stamp minus its
+    frame time (camera clock offset + jitter, s) offsets[k, c], and the simulator state."""
 
     images: list[list[ImageRecord]]
     infos: list[CameraInfoRecord]

@@ -302,7 +302,9 @@ def _record_seconds(run: RunFolder, stage: str, seconds: float) -> None:
 def run_folders_for(logs: list[Path], runs_root: Path) -> list[Path]:
     """One run folder per log under `runs_root`, named after the log's file name without
     `.mcap`; InputError when two logs would share a folder."""
-    folders = [Path(runs_root) / Path(log).name.removesuffix(".mcap") for log in logs]
+    names = [Path(log).name.removesuffix(".mcap") for log in logs]
+    folders = [Path(runs_root) / (n if n not in ("", ".", "..") else Path(log).name)
+               for n, log in zip(names, logs, strict=True)]
     seen: dict[Path, Path] = {}
     for log, folder in zip(logs, folders, strict=True):
         if folder in seen:
@@ -335,7 +337,6 @@ def run_many(logs: list[Path], runs_root: Path, config: Config,
             return run_pipeline(log, folder, config, allow_truncated=allow_truncated,
                                 on_progress=report, executor=executor)
         except SurgReconError as exc:
-            logger.error("%s: %s", log, exc)
             return exc
 
     threads = 1 if executor.kind == "serial" else max(min(len(logs), executor.workers), 1)

@@ -131,3 +131,30 @@ def test_dask_worker_killed_mid_run_loses_nothing(pipeline_run, pipeline_log, tm
     finally:
         ex.close()
     _assert_same(_outputs(reference), _outputs(tmp_path / "run"))
+
+
+def test_run_many_logs_one_folder_each_and_a_corrupt_log_fails_alone(pipeline_run,
+                                                                      pipeline_log, tmp_path):
+    """`surgrecon run A B C -o RUNS/` over 2 worker processes: A and B (the same recording)
+    complete with the outputs of a single run; C (truncated) fails with one line naming it,
+    without stopping the others; the exit code says something failed."""
+    import shutil
+
+    from surgrecon_cli.cli.main import main
+
+    logs = tmp_path / "logs"
+    logs.mkdir()
+    for name in ("a", "b"):
+        shutil.copy(pipeline_log, logs / f"{name}.mcap")
+        shutil.copy(pipeline_log.with_suffix(".gt.npz"), logs / f"{name}.gt.npz")
+    data = pipeline_log.read_bytes()
+    (logs / "c.mcap").write_bytes(data[: len(data) // 3])
+    code = main(["run", str(logs / "a.mcap"), str(logs / "b.mcap"), str(logs / "c.mcap"),
+                 "-o", str(tmp_path / "runs"), "--executor", "processes", "--workers", "2",
+                 "-q"])
+    assert code == 2
+    reference = _outputs(pipeline_run[0])
+    for name in ("a", "b"):
+        _assert_same(reference, _outputs(tmp_path / "runs" / name))
+        assert (tmp_path / "runs" / name / "report.html").is_file()
+    assert not (tmp_path / "runs" / "c" / "report.html").exists()

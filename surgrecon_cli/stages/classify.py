@@ -103,7 +103,7 @@ def run_classify(run_dir: Path, config: Config,
             step(count[0], total)
 
         step(1, total)
-        done = executor.run([Task(str(k), classify_one_frame, (run_dir, k, config))
+        done = executor.run([Task(str(k), classify_one_frame, (run_dir.absolute(), k, config))
                              for k in range(1, n_frames)], advance)
         frames = [FrameClasses(labels=np.full(n, STATIC, np.uint8),
                                displacement_mm=np.zeros(n), deformation_mm=np.full(n, np.nan))]

@@ -196,7 +196,8 @@ def run_register(
             if frame not in done:
                 base = base_frame(frame, every)
                 deps = (str(base),) if base and base not in done else ()
-                tasks.append(Task(str(frame), register_frame, (run_dir, frame, config), deps))
+                tasks.append(Task(str(frame), register_frame,
+                                  (run_dir.absolute(), frame, config), deps))
 
         def on_done(key: str, _summary: dict) -> None:
             done.add(int(key))
