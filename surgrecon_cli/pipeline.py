@@ -70,6 +70,8 @@ WEIGHTS = {"ingest": 10, "build-template": 20, "register": 50, "classify": 5, "e
            "report": 10}
 
 Progress = Callable[[str, float], None]
+# Modules of the per-frame task functions, imported by parallel workers as they start.
+TASK_MODULES = ("surgrecon_cli.stages.register", "surgrecon_cli.stages.classify")
 
 
 @dataclass
@@ -172,7 +174,7 @@ def run_pipeline(log: Path, run_dir: Path, config: Config, ground_truth: Path | 
     and closed by this call).
     """
     if executor is None:
-        with closing(make_executor(config.run)) as own:
+        with closing(make_executor(config.run, TASK_MODULES)) as own:
             return run_pipeline(log, run_dir, config, ground_truth, allow_truncated,
                                 on_progress, on_stage, own)
     from .stages.classify import run_classify
@@ -326,7 +328,7 @@ def run_many(logs: list[Path], runs_root: Path, config: Config,
     on_progress(log, stage, fraction) reports each log's progress.
     """
     if executor is None:
-        with closing(make_executor(config.run)) as own:
+        with closing(make_executor(config.run, TASK_MODULES)) as own:
             return run_many(logs, runs_root, config, allow_truncated, own, on_progress)
     folders = run_folders_for(logs, runs_root)
     Path(runs_root).mkdir(parents=True, exist_ok=True)

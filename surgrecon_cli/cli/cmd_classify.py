@@ -31,9 +31,10 @@ def classify_cmd(run_dir: Path, config: Any, quiet: bool) -> None:
     from contextlib import closing
 
     from ..executors import make_executor
+    from ..pipeline import TASK_MODULES
     from ..stages.classify import labels_path, run_classify
 
-    with closing(make_executor(config.run)) as executor, \
+    with closing(make_executor(config.run, TASK_MODULES)) as executor, \
             progress(quiet)(desc="classify", unit="step") as bar:
         def on_step(done: int, total: int) -> None:
             bar.total = total

@@ -31,10 +31,11 @@ def register_cmd(run_dir: Path, config: Any, quiet: bool) -> None:
 
     from ..executors import make_executor
     from ..io.ingest_store import load_ingested
+    from ..pipeline import TASK_MODULES
     from ..stages.register import run_register
 
     n_frames = load_ingested(run_dir / "ingest").n_frames
-    with closing(make_executor(config.run)) as executor, \
+    with closing(make_executor(config.run, TASK_MODULES)) as executor, \
             progress(quiet)(total=max(n_frames - 1, 0), desc="register", unit="frame") as bar:
         processed = run_register(run_dir, config, on_frame=lambda _f, _n: bar.update(1),
                                  executor=executor)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import functools
 import logging
+import os
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -43,6 +44,8 @@ def common_options(func: Callable[..., Any]) -> Callable[..., Any]:
 
 def setup_logging(quiet: bool) -> None:
     level = logging.DEBUG if STATE["debug"] else (logging.WARNING if quiet else logging.INFO)
+    if not STATE["debug"]:  # Dask reads this when imported (also in its worker processes)
+        os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", "warning")
     logging.basicConfig(level=level, format="%(message)s", force=True)
     for noisy in ("matplotlib", "PIL"):
         logging.getLogger(noisy).setLevel(logging.WARNING)

@@ -18,7 +18,7 @@ counts and workers do not oversubscribe the cores.
 from __future__ import annotations
 
 import os
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -94,6 +94,41 @@ def topological_order(tasks: Sequence[Task]) -> Iterator[Task]:
         pending = [k for k in pending if k not in done]
 
 
+def run_graph(tasks: Sequence[Task], submit: Callable[[Task], Any],
+              wait_any: Callable[[list[Any]], Iterable[Any]],
+              on_done: OnDone | None = None) -> dict[str, Any]:
+    """The driver loop of the parallel executors: submit every task whose dependencies
+    have finished, collect results as futures complete, repeat. `submit(task)` returns a
+    future (`.result()`, `.cancel()`); `wait_any(futures)` blocks until at least one is
+    done and returns the done ones. Dependencies are kept here, not handed to the
+    engine, so a dependent task may run on any worker (engines that place a task where
+    its dependency ran would serialise a chain's side branches). On the first error the
+    tasks not yet started are cancelled and the error is raised."""
+    by_key = check_graph(tasks)
+    list(topological_order(tasks))  # rejects cycles before anything runs
+    results: dict[str, Any] = {}
+    waiting = dict(by_key)
+    running: dict[Any, str] = {}
+
+    def submit_ready() -> None:
+        for key in [k for k, t in waiting.items() if all(d in results for d in t.deps)]:
+            running[submit(waiting.pop(key))] = key
+
+    try:
+        submit_ready()
+        while running:
+            for future in wait_any(list(running)):
+                key = running.pop(future)
+                results[key] = future.result()
+                if on_done is not None:
+                    on_done(key, results[key])
+            submit_ready()
+    finally:
+        for future in running:
+            future.cancel()
+    return results
+
+
 _LIMITED = {"done": False}
 
 
@@ -128,8 +163,20 @@ def default_workers() -> int:
         return max(os.cpu_count() or 1, 1)
 
 
-def make_executor(cfg: RunConfig) -> Executor:
-    """The executor the `[run]` config section asks for (workers 0 = one per core)."""
+def preload(modules: Sequence[str]) -> None:
+    """Worker start-up: single-threaded numerics, then import `modules` (the task
+    functions' modules), so that the first tasks do not pay for imports."""
+    import importlib
+
+    single_threaded()
+    for name in modules:
+        importlib.import_module(name)
+
+
+def make_executor(cfg: RunConfig, modules: Sequence[str] = ()) -> Executor:
+    """The executor the `[run]` config section asks for (workers 0 = one per core).
+    Parallel executors start their workers now and have them import `modules` in the
+    background, while the driver goes on (e.g. with ingest and the template)."""
     workers = cfg.workers or default_workers()
     if cfg.executor == "serial":
         from .serial import SerialExecutor
@@ -138,7 +185,7 @@ def make_executor(cfg: RunConfig) -> Executor:
     if cfg.executor == "processes":
         from .processes import ProcessExecutor
 
-        return ProcessExecutor(workers)
+        return ProcessExecutor(workers, tuple(modules))
     from .dask import DaskExecutor
 
-    return DaskExecutor(workers, cfg.scheduler, cfg.retries)
+    return DaskExecutor(workers, cfg.scheduler, cfg.retries, tuple(modules))

@@ -3,10 +3,10 @@
 Without a scheduler address a `LocalCluster` of `workers` single-threaded worker processes
 is started for the executor's lifetime; with one (`--scheduler tcp://host:8786`) the
 tasks go to that cluster's workers, which must have surgrecon installed and see the run
-folder at the same path (a shared filesystem). The whole graph is submitted at once, each
-task with its dependencies' futures as arguments, so Dask itself orders the chain; a
-failed or lost task is retried `retries` times without touching the others; progress is
-driven by completed futures.
+folder at the same path (a shared filesystem). Tasks are submitted as their dependencies
+finish (`run_graph`: Dask would otherwise pin a chain's side branches to the worker that
+ran the dependency); a failed or lost task is retried `retries` times without touching
+the others; progress is driven by completed futures.
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ import uuid
 from collections.abc import Sequence
 from typing import Any
 
-from . import ExecutorError, OnDone, Task, call_task, topological_order
+from . import ExecutorError, OnDone, Task, call_task, preload, run_graph
 
 logger = logging.getLogger(__name__)
 
@@ -26,7 +26,8 @@ class DaskExecutor:
 
     kind = "dask"
 
-    def __init__(self, workers: int, scheduler: str = "", retries: int = 2):
+    def __init__(self, workers: int, scheduler: str = "", retries: int = 2,
+                 modules: tuple[str, ...] = ()):
         try:
             from distributed import Client, LocalCluster
         except ImportError as exc:
@@ -47,6 +48,8 @@ class DaskExecutor:
         except (OSError, TimeoutError) as exc:
             raise ExecutorError(f"cannot reach the Dask scheduler {scheduler!r}: {exc}") from exc
         self.workers = max(len(self._client.scheduler_info().get("workers", {})), 1)
+        self._warm = [self._client.submit(preload, modules, workers=[address], pure=False)
+                      for address in self._client.scheduler_info().get("workers", {})]
 
     @property
     def client(self) -> Any:
@@ -54,28 +57,17 @@ class DaskExecutor:
         return self._client
 
     def run(self, tasks: Sequence[Task], on_done: OnDone | None = None) -> dict[str, Any]:
-        from distributed import as_completed
+        from distributed import wait
 
         run_id = uuid.uuid4().hex[:8]
-        futures: dict[str, Any] = {}
-        for task in topological_order(tasks):
-            deps = [futures[d] for d in task.deps]
-            futures[task.key] = self._client.submit(
-                call_task, task.fn, task.args, *deps, key=f"{task.key}-{run_id}",
-                retries=self.retries, pure=False)
-        keys = {future.key: key for key, future in futures.items()}
-        results: dict[str, Any] = {}
-        try:
-            for future in as_completed(list(futures.values())):
-                key = keys[future.key]
-                results[key] = future.result()  # raises the task's exception
-                if on_done is not None:
-                    on_done(key, results[key])
-        finally:
-            pending = [f for f in futures.values() if not f.done()]
-            if pending:
-                self._client.cancel(pending)
-        return results
+
+        def submit(task: Task) -> Any:
+            return self._client.submit(call_task, task.fn, task.args,
+                                       key=f"{task.key}-{run_id}", retries=self.retries,
+                                       pure=False)
+
+        return run_graph(tasks, submit, lambda fs: wait(fs, return_when="FIRST_COMPLETED").done,
+                         on_done)
 
     def close(self) -> None:
         if getattr(self, "_client", None) is not None:
