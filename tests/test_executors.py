@@ -161,3 +161,45 @@ def test_run_many_logs_one_folder_each_and_a_corrupt_log_fails_alone(pipeline_ru
         _assert_same(reference, _outputs(tmp_path / "runs" / name))
         assert (tmp_path / "runs" / name / "report.html").is_file()
     assert not (tmp_path / "runs" / "c" / "report.html").exists()
+
+
+def _children(pid: int) -> list[int]:
+    """Process ids whose parent is `pid` (from /proc)."""
+    found = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[1]) == pid:
+            found.append(int(stat.parent.name))
+    return found
+
+
+def test_driver_killed_during_parallel_register_resumes_and_leaves_no_workers(
+        pipeline_run, pipeline_log, tmp_path):
+    """SIGKILL only the driver of `surgrecon run --executor processes` once frames are
+    registered: its workers exit by themselves, and the rerun completes with the serial
+    run's outputs."""
+    import subprocess
+    import sys
+    import time
+
+    run_dir = tmp_path / "run"
+    cmd = [sys.executable, "-c", "import sys; from surgrecon_cli.cli.main import main; "
+           "sys.exit(main())", "run", str(pipeline_log), "-o", str(run_dir), "-q",
+           "--executor", "processes", "--workers", "2"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 120
+    while not list((run_dir / "registration").glob("*.npz")):
+        assert proc.poll() is None and time.monotonic() < deadline, "no frame registered"
+        time.sleep(0.05)
+    workers = _children(proc.pid)
+    assert workers, "the pool's workers should be running"
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    while any(Path(f"/proc/{w}").exists() for w in workers):
+        assert time.monotonic() < deadline, f"orphaned workers {workers} still alive"
+        time.sleep(0.1)
+    assert subprocess.run(cmd, check=False).returncode == 0
+    _assert_same(_outputs(pipeline_run[0]), _outputs(run_dir))

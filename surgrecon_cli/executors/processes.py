@@ -10,13 +10,28 @@ what the finished tasks wrote.
 from __future__ import annotations
 
 import multiprocessing
+import os
 import threading
+import time
 from collections.abc import Sequence
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
 from typing import Any
 
 from . import ExecutorError, OnDone, Task, call_task, preload, run_graph
+
+
+def _watch_parent(parent: int, period_s: float = 0.5) -> None:
+    """Exit this worker when its driver is gone (killed with SIGKILL, the pool's pipes stay
+    open in the workers and would keep orphans waiting forever)."""
+    while os.getppid() == parent:
+        time.sleep(period_s)
+    os._exit(1)
+
+
+def _start_worker(parent: int, modules: tuple[str, ...]) -> None:
+    threading.Thread(target=_watch_parent, args=(parent,), daemon=True).start()
+    preload(modules)
 
 
 class ProcessExecutor:
@@ -36,7 +51,7 @@ class ProcessExecutor:
             if self._pool is None:
                 self._pool = ProcessPoolExecutor(
                     max_workers=self.workers, mp_context=multiprocessing.get_context("spawn"),
-                    initializer=preload, initargs=(self.modules,))
+                    initializer=_start_worker, initargs=(os.getpid(), self.modules))
             return self._pool
 
     def run(self, tasks: Sequence[Task], on_done: OnDone | None = None) -> dict[str, Any]:
