@@ -2,8 +2,9 @@
 
 Template points are projected at their latest positions into the new images (visibility:
 in front, inside the image, not occluded, outside the tool mask), found there by pyramidal
-KLT from the same camera's previous image (forward-backward checked), then sorted by the
-reprojection-error check (CoSLAM's form):
+KLT from the same camera's image at a reference frame (the pipeline uses the template's
+base frame, so that frames do not depend on each other; forward-backward checked), then
+sorted by the reprojection-error check (CoSLAM's form):
 - intra-camera inlier: the point's frame-0 position still reprojects within `gate_px` in
   every camera that sees it -> static evidence, target = frame-0 position;
 - inter-camera inlier: seen by >= 2 cameras and re-triangulated with every view within the
@@ -178,9 +179,11 @@ def build_target(
 ) -> TargetCloud:
     """Target cloud of a frame for template points (N, 3) at frame 0 and latest positions.
 
-    prev_images/cur_images: per camera RGB (H, W, 3) uint8 or None; poses (C, 4, 4) with NaN
-    where unusable; prev_pixels (N, C, 2): where each point was found in the previous frame
-    (NaN = not found; then its projection is tracked instead).
+    prev_images/cur_images: per camera RGB (H, W, 3) uint8 or None, "prev" being the frame
+    tracked from (any earlier frame: the pipeline passes the template base); poses (C, 4, 4)
+    with NaN where unusable; prev_pixels (N, C, 2): where each point was found in that frame
+    (NaN = not found; then its projection is tracked instead); latest (N, 3) m: positions
+    at that frame.
     """
     n, n_cams = len(template), len(models)
     pixels = np.full((n, n_cams, 2), np.nan)

@@ -1,8 +1,15 @@
 """Stage `register`: target cloud and non-rigid registration of every frame k >= 1.
 
-Per frame k: the target cloud G_k (template points tracked into the new images and sorted
-by the reprojection-error check, core/target.py), then the template P registered to G_k
-(core/registration). Outputs, written atomically frame by frame so a killed run resumes:
+Per frame k, one task (`register_frame`): the target cloud G_k (template points tracked
+from the base frame's images into frame k's and sorted by the reprojection-error check,
+core/target.py), then the base's cloud registered to G_k (core/registration). The base is
+frame 0, or with re-basing every N_T frames the last multiple of N_T before k: frames depend
+on their base only, so they run in parallel on an executor, as a dependency chain over the
+bases. Measured on the shipped sample (frames 1..19): N_T = 2 (default) registration p95
+0.43 mm, max 1.94 mm, 99.7 % within 1 mm, macro-F1 0.917; N_T = 3: 0.47 / 2.84 mm, 99.3 %,
+0.919; N_T = 0 (all tracked from frame 0): 0.71 / 4.71 mm, 96.5 %, 0.884 (the dent moves too
+far for KLT from frame 0). Outputs, written atomically frame by frame so a killed run
+resumes:
   RUN/registration/NNNNNN.npz   transforms (N,3,4) f32, registered (N,3), target (N,3),
                                 status (N,) u8, residual (N,) f32, pixels (N,C,2) f64,
                                 seconds_target, seconds_register
