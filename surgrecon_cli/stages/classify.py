@@ -19,6 +19,7 @@ import numpy as np
 from ..config import Config, to_dict
 from ..core.classify import (
     FrameClasses,
+    Neighbourhoods,
     apply_hysteresis,
     classify_frame,
     template_neighbourhoods,
@@ -65,15 +66,13 @@ def load_registration_frame(run_dir: Path, frame: int, n_points: int) -> dict[st
     return data
 
 
-def classify_one_frame(run_dir: Path, frame: int, config: Config) -> tuple[FrameClasses,
-                                                                          np.ndarray]:
+def classify_one_frame(run_dir: Path, frame: int, template: np.ndarray, nb: Neighbourhoods,
+                       config: Config) -> tuple[FrameClasses, np.ndarray]:
     """Labels of one frame k >= 1 from its registration (a task), and its reprojection
-    check status (N,) uint8."""
-    cfg = config.classify
-    template, _ = load_template(run_dir)
-    nb = template_neighbourhoods(template, cfg.neighbourhood_mm, cfg.min_neighbours,
-                                 cfg.max_neighbours)
+    check status (N,) uint8. template (N, 3) m and its neighbourhoods come from the driver,
+    which builds them once for all frames."""
     reg = load_registration_frame(run_dir, frame, len(template))
+    cfg = config.classify
     transforms = reg["transforms"].astype(float) if cfg.measure == "transform_diff" else None
     classes = classify_frame(template, reg["registered"].astype(float), nb, cfg,
                              transforms=transforms, status=reg["status"])
@@ -93,7 +92,10 @@ def run_classify(run_dir: Path, config: Config,
     executor = executor or SerialExecutor()
     with stage_run(run_dir, STAGE, config, needs=("ingest", "build-template", "register")) as info:
         n_frames = load_ingested(run_dir / "ingest").n_frames
-        n = len(load_template(run_dir)[0])
+        template, _ = load_template(run_dir)
+        n = len(template)
+        nb = template_neighbourhoods(template, cfg.neighbourhood_mm, cfg.min_neighbours,
+                                     cfg.max_neighbours)
         total = 2 * n_frames
         step = on_step or (lambda _d, _t: None)
         count = [1]
@@ -103,7 +105,8 @@ def run_classify(run_dir: Path, config: Config,
             step(count[0], total)
 
         step(1, total)
-        done = executor.run([Task(str(k), classify_one_frame, (run_dir.absolute(), k, config))
+        done = executor.run([Task(str(k), classify_one_frame,
+                                  (run_dir.absolute(), k, template, nb, config))
                              for k in range(1, n_frames)], advance)
         frames = [FrameClasses(labels=np.full(n, STATIC, np.uint8),
                                displacement_mm=np.zeros(n), deformation_mm=np.full(n, np.nan))]
