@@ -233,7 +233,7 @@ def write_long_log(path: Path, minutes: float = 30.0, target_bytes: float = 2.1 
                        counted.images, counted.messages, time.perf_counter() - start)
 
 
-def _surgrecon() -> str:
+def surgrecon_executable() -> str:
     """The `surgrecon` executable of this interpreter's environment (else the one on PATH)."""
     beside = Path(sys.executable).with_name("surgrecon")
     found = str(beside) if beside.exists() else shutil.which("surgrecon")
@@ -266,7 +266,8 @@ def measure_ingest(log_path: Path, run_dir: Path, extra_args: tuple[str, ...] = 
     log_path, run_dir = Path(log_path), Path(run_dir)
     if run_dir.exists():
         shutil.rmtree(run_dir)
-    cmd = [_surgrecon(), "ingest", str(log_path), "-o", str(run_dir), "--quiet", *extra_args]
+    cmd = [surgrecon_executable(), "ingest", str(log_path), "-o", str(run_dir), "--quiet",
+           *extra_args]
     done = subprocess.run([sys.executable, "-S", "-c", _LAUNCHER, *cmd],
                           capture_output=True, text=True, check=False)
     try:

@@ -22,13 +22,13 @@ import hashlib
 import json
 import shutil
 import subprocess
-import sys
 import tempfile
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-SURGRECON = Path(sys.executable).with_name("surgrecon")
+from long_log import measure_ingest, surgrecon_executable, write_long_log
+
+SURGRECON = surgrecon_executable()
 CONFIGS = (("serial", 1), ("processes", 1), ("processes", 2), ("dask", 1), ("dask", 2))
 
 
@@ -44,7 +44,7 @@ def time_run(log: Path, run_dir: Path, executor: str, workers: int) -> dict:
     """`surgrecon run` from scratch in a child process: wall s and the stage times."""
     shutil.rmtree(run_dir, ignore_errors=True)
     start = time.perf_counter()
-    subprocess.run([str(SURGRECON), "run", str(log), "-o", str(run_dir), "-q",
+    subprocess.run([SURGRECON, "run", str(log), "-o", str(run_dir), "-q",
                     "--executor", executor, "--workers", str(workers)],
                    check=True, stdout=subprocess.DEVNULL)
     wall = time.perf_counter() - start
@@ -56,7 +56,7 @@ def time_run(log: Path, run_dir: Path, executor: str, workers: int) -> dict:
 def pipeline_table(work: Path, frames: int) -> None:
     log = work / f"scale{frames}.mcap"
     print(f"simulating {frames} frames (6 cameras, 640x480) ...", flush=True)
-    subprocess.run([str(SURGRECON), "simulate", str(log), "--frames", str(frames), "-q"],
+    subprocess.run([SURGRECON, "simulate", str(log), "--frames", str(frames), "-q"],
                    check=True, stdout=subprocess.DEVNULL)
     rows = {}
     for executor, workers in CONFIGS:
@@ -78,9 +78,6 @@ def pipeline_table(work: Path, frames: int) -> None:
 
 
 def long_log_table(work: Path, gigabytes: float) -> None:
-    sys.path.insert(0, str(Path(__file__).parent))
-    from long_log import measure_ingest, write_long_log
-
     log = work / "long.mcap"
     print(f"writing a {gigabytes:.1f} GB log ...", flush=True)
     write_long_log(log, target_bytes=int(gigabytes * 1e9))

@@ -104,10 +104,9 @@ def run_graph(tasks: Sequence[Task], submit: Callable[[Task], Any],
     engine, so a dependent task may run on any worker (engines that place a task where
     its dependency ran would serialise a chain's side branches). On the first error the
     tasks not yet started are cancelled and the error is raised."""
-    by_key = check_graph(tasks)
-    list(topological_order(tasks))  # rejects cycles before anything runs
+    # Checks keys, dependencies and cycles before anything runs.
+    waiting = {task.key: task for task in topological_order(tasks)}
     results: dict[str, Any] = {}
-    waiting = dict(by_key)
     running: dict[Any, str] = {}
 
     def submit_ready() -> None:
@@ -148,9 +147,8 @@ def single_threaded() -> None:
     _LIMITED["done"] = True
 
 
-def call_task(fn: Callable[..., Any], args: tuple[Any, ...], *_deps: Any) -> Any:
-    """What a worker runs for a task: single-threaded numerics, then `fn(*args)`; the
-    dependency results in `_deps` only order the call."""
+def call_task(fn: Callable[..., Any], args: tuple[Any, ...]) -> Any:
+    """What a worker runs for a task: single-threaded numerics, then `fn(*args)`."""
     single_threaded()
     return fn(*args)
 

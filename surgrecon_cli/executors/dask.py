@@ -47,9 +47,11 @@ class DaskExecutor:
                             self._client.dashboard_link)
         except (OSError, TimeoutError) as exc:
             raise ExecutorError(f"cannot reach the Dask scheduler {scheduler!r}: {exc}") from exc
-        self.workers = max(len(self._client.scheduler_info().get("workers", {})), 1)
+        addresses = list(self._client.scheduler_info().get("workers", {}))
+        self.workers = max(len(addresses), 1)
+        # Held so that the start-up imports are not cancelled as unreferenced futures.
         self._warm = [self._client.submit(preload, modules, workers=[address], pure=False)
-                      for address in self._client.scheduler_info().get("workers", {})]
+                      for address in addresses]
 
     @property
     def client(self) -> Any:

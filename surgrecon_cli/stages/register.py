@@ -84,8 +84,8 @@ def base_frame(frame: int, update_every: int) -> int:
 
 @dataclass(frozen=True)
 class _Base:
-    """What frames are registered against: the base frame's images, transforms from the
-    frame-0 template (N, 3, 4), registered points (N, 3) m, latest positions (N, 3) m
+    """What frames are registered against: the base frame's index, its transforms from
+    the frame-0 template (N, 3, 4), registered points (N, 3) m, latest positions (N, 3) m
     (target where observed, else registered) and where points were seen (N, C, 2) px."""
 
     frame: int
@@ -195,8 +195,8 @@ def run_register(
         keep=("frames_done", "config"),
     ) as info:
         n_frames = load_ingested(run_dir / "ingest").n_frames
-        done = {k for k in done_before if 0 < k < n_frames and registration_path(run_dir, k)
-                .is_file() and cloud_path(run_dir, k).is_file()}
+        done = {k for k in done_before if 0 < k < n_frames
+                and registration_path(run_dir, k).is_file() and cloud_path(run_dir, k).is_file()}
         every = config.registration.template_update_every
         tasks = []
         for frame in range(1, n_frames):
