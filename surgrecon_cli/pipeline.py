@@ -70,8 +70,15 @@ WEIGHTS = {"ingest": 10, "build-template": 20, "register": 50, "classify": 5, "e
            "report": 10}
 
 Progress = Callable[[str, float], None]
-# Modules of the per-frame task functions, imported by parallel workers as they start.
-TASK_MODULES = ("surgrecon_cli.stages.register", "surgrecon_cli.stages.classify")
+# Modules of the task functions, imported by parallel workers as they start.
+TASK_MODULES = ("surgrecon_cli.core.template", "surgrecon_cli.stages.register",
+                "surgrecon_cli.stages.classify", "surgrecon_cli.io.plots")
+
+
+def open_executor(config: Config) -> closing[Executor]:
+    """The config's `[run]` executor, its workers importing TASK_MODULES as they start;
+    use as `with open_executor(config) as executor:` (closed at the end)."""
+    return closing(make_executor(config.run, TASK_MODULES))
 
 
 @dataclass
@@ -174,7 +181,7 @@ def run_pipeline(log: Path, run_dir: Path, config: Config, ground_truth: Path | 
     and closed by this call).
     """
     if executor is None:
-        with closing(make_executor(config.run, TASK_MODULES)) as own:
+        with open_executor(config) as own:
             return run_pipeline(log, run_dir, config, ground_truth, allow_truncated,
                                 on_progress, on_stage, own)
     from .stages.classify import run_classify
@@ -255,7 +262,7 @@ def run_pipeline(log: Path, run_dir: Path, config: Config, ground_truth: Path | 
                     steps[0] += 1
                     progress(1 - 1 / (1 + steps[0] / 4))
 
-                run_build_template(run_dir, config, on_step=on_step)
+                run_build_template(run_dir, config, on_step=on_step, executor=executor)
             elif stage == "register":
                 frames = [0]
 
@@ -272,7 +279,8 @@ def run_pipeline(log: Path, run_dir: Path, config: Config, ground_truth: Path | 
                 result.evaluation = run_evaluate(run_dir, config, gt,
                                                  on_step=lambda d, t, p=progress: p(d / t))
             elif stage == "report":
-                run_report(run_dir, config, on_step=lambda d, t, p=progress: p(d / t))
+                run_report(run_dir, config, on_step=lambda d, t, p=progress: p(d / t),
+                           executor=executor)
             result.seconds[stage] = round(time.perf_counter() - start, 3)
             _record_seconds(run, stage, result.seconds[stage])
         progress(1.0)
@@ -328,7 +336,7 @@ def run_many(logs: list[Path], runs_root: Path, config: Config,
     on_progress(log, stage, fraction) reports each log's progress.
     """
     if executor is None:
-        with closing(make_executor(config.run, TASK_MODULES)) as own:
+        with open_executor(config) as own:
             return run_many(logs, runs_root, config, allow_truncated, own, on_progress)
     folders = run_folders_for(logs, runs_root)
     Path(runs_root).mkdir(parents=True, exist_ok=True)

@@ -147,6 +147,28 @@ def test_template_needs_two_cameras(scene):
         )
 
 
+@pytest.mark.parametrize("missing", ["image", "pose"])
+def test_template_without_one_camera_uses_the_others(scene, missing):
+    """A camera unusable at frame 0 (no image, or an untracked pose) has no features and
+    takes part in no pair; the others still build an accurate template."""
+    cfg = Config()
+    images = list(scene.images[0])
+    poses = scene.poses[0].copy()
+    if missing == "image":
+        images[1] = None
+    else:
+        poses[1] = np.nan
+    result = build_template(images, scene.models, poses, scene.tool_poses[0], cfg.template,
+                            cfg.tool)
+    assert result.stats["features"][1] == 0
+    assert all(1 not in pair for pair in result.plan.pairs)
+    assert set(np.unique(result.observations.camera)) == {0, 2, 3}
+    stats = distance_stats_mm(map_to_surface(result.points, scene.vertices[0],
+                                             scene.faces).distance)
+    assert len(result.points) >= 300
+    assert stats["p95_mm"] <= 1.0
+
+
 def test_tissue_inside_the_tool_is_pushed_onto_its_surface():
     cfg = Config().tool
     tip_down = make_pose(np.zeros(3), np.array([0.0, 0.0, 0.0, 1.0]))  # shaft along +z from the tip

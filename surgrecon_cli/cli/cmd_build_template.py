@@ -7,12 +7,13 @@ from typing import Any
 
 import click
 
-from .common import common_options, progress
+from .common import common_options, executor_options, progress
 
 
 @click.command("build-template")
 @click.argument("run_dir", type=click.Path(exists=True, file_okay=False, path_type=Path))
 @common_options
+@executor_options
 def build_template_cmd(run_dir: Path, config: Any, quiet: bool) -> None:
     """Build the template cloud P from frame 0 of an ingested run.
 
@@ -23,11 +24,15 @@ def build_template_cmd(run_dir: Path, config: Any, quiet: bool) -> None:
     \b
     Example:
       surgrecon build-template runs/sample
+      surgrecon build-template runs/sample --executor processes --workers 2
     """
+    from ..pipeline import open_executor
     from ..stages.template import run_build_template
 
-    with progress(quiet)(desc="template", unit="step") as bar:
-        result = run_build_template(run_dir, config, on_step=lambda _s: bar.update(1))
+    with open_executor(config) as executor, \
+            progress(quiet)(desc="template", unit="step") as bar:
+        result = run_build_template(run_dir, config, on_step=lambda _s: bar.update(1),
+                                    executor=executor)
     stats = result.stats
     groups = "; ".join(",".join(str(c) for c in g) for g in _named(run_dir, result.plan.groups))
     click.echo(f"camera groups: {groups}")

@@ -28,13 +28,10 @@ def classify_cmd(run_dir: Path, config: Any, quiet: bool) -> None:
       surgrecon classify runs/sample
       surgrecon classify runs/sample --set classify.deform_mm=0.2 --set classify.hysteresis_frames=2
     """
-    from contextlib import closing
-
-    from ..executors import make_executor
-    from ..pipeline import TASK_MODULES
+    from ..pipeline import open_executor
     from ..stages.classify import labels_path, run_classify
 
-    with closing(make_executor(config.run, TASK_MODULES)) as executor, \
+    with open_executor(config) as executor, \
             progress(quiet)(desc="classify", unit="step") as bar:
         def on_step(done: int, total: int) -> None:
             bar.total = total

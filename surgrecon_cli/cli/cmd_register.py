@@ -27,15 +27,12 @@ def register_cmd(run_dir: Path, config: Any, quiet: bool) -> None:
       surgrecon register runs/sample --set registration.alpha=2
       surgrecon register runs/sample --executor processes --workers 2
     """
-    from contextlib import closing
-
-    from ..executors import make_executor
     from ..io.ingest_store import load_ingested
-    from ..pipeline import TASK_MODULES
+    from ..pipeline import open_executor
     from ..stages.register import run_register
 
     n_frames = load_ingested(run_dir / "ingest").n_frames
-    with closing(make_executor(config.run, TASK_MODULES)) as executor, \
+    with open_executor(config) as executor, \
             progress(quiet)(total=max(n_frames - 1, 0), desc="register", unit="frame") as bar:
         processed = run_register(run_dir, config, on_frame=lambda _f, _n: bar.update(1),
                                  executor=executor)

@@ -7,12 +7,13 @@ from typing import Any
 
 import click
 
-from .common import common_options, progress
+from .common import common_options, executor_options, progress
 
 
 @click.command("report")
 @click.argument("run_dir", type=click.Path(exists=True, file_okay=False, path_type=Path))
 @common_options
+@executor_options
 def report_cmd(run_dir: Path, config: Any, quiet: bool) -> None:
     """Write the metrics and the HTML report of a run (uses whatever stages are done).
 
@@ -24,10 +25,14 @@ def report_cmd(run_dir: Path, config: Any, quiet: bool) -> None:
     \b
     Example:
       surgrecon report runs/sample && xdg-open runs/sample/report.html
+      surgrecon report runs/sample --executor processes --workers 2
     """
+    from ..pipeline import open_executor
     from ..stages.report import run_report
 
-    with progress(quiet)(desc="report", unit="step", total=4) as bar:
-        files = run_report(run_dir, config, on_step=lambda done, _t: bar.update(done - bar.n))
+    with open_executor(config) as executor, \
+            progress(quiet)(desc="report", unit="step", total=4) as bar:
+        files = run_report(run_dir, config, on_step=lambda done, _t: bar.update(done - bar.n),
+                           executor=executor)
     click.echo(f"metrics -> {files.frames_csv}, {files.summary_json}")
     click.echo(f"report -> {files.html}")

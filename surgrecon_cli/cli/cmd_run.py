@@ -3,7 +3,6 @@ RUNS/`: many logs, one run folder each, over one executor."""
 
 from __future__ import annotations
 
-from contextlib import closing
 from pathlib import Path
 from typing import Any
 
@@ -49,13 +48,12 @@ def run_cmd(logs: tuple[Path, ...], run_dir: Path, gt_path: Path | None, allow_t
       surgrecon run logs/*.mcap -o runs/ --executor processes --workers 2
       surgrecon run logs/*.mcap -o runs/ --scheduler tcp://10.0.0.5:8786
     """
-    from ..executors import make_executor
-    from ..pipeline import TASK_MODULES
+    from ..pipeline import open_executor
 
     if len(logs) > 1 and gt_path is not None:
         raise InputError("--ground-truth goes with one log; with several, each log's "
                          "NAME.gt.npz beside it is used")
-    with closing(make_executor(config.run, TASK_MODULES)) as executor:
+    with open_executor(config) as executor:
         if len(logs) == 1:
             _run_one(logs[0], run_dir, gt_path, allow_truncated, config, quiet, executor)
         else:

@@ -29,6 +29,12 @@ class Features:
         )
 
 
+def no_features() -> Features:
+    """The features of an image without any (or of an unusable camera)."""
+    return Features(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros((0, 128), np.float32),
+                    np.zeros((0, 3), np.uint8))
+
+
 def sample_rgb(image: np.ndarray, pixels: np.ndarray) -> np.ndarray:
     """Bilinear RGB (N, 3) uint8 of an image (H, W, 3) at pixels (N, 2)."""
     if len(pixels) == 0:
@@ -57,12 +63,7 @@ def detect_features(
     sift = cv2.SIFT_create(nfeatures=max_features, contrastThreshold=contrast_threshold)
     keypoints, descriptors = sift.detectAndCompute(gray, mask)
     if not keypoints:
-        return Features(
-            np.zeros((0, 2)),
-            np.zeros((0, 2)),
-            np.zeros((0, 128), np.float32),
-            np.zeros((0, 3), np.uint8),
-        )
+        return no_features()
     pixels = np.array([k.pt for k in keypoints], dtype=np.float64)
     # SIFT may return one location twice with different orientations: keep the first.
     _, first = np.unique(np.round(pixels, 2), axis=0, return_index=True)

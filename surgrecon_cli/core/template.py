@@ -6,20 +6,30 @@ pair sequence -> tracks -> N-view triangulation -> outlier rejection -> tool poi
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
 from ..config import TemplateConfig, ToolConfig
 from ..errors import GeometryError
 from .cameras import CameraModel
-from .features import Features, detect_features
+from .features import Features, detect_features, no_features
 from .matching import build_tracks, match_pair
 from .outliers import surface_outliers
 from .pairing import PairPlan, PairPrediction, candidate_pairs, plan_pairs, predict_pairs
 from .tool import points_near_tool, tool_image_mask
 from .triangulate import Observations, triangulate
+
+MapCalls = Callable[[Callable[..., Any], Sequence[tuple[Any, ...]]], list[Any]]
+"""`map_calls(fn, calls)` returns `[fn(*args) for args in calls]`, possibly computed in
+parallel (e.g. on an executor); fn is a module-level function, the args plain arrays."""
+
+
+def map_here(fn: Callable[..., Any], calls: Sequence[tuple[Any, ...]]) -> list[Any]:
+    """The default `MapCalls`: one call after another, in this process."""
+    return [fn(*args) for args in calls]
 
 
 @dataclass(frozen=True)
@@ -57,53 +67,42 @@ def build_template(
     cfg: TemplateConfig,
     tool_cfg: ToolConfig,
     on_step: Callable[[str], None] | None = None,
+    map_calls: MapCalls = map_here,
 ) -> TemplateResult:
     """Build the template from one frame: images[c] (H, W, 3) uint8 RGB or None (unusable),
-    poses (C, 4, 4) camera-to-world, tool_pose (4, 4) tool tip in the world (NaN = unknown)."""
+    poses (C, 4, 4) camera-to-world, tool_pose (4, 4) tool tip in the world (NaN = unknown).
+
+    The feature detection of each camera and the matching of each candidate pair are
+    independent calls, made through `map_calls` (in parallel when it is an executor's)."""
     step = on_step or (lambda _name: None)
     usable = np.array(
         [im is not None and np.isfinite(p).all() for im, p in zip(images, poses, strict=True)]
     )
     if usable.sum() < 2:
         raise GeometryError(f"frame 0 has {int(usable.sum())} usable camera(s); need >= 2")
-    features: list[Features] = []
-    for c, image in enumerate(images):
-        if not usable[c]:
-            features.append(detect_features(np.zeros((8, 8, 3), np.uint8), models[c], 1))
-            continue
-        mask = tool_image_mask(models[c], poses[c], tool_pose, tool_cfg)
-        features.append(
-            detect_features(
-                image, models[c], cfg.max_features, cfg.contrast_threshold, exclude=mask
-            )
-        )
-        step(f"features camera {c}")
+    detect = [(images[c], models[c], cfg.max_features, cfg.contrast_threshold,
+               tool_image_mask(models[c], poses[c], tool_pose, tool_cfg))
+              for c in np.flatnonzero(usable)]
+    detected = iter(map_calls(detect_features, detect))
+    features = [next(detected) if usable[c] else no_features() for c in range(len(images))]
+    step("features")
     prediction = predict_pairs(
         models, np.where(usable[:, None, None], poses, np.eye(4)), usable, cfg.working_distance
     )
     focal = [m.K[0, 0] for m in models]
+    pairs = candidate_pairs(prediction, cfg.min_view_overlap)
+    pair_matches = map_calls(match_pair, [
+        (features[i], features[j], poses[i], poses[j], focal[i], focal[j], cfg.ratio,
+         cfg.epipolar_px, (cfg.depth_range[0] * prediction.depth[i],
+                           cfg.depth_range[1] * prediction.depth[i]))
+        for i, j in pairs])
     matches: dict[tuple[int, int], np.ndarray] = {}
     weights = np.zeros((len(models), len(models)))
-    for i, j in candidate_pairs(prediction, cfg.min_view_overlap):
-        depth_range = (
-            cfg.depth_range[0] * prediction.depth[i],
-            cfg.depth_range[1] * prediction.depth[i],
-        )
-        m = match_pair(
-            features[i],
-            features[j],
-            poses[i],
-            poses[j],
-            focal[i],
-            focal[j],
-            cfg.ratio,
-            cfg.epipolar_px,
-            depth_range,
-        )
+    for (i, j), m in zip(pairs, pair_matches, strict=True):
         if len(m) >= cfg.min_pair_matches:
             matches[(i, j)] = m
             weights[i, j] = weights[j, i] = len(m) * prediction.conditioning[i, j]
-        step(f"matched cameras {i}-{j}")
+    step("matches")
     plan = plan_pairs(weights)
     track_ids, n_tracks = build_tracks([len(f) for f in features], plan.pairs, matches)
     if n_tracks == 0:
@@ -130,7 +129,7 @@ def build_template(
     obs_kept = obs.renumbered(keep)
     stats = {
         "features": [len(f) for f in features],
-        "candidate_pairs": len(candidate_pairs(prediction, cfg.min_view_overlap)),
+        "candidate_pairs": len(pairs),
         "verified_pairs": len(matches),
         "matches": {f"{i}-{j}": len(m) for (i, j), m in matches.items()},
         "tracks": n_tracks,

@@ -20,10 +20,13 @@ from __future__ import annotations
 import os
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 from ..config import RunConfig
 from ..errors import SurgReconError
+
+if TYPE_CHECKING:
+    from ..core.template import MapCalls
 
 _THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 
@@ -145,6 +148,19 @@ def single_threaded() -> None:
     threadpool_limits(limits=1)
     cv2.setNumThreads(1)
     _LIMITED["done"] = True
+
+
+def mapper(executor: Executor) -> MapCalls:
+    """A `map_calls(fn, calls)` for core functions that take one (e.g. `build_template`):
+    each `fn(*args)` is an independent task on `executor`; results come in call order."""
+
+    def map_calls(fn: Callable[..., Any], calls: Sequence[tuple[Any, ...]]) -> list[Any]:
+        name = getattr(fn, "__name__", "call")
+        keys = [f"{name}-{i}" for i in range(len(calls))]
+        done = executor.run([Task(key, fn, args) for key, args in zip(keys, calls, strict=True)])
+        return [done[key] for key in keys]
+
+    return map_calls
 
 
 def call_task(fn: Callable[..., Any], args: tuple[Any, ...]) -> Any:

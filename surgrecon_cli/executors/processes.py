@@ -44,7 +44,11 @@ class ProcessExecutor:
         self.modules = modules
         self._pool: ProcessPoolExecutor | None = None
         self._lock = threading.Lock()
-        self._get_pool().submit(int)  # the first submit spawns the workers: start them now
+        # The pool spawns a worker when a task finds none idle: submitting one task per
+        # worker starts them all now (they import while the driver ingests).
+        pool = self._get_pool()
+        for _ in range(workers):
+            pool.submit(int)
 
     def _get_pool(self) -> ProcessPoolExecutor:
         with self._lock:

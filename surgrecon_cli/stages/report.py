@@ -14,6 +14,7 @@ import logging
 from collections.abc import Callable
 from dataclasses import dataclass
 from datetime import datetime, timezone
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -25,6 +26,8 @@ from ..core.cameras import in_image, project
 from ..core.labels import CLASS_NAMES, DEFORMING, SHIFTING, STATIC, STATUS_NAMES, UNKNOWN
 from ..core.tool import tool_pixel_mask, tool_pose_in_world
 from ..errors import RunFolderError
+from ..executors import Executor, Task
+from ..executors.serial import SerialExecutor
 from ..io import plots
 from ..io import report_html as rh
 from ..io.atomic import write_text
@@ -84,8 +87,10 @@ class _RunData:
 
 
 def run_report(run_dir: Path, config: Config,
-               on_step: Callable[[int, int], None] | None = None) -> ReportFiles:
-    """Write frames.csv, summary.json and report.html for a run (any stages done)."""
+               on_step: Callable[[int, int], None] | None = None,
+               executor: Executor | None = None) -> ReportFiles:
+    """Write frames.csv, summary.json and report.html for a run (any stages done); the
+    figures are drawn as tasks on `executor` (default: serial)."""
     run_dir = Path(run_dir)
     step = on_step or (lambda _d, _t: None)
     with stage_run(run_dir, STAGE, config, needs=("ingest",)) as info:
@@ -98,7 +103,10 @@ def run_report(run_dir: Path, config: Config,
         summary = _summary(data, rows, config)
         write_metrics_json(files.summary_json, summary)
         step(2, 4)
-        write_text(files.html, _html(run_dir, data, rows, summary, config))
+        figs = _Figures()
+        markup = _html(run_dir, data, rows, summary, config, figs)
+        step(3, 4)
+        write_text(files.html, figs.fill(markup, executor or SerialExecutor()))
         step(4, 4)
         info.update(html=str(files.html), frames=data.log.n_frames)
     return files
@@ -250,6 +258,33 @@ def _summary(data: _RunData, rows: list[dict[str, Any]], config: Config) -> dict
 
 
 # ----------------------------------------------------------------------------- HTML
+class _Figures:
+    """The report's figures, drawn together as tasks on an executor (matplotlib is most of
+    the stage's time): `add` keeps a figure's drawing call and returns a placeholder block,
+    `fill` draws them all and puts each figure in place of its placeholder."""
+
+    def __init__(self) -> None:
+        self._draws: list[Callable[[], bytes]] = []
+        self._captions: list[str] = []
+
+    def add(self, draw: Callable[[], bytes], caption: str) -> str:
+        """draw: a picklable call returning PNG bytes, e.g. partial(plots.histogram, ...)."""
+        self._draws.append(draw)
+        self._captions.append(caption)
+        return self._placeholder(len(self._draws) - 1)
+
+    @staticmethod
+    def _placeholder(index: int) -> str:
+        # A comment cannot come from the report's text: every text block is escaped.
+        return f"<!--figure {index}-->"
+
+    def fill(self, markup: str, executor: Executor) -> str:
+        pngs = executor.run([Task(f"figure-{i}", draw) for i, draw in enumerate(self._draws)])
+        for i, caption in enumerate(self._captions):
+            markup = markup.replace(self._placeholder(i), rh.figure(pngs[f"figure-{i}"], caption))
+        return markup
+
+
 def _col(rows: list[dict[str, Any]], key: str, frames: range | None = None) -> np.ndarray:
     sel = rows if frames is None else [rows[k] for k in frames]
     return np.array([np.nan if r.get(key) is None else r[key] for r in sel], float)
@@ -288,7 +323,7 @@ def _best_camera(data: _RunData, frame: int, xyz: np.ndarray,
     return best
 
 
-def _cloud_views(data: _RunData, tool: ToolConfig) -> list[str]:
+def _cloud_views(data: _RunData, tool: ToolConfig, figs: _Figures) -> list[str]:
     blocks = []
     frames = _pick_frames(data)
     labels = data.labels
@@ -310,8 +345,8 @@ def _cloud_views(data: _RunData, tool: ToolConfig) -> list[str]:
                 image = None
         counts = ", ".join(f"{n} {int((lab == c).sum())}" for c, n in CLASS_NAMES.items())
         title = f"frame {k}" + (f" ({counts})" if labels is not None else "")
-        png = plots.labelled_views(title, image, uv, xyz, lab, CLASS_NAMES)
-        blocks.append(rh.figure(png, f"Frame {k}: registered cloud coloured by class, projected "
+        draw = partial(plots.labelled_views, title, image, uv, xyz, lab, CLASS_NAMES)
+        blocks.append(figs.add(draw, f"Frame {k}: registered cloud coloured by class, projected "
                                      f"into camera {cam_name}'s image (left; points behind the "
                                      "tool hidden) and in 3D (right)."
                                 if image is not None else f"Frame {k}: registered cloud."))
@@ -323,7 +358,8 @@ def _fmt_mm(value: Any) -> str:
 
 
 def _html(run_dir: Path, data: _RunData, rows: list[dict[str, Any]], summary: dict[str, Any],
-          config: Config) -> str:
+          config: Config, figs: _Figures) -> str:
+    """The report's HTML, with a placeholder for each figure added to `figs`."""
     log = data.log
     frames_all = np.arange(log.n_frames)
     later = range(1, log.n_frames)
@@ -365,8 +401,8 @@ def _html(run_dir: Path, data: _RunData, rows: list[dict[str, Any]], summary: di
     if data.template is not None:
         centres = log.poses[0, :, :3, 3]
         axes = log.poses[0, :, :3, 2]
-        cams.add(rh.figure(plots.camera_layout(data.template, centres, axes, log.cameras,
-                                               groups, sequences),
+        cams.add(figs.add(partial(plots.camera_layout, data.template, centres, axes,
+                                  log.cameras, groups, sequences),
                            "Camera positions at frame 0 over the template (grey). Lines: pairs "
                            "matched when building the template, numbered in matching order; "
                            "one colour per camera group."))
@@ -396,36 +432,36 @@ def _html(run_dir: Path, data: _RunData, rows: list[dict[str, Any]], summary: di
         lab = rh.Section("labels", "Labels over time")
         if data.labels is not None:
             counts = {n: _col(rows, n) for n in CLASS_COLUMNS}
-            lab.add(rh.figure(plots.stacked_counts(frames_all, counts, plots.CLASS_COLOURS,
-                                                   "points per class"),
+            lab.add(figs.add(partial(plots.stacked_counts, frames_all, counts,
+                                     plots.CLASS_COLOURS, "points per class"),
                               f"Static: registered displacement below {config.classify.static_mm:g}"
                               f" mm; deforming: neighbourhood ({config.classify.neighbourhood_mm:g}"
                               f" mm) {config.classify.measure} at or above "
                               f"{config.classify.deform_mm:g} mm; shifting otherwise."))
         if data.status is not None and log.n_frames > 1:
             counts = {n: _col(rows, n, later) for n in STATUS_COLUMNS}
-            lab.add(rh.figure(plots.stacked_counts(frames_later, counts, plots.STATUS_COLOURS,
-                                                   "reprojection-error check"),
+            lab.add(figs.add(partial(plots.stacked_counts, frames_later, counts,
+                                     plots.STATUS_COLOURS, "reprojection-error check"),
                               "Intra-camera inliers (frame-0 position still reprojects: static "
                               "evidence), inter-camera inliers (re-triangulated: dynamic), "
                               "outliers, and points not visible."))
         sections.append(lab)
 
     # --- labelled clouds
-    views = _cloud_views(data, config.tool)
+    views = _cloud_views(data, config.tool, figs)
     if views:
         sections.append(rh.Section("clouds", "Labelled clouds").add(*views))
 
     # --- registration
     if data.status is not None and log.n_frames > 1:
         reg = rh.Section("registration", "Registration")
-        reg.add(rh.figure(plots.per_frame_boxes(
+        reg.add(figs.add(partial(plots.per_frame_boxes,
             frames_later, [data.displacement_mm[k] for k in later], "displacement from frame 0",
             "mm", lines={f"static below {config.classify.static_mm:g} mm":
                          config.classify.static_mm}),
             "Registered displacement ‖T_i p_i − p_i‖ per frame (boxes: quartiles, whiskers: "
             "5–95 %)."))
-        reg.add(rh.figure(plots.per_frame_boxes(
+        reg.add(figs.add(partial(plots.per_frame_boxes,
             frames_later, [data.residual_mm[k] for k in later], "data residual", "mm"),
             "Distance of each point with a target (intra/inter-camera inlier) to its target "
             "after registration."))
@@ -438,14 +474,14 @@ def _html(run_dir: Path, data: _RunData, rows: list[dict[str, Any]], summary: di
         per_frame = {}
         if data.seconds is not None and log.n_frames > 1:
             per_frame = {"target cloud": data.seconds[1:, 0], "registration": data.seconds[1:, 1]}
-        timing.add(rh.figure(plots.timing(stage_seconds, frames_later, per_frame),
+        timing.add(figs.add(partial(plots.timing, stage_seconds, frames_later, per_frame),
                              "Wall time of each stage (left) and of target-cloud building and "
                              "non-rigid registration per frame (right)."))
         sections.append(timing)
 
     # --- evaluation
     if data.evaluation:
-        sections.append(_evaluation_section(data, frames_later))
+        sections.append(_evaluation_section(data, frames_later, figs))
 
     files = rh.Section("files", "Files")
     files.add(rh.table(("file", "contents"), [
@@ -466,7 +502,8 @@ def _html(run_dir: Path, data: _RunData, rows: list[dict[str, Any]], summary: di
                             "Hannaford, IROS 2019")
 
 
-def _evaluation_section(data: _RunData, frames_later: np.ndarray) -> rh.Section:
+def _evaluation_section(data: _RunData, frames_later: np.ndarray,
+                        figs: _Figures) -> rh.Section:
     ev = data.evaluation or {}
     sec = rh.Section("evaluation", "Evaluation against ground truth")
     tpl = ev["template"]
@@ -491,7 +528,7 @@ def _evaluation_section(data: _RunData, frames_later: np.ndarray) -> rh.Section:
     if "template_error_mm" in errors:
         tool = errors.get("on_tool", np.zeros(len(errors["template_error_mm"]), bool)).astype(bool)
         by = {"on the surface": ~tool, "on the tool": tool} if tool.any() else None
-        sec.add(rh.figure(plots.histogram(
+        sec.add(figs.add(partial(plots.histogram,
             errors["template_error_mm"], "template error", "distance to the true surface (mm)",
             lines={"1 mm": 1.0}, by=by,
             colours={"on the surface": "#4C78A8", "on the tool": "#D1495B"}),
@@ -503,14 +540,14 @@ def _evaluation_section(data: _RunData, frames_later: np.ndarray) -> rh.Section:
         def get(key: str, pf: list[dict[str, Any]] = pf) -> np.ndarray:
             return np.array([np.nan if r.get(key) is None else r[key] for r in pf])
 
-        sec.add(rh.figure(plots.error_over_time(frames, get("median_mm"), get("p95_mm"),
-                                                get("max_mm")),
+        sec.add(figs.add(partial(plots.error_over_time, frames, get("median_mm"),
+                                 get("p95_mm"), get("max_mm")),
                           "Registration error: registered position vs. the followed material "
                           "point, all template points."))
         if "registration_error_mm" in errors:
             err = errors["registration_error_mm"]
-            sec.add(rh.figure(plots.error_histograms(frames_later,
-                                                     [err[k] for k in frames_later]),
+            sec.add(figs.add(partial(plots.error_histograms, frames_later,
+                                     [err[k] for k in frames_later]),
                               "Distribution of the registration error in each frame (dashed: "
                               "1 mm)."))
         sec.add(rh.table(("frame", "median mm", "p95 mm", "max mm", "within 1 mm"),
@@ -525,8 +562,9 @@ def _evaluation_section(data: _RunData, frames_later: np.ndarray) -> rh.Section:
                       for name, s in o["per_class"].items()]
         score_rows.append(("macro-F1", None, None, o["macro_f1"], None))
         sec.add(rh.grid(
-            rh.figure(plots.confusion(np.array(o["confusion"]), axes["rows"], axes["cols"]),
-                      "Rows: truth; columns: predicted (unknown = no label)."),
+            figs.add(partial(plots.confusion, np.array(o["confusion"]), axes["rows"],
+                             axes["cols"]),
+                     "Rows: truth; columns: predicted (unknown = no label)."),
             rh.table(("class", "precision", "recall", "F1", "support"), score_rows)))
         pf = labels["per_frame"]
         if pf:
@@ -535,7 +573,7 @@ def _evaluation_section(data: _RunData, frames_later: np.ndarray) -> rh.Section:
                                          if r["per_class"][name]["support"] else np.nan
                                          for r in pf]) for name in CLASS_NAMES.values()}
             macro = np.array([np.nan if r["macro_f1"] is None else r["macro_f1"] for r in pf])
-            sec.add(rh.figure(plots.f1_over_time(frames, per_class, macro),
+            sec.add(figs.add(partial(plots.f1_over_time, frames, per_class, macro),
                               "F1 per class and frame (gaps: the class is absent in that "
                               "frame's truth)."))
     return sec

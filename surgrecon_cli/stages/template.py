@@ -16,6 +16,8 @@ from ..core.labels import STATIC
 from ..core.template import TemplateResult, build_template
 from ..core.tool import tool_pose_in_world
 from ..errors import InputError
+from ..executors import Executor, mapper
+from ..executors.serial import SerialExecutor
 from ..io.atomic import write_json, write_npz
 from ..io.ingest_store import load_ingested
 from ..io.ply import write_cloud_ply
@@ -29,9 +31,11 @@ def cloud_path(run_dir: Path, frame: int) -> Path:
 
 
 def run_build_template(
-    run_dir: Path, config: Config, on_step: Callable[[str], None] | None = None
+    run_dir: Path, config: Config, on_step: Callable[[str], None] | None = None,
+    executor: Executor | None = None,
 ) -> TemplateResult:
-    """Build and write the template of frame 0 of an ingested run."""
+    """Build and write the template of frame 0 of an ingested run; the features of each
+    camera and the matches of each pair are tasks on `executor` (default: serial)."""
     run_dir = Path(run_dir)
     with stage_run(run_dir, STAGE, config, config_sections=("topics", "ingest")) as info:
         log = load_ingested(run_dir / "ingest")
@@ -47,6 +51,7 @@ def run_build_template(
             config.template,
             config.tool,
             on_step=on_step,
+            map_calls=mapper(executor or SerialExecutor()),
         )
         n = len(result.points)
         extra = {
