@@ -1,7 +1,7 @@
 """Scale benchmark (issue 6): ingest of a long log, and the whole pipeline on 1 and 2
 workers with each executor.
 
-    .venv/bin/python benchmarks/scale.py [--frames 60] [--long-gb 2.1] [--skip-long]
+    .venv/bin/python benchmarks/scale.py [--frames 60] [--repeat 3] [--long-gb 2.1] [--skip-long]
 
 1. Long log: `benchmarks/long_log.py` writes a >= 2 GB synthetic log (6 cameras; rendered
    images reused with new stamps), `surgrecon ingest` runs on it in a child process, and
@@ -9,7 +9,8 @@ workers with each executor.
 2. Pipeline: a simulated log of `--frames` frames (6 cameras, 640x480, as the shipped
    sample) goes through `surgrecon run` from scratch — ingest to report, imports and
    worker start-up included — with serial, processes and Dask LocalCluster executors on 1
-   and 2 workers. Printed: wall time, frames per second, the register and classify stage
+   and 2 workers, each `--repeat` times (rounds interleave the executors). Printed, for the
+   run of median wall time: wall time, frames per second, the register and classify stage
    times, speedups against serial and against the same executor on 1 worker (goal: >= 1.7x
    for 2 workers on 2 cores), and whether the clouds are byte-identical to serial's.
 Big files go to --workdir (default a temporary folder), deleted at the end.
@@ -53,19 +54,32 @@ def time_run(log: Path, run_dir: Path, executor: str, workers: int) -> dict:
             "stages": run["pipeline"]["seconds"], "digest": clouds_digest(run_dir)}
 
 
-def pipeline_table(work: Path, frames: int) -> None:
+def median_run(runs: list[dict]) -> dict:
+    """The run of median wall time (its stage times and digest with it); every run must
+    have produced the same clouds."""
+    ordered = sorted(runs, key=lambda run: run["wall"])
+    median = dict(ordered[len(ordered) // 2])
+    if len({run["digest"] for run in runs}) > 1:
+        median["digest"] = "differs between repeats"
+    return median
+
+
+def pipeline_table(work: Path, frames: int, repeat: int) -> None:
     log = work / f"scale{frames}.mcap"
     print(f"simulating {frames} frames (6 cameras, 640x480) ...", flush=True)
     subprocess.run([SURGRECON, "simulate", str(log), "--frames", str(frames), "-q"],
                    check=True, stdout=subprocess.DEVNULL)
-    rows = {}
-    for executor, workers in CONFIGS:
-        rows[executor, workers] = time_run(log, work / f"run-{executor}-{workers}", executor,
-                                           workers)
-        print(f"  {executor} x{workers}: {rows[executor, workers]['wall']:.1f} s", flush=True)
+    runs: dict[tuple[str, int], list[dict]] = {config: [] for config in CONFIGS}
+    for round_ in range(repeat):  # rounds interleave the configs, so drift hits all alike
+        for executor, workers in CONFIGS:
+            run = time_run(log, work / f"run-{executor}-{workers}", executor, workers)
+            runs[executor, workers].append(run)
+            print(f"  round {round_ + 1}/{repeat} {executor} x{workers}: {run['wall']:.1f} s",
+                  flush=True)
+    rows = {config: median_run(done) for config, done in runs.items()}
     serial = rows["serial", 1]
     print(f"\nwhole pipeline, {serial['frames']} frames x 6 cameras (imports and worker "
-          "start-up included)")
+          f"start-up included; median of {repeat} runs)")
     print(f"{'executor':<10} {'workers':>7} {'wall s':>7} {'frames/s':>8} {'register s':>10} "
           f"{'classify s':>10} {'vs serial':>9} {'vs 1 worker':>11} {'same clouds':>11}")
     for (executor, workers), row in rows.items():
@@ -93,6 +107,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--frames", type=int, default=60, help="frames of the pipeline log")
     parser.add_argument("--long-gb", type=float, default=2.1, help="size of the long log")
+    parser.add_argument("--repeat", type=int, default=3,
+                        help="runs per executor; the table shows the median")
     parser.add_argument("--skip-long", action="store_true", help="skip the long-log ingest")
     parser.add_argument("--workdir", type=Path, help="where the logs and runs go")
     args = parser.parse_args()
@@ -100,7 +116,7 @@ def main() -> None:
     try:
         if not args.skip_long:
             long_log_table(work, args.long_gb)
-        pipeline_table(work, args.frames)
+        pipeline_table(work, args.frames, args.repeat)
     finally:
         shutil.rmtree(work, ignore_errors=True)
 

@@ -184,7 +184,7 @@ def run_pipeline(log: Path, run_dir: Path, config: Config, ground_truth: Path | 
         with open_executor(config) as own:
             return run_pipeline(log, run_dir, config, ground_truth, allow_truncated,
                                 on_progress, on_stage, own)
-    from .stages.classify import run_classify
+    from .stages.classify import frame_classifier, run_classify
     from .stages.evaluate import run_evaluate
     from .stages.ingest import ingest
     from .stages.register import run_register
@@ -233,6 +233,7 @@ def run_pipeline(log: Path, run_dir: Path, config: Config, ground_truth: Path | 
         return report
 
     ran_any = False
+    classified: dict[int, Any] = {}  # classify_one_frame results of frames registered now
     for stage in wanted:
         progress = reporter(stage)
         action = _action(run, stage, ran_any or force_ingest)
@@ -271,10 +272,14 @@ def run_pipeline(log: Path, run_dir: Path, config: Config, ground_truth: Path | 
                     frames[0] += 1
                     progress(frames[0] / max(n - 1, 1))
 
-                run_register(run_dir, config, on_frame=on_frame, executor=executor)
+                # Frames are classified as they are registered, on workers the chain of
+                # base frames leaves idle; classify then has only the rest to do.
+                run_register(run_dir, config, on_frame=on_frame, executor=executor,
+                             after_frame=frame_classifier(run_dir, config),
+                             on_after=classified.__setitem__)
             elif stage == "classify":
                 run_classify(run_dir, config, on_step=lambda d, t, p=progress: p(d / t),
-                             executor=executor)
+                             executor=executor, classified=classified)
             elif stage == "evaluate" and gt is not None:  # only wanted with ground truth
                 result.evaluation = run_evaluate(run_dir, config, gt,
                                                  on_step=lambda d, t, p=progress: p(d / t))

@@ -14,7 +14,14 @@ import pytest
 
 from surgrecon_cli.config import Config, RunConfig, load_config
 from surgrecon_cli.errors import ConfigError
-from surgrecon_cli.executors import ExecutorError, Task, make_executor, topological_order
+from surgrecon_cli.executors import (
+    ExecutorError,
+    Task,
+    check_graph,
+    make_executor,
+    run_graph,
+    topological_order,
+)
 from surgrecon_cli.pipeline import run_pipeline
 from surgrecon_cli.stages.register import base_frame
 
@@ -62,6 +69,55 @@ def test_graph_errors_are_named():
     with pytest.raises(ExecutorError, match="cycle"):
         list(topological_order([Task("a", pow, (1, 1), deps=("b",)),
                                 Task("b", pow, (1, 1), deps=("a",))]))
+
+
+class _Future:
+    """A finished future of the fake engine below."""
+
+    def __init__(self, value):
+        self.value = value
+
+    def result(self):
+        return self.value
+
+    def cancel(self):
+        return False
+
+
+def test_driver_sends_the_longest_path_first_and_fills_free_slots_before_bookkeeping():
+    """A chain a -> b -> c and three independent tasks, on one slot: the links with tasks
+    after them go first (rank 3, then 2), the rest (rank 1) in the order given; the driver
+    submits the next task before it calls on_done for the finished one."""
+    tasks = [Task("x", pow, (1, 1)), Task("y", pow, (2, 1)), Task("a", pow, (3, 1)),
+             Task("b", pow, (4, 1), deps=("a",)), Task("z", pow, (5, 1)),
+             Task("c", pow, (6, 1), deps=("b",))]
+    events: list[str] = []
+
+    def submit(task, priority):
+        events.append(f"submit {task.key} {priority}")
+        return _Future(task.fn(*task.args))
+
+    results = run_graph(tasks, submit, lambda futures: futures[:1],
+                        on_done=lambda key, _v: events.append(f"done {key}"), slots=1)
+    assert results == {"x": 1, "y": 2, "a": 3, "b": 4, "z": 5, "c": 6}
+    assert [e for e in events if e.startswith("submit")] == [
+        "submit a 3", "submit b 2", "submit x 1", "submit y 1", "submit z 1", "submit c 1"]
+    # Bookkeeping of a finished task comes after the next task is on its way.
+    assert events.index("submit b 2") < events.index("done a")
+    assert events[-1] == "done c"
+
+
+def test_graph_order_is_stable_and_linear_in_a_long_chain():
+    """5,000 frames re-based every 2 frames (the register stage's graph), and every frame
+    followed by one more task: dependencies first, ranks count the longest path."""
+    tasks = [Task(str(k), pow, (k, 1), (str(base_frame(k, 2)),) if base_frame(k, 2) else ())
+             for k in range(1, 5001)]
+    tasks += [Task(f"after-{k}", pow, (k, 1), (str(k),)) for k in range(1, 5001)]
+    graph = check_graph(tasks)
+    place = {task.key: i for i, task in enumerate(graph.order)}
+    assert all(place[d] < place[t.key] for t in tasks for d in t.deps)
+    assert graph.rank["2"] == 2500 and graph.rank["1"] == 2 and graph.rank["after-1"] == 1
+    assert [t.key for t in graph.order[:3]] == ["1", "2", "3"]
 
 
 def test_config_rejects_unknown_executor_and_scheduler_without_dask():

@@ -17,8 +17,9 @@ counts and workers do not oversubscribe the cores.
 
 from __future__ import annotations
 
+import heapq
 import os
-from collections.abc import Callable, Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Protocol
 
@@ -67,68 +68,108 @@ class Executor(Protocol):
         ...
 
 
-def check_graph(tasks: Sequence[Task]) -> dict[str, Task]:
-    """Tasks by key; ExecutorError on a duplicate key or a dependency outside the graph."""
+@dataclass(frozen=True)
+class Graph:
+    """A checked task graph: tasks in a topological order (stable: a task comes as early
+    as its dependencies allow, in the order given), the tasks that depend on each one,
+    and each task's rank, the number of tasks on the longest path from it to the end."""
+
+    order: tuple[Task, ...]
+    dependants: dict[str, tuple[str, ...]]
+    rank: dict[str, int]
+
+
+def check_graph(tasks: Sequence[Task]) -> Graph:
+    """The `Graph` of `tasks`; ExecutorError on a duplicate key, a dependency outside the
+    graph or a cycle. Linear in the number of tasks and dependencies."""
     by_key: dict[str, Task] = {}
     for task in tasks:
         if task.key in by_key:
             raise ExecutorError(f"task {task.key!r} appears twice in one graph")
         by_key[task.key] = task
+    dependants: dict[str, list[str]] = {key: [] for key in by_key}
+    missing: dict[str, int] = {}
     for task in tasks:
-        missing = [d for d in task.deps if d not in by_key]
-        if missing:
-            raise ExecutorError(f"task {task.key!r} depends on unknown task(s) {missing}")
-    return by_key
+        unknown = [d for d in task.deps if d not in by_key]
+        if unknown:
+            raise ExecutorError(f"task {task.key!r} depends on unknown task(s) {unknown}")
+        for dep in set(task.deps):
+            dependants[dep].append(task.key)
+        missing[task.key] = len(set(task.deps))
+    position = {key: i for i, key in enumerate(by_key)}
+    ready = [position[k] for k, n in missing.items() if n == 0]
+    heapq.heapify(ready)
+    keys = list(by_key)
+    order: list[Task] = []
+    while ready:
+        key = keys[heapq.heappop(ready)]
+        order.append(by_key[key])
+        for child in dependants[key]:
+            missing[child] -= 1
+            if missing[child] == 0:
+                heapq.heappush(ready, position[child])
+    if len(order) < len(by_key):
+        stuck = [k for k in keys if missing[k] > 0]
+        raise ExecutorError(f"tasks {stuck[:5]} depend on each other in a cycle")
+    rank: dict[str, int] = {}
+    for task in reversed(order):
+        rank[task.key] = 1 + max((rank[c] for c in dependants[task.key]), default=0)
+    return Graph(tuple(order), {k: tuple(v) for k, v in dependants.items()}, rank)
 
 
-def topological_order(tasks: Sequence[Task]) -> Iterator[Task]:
+def topological_order(tasks: Sequence[Task]) -> list[Task]:
     """Tasks so that every task comes after its dependencies (stable for the rest);
-    ExecutorError on a cycle."""
-    by_key = check_graph(tasks)
-    done: set[str] = set()
-    pending = list(by_key)
-    while pending:
-        ready = [k for k in pending if all(d in done for d in by_key[k].deps)]
-        if not ready:
-            raise ExecutorError(f"tasks {pending[:5]} depend on each other in a cycle")
-        for key in ready:
-            done.add(key)
-            yield by_key[key]
-        pending = [k for k in pending if k not in done]
+    ExecutorError on a cycle (before anything runs)."""
+    return list(check_graph(tasks).order)
 
 
-def run_graph(tasks: Sequence[Task], submit: Callable[[Task], Any],
+def run_graph(tasks: Sequence[Task], submit: Callable[[Task, int], Any],
               wait_any: Callable[[list[Any]], Iterable[Any]],
-              on_done: OnDone | None = None) -> dict[str, Any]:
-    """The driver loop of the parallel executors: submit every task whose dependencies
-    have finished, collect results as futures complete, repeat. `submit(task)` returns a
-    future (`.result()`, `.cancel()`); `wait_any(futures)` blocks until at least one is
-    done and returns the done ones. Dependencies are kept here, not handed to the
-    engine, so a dependent task may run on any worker (engines that place a task where
-    its dependency ran would serialise a chain's side branches). On the first error the
-    tasks not yet started are cancelled and the error is raised."""
-    # Checks keys, dependencies and cycles before anything runs.
-    waiting = {task.key: task for task in topological_order(tasks)}
+              on_done: OnDone | None = None, slots: int | None = None) -> dict[str, Any]:
+    """The driver loop of the parallel executors: submit the tasks whose dependencies have
+    finished, collect results as futures complete, repeat.
+
+    `submit(task, priority)` returns a future (`.result()`, `.cancel()`); `wait_any(futures)`
+    blocks until at least one is done and returns the done ones. Ready tasks go out
+    longest path first (`Graph.rank`, also passed as the priority), so a dependency chain
+    is never kept waiting behind tasks that could run later; with `slots`, at most that
+    many tasks are in flight (an engine's own queue would otherwise run tasks first come,
+    first served). Dependencies are kept here, not handed to the engine, so a dependent
+    task may run on any worker (engines that place a task where its dependency ran would
+    serialise a chain's side branches). New tasks are submitted before `on_done` runs for
+    the finished ones, so the driver's bookkeeping never keeps a worker idle. On the first
+    error the tasks not yet started are cancelled and the error is raised."""
+    graph = check_graph(tasks)  # keys, dependencies and cycles, before anything runs
+    by_key = {task.key: task for task in graph.order}
+    position = {task.key: i for i, task in enumerate(graph.order)}
+    missing = {task.key: len(set(task.deps)) for task in graph.order}
+    ready = [(-graph.rank[k], position[k], k) for k, n in missing.items() if n == 0]
+    heapq.heapify(ready)
     results: dict[str, Any] = {}
     running: dict[Any, str] = {}
-
-    def submit_ready() -> None:
-        for key in [k for k, t in waiting.items() if all(d in results for d in t.deps)]:
-            running[submit(waiting.pop(key))] = key
-
+    finished: list[str] = []
     try:
-        submit_ready()
-        while running:
+        while True:
+            while ready and (slots is None or len(running) < slots):
+                key = heapq.heappop(ready)[2]
+                running[submit(by_key[key], graph.rank[key])] = key
+            if on_done is not None:
+                for key in finished:
+                    on_done(key, results[key])
+            if not running:
+                return results
+            finished = []
             for future in wait_any(list(running)):
                 key = running.pop(future)
                 results[key] = future.result()
-                if on_done is not None:
-                    on_done(key, results[key])
-            submit_ready()
+                finished.append(key)
+                for child in graph.dependants[key]:
+                    missing[child] -= 1
+                    if missing[child] == 0:
+                        heapq.heappush(ready, (-graph.rank[child], position[child], child))
     finally:
         for future in running:
             future.cancel()
-    return results
 
 
 _LIMITED = {"done": False}

@@ -5,8 +5,9 @@ is started for the executor's lifetime; with one (`--scheduler tcp://host:8786`)
 tasks go to that cluster's workers, which must have surgrecon installed and see the run
 folder at the same path (a shared filesystem). Tasks are submitted as their dependencies
 finish (`run_graph`: Dask would otherwise pin a chain's side branches to the worker that
-ran the dependency); a failed or lost task is retried `retries` times without touching
-the others; progress is driven by completed futures.
+ran the dependency), with the length of their longest path as the priority; a failed or
+lost task is retried `retries` times without touching the others; progress is driven by
+completed futures.
 """
 
 from __future__ import annotations
@@ -63,10 +64,10 @@ class DaskExecutor:
 
         run_id = uuid.uuid4().hex[:8]
 
-        def submit(task: Task) -> Any:
+        def submit(task: Task, priority: int) -> Any:
             return self._client.submit(call_task, task.fn, task.args,
                                        key=f"{task.key}-{run_id}", retries=self.retries,
-                                       pure=False)
+                                       priority=priority, pure=False)
 
         return run_graph(tasks, submit, lambda fs: wait(fs, return_when="FIRST_COMPLETED").done,
                          on_done)

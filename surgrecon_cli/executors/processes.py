@@ -1,7 +1,8 @@
 """The processes executor: a pool of local worker processes (spawned, single-threaded).
 
 The driver keeps the graph (`run_graph`): a task is submitted when its dependencies have
-finished, and results are collected in completion order. A task that raises stops the
+finished and a worker is free (longest path first), and results are collected in
+completion order. A task that raises stops the
 graph (tasks not yet started are cancelled) and its exception is re-raised; a worker
 that dies (killed, out of memory) is reported as an ExecutorError — rerunning resumes from
 what the finished tasks wrote.
@@ -61,8 +62,9 @@ class ProcessExecutor:
     def run(self, tasks: Sequence[Task], on_done: OnDone | None = None) -> dict[str, Any]:
         pool = self._get_pool()
         try:
-            return run_graph(tasks, lambda t: pool.submit(call_task, t.fn, t.args),
-                             lambda fs: wait(fs, return_when=FIRST_COMPLETED)[0], on_done)
+            return run_graph(tasks, lambda t, _priority: pool.submit(call_task, t.fn, t.args),
+                             lambda fs: wait(fs, return_when=FIRST_COMPLETED)[0], on_done,
+                             slots=self.workers)
         except BrokenProcessPool as exc:
             self.close()
             raise ExecutorError(f"a worker process died ({exc}); rerun to resume from the "

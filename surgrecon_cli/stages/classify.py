@@ -79,43 +79,59 @@ def classify_one_frame(run_dir: Path, frame: int, template: np.ndarray, nb: Neig
     return classes, reg["status"].astype(np.uint8)
 
 
+def frame_classifier(run_dir: Path, config: Config) -> Callable[[int], Task]:
+    """`task(k)`: the task classifying frame k of a run whose template is built (e.g. for
+    run_register's `after_frame`, to classify frames as they are registered); the template
+    and its neighbourhoods are loaded and built once, here."""
+    run_dir = Path(run_dir).absolute()
+    cfg = config.classify
+    template, _ = load_template(run_dir)
+    nb = template_neighbourhoods(template, cfg.neighbourhood_mm, cfg.min_neighbours,
+                                 cfg.max_neighbours)
+    return lambda k: Task(f"classify-{k}", classify_one_frame, (run_dir, k, template, nb, config))
+
+
 def run_classify(run_dir: Path, config: Config,
                  on_step: Callable[[int, int], None] | None = None,
-                 executor: Executor | None = None) -> dict:
+                 executor: Executor | None = None,
+                 classified: dict[int, tuple[FrameClasses, np.ndarray]] | None = None) -> dict:
     """Classify every frame of a registered run; returns the stage info (class counts etc.).
 
     Frames are classified as independent tasks on `executor` (default: serial), then the
-    hysteresis runs over time and every cloud is relabelled (tasks again). `on_step(done,
-    total)` reports progress over 2T steps (T frames classified, T clouds written)."""
+    hysteresis runs over time and every cloud is relabelled (tasks again). `classified`
+    holds the `classify_one_frame` results of frames already classified with this config
+    and the current registration (e.g. alongside register); only the others are computed.
+    `on_step(done, total)` reports progress over 2T steps (T frames classified, T clouds
+    written)."""
     run_dir = Path(run_dir)
-    cfg = config.classify
     executor = executor or SerialExecutor()
+    classified = dict(classified or {})
     with stage_run(run_dir, STAGE, config, needs=("ingest", "build-template", "register")) as info:
         n_frames = load_ingested(run_dir / "ingest").n_frames
-        template, _ = load_template(run_dir)
-        n = len(template)
-        nb = template_neighbourhoods(template, cfg.neighbourhood_mm, cfg.min_neighbours,
-                                     cfg.max_neighbours)
         total = 2 * n_frames
         step = on_step or (lambda _d, _t: None)
-        count = [1]
+        count = [1 + len(classified)]
 
         def advance(_key: str, _value: object) -> None:
             count[0] += 1
             step(count[0], total)
 
-        step(1, total)
-        done = executor.run([Task(str(k), classify_one_frame,
-                                  (run_dir.absolute(), k, template, nb, config))
-                             for k in range(1, n_frames)], advance)
+        step(count[0], total)
+        n = len(load_template(run_dir)[0])
+        todo = [k for k in range(1, n_frames) if k not in classified]
+        if todo:
+            classify_task = frame_classifier(run_dir, config)
+            tasks = [classify_task(k) for k in todo]
+            done = executor.run(tasks, advance)
+            classified.update({k: done[t.key] for k, t in zip(todo, tasks, strict=True)})
         frames = [FrameClasses(labels=np.full(n, STATIC, np.uint8),
                                displacement_mm=np.zeros(n), deformation_mm=np.full(n, np.nan))]
         status = [np.full(n, INTRA, np.uint8)]
         for k in range(1, n_frames):
-            frames.append(done[str(k)][0])
-            status.append(done[str(k)][1])
+            frames.append(classified[k][0])
+            status.append(classified[k][1])
         raw = np.stack([f.labels for f in frames])
-        labels = apply_hysteresis(raw, cfg.hysteresis_frames)
+        labels = apply_hysteresis(raw, config.classify.hysteresis_frames)
         write_npz(labels_path(run_dir), labels=labels, raw_labels=raw,
                   displacement_mm=np.stack([f.displacement_mm for f in frames]).astype(np.float32),
                   deformation_mm=np.stack([f.deformation_mm for f in frames]).astype(np.float32),

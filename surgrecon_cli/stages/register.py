@@ -22,8 +22,9 @@ from __future__ import annotations
 import json
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -170,7 +171,8 @@ def register_frame(run_dir: Path, frame: int, config: Config) -> dict:
 
 def run_register(
     run_dir: Path, config: Config, on_frame: Callable[[int, int], None] | None = None,
-    executor: Executor | None = None,
+    executor: Executor | None = None, after_frame: Callable[[int], Task] | None = None,
+    on_after: Callable[[int, Any], None] | None = None,
 ) -> list[int]:
     """Register every frame not yet done; returns the frames processed by this call.
 
@@ -178,6 +180,9 @@ def run_register(
     every N_T frames, a frame waits for its base frame, a dependency chain over the bases.
     `executor` runs the tasks (default: serial); `on_frame(frame, n_frames)` is called as
     each frame finishes (progress), and run.json records every finished frame at once.
+    `after_frame(frame)` may give a task to run on each frame once it is registered (e.g.
+    its classification): in the same graph, such tasks fill the workers that the chain
+    leaves idle; their results go to `on_after(frame, value)`.
     """
     run_dir = Path(run_dir)
     run = RunFolder(run_dir)
@@ -198,15 +203,24 @@ def run_register(
         done = {k for k in done_before if 0 < k < n_frames
                 and registration_path(run_dir, k).is_file() and cloud_path(run_dir, k).is_file()}
         every = config.registration.template_update_every
+        frames = [k for k in range(1, n_frames) if k not in done]
         tasks = []
-        for frame in range(1, n_frames):
-            if frame not in done:
-                base = base_frame(frame, every)
-                deps = (str(base),) if base and base not in done else ()
-                tasks.append(Task(str(frame), register_frame,
-                                  (run_dir.absolute(), frame, config), deps))
+        for frame in frames:
+            base = base_frame(frame, every)
+            deps = (str(base),) if base and base not in done else ()
+            tasks.append(Task(str(frame), register_frame, (run_dir.absolute(), frame, config),
+                              deps))
+        followers: dict[str, int] = {}
+        for frame in frames if after_frame is not None else ():
+            task = after_frame(frame)
+            followers[task.key] = frame
+            tasks.append(replace(task, deps=(*task.deps, str(frame))))
 
-        def on_done(key: str, _summary: dict) -> None:
+        def on_done(key: str, value: Any) -> None:
+            if key in followers:
+                if on_after is not None:
+                    on_after(followers[key], value)
+                return
             done.add(int(key))
             run.mark_stage(STAGE, "running", frames_done=sorted(done), config=fingerprint)
             if on_frame is not None:
@@ -214,7 +228,7 @@ def run_register(
 
         (executor or SerialExecutor()).run(tasks, on_done)
         info.update(frames_done=sorted(done), config=fingerprint)
-    return sorted(int(t.key) for t in tasks)
+    return frames
 
 
 def register_with_contact(source: np.ndarray, source_rgb: np.ndarray, target_xyz: np.ndarray,
