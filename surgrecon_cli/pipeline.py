@@ -184,7 +184,7 @@ def run_pipeline(log: Path, run_dir: Path, config: Config, ground_truth: Path | 
         with open_executor(config) as own:
             return run_pipeline(log, run_dir, config, ground_truth, allow_truncated,
                                 on_progress, on_stage, own)
-    from .stages.classify import frame_classifier, run_classify
+    from .stages.classify import classify_task, run_classify
     from .stages.evaluate import run_evaluate
     from .stages.ingest import ingest
     from .stages.register import run_register
@@ -275,7 +275,7 @@ def run_pipeline(log: Path, run_dir: Path, config: Config, ground_truth: Path | 
                 # Frames are classified as they are registered, on workers the chain of
                 # base frames leaves idle; classify then has only the rest to do.
                 run_register(run_dir, config, on_frame=on_frame, executor=executor,
-                             after_frame=frame_classifier(run_dir, config),
+                             after_frame=partial(classify_task, run_dir, config),
                              on_after=classified.__setitem__)
             elif stage == "classify":
                 run_classify(run_dir, config, on_step=lambda d, t, p=progress: p(d / t),

@@ -10,6 +10,7 @@ the registration wrote are kept). Frame 0 is the reference: all static.
 
 from __future__ import annotations
 
+import functools
 import logging
 from collections.abc import Callable
 from pathlib import Path
@@ -66,11 +67,34 @@ def load_registration_frame(run_dir: Path, frame: int, n_points: int) -> dict[st
     return data
 
 
-def classify_one_frame(run_dir: Path, frame: int, template: np.ndarray, nb: Neighbourhoods,
+TemplateInputs = tuple[np.ndarray, Neighbourhoods]  # template (N, 3) m, its neighbourhoods
+
+
+@functools.lru_cache(maxsize=4)
+def _cached_template(run_dir: str, _stamp: tuple[int, int, int], neighbourhood_mm: float,
+                     min_neighbours: int, max_neighbours: int) -> TemplateInputs:
+    template, _ = load_template(Path(run_dir))
+    template.flags.writeable = False  # shared by every frame this process classifies
+    return template, template_neighbourhoods(template, neighbourhood_mm, min_neighbours,
+                                             max_neighbours)
+
+
+def template_and_neighbourhoods(run_dir: Path, config: Config) -> TemplateInputs:
+    """The run's template (N, 3) m and its classify neighbourhoods, built once per process
+    and template file (~30 ms on the sample; a worker classifies many frames). The file is
+    replaced, never rewritten in place, so its inode, mtime and size identify it."""
+    path = Path(run_dir).absolute()
+    st = (path / "template.ply").stat()
+    cfg = config.classify
+    return _cached_template(str(path), (st.st_ino, st.st_mtime_ns, st.st_size),
+                            cfg.neighbourhood_mm, cfg.min_neighbours, cfg.max_neighbours)
+
+
+def classify_one_frame(run_dir: Path, frame: int,
                        config: Config) -> tuple[FrameClasses, np.ndarray]:
     """Labels of one frame k >= 1 from its registration (a task), and its reprojection
-    check status (N,) uint8. template (N, 3) m and its neighbourhoods come from the driver,
-    which builds them once for all frames."""
+    check status (N,) uint8."""
+    template, nb = template_and_neighbourhoods(run_dir, config)
     reg = load_registration_frame(run_dir, frame, len(template))
     cfg = config.classify
     transforms = reg["transforms"].astype(float) if cfg.measure == "transform_diff" else None
@@ -79,16 +103,11 @@ def classify_one_frame(run_dir: Path, frame: int, template: np.ndarray, nb: Neig
     return classes, reg["status"].astype(np.uint8)
 
 
-def frame_classifier(run_dir: Path, config: Config) -> Callable[[int], Task]:
-    """`task(k)`: the task classifying frame k of a run whose template is built (e.g. for
-    run_register's `after_frame`, to classify frames as they are registered); the template
-    and its neighbourhoods are loaded and built once, here."""
-    run_dir = Path(run_dir).absolute()
-    cfg = config.classify
-    template, _ = load_template(run_dir)
-    nb = template_neighbourhoods(template, cfg.neighbourhood_mm, cfg.min_neighbours,
-                                 cfg.max_neighbours)
-    return lambda k: Task(f"classify-{k}", classify_one_frame, (run_dir, k, template, nb, config))
+def classify_task(run_dir: Path, config: Config, frame: int) -> Task:
+    """The task classifying frame k (e.g. for run_register's `after_frame`, to classify
+    frames as they are registered)."""
+    return Task(f"classify-{frame}", classify_one_frame, (Path(run_dir).absolute(), frame,
+                                                          config))
 
 
 def run_classify(run_dir: Path, config: Config,
@@ -117,13 +136,11 @@ def run_classify(run_dir: Path, config: Config,
             step(count[0], total)
 
         step(count[0], total)
-        n = len(load_template(run_dir)[0])
+        n = len(template_and_neighbourhoods(run_dir, config)[0])
         todo = [k for k in range(1, n_frames) if k not in classified]
-        if todo:
-            classify_task = frame_classifier(run_dir, config)
-            tasks = [classify_task(k) for k in todo]
-            done = executor.run(tasks, advance)
-            classified.update({k: done[t.key] for k, t in zip(todo, tasks, strict=True)})
+        tasks = [classify_task(run_dir, config, k) for k in todo]
+        done = executor.run(tasks, advance)
+        classified.update({k: done[t.key] for k, t in zip(todo, tasks, strict=True)})
         frames = [FrameClasses(labels=np.full(n, STATIC, np.uint8),
                                displacement_mm=np.zeros(n), deformation_mm=np.full(n, np.nan))]
         status = [np.full(n, INTRA, np.uint8)]
