@@ -12,7 +12,9 @@ completed futures.
 
 from __future__ import annotations
 
+import importlib.util
 import logging
+import threading
 import uuid
 from collections.abc import Sequence
 from typing import Any
@@ -26,64 +28,102 @@ _QUIET_WORKERS = {"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": 
 
 
 class DaskExecutor:
-    """A Dask `Client` on a LocalCluster or on the scheduler at `scheduler`."""
+    """A Dask `Client` on a LocalCluster or on the scheduler at `scheduler`.
+
+    A scheduler address is connected to at once (a wrong address fails before any work);
+    a LocalCluster starts in the background (~1 s on 2 cores) while the driver goes on
+    (e.g. with ingest), and the first graph waits for it."""
 
     kind = "dask"
 
     def __init__(self, workers: int, scheduler: str = "", retries: int = 2,
                  modules: tuple[str, ...] = ()):
-        try:
-            from distributed import Client, LocalCluster
-        except ImportError as exc:
+        if importlib.util.find_spec("distributed") is None:  # imported where it is used
             raise ExecutorError("--executor dask needs Dask distributed: pip install "
-                                "'surgrecon[dask]'") from exc
+                                "'surgrecon[dask]'")
         self.retries = retries
-        self._cluster = None
-        try:
-            if scheduler:
-                self._client = Client(scheduler, timeout="20s")
-            else:
-                import dask
+        self.workers = workers
+        self._cluster: Any = None
+        self._client: Any = None
+        self._failure: BaseException | None = None
+        self._starting: threading.Thread | None = None
+        if scheduler:
+            self._connect(scheduler, modules)
+        else:
+            self._starting = threading.Thread(target=self._start_local, args=(workers, modules),
+                                              name="dask-local-cluster", daemon=True)
+            self._starting.start()
 
-                # Measured on the pipeline's tasks: glibc's trim threshold, which Dask sets
-                # for its workers, makes them ~15 % slower (large numpy temporaries are then
-                # mapped and unmapped each time); the statistical profiler and the GIL
-                # monitor, sampling every 10 ms and 1 ms, cost ~5 % more.
-                with dask.config.set(_QUIET_WORKERS):
-                    self._cluster = LocalCluster(n_workers=workers, threads_per_worker=1,
-                                                 processes=True, dashboard_address=":0",
-                                                 silence_logs=logging.WARNING)
-                self._client = Client(self._cluster)
-                logger.info("Dask LocalCluster: %d workers, dashboard %s", workers,
-                            self._client.dashboard_link)
+    def _connect(self, scheduler: str, modules: tuple[str, ...]) -> None:
+        from distributed import Client
+
+        try:
+            self._client = Client(scheduler, timeout="20s")
         except (OSError, TimeoutError) as exc:
             raise ExecutorError(f"cannot reach the Dask scheduler {scheduler!r}: {exc}") from exc
+        self._warm_up(modules)
+
+    def _start_local(self, workers: int, modules: tuple[str, ...]) -> None:
+        import dask
+        from distributed import Client, LocalCluster
+
+        try:
+            # Measured on the pipeline's tasks: glibc's trim threshold, which Dask sets for
+            # its workers, makes them ~15 % slower (large numpy temporaries are then mapped
+            # and unmapped each time); the statistical profiler and the GIL monitor,
+            # sampling every 10 ms and 1 ms, cost ~5 % more.
+            with dask.config.set(_QUIET_WORKERS):
+                self._cluster = LocalCluster(n_workers=workers, threads_per_worker=1,
+                                             processes=True, dashboard_address=":0",
+                                             silence_logs=logging.WARNING)
+            self._client = Client(self._cluster)
+            logger.info("Dask LocalCluster: %d workers, dashboard %s", workers,
+                        self._client.dashboard_link)
+            self._warm_up(modules)
+        except Exception as exc:  # reported by the first graph (`_ready`)
+            self._failure = exc
+
+    def _warm_up(self, modules: tuple[str, ...]) -> None:
         addresses = list(self._client.scheduler_info().get("workers", {}))
         self.workers = max(len(addresses), 1)
         # Held so that the start-up imports are not cancelled as unreferenced futures.
         self._warm = [self._client.submit(preload, modules, workers=[address], pure=False)
                       for address in addresses]
 
+    def _ready(self) -> Any:
+        """The client, once the LocalCluster (if any) has started."""
+        if self._starting is not None:
+            self._starting.join()
+            self._starting = None
+        if self._failure is not None:
+            raise ExecutorError(f"the Dask LocalCluster did not start: {self._failure}")
+        if self._client is None:
+            raise ExecutorError("the Dask executor is closed")
+        return self._client
+
     @property
     def client(self) -> Any:
         """The `distributed.Client` (e.g. to inspect or restart workers)."""
-        return self._client
+        return self._ready()
 
     def run(self, tasks: Sequence[Task], on_done: OnDone | None = None) -> dict[str, Any]:
         from distributed import wait
 
+        client = self._ready()
         run_id = uuid.uuid4().hex[:8]
 
         def submit(task: Task, priority: int) -> Any:
-            return self._client.submit(call_task, task.fn, task.args,
-                                       key=f"{task.key}-{run_id}", retries=self.retries,
-                                       priority=priority, pure=False)
+            return client.submit(call_task, task.fn, task.args, key=f"{task.key}-{run_id}",
+                                 retries=self.retries, priority=priority, pure=False)
 
         return run_graph(tasks, submit, lambda fs: wait(fs, return_when="FIRST_COMPLETED").done,
                          on_done)
 
     def close(self) -> None:
-        if getattr(self, "_client", None) is not None:
+        if self._starting is not None:
+            self._starting.join()
+            self._starting = None
+        if self._client is not None:
             self._client.close()
             self._client = None
         if self._cluster is not None:
