@@ -125,12 +125,14 @@ def topological_order(tasks: Sequence[Task]) -> list[Task]:
 
 def run_graph(tasks: Sequence[Task], submit: Callable[[Task, int], Any],
               wait_any: Callable[[list[Any]], Iterable[Any]],
-              on_done: OnDone | None = None, slots: int | None = None) -> dict[str, Any]:
+              on_done: OnDone | None = None, slots: int | None = None,
+              gather: Callable[[list[Any]], list[Any]] | None = None) -> dict[str, Any]:
     """The driver loop of the parallel executors: submit the tasks whose dependencies have
     finished, collect results as futures complete, repeat.
 
     `submit(task, priority)` returns a future (`.result()`, `.cancel()`); `wait_any(futures)`
-    blocks until at least one is done and returns the done ones. Ready tasks go out
+    blocks until at least one is done and returns the done ones; `gather(futures)` gives
+    their results in one call (default: each future's `.result()`). Ready tasks go out
     longest path first (`Graph.rank`, also passed as the priority), so a dependency chain
     is never kept waiting behind tasks that could run later; with `slots`, at most that
     many tasks are in flight (an engine's own queue would otherwise run tasks first come,
@@ -158,11 +160,11 @@ def run_graph(tasks: Sequence[Task], submit: Callable[[Task, int], Any],
                     on_done(key, results[key])
             if not running:
                 return results
-            finished = []
-            for future in wait_any(list(running)):
-                key = running.pop(future)
-                results[key] = future.result()
-                finished.append(key)
+            done = list(wait_any(list(running)))
+            values = gather(done) if gather is not None else [f.result() for f in done]
+            finished = [running.pop(future) for future in done]
+            for key, value in zip(finished, values, strict=True):
+                results[key] = value
                 for child in graph.dependants[key]:
                     missing[child] -= 1
                     if missing[child] == 0:

@@ -22,7 +22,7 @@ from typing import Any
 from . import ExecutorError, OnDone, Task, call_task, preload, run_graph
 
 logger = logging.getLogger(__name__)
-_QUIET_WORKERS = {"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None,
+_LOCAL_CLUSTER = {"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None,
                   "distributed.worker.profile.enabled": False,
                   "distributed.admin.system-monitor.gil.enabled": False}
 
@@ -72,7 +72,7 @@ class DaskExecutor:
             # its workers, makes them ~15 % slower (large numpy temporaries are then mapped
             # and unmapped each time); the statistical profiler and the GIL monitor,
             # sampling every 10 ms and 1 ms, cost ~5 % more.
-            with dask.config.set(_QUIET_WORKERS):
+            with dask.config.set(_LOCAL_CLUSTER):
                 self._cluster = LocalCluster(n_workers=workers, threads_per_worker=1,
                                              processes=True, dashboard_address=":0",
                                              silence_logs=logging.WARNING)
@@ -117,7 +117,7 @@ class DaskExecutor:
                                  retries=self.retries, priority=priority, pure=False)
 
         return run_graph(tasks, submit, lambda fs: wait(fs, return_when="FIRST_COMPLETED").done,
-                         on_done)
+                         on_done, gather=client.gather)
 
     def close(self) -> None:
         if self._starting is not None:
