@@ -22,7 +22,9 @@ from surgrecon_cli.executors import (
     run_graph,
     topological_order,
 )
+from surgrecon_cli.io.run_folder import RunFolder
 from surgrecon_cli.pipeline import run_pipeline
+from surgrecon_cli.stages.classify import run_classify
 from surgrecon_cli.stages.register import base_frame
 
 KINDS = ("serial", "processes", "dask")
@@ -170,6 +172,19 @@ def test_pipeline_outputs_identical_across_executors(kind, pipeline_run, pipelin
     assert result.actions["register"] == "ran"
     assert len(list((tmp_path / kind / "clouds").glob("*.ply"))) == 6
     _assert_same(_outputs(reference), _outputs(tmp_path / kind))
+
+
+def test_frames_classified_with_register_equal_the_classify_stage_alone(pipeline_run,
+                                                                       copy_run):
+    """The pipeline classifies frames as they are registered; `surgrecon classify` on the
+    same registration, all frames at once, writes the same labels and clouds."""
+    reference, _ = pipeline_run
+    info = RunFolder(reference).stage("classify")
+    assert info["classified_with_register"] == 5  # frames 1..5 of the 6-frame log
+    before = _outputs(reference)
+    (copy_run / "classify" / "labels.npz").unlink()
+    assert run_classify(copy_run, Config())["classified_with_register"] == 0
+    _assert_same(before, _outputs(copy_run))
 
 
 def test_dask_worker_killed_mid_run_loses_nothing(pipeline_run, pipeline_log, tmp_path):

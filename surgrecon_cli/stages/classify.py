@@ -159,6 +159,7 @@ def run_classify(run_dir: Path, config: Config,
         counts = {name: int((later == code).sum()) for code, name in CLASS_NAMES.items()}
         counts["unknown"] = int((later == UNKNOWN).sum())
         info.update(frames=n_frames, points=n, counts_frames_1_on=counts,
+                    classified_with_register=n_frames - 1 - len(todo),
                     changed_by_hysteresis=int((labels != raw).sum()),
                     config={"classify": to_dict(config)["classify"]})
         logger.debug("classified %d frames x %d points: %s", n_frames, n, counts)

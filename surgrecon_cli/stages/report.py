@@ -474,9 +474,12 @@ def _html(run_dir: Path, data: _RunData, rows: list[dict[str, Any]], summary: di
         per_frame = {}
         if data.seconds is not None and log.n_frames > 1:
             per_frame = {"target cloud": data.seconds[1:, 0], "registration": data.seconds[1:, 1]}
+        early = data.run.get("stages", {}).get("classify", {}).get("classified_with_register")
+        note = (f" {early} frames were classified as they were registered: their time counts "
+                "under register." if early else "")
         timing.add(figs.add(partial(plots.timing, stage_seconds, frames_later, per_frame),
-                             "Wall time of each stage (left) and of target-cloud building and "
-                             "non-rigid registration per frame (right)."))
+                            "Wall time of each stage (left) and of target-cloud building and "
+                            "non-rigid registration per frame (right)." + note))
         sections.append(timing)
 
     # --- evaluation
