@@ -326,7 +326,7 @@ def judge(case: Case, result: dict, baseline: dict[str, Path]) -> str:
         return f"exit 0 but the result does not load: {type(exc).__name__}: {exc}"
 
 
-def test_fuzzed_inputs(tmp_path: Path):
+def test_fuzzed_inputs(tmp_path: Path, capsys):
     start = time.perf_counter()
     cases = generate(tmp_path)
     generated = time.perf_counter() - start
@@ -338,6 +338,15 @@ def test_fuzzed_inputs(tmp_path: Path):
         if why:
             failures[case.id] = why
     n_mcap = sum(c.check != "ply" for c in cases)
+    with capsys.disabled():  # the case count belongs in every test log, -q or not
+        _print_summary(cases, results, n_mcap, generated, start, failures)
+    assert len(cases) >= MIN_CASES
+    assert len(baseline) == sum("-unmutated-" in c.id for c in cases)  # the bases ingest
+    assert not failures, f"{len(failures)} of {len(cases)} fuzz cases failed (see above)"
+
+
+def _print_summary(cases: list, results: dict, n_mcap: int, generated: float, start: float,
+                   failures: dict) -> None:
     print(f"\nfuzz: {len(cases)} cases ({n_mcap} MCAP logs, {len(cases) - n_mcap} PLY pairs), "
           f"{sum(results[c.id]['rc'] == 0 for c in cases)} exit 0, "
           f"{sum(results[c.id]['rc'] == 2 for c in cases)} exit 2; generated in "
@@ -345,9 +354,6 @@ def test_fuzzed_inputs(tmp_path: Path):
           f"slowest case {max(r['seconds'] for r in results.values()):.2f} s")
     for case_id, why in failures.items():
         print(f"FAIL {case_id}: {why}")
-    assert len(cases) >= MIN_CASES
-    assert len(baseline) == sum("-unmutated-" in c.id for c in cases)  # the bases ingest
-    assert not failures, f"{len(failures)} of {len(cases)} fuzz cases failed (see stdout)"
 
 
 if __name__ == "__main__" and len(sys.argv) == 4 and sys.argv[1] == "--worker":
