@@ -284,7 +284,8 @@ class LabelsConfig:
 
 @dataclass(frozen=True)
 class RunConfig:
-    """Where the per-frame tasks run (surgrecon_cli/executors); outputs do not depend on it."""
+    """Where the stages' tasks (per camera, camera pair, frame and report figure) run
+    (surgrecon_cli/executors); outputs do not depend on it."""
 
     executor: str = _doc("serial", "'serial', 'processes' (local worker pool) or 'dask'")
     workers: int = _doc(

@@ -177,7 +177,7 @@ def run_pipeline(log: Path, run_dir: Path, config: Config, ground_truth: Path | 
 
     ground_truth: GT file to evaluate against (default: NAME.gt.npz beside the log if any).
     on_progress(stage, fraction_of_whole_run) and on_stage(stage, action) report progress.
-    executor: where per-frame tasks run (default: the config's `[run]` executor, started
+    executor: where the stages' tasks run (default: the config's `[run]` executor, started
     and closed by this call).
     """
     if executor is None:
@@ -336,7 +336,7 @@ def run_many(logs: list[Path], runs_root: Path, config: Config,
     """`run_pipeline` for each log into RUNS/NAME/, every log's frames on one executor.
 
     Logs run concurrently (one driver thread each, as many as the executor has workers),
-    so that the per-frame tasks of all logs keep the workers busy. A log that fails (e.g.
+    so that the tasks of all logs keep the workers busy. A log that fails (e.g.
     corrupt) does not stop the others: its entry in the returned list is the error.
     on_progress(log, stage, fraction) reports each log's progress.
     """

@@ -63,7 +63,7 @@ def executor_options(func: Callable[..., Any]) -> Callable[..., Any]:
     goes below `common_options`, whose config it updates."""
 
     @click.option("--executor", type=click.Choice(["serial", "processes", "dask"]),
-                  help="Where per-frame tasks run (default: run.executor, 'serial').")
+                  help="Where the stages' tasks run (default: run.executor, 'serial').")
     @click.option("--workers", type=click.IntRange(min=0),
                   help="Worker processes for processes / a Dask LocalCluster (0 = one per core).")
     @click.option("--scheduler", metavar="ADDRESS",

@@ -1,4 +1,5 @@
-"""Executors: where the per-frame tasks of a run are computed.
+"""Executors: where the tasks of a run are computed (per camera, camera pair,
+frame and report figure).
 
 A stage describes its work as a small task graph — `Task`s with keys and dependencies —
 and hands it to an executor:
