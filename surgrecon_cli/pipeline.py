@@ -256,12 +256,10 @@ def run_pipeline(log: Path, run_dir: Path, config: Config, ground_truth: Path | 
                        force=force_ingest, on_bytes=on_bytes)
                 force_ingest = False
             elif stage == "build-template":
-                steps = [0]
+                from .core.template import STEPS
 
-                def on_step(_name: str, steps: list[int] = steps,
-                            progress: Callable[[float], None] = progress) -> None:
-                    steps[0] += 1
-                    progress(1 - 1 / (1 + steps[0] / 4))
+                def on_step(name: str, progress: Callable[[float], None] = progress) -> None:
+                    progress((STEPS.index(name) + 1) / len(STEPS))
 
                 run_build_template(run_dir, config, on_step=on_step, executor=executor)
             elif stage == "register":
@@ -280,6 +278,7 @@ def run_pipeline(log: Path, run_dir: Path, config: Config, ground_truth: Path | 
             elif stage == "classify":
                 run_classify(run_dir, config, on_step=lambda d, t, p=progress: p(d / t),
                              executor=executor, classified=classified)
+                classified.clear()  # T x N labels and measures: not needed any more
             elif stage == "evaluate" and gt is not None:  # only wanted with ground truth
                 result.evaluation = run_evaluate(run_dir, config, gt,
                                                  on_step=lambda d, t, p=progress: p(d / t))

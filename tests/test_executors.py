@@ -74,13 +74,24 @@ def test_graph_errors_are_named():
 
 
 class _Future:
-    """A finished future of the fake engine below."""
+    """A finished future of the fake engine below: fn(*args) already called."""
 
-    def __init__(self, value):
-        self.value = value
+    def __init__(self, task):
+        try:
+            self.value, self.error = task.fn(*task.args), None
+        except Exception as exc:
+            self.value, self.error = None, exc
 
     def result(self):
+        if self.error is not None:
+            raise self.error
         return self.value
+
+    def exception(self):
+        return self.error
+
+    def cancelled(self):
+        return False
 
     def cancel(self):
         return False
@@ -97,7 +108,7 @@ def test_driver_sends_the_longest_path_first_and_fills_free_slots_before_bookkee
 
     def submit(task, priority):
         events.append(f"submit {task.key} {priority}")
-        return _Future(task.fn(*task.args))
+        return _Future(task)
 
     results = run_graph(tasks, submit, lambda futures: futures[:1],
                         on_done=lambda key, _v: events.append(f"done {key}"), slots=1)
@@ -107,6 +118,18 @@ def test_driver_sends_the_longest_path_first_and_fills_free_slots_before_bookkee
     # Bookkeeping of a finished task comes after the next task is on its way.
     assert events.index("submit b 2") < events.index("done a")
     assert events[-1] == "done c"
+
+
+def test_a_failure_keeps_the_bookkeeping_of_the_tasks_that_finished_with_it():
+    """Two tasks finish in one batch, one of them failing: on_done still records the other
+    (e.g. a registered frame in run.json), and the failure is raised."""
+    seen: list[str] = []
+    tasks = [Task("ok", pow, (2, 3)), Task("bad", int, ("x",)), Task("later", pow, (1, 1),
+                                                                    deps=("ok",))]
+    with pytest.raises(ValueError):
+        run_graph(tasks, lambda task, _priority: _Future(task), lambda futures: futures,
+                  on_done=lambda key, _v: seen.append(key))
+    assert seen == ["ok"]
 
 
 def test_graph_order_is_stable_and_linear_in_a_long_chain():

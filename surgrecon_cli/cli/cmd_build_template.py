@@ -26,11 +26,12 @@ def build_template_cmd(run_dir: Path, config: Any, quiet: bool) -> None:
       surgrecon build-template runs/sample
       surgrecon build-template runs/sample --executor processes --workers 2
     """
+    from ..core.template import STEPS
     from ..pipeline import open_executor
     from ..stages.template import run_build_template
 
     with open_executor(config) as executor, \
-            progress(quiet)(desc="template", unit="step") as bar:
+            progress(quiet)(desc="template", unit="step", total=len(STEPS)) as bar:
         result = run_build_template(run_dir, config, on_step=lambda _s: bar.update(1),
                                     executor=executor)
     stats = result.stats

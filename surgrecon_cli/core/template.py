@@ -22,6 +22,9 @@ from .pairing import PairPlan, PairPrediction, candidate_pairs, plan_pairs, pred
 from .tool import points_near_tool, tool_image_mask
 from .triangulate import Observations, triangulate
 
+# What `build_template` reports through `on_step`, in order (for progress bars).
+STEPS = ("features", "matches", "points")
+
 MapCalls = Callable[[Callable[..., Any], Sequence[tuple[Any, ...]]], list[Any]]
 """`map_calls(fn, calls)` returns `[fn(*args) for args in calls]`, possibly computed in
 parallel (e.g. on an executor); fn is a module-level function, the args plain arrays."""
@@ -73,7 +76,8 @@ def build_template(
     poses (C, 4, 4) camera-to-world, tool_pose (4, 4) tool tip in the world (NaN = unknown).
 
     The feature detection of each camera and the matching of each candidate pair are
-    independent calls, made through `map_calls` (in parallel when it is an executor's)."""
+    independent calls, made through `map_calls` (in parallel when it is an executor's).
+    `on_step(name)` is called as each of `STEPS` is done."""
     step = on_step or (lambda _name: None)
     usable = np.array(
         [im is not None and np.isfinite(p).all() for im, p in zip(images, poses, strict=True)]
@@ -139,6 +143,7 @@ def build_template(
         "removed_off_surface": int(off_surface.sum()),
         "points": int(keep.sum()),
     }
+    step("points")
     return TemplateResult(
         points=tri.points[keep],
         rgb=obs_kept.mean_rgb(int(keep.sum())),

@@ -7,11 +7,12 @@ and hands it to an executor:
 - `processes`: a local pool of worker processes (`concurrent.futures`, spawn);
 - `dask`: Dask distributed, on a `LocalCluster` or on the scheduler at `--scheduler`.
 
-Tasks exchange data through the run folder (each task reads its inputs from it and writes
-its outputs atomically), so a task's result depends only on files, never on which process
-or machine ran it: every executor gives the same outputs. A task's return value is small
-(a summary or per-frame arrays) and reaches the driver through `on_done(key, value)`,
-called in the driver as tasks complete, in completion order. Workers run numerical
+A task's result depends only on its arguments and the files it reads (per-frame tasks
+read their inputs from the run folder and write their outputs atomically), never on which
+process or machine ran it: every executor gives the same outputs. Arguments and return
+values travel between driver and workers, so they stay modest: a frame's summary or
+labels, one camera's features, one figure's PNG. A value reaches the driver through
+`on_done(key, value)`, called in the driver as tasks complete. Workers run numerical
 libraries single-threaded (`single_threaded`) so that results do not depend on thread
 counts and workers do not oversubscribe the cores.
 """
@@ -41,8 +42,9 @@ class ExecutorError(SurgReconError):
 class Task:
     """One unit of work: `fn(*args)`, run after every task named in `deps` succeeded.
 
-    fn must be a module-level function (it is pickled by reference for worker processes);
-    args must be picklable (paths, ints, frozen config dataclasses, numpy arrays)."""
+    fn must be a module-level function or a `functools.partial` of one (pickled by
+    reference for worker processes); args must be picklable (paths, ints, frozen config
+    dataclasses, numpy arrays)."""
 
     key: str
     fn: Callable[..., Any]
@@ -131,17 +133,18 @@ def run_graph(tasks: Sequence[Task], submit: Callable[[Task, int], Any],
     """The driver loop of the parallel executors: submit the tasks whose dependencies have
     finished, collect results as futures complete, repeat.
 
-    `submit(task, priority)` returns a future (`.result()`, `.cancel()`); `wait_any(futures)`
-    blocks until at least one is done and returns the done ones; `gather(futures)` gives
-    their results in one call (default: each future's `.result()`). Ready tasks go out
-    longest path first (`Graph.rank`, also passed as the priority), so a dependency chain
-    is never kept waiting behind tasks that could run later; with `slots`, at most that
-    many tasks are in flight (an engine's own queue would otherwise run tasks first come,
-    first served). Dependencies are kept here, not handed to the engine, so a dependent
-    task may run on any worker (engines that place a task where its dependency ran would
-    serialise a chain's side branches). New tasks are submitted before `on_done` runs for
-    the finished ones, so the driver's bookkeeping never keeps a worker idle. On the first
-    error the tasks not yet started are cancelled and the error is raised."""
+    `submit(task, priority)` returns a future (`.result()`, `.exception()`, `.cancel()`);
+    `wait_any(futures)` blocks until at least one is done and returns the done ones;
+    `gather(futures)` gives their results in one call (default: each `.result()`). Ready
+    tasks go out longest path first (`Graph.rank`, also passed as the priority), so a
+    dependency chain is never kept waiting behind tasks that could run later; with
+    `slots`, at most that many tasks of this graph are in flight (an engine's own queue
+    would otherwise run them first come, first served). Dependencies are kept here, not
+    handed to the engine, so a dependent task may run on any worker (engines that place a
+    task where its dependency ran would serialise a chain's side branches). New tasks are
+    submitted before `on_done` runs for the finished ones, so the driver's bookkeeping
+    never keeps a worker idle. On the first error, `on_done` still runs for every task
+    that succeeded, the tasks not yet started are cancelled and the error is raised."""
     graph = check_graph(tasks)  # keys, dependencies and cycles, before anything runs
     by_key = {task.key: task for task in graph.order}
     position = {task.key: i for i, task in enumerate(graph.order)}
@@ -151,19 +154,34 @@ def run_graph(tasks: Sequence[Task], submit: Callable[[Task, int], Any],
     results: dict[str, Any] = {}
     running: dict[Any, str] = {}
     finished: list[str] = []
+
+    def settle(keys: list[str]) -> None:
+        if on_done is not None:
+            for key in keys:
+                on_done(key, results[key])
+
     try:
         while True:
-            while ready and (slots is None or len(running) < slots):
-                key = heapq.heappop(ready)[2]
-                running[submit(by_key[key], graph.rank[key])] = key
-            if on_done is not None:
-                for key in finished:
-                    on_done(key, results[key])
+            try:
+                while ready and (slots is None or len(running) < slots):
+                    key = heapq.heappop(ready)[2]
+                    running[submit(by_key[key], graph.rank[key])] = key
+            finally:
+                settle(finished)
             if not running:
                 return results
             done = list(wait_any(list(running)))
-            values = gather(done) if gather is not None else [f.result() for f in done]
             finished = [running.pop(future) for future in done]
+            try:
+                values = gather(done) if gather is not None else [f.result() for f in done]
+            except BaseException:
+                # Keep what the other tasks of the batch finished (e.g. frames that run.json
+                # then records as done), then raise the error.
+                ok = [(k, f) for k, f in zip(finished, done, strict=True)
+                      if not f.cancelled() and f.exception() is None]
+                results.update((k, f.result()) for k, f in ok)
+                settle([k for k, _ in ok])
+                raise
             for key, value in zip(finished, values, strict=True):
                 results[key] = value
                 for child in graph.dependants[key]:

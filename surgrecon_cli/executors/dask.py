@@ -91,12 +91,13 @@ class DaskExecutor:
                       for address in addresses]
 
     def _ready(self) -> Any:
-        """The client, once the LocalCluster (if any) has started."""
+        """The client, once the LocalCluster (if any) has started (several driver threads
+        may wait here at once: joining a finished thread returns at once)."""
         if self._starting is not None:
             self._starting.join()
-            self._starting = None
         if self._failure is not None:
-            raise ExecutorError(f"the Dask LocalCluster did not start: {self._failure}")
+            raise ExecutorError(f"the Dask LocalCluster did not start: "
+                                f"{self._failure}") from self._failure
         if self._client is None:
             raise ExecutorError("the Dask executor is closed")
         return self._client
@@ -122,7 +123,6 @@ class DaskExecutor:
     def close(self) -> None:
         if self._starting is not None:
             self._starting.join()
-            self._starting = None
         if self._client is not None:
             self._client.close()
             self._client = None

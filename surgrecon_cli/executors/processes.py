@@ -1,11 +1,12 @@
 """The processes executor: a pool of local worker processes (spawned, single-threaded).
 
 The driver keeps the graph (`run_graph`): a task is submitted when its dependencies have
-finished and a worker is free (longest path first), and results are collected in
-completion order. A task that raises stops the
-graph (tasks not yet started are cancelled) and its exception is re-raised; a worker
-that dies (killed, out of memory) is reported as an ExecutorError — rerunning resumes from
-what the finished tasks wrote.
+finished and one of the graph's `workers` slots is free (longest path first), and results
+are collected in completion order. Graphs run from several driver threads at once (many
+logs) each have their own slots and share the pool first come, first served. A task that
+raises stops the graph (tasks not yet started are cancelled) and its exception is
+re-raised; a worker that dies (killed, out of memory) is reported as an ExecutorError —
+rerunning resumes from what the finished tasks wrote.
 """
 
 from __future__ import annotations

@@ -71,22 +71,24 @@ TemplateInputs = tuple[np.ndarray, Neighbourhoods]  # template (N, 3) m, its nei
 
 
 @functools.lru_cache(maxsize=4)
-def _cached_template(run_dir: str, _stamp: tuple[int, int, int], neighbourhood_mm: float,
+def _cached_template(run_dir: str, _stamp: tuple[int, ...], neighbourhood_mm: float,
                      min_neighbours: int, max_neighbours: int) -> TemplateInputs:
     template, _ = load_template(Path(run_dir))
-    template.flags.writeable = False  # shared by every frame this process classifies
-    return template, template_neighbourhoods(template, neighbourhood_mm, min_neighbours,
-                                             max_neighbours)
+    nb = template_neighbourhoods(template, neighbourhood_mm, min_neighbours, max_neighbours)
+    for array in (template, nb.index, nb.mask):
+        array.flags.writeable = False  # shared by every frame this process classifies
+    return template, nb
 
 
 def template_and_neighbourhoods(run_dir: Path, config: Config) -> TemplateInputs:
     """The run's template (N, 3) m and its classify neighbourhoods, built once per process
     and template file (~30 ms on the sample; a worker classifies many frames). The file is
-    replaced, never rewritten in place, so its inode, mtime and size identify it."""
+    replaced, never rewritten in place, so its device, inode, times and size identify it."""
     path = Path(run_dir).absolute()
     st = (path / "template.ply").stat()
     cfg = config.classify
-    return _cached_template(str(path), (st.st_ino, st.st_mtime_ns, st.st_size),
+    stamp = (st.st_dev, st.st_ino, st.st_mtime_ns, st.st_ctime_ns, st.st_size)
+    return _cached_template(str(path), stamp,
                             cfg.neighbourhood_mm, cfg.min_neighbours, cfg.max_neighbours)
 
 
@@ -136,7 +138,7 @@ def run_classify(run_dir: Path, config: Config,
             step(count[0], total)
 
         step(count[0], total)
-        n = len(template_and_neighbourhoods(run_dir, config)[0])
+        n = len(load_template(run_dir)[0])
         todo = [k for k in range(1, n_frames) if k not in classified]
         tasks = [classify_task(run_dir, config, k) for k in todo]
         done = executor.run(tasks, advance)

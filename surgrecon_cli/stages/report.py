@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
+import re
 from collections.abc import Callable
 from dataclasses import dataclass
 from datetime import datetime, timezone
@@ -280,8 +281,17 @@ class _Figures:
 
     def fill(self, markup: str, executor: Executor) -> str:
         pngs = executor.run([Task(f"figure-{i}", draw) for i, draw in enumerate(self._draws)])
-        for i, caption in enumerate(self._captions):
-            markup = markup.replace(self._placeholder(i), rh.figure(pngs[f"figure-{i}"], caption))
+        placed: list[int] = []
+
+        def figure(match: re.Match[str]) -> str:
+            i = int(match.group(1))
+            placed.append(i)
+            return rh.figure(pngs[f"figure-{i}"], self._captions[i])
+
+        markup = re.sub(r"<!--figure (\d+)-->", figure, markup)
+        if sorted(placed) != list(range(len(self._draws))):  # a bug in _html, not the input
+            raise AssertionError(f"report figures placed {sorted(placed)}, drawn "
+                                 f"{len(self._draws)}")
         return markup
 
 
