@@ -36,7 +36,7 @@ def run_cmd(logs: tuple[Path, ...], run_dir: Path, gt_path: Path | None, allow_t
     stage that depends on it and all later ones (e.g. registration.* reruns register,
     classify and report, not ingest or the template). Prints the report's path at the end.
 
-    Per-frame work runs on --executor (serial, processes, or dask on a LocalCluster or the
+    The stages' tasks run on --executor (serial, processes, or dask on a LocalCluster or the
     cluster at --scheduler); the outputs are the same whichever runs them. Several logs
     run at once over the same workers; a log that fails does not stop the others, and the
     exit code is non-zero if any failed.
