@@ -113,7 +113,12 @@ class TemplateConfig:
     max_reprojection_px: float = _doc(
         1.5, "largest reprojection error of a triangulated point (px)"
     )
-    min_angle_deg: float = _doc(3.0, "smallest triangulation angle between two rays (deg)")
+    min_angle_deg: float = _doc(
+        1.0, "smallest triangulation angle between two rays (deg); a floor against degenerate "
+        "rays only: depth accuracy decides through max_sigma_mm")
+    max_sigma_mm: float = _doc(
+        2.5, "largest 3D position uncertainty (RMS, from the measured pixel noise and the "
+        "camera geometry) of a template point (mm)")
     min_pair_matches: int = _doc(40, "verified matches for two cameras to be linked")
     min_view_overlap: float = _doc(0.15, "predicted shared-view fraction to try matching a pair")
     depth_range: tuple[float, ...] = _doc(
@@ -129,6 +134,7 @@ class TemplateConfig:
         _require(self.epipolar_px > 0, "template.epipolar_px", "must be > 0")
         _require(self.max_reprojection_px > 0, "template.max_reprojection_px", "must be > 0")
         _require(0 <= self.min_angle_deg < 90, "template.min_angle_deg", "must be in [0, 90)")
+        _require(self.max_sigma_mm > 0, "template.max_sigma_mm", "must be > 0")
         _require(
             len(self.depth_range) == 2 and 0 < self.depth_range[0] < self.depth_range[1],
             "template.depth_range",
@@ -141,7 +147,9 @@ class TemplateConfig:
 class TargetConfig:
     """Target cloud: tracking template points into new images, reprojection-error check."""
 
-    gate_px: float = _doc(2.5, "reprojection-error gate of the intra/inter-camera check (px)")
+    significance: float = _doc(
+        0.001, "reprojection-error check: a noise-only residual fails the chi-square gate with "
+        "this probability (the gate is in units of the measured noise, not pixels)")
     klt_window_px: int = _doc(21, "KLT window size (px)")
     klt_levels: int = _doc(3, "KLT pyramid levels")
     klt_fb_px: float = _doc(0.7, "largest forward-backward KLT disagreement (px)")
@@ -154,7 +162,7 @@ class TargetConfig:
     )
 
     def __post_init__(self) -> None:
-        _require(self.gate_px > 0, "target.gate_px", "must be > 0")
+        _require(0 < self.significance < 0.5, "target.significance", "must be in (0, 0.5)")
         _require(self.new_points_every >= 0, "target.new_points_every", "must be >= 0")
         _require(self.klt_window_px >= 5, "target.klt_window_px", "must be >= 5")
 
@@ -174,11 +182,18 @@ class RegistrationConfig:
     data_penalty: str = _doc("l1", "'l1' (heavy-tailed, the paper's model) or 'l2' (Gaussian)")
     smooth_penalty: str = _doc("l1", "'l1' or 'l2' on neighbour differences")
     admm_iterations: int = _doc(30, "largest number of ADMM iterations per outer step")
+    final_admm_iterations: int = _doc(
+        300, "largest number of ADMM iterations of the last outer step (run to convergence)")
     outer_iterations: int = _doc(4, "correspondence/annealing outer steps")
     mu: float = _doc(2.0, "ADMM penalty (in units of the reference node spacing)")
     mu_growth: float = _doc(1.0, "multiply mu by this every ADMM iteration (>1 refactorises)")
     relaxation: float = _doc(1.6, "ADMM over-relaxation factor, in [1, 2)")
-    tolerance_mm: float = _doc(0.02, "ADMM stop: primal and dual residual RMS (mm)")
+    tolerance_mm: float = _doc(
+        0.02, "ADMM stop: primal residual RMS and largest node step below this (mm), and the "
+        "energy settled")
+    extrapolation_growth: float = _doc(
+        0.05, "uncertainty of a point without data grows by this many mm per mm of distance "
+        "from the nearest point with data")
     color_weight_mm: float = _doc(5.0, "mm of position equivalent to a full RGB unit difference")
     max_correspondence_mm: float = _doc(
         5.0, "nearest-neighbour correspondences farther are dropped (mm)"
@@ -209,6 +224,8 @@ class RegistrationConfig:
         )
         _require(self.beta >= 0, key + "beta", "must be >= 0")
         _require(self.admm_iterations > 0, key + "admm_iterations", "must be > 0")
+        _require(self.final_admm_iterations > 0, key + "final_admm_iterations", "must be > 0")
+        _require(self.extrapolation_growth >= 0, key + "extrapolation_growth", "must be >= 0")
         _require(self.outer_iterations > 0, key + "outer_iterations", "must be > 0")
         _require(self.mu > 0, key + "mu", "must be > 0")
         _require(self.mu_growth >= 1, key + "mu_growth", "must be >= 1")
@@ -228,7 +245,16 @@ class ClassifyConfig:
     """Point classification (mm); thresholds are ours, see core/classify.py for the reasoning."""
 
     static_mm: float = _doc(
-        0.9, "registered displacement |T_i p_i - p_i| below this is static (mm; truth rule: 1.0)"
+        1.0, "motion tolerance: a displacement below this (or below what the noise explains) "
+        "is static (mm; the spec's rule: 1.0)"
+    )
+    significance: float = _doc(
+        0.01, "false-alarm probability of the noise tests (moved beyond the noise; departure "
+        "from one rigid motion beyond the noise): the main knob"
+    )
+    max_sigma_mm: float = _doc(
+        1.0, "a point whose registered position is less certain than this (RMS, mm) is "
+        "unknown (default: the clinical 1 mm accuracy requirement)"
     )
     status_band_mm: float = _doc(
         0.0, "within this of static_mm the reprojection check decides: intra-camera inlier "
@@ -239,7 +265,8 @@ class ClassifyConfig:
         "rigid fit to its registered positions) or 'transform_diff' (|(T_j - T_i) p_i|)"
     )
     deform_mm: float = _doc(
-        0.15, "measure at/above this: deforming, below: shifting (mm; truth rule: 0.25)"
+        0.25, "deformation tolerance: a significant departure from rigid motion whose "
+        "noise-debiased RMS reaches this is deforming (mm; the spec's rule: 0.25)"
     )
     neighbour_percentile: float = _doc(
         100.0, "transform_diff: percentile over the neighbours j (100 = max)"
@@ -255,6 +282,8 @@ class ClassifyConfig:
         key = "classify."
         for name in ("static_mm", "deform_mm", "neighbourhood_mm"):
             _require(getattr(self, name) > 0, key + name, "must be > 0")
+        _require(0 < self.significance < 0.5, key + "significance", "must be in (0, 0.5)")
+        _require(self.max_sigma_mm > 0, key + "max_sigma_mm", "must be > 0")
         _require(0 <= self.status_band_mm < self.static_mm, key + "status_band_mm",
                  "must be in [0, static_mm)")
         _require(self.measure in ("rigid_rms", "transform_diff"), key + "measure",

@@ -1,53 +1,39 @@
-"""Point classification: static / shifting / deforming (Su et al. 2019, section II.E, Fig. 2).
+"""Point classification: static / shifting / deforming (Su et al. 2019, section II.E, Fig. 2)
+as statistical tests against the run's measured noise.
 
-Every template point p_i (frame-0 position, homogeneous p̃_i) is labelled at every frame k
-from its registered affine T_i (3x4, so that T_i p̃_i is its position now), the
-reprojection-error check of the target cloud, and its neighbours j (template points within
-`neighbourhood_mm` of p_i at frame 0):
+Every template point p_i (frame-0 position) is labelled at every frame k from its
+registered position, the uncertainties of the run's noise model (core/noise.py,
+core/frame_step.py: σ is the RMS of a 3D position error, metres) and its neighbours j
+(template points within `neighbourhood_mm` of p_i at frame 0):
 
-1. static vs dynamic: the registered displacement ‖T_i p̃_i − p_i‖ against `static_mm`
-   (the spec's truth rule moves the same threshold from frame 0). Inside a band of
-   ±`status_band_mm` around the threshold the displacement alone is not trusted (the
-   registration's own error is of that size) and the reprojection check breaks the tie:
-   an intra-camera inlier (its frame-0 position still reprojects in every view) is
-   static, an inter-camera inlier (re-triangulated elsewhere) is dynamic.
-2. shifting vs deforming, for dynamic points, by one of two measures (`measure`):
-   - "rigid_rms": RMS residual of the best rigid fit of the neighbourhood from its frame-0
-     positions to its registered positions — the spec's truth rule seen through the
-     registration;
-   - "transform_diff": d_i = a percentile (100 = max) over neighbours j of
-     ‖(T_j − T_i) p̃_i‖, the paper's "(Tj−Ti)pi": how far neighbour j's transform would
-     carry point i from where its own transform carries it.
-   At or above `deform_mm` -> deforming, else shifting.
-3. optional temporal hysteresis: a label run shorter than `hysteresis_frames` frames is
+1. unknown: no finite registered position, or its uncertainty σ_i exceeds `max_sigma_mm`
+   (a point far from any data: the registration extrapolates it, it is not measured).
+2. static vs dynamic: the displacement d_i = ‖x_i − p_i‖ against max(`static_mm`,
+   z σ_d), σ_d² = σ_i² + σ_p,i² (registered and template uncertainty), z the chi (3 dof)
+   bound at `significance`: a displacement the noise explains is no evidence of motion,
+   and `static_mm` is the tolerance below which motion does not count (the spec's rule).
+3. shifting vs deforming, for dynamic points ("rigid_rms", default): the neighbourhood's
+   measured positions (targets where the reprojection check gave one, else registered) are
+   fitted by one rigid motion from frame 0, weighted by 1/σ². Under "one rigid motion" the
+   weighted residual S = Σ_j ‖r_j‖²/σ_j² is chi-square with 3n − 6 degrees of freedom
+   (n members). Deforming when S exceeds its bound at `significance` (the departure is
+   significant) and the residual RMS, debiased by what the noise alone leaves
+   (RMS² − Σ σ_j² (3n − 6)/(3n) / n), reaches `deform_mm` (the spec's tolerance).
+   Measured rather than registered positions, because the l1-smoothed field flattens a
+   dent to about half its RMS (measured on the simulator: 0.14–0.18 mm for a true
+   0.32 mm), which a fixed threshold could only undo by a fudge factor.
+   Why not the paper's (T_j − T_i) p_i ("transform_diff", kept as an option): on a surface
+   the linear part of a point's affine is not determined by the data (the derivative of
+   the motion along the normal is unobserved, and the regulariser picks it), so carrying
+   p_i with its neighbour's transform measures that gauge as much as the motion (3.8 mm
+   where the truth is 0.09 mm on a real stereo log). The rigid fit over the neighbourhood
+   asks the same question, do the neighbours follow one rigid motion, of positions, which
+   the data do determine.
+4. optional temporal hysteresis: a label run shorter than `hysteresis_frames` frames is
    replaced by the label before it (offline, so the whole sequence is known).
 
-Points without a finite registered position are UNKNOWN. Frame 0 is the reference: all
-static. Pure numpy; no I/O.
-
-Defaults (ours, not the paper's), measured against the simulator's truth (macro-F1 over
-frames >= 1 of the labels of the template points' nearest true vertices; 6-camera 640x480
-logs: a 6-frame one and the shipped 20-frame sample, registered by stages/register.py):
-- Fed the *true* motion field, "rigid_rms" with the truth rule's own thresholds (1.0 mm,
-  0.25 mm, 5 mm) reproduces the truth (macro-F1 0.97); "transform_diff" peaks lower (0.95
-  with the median over neighbours at 0.1 mm, 0.93 with the max at 0.8 mm): a per-point
-  affine extrapolated to a neighbour is not the same quantity as a rigid-fit residual, and
-  the truth is a rigid-fit rule. So "rigid_rms" is the default.
-- Through the registration, the l1 smoothness and node blending flatten the tool's dent:
-  truly deforming neighbourhoods show about half their true RMS (medians 0.14–0.18 mm vs
-  0.32 mm): the registration keeps about 0.6 of a neighbourhood's rigid-fit RMS. So
-  `deform_mm` = 0.15 mm = 0.6 x the rule's 0.25 mm. Measured: macro-F1 0.91 on the shipped
-  sample at 0.15 mm (deforming recall 0.95), 0.895 at 0.12 mm, 0.87 at 0.25 mm; on a
-  6-frame log 0.77 at 0.15 mm vs 0.82 at 0.12 mm ("transform_diff" peaks at 0.77 / 0.84,
-  75th percentile, 0.2 mm).
-- The registration also shrinks motions slightly towards rest (a 1.04 mm breathing shift
-  comes out at 1.01 mm median), so `static_mm` = 0.9 mm (+0.01 to +0.08 over 1.0 mm).
-- The reprojection check is weak evidence here: 98.5 % of intra-camera inliers are truly
-  static, but so are 70 % of inter-camera inliers (tracker noise pushes static points out
-  of the intra gate and they are re-triangulated). Letting it break ties within ±0.3 mm
-  of `static_mm` lowered macro-F1 by 0.06–0.15 (intra-only tie-breaking by 0.01), so
-  `status_band_mm` defaults to 0: the displacement decides.
-- Hysteresis of 2–3 frames changed nothing on 20 frames and hurt on 6 (-0.02 to -0.04): off.
+Without uncertainties (σ = None) the tests reduce to the plain thresholds. Frame 0 is the
+reference: all static. Pure numpy; no I/O.
 """
 
 from __future__ import annotations
@@ -56,10 +42,22 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial import cKDTree
+from scipy.stats import chi2
 
 from ..config import ClassifyConfig
 from ..errors import GeometryError
-from .labels import DEFORMING, INTER, INTRA, SHIFTING, STATIC, UNKNOWN, rigid_fit_rms
+from .labels import (
+    DEFORMING,
+    INTER,
+    INTRA,
+    SHIFTING,
+    STATIC,
+    UNKNOWN,
+    rigid_fit_residuals,
+    rigid_fit_rms,
+)
+
+SIGMA_FLOOR_M = 1e-6  # ours: a σ below a micrometre is numerical, not a measurement
 
 
 @dataclass(frozen=True)
@@ -74,6 +72,19 @@ class Neighbourhoods:
     def counts(self) -> np.ndarray:
         """Neighbours per point (N,)."""
         return self.mask.sum(1)
+
+
+@dataclass(frozen=True)
+class Evidence:
+    """Per point uncertainties of one frame (metres): sigma (N,) of the registered position
+    (inf = unsupported), template_sigma (N,) of the frame-0 position, measured (N, 3) the
+    position the data give (target where there is one, else registered) and
+    measured_sigma (N,) its uncertainty."""
+
+    sigma: np.ndarray
+    template_sigma: np.ndarray
+    measured: np.ndarray
+    measured_sigma: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -159,14 +170,40 @@ def transform_difference_mm(template: np.ndarray, transforms: np.ndarray, nb: Ne
     return out
 
 
+def rigid_departure(template: np.ndarray, positions: np.ndarray, sigma: np.ndarray,
+                    nb: Neighbourhoods, rows: np.ndarray,
+                    significance: float) -> tuple[np.ndarray, np.ndarray]:
+    """Departure of each neighbourhood (the point `rows` (M,) and its neighbours) from one
+    rigid motion, frame-0 template (N, 3) m to positions (N, 3) m with uncertainties (N,) m:
+    the noise-debiased residual RMS (M,) mm and whether the departure is significant (M,)
+    bool (module docstring, step 3). Neighbourhoods with fewer than 3 usable members: NaN
+    and not significant."""
+    index = np.concatenate([rows[:, None], nb.index[rows]], axis=1)
+    mask = np.concatenate([np.ones((len(rows), 1), bool), nb.mask[rows]], axis=1)
+    s = np.maximum(np.asarray(sigma, float), SIGMA_FLOOR_M)
+    err2, keep = rigid_fit_residuals(template, positions, index, mask, weights=1.0 / s**2)
+    n = keep.sum(1).astype(float)
+    s2 = np.where(keep, s[index] ** 2, 0.0)
+    dof = 3.0 * n - 6.0
+    stat = np.where(keep, err2 / np.where(keep, s2, 1.0), 0.0).sum(1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        expected = s2.sum(1) * dof / np.maximum(3.0 * n, 1.0)
+        rms = np.sqrt(np.maximum(err2.sum(1) - expected, 0.0) / np.maximum(n, 1.0)) * 1e3
+        bound = chi2.isf(significance, np.maximum(dof, 1.0))
+    usable = n >= 3
+    return np.where(usable, rms, np.nan), usable & (stat > bound)
+
+
 def classify_frame(template: np.ndarray, registered: np.ndarray, nb: Neighbourhoods,
                    cfg: ClassifyConfig, transforms: np.ndarray | None = None,
-                   status: np.ndarray | None = None) -> FrameClasses:
+                   status: np.ndarray | None = None,
+                   evidence: Evidence | None = None) -> FrameClasses:
     """Label one frame.
 
     template (N, 3) m frame-0 positions p_i; registered (N, 3) m positions T_i p̃_i (NaN =
     unknown); transforms (N, 3, 4) per-point affines (needed by measure "transform_diff");
-    status (N,) reprojection check codes of core/target.py (None = displacement only).
+    status (N,) reprojection check codes of core/target.py (None = displacement only);
+    evidence: the frame's uncertainties (None = plain thresholds, no noise).
     """
     template = _points(template, "template points")
     registered = np.asarray(registered, float)
@@ -181,9 +218,18 @@ def classify_frame(template: np.ndarray, registered: np.ndarray, nb: Neighbourho
         raise GeometryError('classify.measure = "transform_diff" needs per-point transforms')
 
     known = np.isfinite(registered).all(1)
+    static_bound = np.full(n, cfg.static_mm)
+    if evidence is not None:
+        sigma_mm = np.asarray(evidence.sigma, float) * 1e3
+        measured_mm = np.asarray(evidence.measured_sigma, float) * 1e3
+        known &= np.fmin(sigma_mm, measured_mm) <= cfg.max_sigma_mm
+        sigma_d = np.hypot(np.fmin(sigma_mm, measured_mm),
+                           np.asarray(evidence.template_sigma, float) * 1e3)
+        z = np.sqrt(chi2.isf(cfg.significance, 3))
+        static_bound = np.maximum(static_bound, z * np.nan_to_num(sigma_d, nan=np.inf))
     disp = np.full(n, np.nan)
     disp[known] = displacement_mm(template[known], registered[known])
-    dynamic = known & (disp >= cfg.static_mm)
+    dynamic = known & (disp >= static_bound)
     if status is not None and cfg.status_band_mm > 0:
         status = np.asarray(status)
         near = known & (np.abs(disp - cfg.static_mm) < cfg.status_band_mm)
@@ -197,11 +243,18 @@ def classify_frame(template: np.ndarray, registered: np.ndarray, nb: Neighbourho
     if transforms is not None and cfg.measure == "transform_diff":
         measure = transform_difference_mm(template, np.asarray(transforms, float), nb,
                                           cfg.neighbour_percentile, rows)
+        deforming = measure >= cfg.deform_mm
+    elif evidence is not None:
+        measure, significant = rigid_departure(
+            template, np.asarray(evidence.measured, float),
+            np.asarray(evidence.measured_sigma, float), nb, rows, cfg.significance)
+        deforming = significant & (measure >= cfg.deform_mm)
     else:
         measure = rigid_rms_mm(template, registered, nb, rows)
+        deforming = measure >= cfg.deform_mm
     deformation[rows] = measure
     # A neighbourhood too small to measure (NaN) cannot show deformation: shifting.
-    labels[rows] = np.where(measure >= cfg.deform_mm, DEFORMING, SHIFTING)
+    labels[rows] = np.where(deforming, DEFORMING, SHIFTING)
     return FrameClasses(labels=labels, displacement_mm=disp, deformation_mm=deformation)
 
 

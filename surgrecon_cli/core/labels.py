@@ -40,21 +40,38 @@ def radius_neighbourhoods(points: np.ndarray, radius: float) -> tuple[np.ndarray
     return index, mask
 
 
+def rigid_fit_residuals(
+    reference: np.ndarray, moved: np.ndarray, index: np.ndarray, mask: np.ndarray,
+    weights: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Squared residuals (N, K) m² of the best (weighted) rigid fit of each neighbourhood
+    (index (N, K), mask (N, K)) from reference to moved positions, and the members used
+    (N, K) bool: those with a finite moved position (and a positive finite weight, weights
+    (P,) per point, if given)."""
+    src = reference[index]
+    dst = moved[index]
+    keep = mask & np.isfinite(dst).all(-1)
+    if weights is not None:
+        w_members = np.asarray(weights, float)[index]
+        keep &= np.isfinite(w_members) & (w_members > 0)
+        w = np.where(keep, w_members, 0.0)
+    else:
+        w = keep.astype(float)
+    dst = np.where(keep[..., None], dst, 0.0)
+    R, t = fit_rigid(src, dst, w)
+    pred = np.einsum("nij,nkj->nki", R, src) + t[:, None, :]
+    err2 = np.where(keep, ((pred - dst) ** 2).sum(-1), 0.0)
+    return err2, keep
+
+
 def rigid_fit_rms(
     reference: np.ndarray, moved: np.ndarray, index: np.ndarray, mask: np.ndarray
 ) -> np.ndarray:
     """RMS residual (N,) m of the best rigid fit of each neighbourhood (index (N, K), mask
     (N, K)) from reference to moved positions. Members without a finite moved position are
     left out; a neighbourhood with fewer than 3 members left gets NaN."""
-    src = reference[index]
-    dst = moved[index]
-    keep = mask & np.isfinite(dst).all(-1)
-    dst = np.where(keep[..., None], dst, 0.0)
-    w = keep.astype(float)
-    R, t = fit_rigid(src, dst, w)
-    pred = np.einsum("nij,nkj->nki", R, src) + t[:, None, :]
-    err2 = ((pred - dst) ** 2).sum(-1)
-    rms = np.sqrt((err2 * w).sum(1) / np.maximum(w.sum(1), 1.0))
+    err2, keep = rigid_fit_residuals(reference, moved, index, mask)
+    rms = np.sqrt(err2.sum(1) / np.maximum(keep.sum(1), 1.0))
     return np.where(keep.sum(1) >= 3, rms, np.nan)
 
 

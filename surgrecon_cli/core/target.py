@@ -4,26 +4,40 @@ Template points are projected at their latest positions into the new images (vis
 in front, inside the image, not occluded, outside the tool mask), found there by pyramidal
 KLT from the same camera's image at a reference frame (the pipeline uses the template's
 base frame, so that frames do not depend on each other; forward-backward checked), then
-sorted by the reprojection-error check (CoSLAM's form):
-- intra-camera inlier: the point's frame-0 position still reprojects within `gate_px` in
-  every camera that sees it -> static evidence, target = frame-0 position;
-- inter-camera inlier: seen by >= 2 cameras and re-triangulated with every view within the
-  gate -> dynamic, target = new position;
+sorted by the reprojection-error check in CoSLAM's form (Zou & Tan 2013): residuals are
+gated in units of the run's measured noise (core/noise.py), as a Mahalanobis distance with
+a chi-square bound at `target.significance`, so that a narrow baseline or a noisy tracker
+moves the gate with the noise instead of a fixed pixel count:
+- intra-camera inlier: seen by >= 2 cameras, and its frame-0 position still reprojects into
+  every camera that sees it, with d² = eᵀ (J Σ_p Jᵀ + s² I)⁻¹ e within the bound (Σ_p the
+  template point's covariance, s² the view's pixel variance: pixel + tracking + pose
+  noise) -> static
+  evidence, target = frame-0 position, covariance Σ_p;
+- inter-camera inlier: seen by >= 2 cameras and re-triangulated with every view's
+  ‖e‖² / s² within the bound -> dynamic, target = new position, covariance from its views;
 - outlier: anything else (a point seen by one camera cannot be confirmed dynamic);
 - unobserved: not visible now -> kept at its latest position, no data weight.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
 from scipy.spatial import cKDTree
+from scipy.stats import chi2
 
 from ..config import TargetConfig, ToolConfig
 from .cameras import CameraModel, in_image, project, undistort_pixels
 from .labels import INTER, INTRA, OUTLIER, STATUS_NAMES, UNOBSERVED
+from .noise import (
+    NoiseModel,
+    covariance_sigma,
+    point_covariances,
+    projection_jacobians,
+    tracking_noise_from_fb,
+)
 from .tool import points_near_tool, tool_pixel_mask
 from .triangulate import Observations, triangulate
 
@@ -32,12 +46,16 @@ from .triangulate import Observations, triangulate
 class TargetCloud:
     """Per template point (N): target position (N, 3) m (latest position if unobserved, NaN
     for outliers), status (N,) uint8 (INTRA/INTER/OUTLIER/UNOBSERVED), views (N,) cameras
-    that found it; pixels (N, C, 2) where it was found in each camera (NaN = not found)."""
+    that found it; pixels (N, C, 2) where it was found in each camera (NaN = not found);
+    sigma (N,) m the target's 3D uncertainty (√trace of its covariance; NaN without a
+    target); the frame's noise model (its tracking_px measured from this frame's KLT)."""
 
     positions: np.ndarray
     status: np.ndarray
     views: np.ndarray
     pixels: np.ndarray
+    sigma: np.ndarray
+    noise: NoiseModel
 
     def counts(self) -> dict[str, int]:
         return {name: int((self.status == code).sum()) for code, name in STATUS_NAMES.items()}
@@ -77,9 +95,9 @@ def klt_track(
     cfg: TargetConfig,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Track pixels (M, 2) from prev to cur starting from `guess`; forward-backward checked.
-    Returns tracked pixels (M, 2) and ok (M,)."""
+    Returns tracked pixels (M, 2), ok (M,) and the forward-backward disagreement (M, 2) px."""
     if len(start) == 0:
-        return np.zeros((0, 2)), np.zeros(0, bool)
+        return np.zeros((0, 2)), np.zeros(0, bool), np.zeros((0, 2))
     params = dict(
         winSize=(cfg.klt_window_px, cfg.klt_window_px),
         maxLevel=cfg.klt_levels,
@@ -94,53 +112,85 @@ def klt_track(
     back, st2, _ = cv2.calcOpticalFlowPyrLK(
         cur_gray, prev_gray, p1, back, flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **params
     )
-    fb = np.linalg.norm((back - p0).reshape(-1, 2), axis=1)
+    fb_vec = (back - p0).reshape(-1, 2).astype(np.float64)
+    fb = np.linalg.norm(fb_vec, axis=1)
     ok = (st1.ravel() == 1) & (st2.ravel() == 1) & (fb <= cfg.klt_fb_px)
-    return p1.reshape(-1, 2).astype(np.float64), ok
+    return p1.reshape(-1, 2).astype(np.float64), ok, fb_vec
 
 
-def _reprojection_errors(
-    points: np.ndarray,
-    found: np.ndarray,
-    pixels: np.ndarray,
-    models: list[CameraModel],
-    poses: np.ndarray,
-) -> np.ndarray:
-    """Error (N, C) px of points (N, 3) against found pixels (N, C, 2); inf where not found."""
-    err = np.full(found.shape, np.inf)
+def gate_chi2(significance: float, dof: int = 2) -> float:
+    """Chi-square bound a noise-only residual of `dof` dimensions exceeds with probability
+    `significance`."""
+    return float(chi2.isf(significance, dof))
+
+
+def _view_terms(points: np.ndarray, camera: int, rows: np.ndarray, pixels: np.ndarray,
+                models: list[CameraModel], poses: np.ndarray, noise: NoiseModel):
+    """Residual e (M, 2) px, Jacobian (M, 2, 3) and pixel variance (M,) of points (M, 3)
+    found at pixels[rows, camera] in `camera`."""
+    uv, _ = project(points, poses[camera], models[camera])
+    focal = np.full(len(points), models[camera].K[0, 0])
+    J, z = projection_jacobians(points, np.broadcast_to(poses[camera], (len(points), 4, 4)),
+                                focal)
+    variance = noise.tracked_view_variance_px2(z, focal)
+    e = uv - pixels[rows, camera]
+    e[~(z > 0)] = np.inf
+    return e, J, variance
+
+
+def intra_distances(template: np.ndarray, template_cov: np.ndarray, found: np.ndarray,
+                    pixels: np.ndarray, models: list[CameraModel], poses: np.ndarray,
+                    noise: NoiseModel) -> np.ndarray:
+    """Squared Mahalanobis distance (N, C) of each found pixel from the projection of the
+    point's frame-0 position (N, 3), with covariance J Σ_p Jᵀ + s² I; inf where not found."""
+    d2 = np.full(found.shape, np.inf)
     for c in range(found.shape[1]):
-        sel = found[:, c]
-        if sel.any():
-            uv, z = project(points[sel], poses[c], models[c])
-            e = np.linalg.norm(uv - pixels[sel, c], axis=1)
-            err[sel, c] = np.where(z > 0, e, np.inf)
-    return err
+        rows = np.flatnonzero(found[:, c])
+        if len(rows) == 0:
+            continue
+        e, J, variance = _view_terms(template[rows], c, rows, pixels, models, poses, noise)
+        cov = np.nan_to_num(template_cov[rows], nan=0.0)
+        S = np.einsum("mai,mij,mbj->mab", J, cov, J) + variance[:, None, None] * np.eye(2)
+        det = S[:, 0, 0] * S[:, 1, 1] - S[:, 0, 1] * S[:, 1, 0]
+        quad = (S[:, 1, 1] * e[:, 0] ** 2 - 2 * S[:, 0, 1] * e[:, 0] * e[:, 1]
+                + S[:, 0, 0] * e[:, 1] ** 2) / np.maximum(det, 1e-300)
+        d2[rows, c] = np.where(np.isfinite(quad), quad, np.inf)
+    return d2
 
 
 def reprojection_check(
     template: np.ndarray,
+    template_cov: np.ndarray,
     found: np.ndarray,
     pixels: np.ndarray,
     models: list[CameraModel],
     poses: np.ndarray,
-    gate_px: float,
+    noise: NoiseModel,
+    significance: float,
 ):
-    """Split points by the reprojection-error check. found (N, C) bool, pixels (N, C, 2).
+    """Split points by the reprojection-error check. template (N, 3) m frame-0 positions with
+    covariances (N, 3, 3) m²; found (N, C) bool, pixels (N, C, 2) px.
 
-    Returns status (N,) and positions (N, 3) (template position for intra, re-triangulated
-    for inter, NaN otherwise).
+    Returns status (N,), positions (N, 3) (template position for intra, re-triangulated for
+    inter, NaN otherwise) and covariances (N, 3, 3) m² of those positions (NaN otherwise).
     """
     n, _n_cams = found.shape
+    bound = gate_chi2(significance)
     views = found.sum(1)
     status = np.full(n, OUTLIER, np.uint8)
     status[views == 0] = UNOBSERVED
     positions = np.full((n, 3), np.nan)
-    err0 = _reprojection_errors(template, found, pixels, models, poses)
-    intra = (views > 0) & np.all(np.where(found, err0 <= gate_px, True), axis=1)
+    covariances = np.full((n, 3, 3), np.nan)
+    d2 = intra_distances(template, template_cov, found, pixels, models, poses, noise)
+    # One view cannot confirm a point static (it may move along that camera's ray), just as
+    # it cannot confirm it dynamic.
+    intra = (views >= 2) & np.all(np.where(found, d2 <= bound, True), axis=1)
     status[intra] = INTRA
     positions[intra] = template[intra]
+    covariances[intra] = template_cov[intra]
     candidates = np.flatnonzero(~intra & (views >= 2))
     use = found[candidates].copy()
+    focal = np.array([m.K[0, 0] for m in models])
     for _attempt in range(2):  # second attempt without each point's worst view
         keep = use.sum(1) >= 2
         idx, use = candidates[keep], use[keep]
@@ -153,19 +203,25 @@ def reprojection_check(
             normalized[cams == c] = undistort_pixels(px[cams == c], models[c])
         obs = Observations(rows, cams, px, normalized, np.zeros((len(rows), 3), np.uint8))
         tri = triangulate(obs, poses, models, len(idx))
-        err = np.full(use.shape, -np.inf)
-        err[rows, cams] = tri.error_px
-        good = tri.in_front & (tri.max_error_px <= gate_px) & np.isfinite(tri.points).all(1)
+        J, z = projection_jacobians(np.nan_to_num(tri.points[rows]), poses[cams], focal[cams])
+        variance = noise.tracked_view_variance_px2(z, focal[cams])
+        scaled = np.full(use.shape, -np.inf)
+        scaled[rows, cams] = tri.error_px**2 / variance
+        worst_scaled = np.max(scaled, axis=1)
+        good = tri.in_front & (worst_scaled <= bound) & np.isfinite(tri.points).all(1)
+        cov = point_covariances(rows, J, variance, len(idx))
         status[idx[good]] = INTER
         positions[idx[good]] = tri.points[good]
-        worst = np.argmax(err, axis=1)
+        covariances[idx[good]] = cov[good]
+        worst = np.argmax(scaled, axis=1)
         use[np.arange(len(idx)), worst] = False
         candidates, use = idx[~good], use[~good]
-    return status, positions
+    return status, positions, covariances
 
 
 def build_target(
     template: np.ndarray,
+    template_cov: np.ndarray,
     latest: np.ndarray,
     prev_images: list[np.ndarray | None],
     cur_images: list[np.ndarray | None],
@@ -174,10 +230,13 @@ def build_target(
     prev_pixels: np.ndarray,
     models: list[CameraModel],
     tool_pose: np.ndarray,
+    noise: NoiseModel,
     cfg: TargetConfig,
     tool_cfg: ToolConfig,
 ) -> TargetCloud:
-    """Target cloud of a frame for template points (N, 3) at frame 0 and latest positions.
+    """Target cloud of a frame for template points (N, 3) at frame 0 (covariances (N, 3, 3)
+    m²) and latest positions, gated with the run's noise model (its tracking_px is replaced
+    by the one measured from this frame's forward-backward KLT disagreement).
 
     prev_images/cur_images: per camera RGB (H, W, 3) uint8 or None, "prev" being the frame
     tracked from (any earlier frame: the pipeline passes the template base); poses (C, 4, 4)
@@ -188,6 +247,7 @@ def build_target(
     n, n_cams = len(template), len(models)
     pixels = np.full((n, n_cams, 2), np.nan)
     found = np.zeros((n, n_cams), bool)
+    fb_parts = []
     for c in range(n_cams):
         if cur_images[c] is None or prev_images[c] is None:
             continue
@@ -198,22 +258,31 @@ def build_target(
             start[missing] = project(latest[missing], prev_poses[c], models[c])[0]
         visible &= np.isfinite(start).all(1) & in_image(start, models[c], 8.0)
         idx = np.flatnonzero(visible)
-        tracked, ok = klt_track(
+        tracked, ok, fb = klt_track(
             _gray(prev_images[c]), _gray(cur_images[c]), start[idx], guess[idx], cfg
         )
+        fb_parts.append(fb[ok])
         ok &= in_image(tracked, models[c], 2.0)
         ok &= ~tool_pixel_mask(tracked, models[c], cur_poses[c], tool_pose, tool_cfg)
         pixels[idx[ok], c] = tracked[ok]
         found[idx[ok], c] = True
-    status, positions = reprojection_check(template, found, pixels, models, cur_poses, cfg.gate_px)
+    fb_all = np.concatenate(fb_parts) if fb_parts else np.zeros((0, 2))
+    if len(fb_all):
+        noise = replace(noise, tracking_px=tracking_noise_from_fb(fb_all))
+    status, positions, covariances = reprojection_check(
+        template, template_cov, found, pixels, models, cur_poses, noise, cfg.significance)
     # Tissue is pushed away by the tool, so visibility is judged in the images (mask);
     # a re-triangulated point inside the tool's capsule is a tool point, not tissue.
     on_tool = (status == INTER) & points_near_tool(np.nan_to_num(positions), tool_pose, tool_cfg)
     status[on_tool] = OUTLIER
     positions[on_tool] = np.nan
+    covariances[on_tool] = np.nan
     unobserved = status == UNOBSERVED
     positions[unobserved] = latest[unobserved]
-    return TargetCloud(positions, status, found.sum(1), pixels)
+    sigma = np.full(n, np.nan)
+    has = (status == INTRA) | (status == INTER)
+    sigma[has] = covariance_sigma(covariances[has])
+    return TargetCloud(positions, status, found.sum(1), pixels, sigma, noise)
 
 
 def new_target_points(candidates: np.ndarray, candidate_rgb: np.ndarray, tracked: np.ndarray,

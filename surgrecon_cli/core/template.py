@@ -17,10 +17,16 @@ from ..errors import GeometryError
 from .cameras import CameraModel
 from .features import Features, detect_features, no_features
 from .matching import build_tracks, match_pair
+from .noise import (
+    covariance_sigma,
+    pixel_noise_from_residuals,
+    point_covariances,
+    projection_jacobians,
+)
 from .outliers import surface_outliers
 from .pairing import PairPlan, PairPrediction, candidate_pairs, plan_pairs, predict_pairs
 from .tool import points_near_tool, tool_image_mask
-from .triangulate import Observations, triangulate
+from .triangulate import Observations, reprojection_residuals, triangulate
 
 # What `build_template` reports through `on_step`, in order (for progress bars).
 STEPS = ("features", "matches", "points")
@@ -38,13 +44,18 @@ def map_here(fn: Callable[..., Any], calls: Sequence[tuple[Any, ...]]) -> list[A
 @dataclass(frozen=True)
 class TemplateResult:
     """Template cloud: points (N, 3) m, rgb (N, 3) uint8, n_views (N,), mean reprojection
-    error (N,) px; the observations of each point at frame 0 (`observations.point` indexes
-    points); the pair plan and prediction; counts of what each step kept."""
+    error (N,) px; covariance (N, 3, 3) m² and sigma (N,) m = √trace (core/noise.py) from the
+    measured pixel noise pixel_noise_px (px, per axis); the observations of each point at
+    frame 0 (`observations.point` indexes points); the pair plan and prediction; counts of
+    what each step kept."""
 
     points: np.ndarray
     rgb: np.ndarray
     n_views: np.ndarray
     reprojection_px: np.ndarray
+    covariance: np.ndarray
+    sigma: np.ndarray
+    pixel_noise_px: float
     observations: Observations
     plan: PairPlan
     prediction: PairPrediction
@@ -125,6 +136,13 @@ def build_template(
         & (tri.max_error_px <= cfg.max_reprojection_px)
         & (tri.angle_deg >= cfg.min_angle_deg)
     )
+    # The noise is measured on the geometrically good points; a point is then kept when the
+    # depth accuracy its rays buy is good enough (not by a fixed triangulation angle).
+    pixel_px, cov = measured_covariances(tri.points, obs, poses, models, good)
+    sigma = covariance_sigma(np.nan_to_num(cov, nan=np.inf))
+    precise = np.isfinite(sigma) & (sigma <= cfg.max_sigma_mm * 1e-3)
+    imprecise = good & ~precise
+    good &= precise
     on_tool = points_near_tool(np.nan_to_num(tri.points), tool_pose, tool_cfg) & good
     off_surface = np.zeros_like(good)
     candidates = np.flatnonzero(good & ~on_tool)
@@ -138,7 +156,9 @@ def build_template(
         "matches": {f"{i}-{j}": len(m) for (i, j), m in matches.items()},
         "tracks": n_tracks,
         "triangulated": n_points,
-        "rejected_geometry": int((~good).sum()),
+        "rejected_geometry": int((~good).sum() - imprecise.sum()),
+        "rejected_imprecise": int(imprecise.sum()),
+        "pixel_noise_px": pixel_px,
         "removed_tool": int(on_tool.sum()),
         "removed_off_surface": int(off_surface.sum()),
         "points": int(keep.sum()),
@@ -149,8 +169,28 @@ def build_template(
         rgb=obs_kept.mean_rgb(int(keep.sum())),
         n_views=tri.n_views[keep],
         reprojection_px=tri.mean_error_px[keep],
+        covariance=cov[keep],
+        sigma=sigma[keep],
+        pixel_noise_px=pixel_px,
         observations=obs_kept,
         plan=plan,
         prediction=prediction,
         stats=stats,
     )
+
+
+def measured_covariances(points: np.ndarray, obs: Observations, poses: np.ndarray,
+                         models: list[CameraModel],
+                         use: np.ndarray) -> tuple[float, np.ndarray]:
+    """Pixel noise σ_px (px) measured from the reprojection residuals of the points `use`
+    (N,) bool, and every point's covariance (N, 3, 3) m² from its views at that noise."""
+    residual, _ = reprojection_residuals(points, obs, poses, models)
+    views = np.bincount(obs.point, minlength=len(points))
+    sel = use[obs.point]
+    pixel_px = pixel_noise_from_residuals(residual[sel], views[obs.point[sel]])
+    pixel_px = pixel_px if np.isfinite(pixel_px) and pixel_px > 0 else 1.0
+    focal = np.array([m.K[0, 0] for m in models])
+    J, _ = projection_jacobians(np.nan_to_num(points[obs.point]), poses[obs.camera],
+                                focal[obs.camera])
+    cov = point_covariances(obs.point, J, np.full(len(obs.point), pixel_px**2), len(points))
+    return float(pixel_px), cov

@@ -121,13 +121,8 @@ def triangulate(
     X[~finite] = 0.0
     X = refine_points(X, obs, poses, focal)
     X[~finite] = np.nan
-    error = np.full(len(obs.point), np.inf)
-    depth = np.full(len(obs.point), -1.0)
-    for c in np.unique(obs.camera):
-        sel = obs.camera == c
-        uv, z = project(X[obs.point[sel]], poses[c], models[c])
-        error[sel] = np.linalg.norm(uv - obs.pixels[sel], axis=1)
-        depth[sel] = z
+    residual, depth = reprojection_residuals(X, obs, poses, models)
+    error = np.linalg.norm(residual, axis=1)
     error[~np.isfinite(error)] = np.inf
     n_views = np.bincount(obs.point, minlength=n_points)
     mean_err = np.bincount(obs.point, weights=np.minimum(error, 1e6), minlength=n_points)
@@ -139,6 +134,20 @@ def triangulate(
     return Triangulation(
         X, mean_err, max_err, n_views, max_ray_angle(X, obs, poses), in_front, error
     )
+
+
+def reprojection_residuals(points: np.ndarray, obs: Observations, poses: np.ndarray,
+                           models: list[CameraModel]) -> tuple[np.ndarray, np.ndarray]:
+    """Projected minus observed pixel (M, 2) px of every observation of points (N, 3) m, and
+    the point's depth (M,) m in that camera (NaN rows for non-finite points)."""
+    residual = np.full((len(obs.point), 2), np.nan)
+    depth = np.full(len(obs.point), -1.0)
+    for c in np.unique(obs.camera):
+        sel = obs.camera == c
+        uv, z = project(points[obs.point[sel]], poses[c], models[c])
+        residual[sel] = uv - obs.pixels[sel]
+        depth[sel] = z
+    return residual, depth
 
 
 def max_ray_angle(points: np.ndarray, obs: Observations, poses: np.ndarray) -> np.ndarray:

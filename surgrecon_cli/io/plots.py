@@ -341,3 +341,23 @@ def _thin_ticks(ax, frames: np.ndarray) -> None:
         return
     step = max(int(np.ceil(len(frames) / 20)), 1)
     ax.set_xticks(frames[::step])
+
+
+def quality_over_time(frames: np.ndarray, fractions: dict[str, np.ndarray],
+                      sigma_mm: np.ndarray, residual_ratio: np.ndarray) -> bytes:
+    """Quality panel: shares of points per frame (left) and median σ / residual ratio
+    (right)."""
+    fig = _figure(9.0, 3.2)
+    left, right = fig.subplots(1, 2)
+    for name, values in fractions.items():
+        left.plot(frames, values * 100, marker="o", ms=3, label=name)
+    left.set_ylim(0, 100)
+    _label_frame_axes(left, frames, "% of template points", "what the data support")
+    left.legend(fontsize=8)
+    right.plot(frames, sigma_mm, marker="o", ms=3, color="tab:blue", label="median σ (mm)")
+    right.plot(frames, residual_ratio, marker="s", ms=3, color="tab:red",
+               label="residual / σ_target")
+    right.axhline(1.0, color="grey", lw=0.8, ls=":")
+    _label_frame_axes(right, frames, "mm  /  ratio", "uncertainty and fit")
+    right.legend(fontsize=8)
+    return _png(fig)

@@ -19,6 +19,7 @@ import numpy as np
 
 from ..config import Config, to_dict
 from ..core.classify import (
+    Evidence,
     FrameClasses,
     Neighbourhoods,
     apply_hysteresis,
@@ -26,6 +27,7 @@ from ..core.classify import (
     template_neighbourhoods,
 )
 from ..core.labels import CLASS_NAMES, INTRA, STATIC, UNKNOWN
+from ..core.noise import covariance_sigma
 from ..errors import RunFolderError
 from ..executors import Executor, Task
 from ..executors.serial import SerialExecutor
@@ -59,7 +61,8 @@ def load_registration_frame(run_dir: Path, frame: int, n_points: int) -> dict[st
     except (OSError, ValueError) as exc:
         raise RunFolderError(f"{path}: unreadable ({exc}); re-run register") from exc
     for key, shape in (("registered", (n_points, 3)), ("transforms", (n_points, 3, 4)),
-                       ("status", (n_points,))):
+                       ("status", (n_points,)), ("sigma", (n_points,)),
+                       ("target", (n_points, 3)), ("target_sigma", (n_points,))):
         if key not in data or data[key].shape != shape:
             got = data[key].shape if key in data else "missing"
             raise RunFolderError(f"{path}: {key} should be {shape} for the {n_points}-point "
@@ -67,7 +70,8 @@ def load_registration_frame(run_dir: Path, frame: int, n_points: int) -> dict[st
     return data
 
 
-TemplateInputs = tuple[np.ndarray, Neighbourhoods]  # template (N, 3) m, its neighbourhoods
+# template (N, 3) m, its neighbourhoods, its points' uncertainty (N,) m
+TemplateInputs = tuple[np.ndarray, Neighbourhoods, np.ndarray]
 
 
 @functools.lru_cache(maxsize=4)
@@ -75,9 +79,11 @@ def _cached_template(run_dir: str, _stamp: tuple[int, ...], neighbourhood_mm: fl
                      min_neighbours: int, max_neighbours: int) -> TemplateInputs:
     template, _ = load_template(Path(run_dir))
     nb = template_neighbourhoods(template, neighbourhood_mm, min_neighbours, max_neighbours)
-    for array in (template, nb.index, nb.mask):
+    with np.load(Path(run_dir) / "template" / "observations.npz", allow_pickle=False) as z:
+        template_sigma = covariance_sigma(z["covariance"].astype(float))
+    for array in (template, nb.index, nb.mask, template_sigma):
         array.flags.writeable = False  # shared by every frame this process classifies
-    return template, nb
+    return template, nb, template_sigma
 
 
 def template_and_neighbourhoods(run_dir: Path, config: Config) -> TemplateInputs:
@@ -96,13 +102,28 @@ def classify_one_frame(run_dir: Path, frame: int,
                        config: Config) -> tuple[FrameClasses, np.ndarray]:
     """Labels of one frame k >= 1 from its registration (a task), and its reprojection
     check status (N,) uint8."""
-    template, nb = template_and_neighbourhoods(run_dir, config)
+    template, nb, template_sigma = template_and_neighbourhoods(run_dir, config)
     reg = load_registration_frame(run_dir, frame, len(template))
     cfg = config.classify
     transforms = reg["transforms"].astype(float) if cfg.measure == "transform_diff" else None
-    classes = classify_frame(template, reg["registered"].astype(float), nb, cfg,
-                             transforms=transforms, status=reg["status"])
+    registered = reg["registered"].astype(float)
+    classes = classify_frame(template, registered, nb, cfg, transforms=transforms,
+                             status=reg["status"],
+                             evidence=frame_evidence(reg, registered, template_sigma))
     return classes, reg["status"].astype(np.uint8)
+
+
+def frame_evidence(reg: dict[str, np.ndarray], registered: np.ndarray,
+                   template_sigma: np.ndarray) -> Evidence:
+    """The classifier's uncertainties of one registered frame: measured positions are the
+    targets where the reprojection check gave one, else the registered positions."""
+    sigma = reg["sigma"].astype(float)
+    target = reg["target"].astype(float)
+    target_sigma = reg["target_sigma"].astype(float)
+    has = np.isfinite(target_sigma) & np.isfinite(target).all(1)
+    return Evidence(sigma=sigma, template_sigma=template_sigma,
+                    measured=np.where(has[:, None], target, registered),
+                    measured_sigma=np.where(has, target_sigma, sigma))
 
 
 def classify_task(run_dir: Path, config: Config, frame: int) -> Task:

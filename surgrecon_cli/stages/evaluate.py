@@ -20,6 +20,7 @@ import numpy as np
 
 from ..config import Config
 from ..core.evaluation import error_summary, on_tool, registration_errors, true_point_labels
+from ..core.labels import UNKNOWN
 from ..core.scoring import distance_stats_mm, label_scores, map_to_surface
 from ..errors import InputError, RunFolderError
 from ..io.atomic import write_npz
@@ -34,6 +35,7 @@ from .register import load_template
 logger = logging.getLogger(__name__)
 
 STAGE = "evaluate"
+UNSUPPORTED_MM = 5.0  # the issue's bound: a labelled point without data this far off is a lie
 
 
 def evaluation_path(run_dir: Path) -> Path:
@@ -74,11 +76,17 @@ def run_evaluate(run_dir: Path, config: Config, gt_path: Path,
         }
         n_frames, n = log.n_frames, len(template)
         errors = np.full((n_frames, n), np.nan, np.float32)
+        sigma = np.full((n_frames, n), np.nan, np.float32)
+        has_data = np.zeros((n_frames, n), bool)
         truth = true_point_labels(mapping, gt.faces, gt.labels).astype(np.uint8)
         if run.is_done("register"):
-            result["registration"] = _registration_part(run_dir, gt, mapping, errors, step)
+            result["registration"] = _registration_part(run_dir, gt, mapping, errors, sigma,
+                                                        has_data, step)
         if run.is_done("classify"):
             result["labels"] = _labels_part(run_dir, truth)
+            if result["registration"] is not None:
+                _honesty_part(result, _load_labels(run_dir, truth.shape), errors, sigma,
+                              has_data)
         write_npz(errors_path(run_dir),
                   template_error_mm=(mapping.distance * 1e3).astype(np.float32),
                   on_tool=np.zeros(n, bool) if tool_mask is None else tool_mask,
@@ -106,28 +114,54 @@ def _template_part(distance_m: np.ndarray, tool_mask: np.ndarray | None,
 
 
 def _registration_part(run_dir: Path, gt: GroundTruth, mapping: Any, errors: np.ndarray,
+                       sigma: np.ndarray, has_data: np.ndarray,
                        step: Callable[[int, int], None]) -> dict[str, Any]:
+    """Registration errors per frame; fills errors (T, N) mm, sigma (T, N) mm (the run's
+    reported uncertainty) and has_data (T, N) (the point had a target) for later parts."""
     n_frames, n = errors.shape
     per_frame = []
     for k in range(1, n_frames):
         reg = load_registration_frame(run_dir, k, n)
         err_m = registration_errors(mapping, gt.vertices[k], gt.faces, reg["registered"])
         errors[k] = err_m * 1e3
+        sigma[k] = reg["sigma"] * 1e3
+        has_data[k] = np.isfinite(reg["target_sigma"])
         per_frame.append({"frame": k, **error_summary(err_m)})
         step(k, n_frames)
     return {"overall": error_summary(errors[1:].astype(float) * 1e-3), "per_frame": per_frame}
 
 
-def _labels_part(run_dir: Path, truth: np.ndarray) -> dict[str, Any]:
+def _load_labels(run_dir: Path, shape: tuple[int, ...]) -> np.ndarray:
     path = labels_path(run_dir)
     try:
         with np.load(path, allow_pickle=False) as z:
             labels = z["labels"]
     except (OSError, KeyError, ValueError) as exc:
         raise RunFolderError(f"{path}: unreadable ({exc}); re-run classify") from exc
-    if labels.shape != truth.shape:
+    if labels.shape != shape:
         raise RunFolderError(f"{path}: labels {labels.shape} do not match the run "
-                             f"{truth.shape}; re-run classify")
+                             f"{shape}; re-run classify")
+    return labels
+
+
+def _honesty_part(result: dict[str, Any], labels: np.ndarray, errors: np.ndarray,
+                  sigma: np.ndarray, has_data: np.ndarray) -> None:
+    """Does the run know what it does not know? Over frames >= 1: the registration error of
+    labelled points; the share of labelled points whose true error is within the reported
+    2σ (calibration); the share unknown; labelled points with no data that are more than
+    `UNSUPPORTED_MM` off (extrapolated and still labelled)."""
+    labelled = labels[1:] != UNKNOWN
+    err, sig = errors[1:].astype(float), sigma[1:].astype(float)
+    result["registration"]["labelled"] = error_summary(np.where(labelled, err, np.nan) * 1e-3)
+    within = (err <= 2.0 * sig)[labelled & np.isfinite(err)]
+    result["labels"]["calibration_2sigma"] = float(within.mean()) if within.size else None
+    result["labels"]["unknown_fraction"] = float((~labelled).mean()) if labelled.size else None
+    result["registration"]["unsupported_moved"] = int(
+        (labelled & ~has_data[1:] & (err > UNSUPPORTED_MM)).sum())
+
+
+def _labels_part(run_dir: Path, truth: np.ndarray) -> dict[str, Any]:
+    labels = _load_labels(run_dir, truth.shape)
     per_frame = [{"frame": k, **label_scores(labels[k], truth[k])} for k in range(1, len(labels))]
     overall = label_scores(labels[1:], truth[1:]) if len(labels) > 1 else None
     return {"frames": "1..", "overall": overall, "per_frame": per_frame}

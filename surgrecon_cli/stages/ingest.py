@@ -21,8 +21,10 @@ from typing import Any
 import numpy as np
 
 from ..config import Config
+from ..core.noise import pose_jitter
 from ..core.sync import (
     FrameGrouping,
+    PoseStream,
     base_to_world_pose,
     group_frames,
     interpolate_values,
@@ -234,6 +236,13 @@ def _place_images(staging: Path, cams: list, orders: list[np.ndarray],
     return tuple(tuple(row) for row in paths)
 
 
+def _jitter(stream: PoseStream) -> dict[str, float | None]:
+    """The pose stream's measured per-axis noise (core/noise.py), mm and degrees."""
+    position, rotation = pose_jitter(stream.stamps_ns, stream.positions, stream.quats)
+    return {"tracker_jitter_mm": float(position * 1e3) if np.isfinite(position) else None,
+            "tracker_jitter_deg": float(np.degrees(rotation)) if np.isfinite(rotation) else None}
+
+
 def _report(ids: tuple[str, ...], cams: list, stamps: list[np.ndarray], pose_streams: list,
             frames: FrameGrouping, image_index: np.ndarray, usable: np.ndarray,
             trimmed: int) -> dict[str, Any]:
@@ -255,6 +264,7 @@ def _report(ids: tuple[str, ...], cams: list, stamps: list[np.ndarray], pose_str
             "usable": int(usable[:, c].sum()),
             "image_rate_hz": rate_hz(stamps[c]),
             "tracker_rate_hz": rate_hz(pose_streams[c].stamps_ns),
+            **_jitter(pose_streams[c]),
         }
         if per_camera[cid]["pose_gaps"]:
             logger.warning("camera %s: no tracked pose within the gap limit at %d of its images; "

@@ -25,6 +25,7 @@ from .. import __version__
 from ..config import Config, ToolConfig
 from ..core.cameras import in_image, project
 from ..core.labels import CLASS_NAMES, DEFORMING, SHIFTING, STATIC, STATUS_NAMES, UNKNOWN
+from ..core.quality import FrameQuality, frame_quality
 from ..core.tool import tool_pixel_mask, tool_pose_in_world
 from ..errors import RunFolderError
 from ..executors import Executor, Task
@@ -50,6 +51,8 @@ FRAME_COLUMNS = (
     "residual_median_mm", "residual_p95_mm",
     "displacement_median_mm", "displacement_p95_mm", "displacement_max_mm",
     "seconds_target", "seconds_register",
+    "observed_fraction", "unobserved_fraction", "outlier_fraction", "unknown_fraction",
+    "sigma_median_mm", "residual_over_sigma", "failed", "converged", "trustworthy",
     "error_median_mm", "error_p95_mm", "error_max_mm", "macro_f1",
 )
 _CODES = {"static": STATIC, "shifting": SHIFTING, "deforming": DEFORMING, "unknown": UNKNOWN}
@@ -85,6 +88,8 @@ class _RunData:
     seconds: np.ndarray | None = None          # (T, 2) target, register
     evaluation: dict[str, Any] | None = None
     errors: dict[str, np.ndarray] | None = None
+    quality: list[FrameQuality] | None = None  # frames >= 1
+    noise: dict[str, Any] | None = None        # the run's measured noise figures
 
 
 def run_report(run_dir: Path, config: Config,
@@ -132,8 +137,10 @@ def _gather(run_dir: Path) -> _RunData:
         status = np.zeros((n_frames, n), np.uint8)
         seconds = np.full((n_frames, 2), np.nan)
         residual = [np.zeros(0)]
+        frames_reg = []
         for k in range(1, n_frames):
             reg = load_registration_frame(run_dir, k, n)
+            frames_reg.append(reg)
             registered[k] = reg["registered"]
             status[k] = reg["status"]
             has = (reg["status"] == 0) | (reg["status"] == 1)
@@ -150,12 +157,35 @@ def _gather(run_dir: Path) -> _RunData:
             raise RunFolderError(f"{labels_path(run_dir)}: labels {labels.shape} do not match "
                                  f"the run ({n_frames}, {n}); re-run classify")
         data.labels = labels
+    if run.is_done("register"):
+        data.quality = [
+            frame_quality(k, reg["status"], None if data.labels is None else data.labels[k],
+                          reg["sigma"].astype(float), reg["residual"].astype(float),
+                          reg["target_sigma"].astype(float), bool(reg["failed"]),
+                          bool(reg["converged"]), str(reg["error"]))
+            for k, reg in enumerate(frames_reg, start=1)]
+        data.noise = _noise_figures(data.log, data.template_summary, frames_reg)
     if run.is_done("evaluate") and evaluation_path(run_dir).is_file():
         data.evaluation = json.loads(evaluation_path(run_dir).read_text(encoding="utf-8"))
         if errors_path(run_dir).is_file():
             with np.load(errors_path(run_dir), allow_pickle=False) as z:
                 data.errors = {k: z[k] for k in z.files}
     return data
+
+
+def _noise_figures(log: IngestedLog, template_summary: dict[str, Any] | None,
+                   frames: list[dict[str, np.ndarray]]) -> dict[str, Any]:
+    """The run's measured noise: pixel noise (template), tracker jitter per camera (ingest),
+    tracking noise (median over frames) and the median template σ."""
+    stats = (template_summary or {}).get("stats", {})
+    cams = log.report.get("cameras", {})
+    tracking = [float(f["tracking_px"]) for f in frames if np.isfinite(f["tracking_px"])]
+    return {
+        "pixel_px": stats.get("pixel_noise_px"),
+        "tracking_px": float(np.median(tracking)) if tracking else None,
+        "tracker_jitter_mm": {c: r.get("tracker_jitter_mm") for c, r in cams.items()},
+        "tracker_jitter_deg": {c: r.get("tracker_jitter_deg") for c, r in cams.items()},
+    }
 
 
 def _stats(values: np.ndarray) -> tuple[float, float, float]:
@@ -199,6 +229,9 @@ def frame_rows(data: _RunData) -> list[dict[str, Any]]:
                 e.get("median_mm"), e.get("p95_mm"), e.get("max_mm"))
         if k in label_eval:
             row["macro_f1"] = label_eval[k].get("macro_f1")
+        if data.quality is not None and k > 0:
+            row.update({key: value for key, value in data.quality[k - 1].row().items()
+                        if key != "frame"})
         rows.append(row)
     return rows
 
@@ -252,7 +285,16 @@ def _summary(data: _RunData, rows: list[dict[str, Any]], config: Config) -> dict
             "registration_error_mm": (ev.get("registration") or {}).get("overall"),
             "macro_f1": ((ev.get("labels") or {}).get("overall") or {}).get("macro_f1"),
         }
+    if data.quality is not None:
+        summary["noise"] = data.noise
+        summary["quality"] = {
+            "per_frame": [q.row() for q in data.quality],
+            "warnings": [w for q in data.quality for w in q.warnings],
+            "untrustworthy_frames": [q.frame for q in data.quality if q.warnings],
+        }
     summary["classify"] = {"static_mm": config.classify.static_mm,
+                           "significance": config.classify.significance,
+                           "max_sigma_mm": config.classify.max_sigma_mm,
                            "deform_mm": config.classify.deform_mm,
                            "measure": config.classify.measure}
     return finite_json(summary)
@@ -363,6 +405,48 @@ def _cloud_views(data: _RunData, tool: ToolConfig, figs: _Figures) -> list[str]:
     return blocks
 
 
+def _quality_section(data: _RunData, frames_later: np.ndarray, figs: _Figures) -> rh.Section:
+    """Per frame: what the data support (shares observed / unknown), the median σ and the
+    residual against the noise, with the frames not to trust named in plain words."""
+    quality = data.quality or []
+    sec = rh.Section("quality", "Quality (no ground truth needed)")
+    noise = data.noise or {}
+    jitter = [v for v in (noise.get("tracker_jitter_mm") or {}).values() if v is not None]
+    jitter_deg = [v for v in (noise.get("tracker_jitter_deg") or {}).values() if v is not None]
+    sec.add(rh.table(("measured noise (1σ per axis)", "value"), [
+        ("pixel noise at frame 0 (template residuals)", _fmt_num(noise.get("pixel_px"), "px")),
+        ("tracker position jitter (median over cameras)",
+         _fmt_num(float(np.median(jitter)) if jitter else None, "mm")),
+        ("tracker rotation jitter (median over cameras)",
+         _fmt_num(float(np.median(jitter_deg)) if jitter_deg else None, "°")),
+        ("KLT tracking noise (forward-backward, median over frames)",
+         _fmt_num(noise.get("tracking_px"), "px")),
+    ]))
+    series = {
+        "observed": np.array([q.observed for q in quality]),
+        "unknown": np.array([q.unknown for q in quality]),
+        "outlier": np.array([q.outlier for q in quality]),
+    }
+    sec.add(figs.add(partial(plots.quality_over_time, frames_later, series,
+                             np.array([q.sigma_median_mm for q in quality]),
+                             np.array([q.residual_over_sigma for q in quality])),
+                     "Left: share of template points observed in the frame, labelled unknown "
+                     "(too far from data) and rejected as outliers. Right: median uncertainty σ "
+                     "of the labelled points, and the median registration residual in units "
+                     "of the target's σ (about 1 when the fit is as good as the noise allows)."))
+    warnings = [w for q in quality for w in q.warnings]
+    if warnings:
+        sec.add(rh.paragraph("Frames not to trust: " + "; ".join(warnings) + "."))
+    else:
+        sec.add(rh.paragraph("Every frame is supported by data and fits within its noise.",
+                             note=True))
+    return sec
+
+
+def _fmt_num(value: Any, unit: str) -> str:
+    return "–" if value is None or not np.isfinite(value) else f"{value:.3g} {unit}"
+
+
 def _fmt_mm(value: Any) -> str:
     return "–" if value is None else f"{value:.2f} mm"
 
@@ -436,6 +520,10 @@ def _html(run_dir: Path, data: _RunData, rows: list[dict[str, Any]], summary: di
             f"{stats.get('removed_off_surface')} off the surface, {stats.get('removed_tool')} "
             f"on the tool.", note=True))
     sections.append(cams)
+
+    # --- quality without ground truth
+    if data.quality is not None and log.n_frames > 1:
+        sections.append(_quality_section(data, frames_later, figs))
 
     # --- labels over time
     if data.labels is not None or data.status is not None:

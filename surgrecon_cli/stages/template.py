@@ -1,7 +1,10 @@
 """Stage `build-template`: the template cloud P from the run's first frame.
 
-Writes RUN/template.ply, RUN/clouds/000000.ply (all points static) and
-RUN/template/observations.npz (where each template point was seen at frame 0, for tracking).
+Writes RUN/template.ply, RUN/clouds/000000.ply (all points static; extra vertex properties
+n_views, reprojection_px and sigma: the point's 3D position uncertainty, RMS, metres),
+RUN/template/observations.npz (where each template point was seen at frame 0, for tracking;
+and each point's 3D covariance, m², from the measured pixel noise) and
+RUN/template/summary.json (counts, pair plan, pixel_noise_px).
 """
 
 from __future__ import annotations
@@ -57,6 +60,7 @@ def run_build_template(
         extra = {
             "n_views": result.n_views.astype(np.uint8),
             "reprojection_px": result.reprojection_px.astype(np.float32),
+            "sigma": result.sigma.astype(np.float32),
         }
         for path in (run_dir / "template.ply", cloud_path(run_dir, 0)):
             write_cloud_ply(
@@ -74,6 +78,8 @@ def run_build_template(
             point=obs.point.astype(np.int32),
             camera=obs.camera.astype(np.int16),
             pixels=obs.pixels.astype(np.float32),
+            covariance=result.covariance.astype(np.float64),
+            pixel_noise_px=np.float64(result.pixel_noise_px),
         )
         plan = {
             "groups": [[log.cameras[c] for c in g] for g in result.plan.groups],
@@ -85,5 +91,7 @@ def run_build_template(
             "baseline_ratio": result.prediction.baseline_ratio.round(3).tolist(),
         }
         write_json(run_dir / "template" / "summary.json", {"stats": result.stats, "pairs": plan})
-        info.update(points=n, groups=plan["groups"], sequence=plan["sequence"], stats=result.stats)
+        info.update(points=n, groups=plan["groups"], sequence=plan["sequence"], stats=result.stats,
+                    pixel_noise_px=result.pixel_noise_px,
+                    sigma_median_mm=float(np.median(result.sigma) * 1e3) if n else None)
     return result

@@ -1,4 +1,4 @@
-"""ADMM for the sparse non-rigid energy (Yang et al. 2015; METHOD.md steps 1-6).
+"""ADMM for the sparse non-rigid energy (Yang et al. 2015; Boyd et al. 2011).
 
     E(X) = sum_i w_i rho_d(D_i X - G_i) + alpha sum_e c_e rho_s(B_e X) + beta sum_n |A_n - R_n|_F^2
 
@@ -6,18 +6,26 @@ rho = |.|_2 of the 3-vector residual (unsquared: the heavy-tailed, group-sparse 
 penalty of Yang et al. 2015 / RPTS, eq. (E) of METHOD.md) or |.|_2^2 (Gaussian, for
 comparison). Splits C = DX - G and Z = BX with scaled multipliers U1, U2:
 
-    X <- (mu1 D'D + mu2 B'B + (2 beta + eps) L'L)^-1 [mu1 D'(G + C - U1) + mu2 B'(Z - U2)
-                                                     + 2 beta L'R + eps L'A0]
+    X <- (mu1 D'D + mu2 B'B + 2 beta L'L + eps I)^-1 [mu1 D'(G + C - U1) + mu2 B'(Z - U2)
+                                                     + 2 beta L'R + eps X0]
     C <- prox_{w rho_d / mu1}(DX - G + U1)        (group soft threshold for l1)
     Z <- prox_{alpha c rho_s / mu2}(BX + U2)
     U1 += DX - G - C;   U2 += BX - Z
 
 The matrix depends only on the graph, the observed rows of D and mu: it is factorised once
 per run (sparse LU in symmetric mode with a minimum-degree ordering) and reused for all
-iterations and all three coordinate columns. `eps` (ours) is a tiny Tikhonov pull of each
-linear part towards the rigid pre-alignment A0; it only fixes the directions no term sees
-(the derivative of the motion along the surface normal) and keeps the system definite.
-Over-relaxation (Boyd et al. 2011, sec. 3.4.3) speeds convergence; the factor is ours.
+iterations and all three coordinate columns. `eps` (ours) is a tiny Tikhonov pull of every
+unknown, linear parts and translations, towards the rigid pre-alignment X0: it only decides
+the directions no term sees (the derivative of the motion along the surface normal, and a
+part of the graph that no data reaches, which therefore stays where the rigid step put it
+instead of drifting by an arbitrary translation) and keeps the system definite; a system
+that is still singular raises. Over-relaxation (Boyd et al. 2011, sec. 3.4.3) speeds
+convergence; the factor is ours.
+
+Stopping (Boyd et al. 2011, sec. 3.3.1, with our tolerances): the primal residual RMS is
+below `tol`, no node moved by more than `tol` in the last iteration (a max, not an RMS, so
+that a slow corner of the graph cannot hide behind the rest), and the energy changed by less
+than `ENERGY_RTOL` of itself.
 """
 
 from __future__ import annotations
@@ -33,6 +41,8 @@ from ...errors import GeometryError
 from ..geometry import nearest_rotation
 
 EPS_REL = 1e-6  # ours: Tikhonov weight relative to the mean diagonal of the system
+ENERGY_RTOL = 1e-4  # ours: relative energy change of one iteration counted as converged
+PIVOT_RTOL = 1e-13  # ours: an LU pivot this small relative to the largest means singular
 
 
 @dataclass
@@ -49,7 +59,7 @@ class AdmmProblem:
     """One ADMM run's fixed data (normalised units).
 
     D (P, 4M) observed rows, G (P, 3) targets, w (P,) data weights, B (E, 4M), c (E,) edge
-    weights, L (3M, 4M) linear-part selector, A0 (3M, 3) prior linear parts.
+    weights, L (3M, 4M) linear-part selector, X0 (4M, 3) prior (the rigid pre-alignment).
     """
 
     D: sp.csr_matrix
@@ -58,7 +68,7 @@ class AdmmProblem:
     B: sp.csr_matrix
     c: np.ndarray
     L: sp.csr_matrix
-    A0: np.ndarray
+    X0: np.ndarray
     alpha: float
     beta: float
     data_l1: bool
@@ -70,6 +80,8 @@ class AdmmInfo:
     iterations: int
     primal: float  # RMS constraint violation, normalised units
     dual: float  # RMS change of the split variables in the last iteration, normalised units
+    step: float  # largest node displacement in the last iteration, normalised units
+    energy_change: float  # relative energy change in the last iteration
     factorisations: int
     converged: bool
 
@@ -99,23 +111,32 @@ class Factor:
 
 def factorise(D: sp.csr_matrix, B: sp.csr_matrix, L: sp.csr_matrix, beta: float, mu1: float,
               mu2: float) -> Factor:
-    """Sparse LU (symmetric mode, minimum-degree ordering) of the X-step matrix."""
+    """Sparse LU (symmetric mode, minimum-degree ordering) of the X-step matrix; raises
+    GeometryError when it is singular (a pivot vanishes or the factor is not finite)."""
     K = mu1 * (D.T @ D) + mu2 * (B.T @ B) + (2.0 * beta) * (L.T @ L)
-    LtL = L.T @ L
     eps = EPS_REL * float(K.diagonal().mean())
-    K = (K + eps * LtL).tocsc()
+    K = (K + eps * sp.identity(K.shape[0], format="csr")).tocsc()
     try:
         lu = sla.splu(K, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
                       options={"SymmetricMode": True})
-    except RuntimeError as exc:  # exactly singular: no data and no graph around some node
+    except RuntimeError as exc:  # exactly singular
         raise GeometryError(f"registration system is singular ({exc})") from exc
+    pivots = np.abs(lu.U.diagonal())
+    if not np.isfinite(pivots).all() or pivots.min() <= PIVOT_RTOL * pivots.max():
+        raise GeometryError(
+            f"registration system is singular (smallest LU pivot {pivots.min():.3g}, "
+            f"largest {pivots.max():.3g})")
     return Factor(solve=lu.solve, eps=eps, mu1=mu1, mu2=mu2)
 
 
 def energy(prob: AdmmProblem, X: np.ndarray) -> float:
     """E(X) above (without the beta term), normalised units."""
-    r = np.linalg.norm(prob.D @ X - prob.G, axis=1)
-    s = np.linalg.norm(prob.B @ X, axis=1)
+    return _energy(prob, prob.D @ X, prob.B @ X)
+
+
+def _energy(prob: AdmmProblem, DX: np.ndarray, BX: np.ndarray) -> float:
+    r = np.linalg.norm(DX - prob.G, axis=1)
+    s = np.linalg.norm(BX, axis=1)
     data = prob.w @ (r if prob.data_l1 else r * r)
     smooth = prob.alpha * (prob.c @ (s if prob.smooth_l1 else s * s))
     return float(data + smooth)
@@ -149,8 +170,9 @@ def run_admm(
     DX, BX = D @ X, B @ X
     C, Z = DX - G, BX.copy()
     rows = max(len(G) + len(BX), 1)
-    prior = L.T @ prob.A0
-    primal = dual = np.inf
+    prior = prob.X0
+    primal = dual = step = change = np.inf
+    e_prev = energy(prob, X)
     it = 0
     for it in range(1, max_iter + 1):  # noqa: B007 - `it` is reported after the loop
         rhs = mu1 * (Dt @ (G + C - U1)) + mu2 * (Bt @ (Z - U2)) + eps * prior
@@ -158,7 +180,10 @@ def run_admm(
             A = X.reshape(-1, 4, 3)[:, :3, :]
             R = nearest_rotation(A).reshape(-1, 3)
             rhs += 2.0 * prob.beta * (L.T @ R)
+        X_old = X
         X = solve(rhs)
+        if not np.isfinite(X).all():
+            raise GeometryError("registration system gave a non-finite solution")
         DX, BX = D @ X, B @ X
         hat1 = relax * DX + (1.0 - relax) * (C + G)
         hat2 = relax * BX + (1.0 - relax) * Z
@@ -171,7 +196,12 @@ def run_admm(
         primal = np.sqrt((np.sum(r1 * r1) + np.sum(r2 * r2)) / rows)
         d1, d2 = C - C_old, Z - Z_old
         dual = np.sqrt((np.sum(d1 * d1) + np.sum(d2 * d2)) / rows)
-        if primal < tol and dual < tol:
+        moved = (X - X_old).reshape(-1, 4, 3)[:, 3, :]
+        step = float(np.sqrt(np.max(np.einsum("ij,ij->i", moved, moved))))
+        e_now = _energy(prob, DX, BX)
+        change = abs(e_now - e_prev) / max(abs(e_now), 1e-300)
+        e_prev = e_now
+        if primal < tol and step < tol and change < ENERGY_RTOL:
             break
         if mu_growth > 1.0 and mu1 < mu1_max:
             U1 = U1 / mu_growth
@@ -180,6 +210,7 @@ def run_admm(
             factor = factorise(D, B, L, prob.beta, mu1, mu2)
             solve, eps = factor.solve, factor.eps
             n_fact += 1
-    info = AdmmInfo(iterations=it, primal=float(primal), dual=float(dual),
-                    factorisations=n_fact, converged=bool(primal < tol and dual < tol))
+    converged = bool(primal < tol and step < tol and change < ENERGY_RTOL)
+    info = AdmmInfo(iterations=it, primal=float(primal), dual=float(dual), step=step,
+                    energy_change=float(change), factorisations=n_fact, converged=converged)
     return AdmmState(X=X, U1=U1, U2=U2), info, factor

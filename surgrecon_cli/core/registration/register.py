@@ -193,7 +193,7 @@ def register(
     X[:, :3, :] = R.T
     X[:, 3, :] = nodes_q @ R.T + t
     X = X.reshape(-1, 3)
-    A0 = np.tile(R.T, (n_nodes, 1))
+    X0 = X.copy()
     stats: list[dict[str, Any]] = [{
         "step": 0, "stage": "rigid", "rotation": R, "translation_m": t * norm.unit,
         "nodes": n_nodes, "seconds": time.perf_counter() - t_rigid,
@@ -234,10 +234,12 @@ def register(
         if alpha_prev is not None:
             U2 = U2 * (alpha / alpha_prev)
         alpha_prev = alpha
-        prob = AdmmProblem(D=D_obs, G=G, w=w, B=B, c=c_e, L=L, A0=A0, alpha=alpha,
+        prob = AdmmProblem(D=D_obs, G=G, w=w, B=B, c=c_e, L=L, X0=X0, alpha=alpha,
                            beta=cfg.beta, data_l1=data_l1, smooth_l1=smooth_l1)
         state, info, factor = run_admm(
-            prob, AdmmState(X=X, U1=U1, U2=U2), factor, max_iter=cfg.admm_iterations, tol=tol,
+            prob, AdmmState(X=X, U1=U1, U2=U2), factor,
+            max_iter=(cfg.final_admm_iterations if step == cfg.outer_iterations - 1
+                      else cfg.admm_iterations), tol=tol,
             relax=cfg.relaxation, mu_growth=cfg.mu_growth,
             mu1_max=cfg.mu * MU_GROWTH_LIMIT)
         X, U1, U2 = state.X, state.U1, state.U2
@@ -248,6 +250,7 @@ def register(
             "admm_iterations": info.iterations,
             "factorisations": info.factorisations, "converged": info.converged,
             "primal_mm": info.primal * norm.unit * 1e3, "dual_mm": info.dual * norm.unit * 1e3,
+            "step_mm": info.step * norm.unit * 1e3, "energy_change": info.energy_change,
             "correspondences": int(matched.sum()),
             "median_residual_mm": float(np.median(res)) if len(res) else float("nan"),
             "energy": energy(prob, X), "seconds": time.perf_counter() - t_step,

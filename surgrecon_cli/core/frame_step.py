@@ -1,0 +1,217 @@
+"""One frame of the registration pipeline as a pure function (Su et al. 2019, Fig. 2):
+target cloud -> data weights -> non-rigid registration with the tool-contact constraint ->
+composition with the base's transforms -> per-point uncertainty of the result.
+
+The stage (stages/register.py) only loads the inputs and writes the outputs.
+
+Uncertainty of a registered position (σ, metres, RMS of the 3D error):
+- a point with a target: σ² = σ_target² + r² (+ σ_template² for a re-triangulated
+  target), r its distance to that target after the registration (the data did not pin it
+  where the field put it: the difference is error); the template's own uncertainty counts
+  because it decides which material point a template point is (its error along the
+  surface is not seen by any later measurement);
+- a point without one (unobserved, outlier): σ² = σ_s² + (g d)², d its frame-0 distance to
+  the nearest point with a target, σ_s that point's σ and g = `registration.
+  extrapolation_growth`: how fast an extrapolated displacement field loses accuracy with
+  distance from its support.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from ..config import Config
+from ..errors import GeometryError
+from .cameras import CameraModel
+from .labels import INTER, INTRA, UNOBSERVED
+from .noise import NoiseModel, covariance_sigma
+from .registration import RegistrationResult, register
+from .target import TargetCloud, build_target, new_target_points
+from .template import build_template
+from .tool import push_out_of_tool
+
+
+@dataclass(frozen=True)
+class BaseState:
+    """What a frame is registered against: the base frame's index, its transforms from the
+    frame-0 template (N, 3, 4), registered points (N, 3) m, latest positions (N, 3) m
+    (target where observed, else registered) and where points were seen (N, C, 2) px."""
+
+    frame: int
+    transforms: np.ndarray
+    source: np.ndarray
+    latest: np.ndarray
+    pixels: np.ndarray
+
+
+@dataclass(frozen=True)
+class FrameResult:
+    """One registered frame: transforms (N, 3, 4) from the frame-0 template, registered
+    (N, 3) m, sigma (N,) m (module docstring), residual (N,) m to the point's target (NaN
+    without one), support_mm (N,) frame-0 distance to the nearest point with a target; the
+    target cloud; counts and timings."""
+
+    transforms: np.ndarray
+    registered: np.ndarray
+    sigma: np.ndarray
+    residual: np.ndarray
+    support_mm: np.ndarray
+    target: TargetCloud
+    new_points: int
+    contact_points: int
+    converged: bool
+    seconds_target: float
+    seconds_register: float
+
+
+def compose(outer: np.ndarray, inner: np.ndarray) -> np.ndarray:
+    """Affine composition (N, 3, 4): x -> outer(inner(x))."""
+    A = outer[:, :, :3] @ inner[:, :, :3]
+    b = np.einsum("nij,nj->ni", outer[:, :, :3], inner[:, :, 3]) + outer[:, :, 3]
+    return np.concatenate([A, b[:, :, None]], axis=2)
+
+
+def data_weights(target: TargetCloud, has_new: bool) -> np.ndarray:
+    """Data weight (N,) per template point: a tracked point (intra/inter) weighs by its
+    precision relative to the frame's median, w = σ_median / σ (the l1 data term's scale
+    is σ), capped at 1; unobserved points 0, so they follow their neighbours, unless new
+    points were triangulated this frame: then they may match one by nearest neighbour
+    (weight 1, gated). Outliers always 0."""
+    status, sigma = target.status, target.sigma
+    tracked = (status == INTRA) | (status == INTER)
+    weights = np.zeros(len(status))
+    if tracked.any():
+        reference = float(np.median(sigma[tracked]))
+        weights[tracked] = np.minimum(1.0, reference / np.maximum(sigma[tracked], 1e-12))
+    if has_new:
+        weights[status == UNOBSERVED] = 1.0
+    return weights
+
+
+def register_with_contact(source: np.ndarray, source_rgb: np.ndarray, target_xyz: np.ndarray,
+                          target_rgb: np.ndarray, target_ids: np.ndarray, weights: np.ndarray,
+                          tool_pose: np.ndarray, config: Config,
+                          passes: int = 2) -> tuple[RegistrationResult, int]:
+    """Register, then keep the tissue out of the tool (robot kinematics, Su et al. 2019
+    section II.C): points without data (unobserved: under the tool, hidden by it) that the
+    registration leaves inside the tool's capsule get a target on the capsule's surface,
+    pushed along the shaft, and the registration is run again (up to `passes` times).
+    Returns the result and the number of such contact points."""
+    result = register(source, target_xyz, source_rgb=source_rgb, target_rgb=target_rgb,
+                      config=config.registration, target_ids=target_ids, weights=weights)
+    contact = np.zeros(len(source), bool)
+    for _ in range(passes):
+        inside, pushed = push_out_of_tool(result.registered, tool_pose, config.tool)
+        new = inside & (weights == 0) & ~contact
+        if not new.any():
+            break
+        contact |= new
+        fresh = np.flatnonzero(new)
+        target_xyz = np.concatenate([target_xyz, pushed[fresh]])
+        target_rgb = np.concatenate([target_rgb, source_rgb[fresh]])
+        target_ids = np.concatenate([target_ids, fresh])
+        weights = np.where(new, 1.0, weights)
+        result = register(source, target_xyz, source_rgb=source_rgb, target_rgb=target_rgb,
+                          config=config.registration, target_ids=target_ids, weights=weights)
+    return result, int(contact.sum())
+
+
+def registered_sigma(template: np.ndarray, template_sigma: np.ndarray, registered: np.ndarray,
+                     target: TargetCloud,
+                     growth: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """σ (N,) m of registered positions (module docstring; template_sigma (N,) m), the
+    residual (N,) m to the target (NaN without one) and the support distance (N,) mm."""
+    n = len(template)
+    has = np.isfinite(target.sigma) & np.isfinite(target.positions).all(1)
+    residual = np.full(n, np.nan)
+    residual[has] = np.linalg.norm(registered[has] - target.positions[has], axis=1)
+    sigma = np.full(n, np.inf)
+    support = np.full(n, np.inf)
+    identity = np.where(target.status == INTER, template_sigma, 0.0)
+    sigma[has] = np.sqrt(target.sigma[has] ** 2 + residual[has] ** 2 + identity[has] ** 2)
+    support[has] = 0.0
+    rest = np.flatnonzero(~has)
+    if has.any() and len(rest):
+        anchors = np.flatnonzero(has)
+        distance, nearest = cKDTree(template[anchors]).query(template[rest])
+        sigma[rest] = np.hypot(sigma[anchors[nearest]], growth * distance)
+        support[rest] = distance * 1e3
+    return sigma, residual, support
+
+
+def register_frame_step(
+    template: np.ndarray,
+    template_rgb: np.ndarray,
+    template_cov: np.ndarray,
+    base: BaseState,
+    base_images: list[np.ndarray | None],
+    base_poses: np.ndarray,
+    images: list[np.ndarray | None],
+    poses: np.ndarray,
+    models: list[CameraModel],
+    tool_pose: np.ndarray,
+    noise: NoiseModel,
+    config: Config,
+    add_new_points: bool,
+) -> FrameResult:
+    """Target cloud and registration of one frame against its base.
+
+    template (N, 3) m frame-0 points, rgb (N, 3) uint8, covariances (N, 3, 3) m²; images
+    per camera (H, W, 3) uint8 or None; poses (C, 4, 4) camera-to-world, NaN where unusable;
+    tool_pose (4, 4) in the world (NaN = unknown). Raises GeometryError when the frame
+    cannot be registered (e.g. too few tracked points)."""
+    start = time.perf_counter()
+    target = build_target(template, template_cov, base.latest, base_images, images,
+                          base_poses, poses, base.pixels, models, tool_pose, noise,
+                          config.target, config.tool)
+    has_target = (target.status == INTRA) | (target.status == INTER)
+    ids = np.flatnonzero(has_target)
+    target_xyz, target_rgb = target.positions[ids], template_rgb[ids]
+    n_new = 0
+    if add_new_points:
+        new_xyz, new_rgb = _new_points(images, poses, models, tool_pose, target_xyz, config)
+        n_new = len(new_xyz)
+        target_xyz = np.concatenate([target_xyz, new_xyz])
+        target_rgb = np.concatenate([target_rgb, new_rgb])
+        ids = np.concatenate([ids, np.full(n_new, -1)])
+    if len(target_xyz) < 3:
+        raise GeometryError(f"{len(ids)} template point(s) tracked into this frame "
+                            f"({target.counts()}); need >= 3")
+    seconds_target = time.perf_counter() - start
+    start = time.perf_counter()
+    result, n_contact = register_with_contact(
+        base.source, template_rgb, target_xyz, target_rgb, ids,
+        data_weights(target, has_new=n_new > 0), tool_pose, config)
+    seconds_register = time.perf_counter() - start
+    sigma, residual, support = registered_sigma(
+        template, covariance_sigma(template_cov), result.registered, target,
+        config.registration.extrapolation_growth)
+    return FrameResult(
+        transforms=compose(result.transforms, base.transforms),
+        registered=result.registered,
+        sigma=sigma,
+        residual=residual,
+        support_mm=support,
+        target=target,
+        new_points=n_new,
+        contact_points=n_contact,
+        converged=bool(result.stats[-1].get("converged", False)),
+        seconds_target=seconds_target,
+        seconds_register=seconds_register,
+    )
+
+
+def _new_points(images: list[np.ndarray | None], poses: np.ndarray, models: list[CameraModel],
+                tool_pose: np.ndarray, tracked: np.ndarray, config: Config):
+    """New features of the frame triangulated as in the template build, away from the
+    tracked points: (M, 3) m and colours (M, 3) uint8."""
+    try:
+        fresh = build_template(images, models, poses, tool_pose, config.template, config.tool)
+    except GeometryError:
+        return np.zeros((0, 3)), np.zeros((0, 3), np.uint8)
+    return new_target_points(fresh.points, fresh.rgb, tracked,
+                             config.target.new_point_spacing_mm * 1e-3)
