@@ -7,6 +7,7 @@ import pytest
 from scenes import render_frames
 
 from surgrecon_cli.config import Config
+from surgrecon_cli.core.noise import NoiseModel
 from surgrecon_cli.core.scoring import map_to_surface
 from surgrecon_cli.core.target import INTER, INTRA, OUTLIER, UNOBSERVED, build_target
 from surgrecon_cli.core.template import build_template
@@ -28,8 +29,12 @@ def tracked():
     pixels = np.full((n, n_cams, 2), np.nan)
     obs = template.observations
     pixels[obs.point, obs.camera] = obs.pixels
+    # The scene's poses are exact: the noise is the template's measured pixel noise.
+    noise = NoiseModel(pixel_px=template.pixel_noise_px, tracking_px=0.0,
+                       tracker_position_m=0.0, tracker_rotation_rad=0.0)
     target = build_target(
         template.points,
+        template.covariance,
         template.points,
         scene.images[0],
         scene.images[1],
@@ -38,6 +43,7 @@ def tracked():
         pixels,
         scene.models,
         scene.tool_poses[1],
+        noise,
         cfg.target,
         cfg.tool,
     )
