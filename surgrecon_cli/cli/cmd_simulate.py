@@ -6,19 +6,88 @@ import time
 from pathlib import Path
 
 import click
+from click.core import ParameterSource
 
+from ..sim.variants import VARIANTS
 from .common import common_options
 
 ENCODINGS = ("ros2", "ros1", "foxglove-protobuf", "foxglove-json")
 
+# CLI option -> (SimConfig field, divisor from the option's unit to the field's).
+_FIELDS = {
+    "cameras": ("cameras", 1),
+    "frames": ("frames", 1),
+    "seed": ("seed", 1),
+    "width": ("width", 1),
+    "height": ("height", 1),
+    "separated": ("separated", 1),
+    "stereo_baseline_mm": ("stereo_baseline", 1000),
+    "rigid_scene": ("rigid_scene", 1),
+    "sweep_deg": ("sweep_deg", 1),
+    "tracker_noise_mm": ("tracker_noise_pos", 1000),
+    "tracker_noise_deg": ("tracker_noise_deg", 1),
+}
 
-@click.command("simulate")
+_VARIANT_HELP = "\n".join(f"  {v.name:<12} {v.description}" for v in VARIANTS.values())
+
+
+def _explicit(ctx: click.Context, name: str) -> bool:
+    """True when the user gave this option (not its default)."""
+    return ctx.get_parameter_source(name) not in (None, ParameterSource.DEFAULT)
+
+
+@click.command(
+    "simulate",
+    epilog=f"\b\nVariants (--variant; options given explicitly override them):\n{_VARIANT_HELP}",
+)
 @click.argument("out", type=click.Path(dir_okay=False, path_type=Path))
+@click.option(
+    "--variant",
+    type=click.Choice(list(VARIANTS)),
+    default="default",
+    show_default=True,
+    help="Preset rig/scene (listed below); sets several options at once. The defaults "
+    "shown are the default variant's.",
+)
 @click.option("--cameras", default=6, show_default=True, type=click.IntRange(1, 16))
 @click.option("--frames", default=20, show_default=True, type=click.IntRange(2, 100000))
 @click.option("--seed", default=7, show_default=True, type=int)
 @click.option("--width", default=640, show_default=True, type=click.IntRange(32, 4096))
 @click.option("--height", default=480, show_default=True, type=click.IntRange(32, 4096))
+@click.option(
+    "--stereo-baseline-mm",
+    default=0.0,
+    show_default=True,
+    type=click.FloatRange(0, 100),
+    help="Cameras 0 and 1 form one tracked stereo endoscope with this baseline (0 = off).",
+)
+@click.option(
+    "--rigid-scene/--no-rigid-scene",
+    default=False,
+    show_default=True,
+    help="The whole tissue moves as one rigid body: no breathing, no indentation.",
+)
+@click.option(
+    "--sweep-deg",
+    default=0.0,
+    show_default=True,
+    type=click.FloatRange(0, 90),
+    help="Every camera pans by up to this angle over the log (0 = off).",
+)
+@click.option(
+    "--tracker-noise-mm",
+    default=0.1,
+    show_default=True,
+    type=click.FloatRange(0),
+    help="Tracker position noise (RMS norm of the error).",
+)
+@click.option(
+    "--tracker-noise-deg",
+    default=0.05,
+    show_default=True,
+    type=click.FloatRange(0),
+    help="Tracker rotation noise (RMS angle of the error).",
+)
 @click.option("--encoding", type=click.Choice(ENCODINGS), default="ros2", show_default=True)
 @click.option(
     "--poses",
@@ -30,37 +99,43 @@ ENCODINGS = ("ros2", "ros1", "foxglove-protobuf", "foxglove-json")
 )
 @click.option("--separated", is_flag=True, help="Place the last camera where it shares no view.")
 @common_options
+@click.pass_context
 def simulate_cmd(
+    ctx: click.Context,
     out: Path,
-    cameras: int,
-    frames: int,
-    seed: int,
-    width: int,
-    height: int,
+    variant: str,
     encoding: str,
     poses: str,
-    separated: bool,
     config,
     quiet: bool,
+    **options,
 ) -> None:
     """Render a synthetic multi-camera log of a deforming cavity with ground truth.
 
     Writes OUT.mcap and, beside it, OUT.gt.npz (true surface per frame and labels).
-    Deterministic for a given seed.
+    Deterministic for a given seed. --variant picks a preset rig or scene (below).
 
     \b
-    Example:
+    Examples:
       surgrecon simulate sim.mcap --cameras 6 --frames 20 --seed 7
+      surgrecon simulate stereo.mcap --variant stereo --frames 12 --seed 101
+      surgrecon simulate noisy.mcap --variant noisy --tracker-noise-mm 0.5
     """
-    from ..sim.scene import SimConfig
     from ..sim.simulate import simulate
+    from ..sim.variants import variant_config
     from .common import progress
 
-    cfg = SimConfig(
-        cameras=cameras, frames=frames, seed=seed, width=width, height=height, separated=separated
-    )
+    overrides = {}
+    for name, value in options.items():
+        if _explicit(ctx, name):
+            key, divisor = _FIELDS[name]
+            overrides[key] = value / divisor if divisor != 1 else value
+    try:
+        cfg = variant_config(variant, **overrides)
+    except ValueError as exc:
+        raise click.UsageError(str(exc)) from exc
     start = time.perf_counter()
-    with progress(quiet)(total=frames, desc="rendering frames", unit="frame") as bar:
+    with progress(quiet)(total=cfg.frames, desc="rendering frames", unit="frame") as bar:
         result = simulate(
             out,
             cfg,
@@ -72,6 +147,9 @@ def simulate_cmd(
     fractions = ", ".join(f"{k} {v:.1%}" for k, v in result.class_fractions.items())
     click.echo(
         f"wrote {result.log_path} ({result.n_messages} messages, {result.n_frames} frames, "
-        f"{encoding}) in {time.perf_counter() - start:.1f} s"
+        f"{cfg.cameras} cameras, variant {variant}, {encoding}) in "
+        f"{time.perf_counter() - start:.1f} s"
     )
-    click.echo(f"ground truth {result.gt_path}; classes over frames 1..{frames - 1}: {fractions}")
+    click.echo(
+        f"ground truth {result.gt_path}; classes over frames 1..{cfg.frames - 1}: {fractions}"
+    )

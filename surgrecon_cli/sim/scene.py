@@ -7,6 +7,17 @@ resemble an insufflated abdomen, not taken from the paper):
   `breath_amplitude` (smooth-step transition of width `breath_width`), cos² in time;
 - tool: a cylindrical shaft approaches a contact point in the still part of the dome and
   indents it along its axis by up to `indent_depth` (Gaussian dent of width `indent_sigma`).
+
+Rig and scene variants (all off by default; `sim/variants.py` names presets of them):
+- `stereo_baseline` > 0: cameras 0 and 1 are a rigid stereo head (one tracker marker):
+  camera 1 = camera 0 shifted by the baseline along camera 0's x axis, same orientation,
+  looking obliquely at the dome from 30-80 mm;
+- `rigid_scene`: the whole tissue moves as one rigid body (a few degrees and a few mm over
+  the log, as still tissue seen by an untracked sweeping endoscope); no breathing, no
+  indentation, the tool hovers well above the tissue;
+- `sweep_deg` > 0: every camera pans (rotation about an axis through its centre) by up to
+  this angle over the log, all views sliding the same way, so that much of the frame-0
+  tissue leaves every view.
 """
 
 from __future__ import annotations
@@ -49,6 +60,33 @@ class SimConfig:
     camera_ring_radius: float = 0.030  # cameras on a ring around the dome axis (m)
     camera_height: float = 0.055  # camera height above the dome base (m)
     separated: bool = False  # place one camera far away, seeing nothing shared (tests)
+    # Stereo endoscope head (cameras 0 and 1); 0 = off.
+    stereo_baseline: float = 0.0  # camera 1 = camera 0 moved this far along its x axis (m)
+    stereo_distance: float = 0.046  # head to the tissue point it looks at (m)
+    stereo_elevation_deg: float = 56.0  # viewing direction below the horizontal (deg)
+    # Rigid scene: the tissue moves as one rigid body, nothing deforms.
+    rigid_scene: bool = False
+    rigid_rotation_deg: float = 4.0  # rotation reached at the last frame (deg)
+    rigid_translation: float = 0.004  # translation reached at the last frame (m)
+    rigid_tool_hover: float = 0.025  # tool tip height above the contact point, at least (m)
+    # Sweeping cameras: pan angle reached at the last frame (deg); 0 = off.
+    sweep_deg: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.stereo_baseline < 0 or self.sweep_deg < 0:
+            raise ValueError("stereo_baseline and sweep_deg must be >= 0")
+        if self.stereo_baseline > 0 and self.cameras < 2:
+            raise ValueError(f"a stereo head needs at least 2 cameras, got {self.cameras}")
+        if self.stereo_baseline > 0 and self.separated and self.cameras < 3:
+            raise ValueError("separated moves the last camera: with a stereo head it needs "
+                             "at least 3 cameras")
+        if self.tracker_noise_pos < 0 or self.tracker_noise_deg < 0:
+            raise ValueError("tracker noise must be >= 0")
+
+    @property
+    def duration(self) -> float:
+        """Time from the first to the last frame (s), at least 1 µs."""
+        return max((self.frames - 1) / self.frame_rate, 1e-6)
 
 
 def smoothstep(x: np.ndarray) -> np.ndarray:
@@ -154,16 +192,79 @@ class Motion:
         self.drift_amp = rng.uniform(0.001, 0.003, (n, 6))
         self.drift_freq = rng.uniform(0.1, 0.3, (n, 6))
         self.drift_phase = rng.uniform(0, 2 * np.pi, (n, 6))
+        # Variants draw from their own generators, so that the default scene stays the same.
+        self.stereo_offset: np.ndarray | None = None
+        if cfg.stereo_baseline > 0:
+            self._place_stereo_head(np.random.default_rng(cfg.seed + 505))
+        self.rigid_axis = self.rigid_direction = None
+        if cfg.rigid_scene:
+            r = np.random.default_rng(cfg.seed + 606)
+            axis = r.normal(size=3)
+            self.rigid_axis = axis / np.linalg.norm(axis)
+            direction = r.normal(size=3)
+            self.rigid_direction = direction / np.linalg.norm(direction)
+        self.sweep_axes: np.ndarray | None = None
+        if cfg.sweep_deg > 0:
+            self._plan_sweep(np.random.default_rng(cfg.seed + 707))
+
+    def _place_stereo_head(self, rng: np.random.Generator) -> None:
+        """Cameras 0 and 1 become one stereo head looking obliquely at the dome."""
+        cfg = self.cfg
+        look = np.array([-0.012, 0.005]) + rng.uniform(-0.003, 0.003, 2)
+        nearest = np.argmin(((self.mesh.vertices[:, :2] - look) ** 2).sum(1))
+        look3 = np.array([*look, self.mesh.vertices[nearest, 2]])
+        azimuth = np.radians(300.0 + rng.uniform(-25.0, 25.0))  # away from the tool shaft
+        elevation = np.radians(cfg.stereo_elevation_deg)
+        direction = np.array(
+            [
+                np.cos(elevation) * np.cos(azimuth),
+                np.cos(elevation) * np.sin(azimuth),
+                np.sin(elevation),
+            ]
+        )
+        self.cam_base[0] = look3 + cfg.stereo_distance * direction
+        self.cam_look[0] = look3
+        self.cam_base[1] = self.cam_base[0]  # unused: camera 1 follows camera 0
+        self.cam_look[1] = self.cam_look[0]
+        self.stereo_offset = np.eye(4)
+        self.stereo_offset[0, 3] = cfg.stereo_baseline
+
+    def _plan_sweep(self, rng: np.random.Generator) -> None:
+        """Pan axes (n, 3), fixed in the world through each camera's centre, and per-camera
+        amounts: every view slides towards the same horizontal world direction."""
+        heading = rng.uniform(0, 2 * np.pi)
+        towards = np.array([np.cos(heading), np.sin(heading), 0.0])
+        self.sweep_amount = np.radians(self.cfg.sweep_deg) * rng.uniform(
+            0.75, 1.0, self.cfg.cameras
+        )
+        axes = []
+        for cam in range(self.cfg.cameras):
+            z = self._drifting_pose(cam, 0.0)[:3, 2]
+            axis = np.cross(z, towards)  # rotating z about z x d turns it towards d
+            axes.append(axis / np.linalg.norm(axis))
+        self.sweep_axes = np.array(axes)
+
+    def rigid_motion(self, t: float) -> tuple[np.ndarray, np.ndarray]:
+        """Rigid scene: tissue rotation (3, 3) about the dome's base centre and translation (3,)
+        at time t (identity at t <= 0, full at the last frame)."""
+        cfg = self.cfg
+        s = float(smoothstep(np.asarray(t / cfg.duration)))
+        R = _rotation(self.rigid_axis * np.radians(cfg.rigid_rotation_deg) * s)
+        return R, s * cfg.rigid_translation * self.rigid_direction
 
     # ---- tissue -------------------------------------------------------------------------
     def breathing(self, t: float) -> float:
-        """Breathing shift amplitude (m) at time t; 0 at t = 0."""
+        """Breathing shift amplitude (m) at time t; 0 at t = 0 (always 0 in a rigid scene)."""
         cfg = self.cfg
+        if cfg.rigid_scene:
+            return 0.0
         return cfg.breath_amplitude * 0.5 * (1 - np.cos(2 * np.pi * t / cfg.breath_period))
 
     def indentation(self, t: float) -> float:
-        """Indentation depth (m) at time t: ramps in, holds, partly releases."""
+        """Indentation depth (m) at time t: ramps in, holds, partly releases (0 if rigid)."""
         cfg = self.cfg
+        if cfg.rigid_scene:
+            return 0.0
         duration = cfg.frames / cfg.frame_rate
         if t <= self.t_contact:
             return 0.0
@@ -180,6 +281,9 @@ class Motion:
         """Tissue vertex positions (V, 3) m at time t."""
         cfg = self.cfg
         rest = self.mesh.vertices
+        if cfg.rigid_scene:
+            R, shift = self.rigid_motion(t)
+            return rest @ R.T + shift
         weight = smoothstep((rest[:, 0] - cfg.breath_edge) / cfg.breath_width + 0.5)
         direction = np.array([0.35, 0.15, 1.0])
         direction /= np.linalg.norm(direction)
@@ -190,7 +294,12 @@ class Motion:
 
     # ---- tool ---------------------------------------------------------------------------
     def tool_tip(self, t: float) -> np.ndarray:
-        """Tool tip position (3,) m: hovers above the contact point, then follows the dent."""
+        """Tool tip position (3,) m: hovers above the contact point, then follows the dent.
+        In a rigid scene it only hovers, descending slowly to `rigid_tool_hover`."""
+        if self.cfg.rigid_scene:
+            s = float(smoothstep(np.asarray(t / self.cfg.duration)))
+            hover = self.cfg.rigid_tool_hover + 0.010 * (1 - s)
+            return self.contact_rest + hover * self.tool_axis
         hover = 0.012 * (1 - smoothstep(t / max(self.t_contact, 1e-6)))
         return self.contact_rest + (hover - self.indentation(t)) * self.tool_axis
 
@@ -220,14 +329,38 @@ class Motion:
     # ---- cameras ------------------------------------------------------------------------
     def camera_pose(self, cam: int, t: float) -> np.ndarray:
         """True camera-to-world pose (4, 4) (optical frame) of camera `cam` at time t."""
+        if self.stereo_offset is not None and cam == 1:
+            return self.camera_pose(0, t) @ self.stereo_offset
+        T = self._drifting_pose(cam, t)
+        if self.sweep_axes is not None:
+            s = float(smoothstep(np.asarray(t / self.cfg.duration)))
+            pan = _rotation(self.sweep_axes[cam] * self.sweep_amount[cam] * s)
+            T[:3, :3] = pan @ T[:3, :3]
+        return T
+
+    def _drifting_pose(self, cam: int, t: float) -> np.ndarray:
+        """Camera pose before any sweep: its base pose with a slow independent wobble."""
         a, f, p = self.drift_amp[cam], self.drift_freq[cam], self.drift_phase[cam]
         wobble = a * np.sin(2 * np.pi * f * t + p)
         position = self.cam_base[cam] + wobble[:3]
         look = self.cam_look[cam] + wobble[3:]
         z = look - position
         z /= np.linalg.norm(z)
-        ref = np.array([np.cos(self.cam_roll[cam]), np.sin(self.cam_roll[cam]), 0.0])
-        x = np.cross(z, ref)
+        if self.stereo_offset is not None and cam == 0:
+            x = np.cross(z, [0.0, 0.0, 1.0])  # the head's baseline (x) stays horizontal
+        else:
+            ref = np.array([np.cos(self.cam_roll[cam]), np.sin(self.cam_roll[cam]), 0.0])
+            x = np.cross(z, ref)
         x /= np.linalg.norm(x)
         R = np.column_stack([x, np.cross(z, x), z])
         return make_pose(position, matrix_to_quat(R))
+
+
+def _rotation(rotvec: np.ndarray) -> np.ndarray:
+    """Rotation matrix (3, 3) of a rotation vector (3,) (Rodrigues' formula)."""
+    angle = float(np.linalg.norm(rotvec))
+    if angle < 1e-15:
+        return np.eye(3)
+    k = rotvec / angle
+    K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * (K @ K)

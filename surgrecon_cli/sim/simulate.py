@@ -18,7 +18,7 @@ import numpy as np
 
 from ..config import LabelsConfig
 from ..core.cameras import CameraModel
-from ..core.geometry import matrix_to_quat, quat_to_matrix
+from ..core.geometry import make_pose, matrix_to_quat, quat_to_matrix
 from ..core.labels import CLASS_NAMES, true_labels
 from ..io.atomic import write_npz
 from ..io.records import CameraInfoRecord, ImageRecord, JointStateRecord, PoseRecord
@@ -79,6 +79,14 @@ def _noisy_pose(
     return p, matrix_to_quat(R)
 
 
+def _compose(
+    position: np.ndarray, quat: np.ndarray, offset: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """A measured pose (position, quaternion) composed with a fixed offset (4, 4) on the right."""
+    T = make_pose(position, quat) @ offset
+    return T[:3, 3], matrix_to_quat(T[:3, :3])
+
+
 def _ns(t: float) -> int:
     return T0_NS + round(t * 1e9)
 
@@ -95,6 +103,11 @@ class LogBuilder:
         self.clock_offset = rng.uniform(-0.004, 0.004, cfg.cameras)
         self.jitter = rng.uniform(-0.001, 0.001, (cfg.frames, cfg.cameras))
         self.tracker_phase = rng.uniform(0, 1 / cfg.tracker_rate, cfg.cameras)
+        if self.motion.stereo_offset is not None:
+            # One stereo head: its two sensors share a clock, and one tracker marker.
+            self.clock_offset[1] = self.clock_offset[0]
+            self.jitter[:, 1] = self.jitter[:, 0]
+            self.tracker_phase[1] = self.tracker_phase[0]
         self.noise_rng = np.random.default_rng(cfg.seed + 303)
         self.render_rng = np.random.default_rng(cfg.seed + 404)
         self.texture = make_texture(cfg.seed)
@@ -111,9 +124,17 @@ class LogBuilder:
         cfg, motion = self.cfg, self.motion
         t_end = self.frame_times[-1] + 0.1
         out: list[Message] = []
+        head: list[tuple[np.ndarray, np.ndarray]] = []  # camera 0's measurements (stereo)
         for cam in range(cfg.cameras):
-            for t in np.arange(-0.1 + self.tracker_phase[cam], t_end, 1 / cfg.tracker_rate):
-                p, q = _noisy_pose(motion.camera_pose(cam, t), cfg, self.noise_rng)
+            times = np.arange(-0.1 + self.tracker_phase[cam], t_end, 1 / cfg.tracker_rate)
+            for k, t in enumerate(times):
+                if motion.stereo_offset is not None and cam == 1:
+                    # The head's one marker: camera 0's measured pose with the fixed offset.
+                    p, q = _compose(*head[k], motion.stereo_offset)
+                else:
+                    p, q = _noisy_pose(motion.camera_pose(cam, t), cfg, self.noise_rng)
+                    if motion.stereo_offset is not None and cam == 0:
+                        head.append((p, q))
                 out.append(
                     (
                         f"/navigation/endoscope_{cam}/pose",

@@ -24,6 +24,8 @@ class Texture:
         size = self.image.shape[0]
         scale = (size - 1) / (2 * self.half_extent)
         n = len(material_xy)
+        if n == 0:  # a camera that sees no tissue
+            return np.zeros((0, 3), self.image.dtype)
         rows = -(-n // 1024)  # remap wants 2D maps under 32767 on a side: pad to rows x 1024
         maps = np.zeros((rows * 1024, 2), np.float32)
         maps[:n] = (material_xy + self.half_extent) * scale
