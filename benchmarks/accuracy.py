@@ -226,6 +226,9 @@ def run_one(variant: str, seed: int, args: argparse.Namespace, exe: str) -> dict
         else:
             timings["simulate"] = _stored_seconds(sim_time)
             row["reused"] = True
+        if args.rerun:
+            shutil.rmtree(run_dir, ignore_errors=True)
+            run_time.unlink(missing_ok=True)
         fresh_run = not (run_dir / "run.json").exists()
         timings["run"] = step("run", [exe, "run", str(log), "-o", str(run_dir), "-q",
                                       *run_args], out_log)
@@ -342,6 +345,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--jobs", type=int, default=1, help="(variant, seed) runs in parallel")
     parser.add_argument("--fresh", action="store_true",
                         help="regenerate logs and runs even when they exist")
+    parser.add_argument("--rerun", action="store_true",
+                        help="keep the simulated logs, run the pipeline again (after a code "
+                        "change)")
     parser.add_argument("--config", type=Path, help="config TOML passed to surgrecon run")
     parser.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
                         help="passed to surgrecon run (repeatable)")

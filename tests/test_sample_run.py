@@ -61,10 +61,10 @@ def test_scores_meet_the_goals(sample_run):
     assert ev["registration"]["labelled"]["p95_mm"] <= 0.8
     labels = ev["labels"]["overall"]
     assert labels["macro_f1"] >= 0.88
-    # Noise tests trade recall for precision: a dent point is called deforming only when its
-    # neighbourhood's departure from rigid motion is significant (0.88 / 0.76 measured).
-    assert labels["per_class"]["deforming"]["precision"] >= 0.8
-    assert labels["per_class"]["deforming"]["recall"] >= 0.7
+    # A dent point is deforming only when its neighbourhood's departure from rigid motion is
+    # significant against the measured noise (precision 0.90, recall 0.84 measured).
+    assert labels["per_class"]["deforming"]["precision"] >= 0.85
+    assert labels["per_class"]["deforming"]["recall"] >= 0.8
     # The reported uncertainty is honest: the true error is within 2 sigma for 85-99 % of the
     # labelled points, and no point without data far off is labelled.
     assert 0.85 <= ev["labels"]["calibration_2sigma"] <= 0.99

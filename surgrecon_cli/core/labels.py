@@ -44,10 +44,10 @@ def rigid_fit_residuals(
     reference: np.ndarray, moved: np.ndarray, index: np.ndarray, mask: np.ndarray,
     weights: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Squared residuals (N, K) m² of the best (weighted) rigid fit of each neighbourhood
-    (index (N, K), mask (N, K)) from reference to moved positions, and the members used
-    (N, K) bool: those with a finite moved position (and a positive finite weight, weights
-    (P,) per point, if given)."""
+    """Residuals (N, K, 3) m (moved minus fitted; 0 for members left out) of the best
+    (weighted) rigid fit of each neighbourhood (index (N, K), mask (N, K)) from reference to
+    moved positions, and the members used (N, K) bool: those with a finite moved position
+    (and a positive finite weight, weights (P,) per point, if given)."""
     src = reference[index]
     dst = moved[index]
     keep = mask & np.isfinite(dst).all(-1)
@@ -60,8 +60,7 @@ def rigid_fit_residuals(
     dst = np.where(keep[..., None], dst, 0.0)
     R, t = fit_rigid(src, dst, w)
     pred = np.einsum("nij,nkj->nki", R, src) + t[:, None, :]
-    err2 = np.where(keep, ((pred - dst) ** 2).sum(-1), 0.0)
-    return err2, keep
+    return np.where(keep[..., None], dst - pred, 0.0), keep
 
 
 def rigid_fit_rms(
@@ -70,8 +69,8 @@ def rigid_fit_rms(
     """RMS residual (N,) m of the best rigid fit of each neighbourhood (index (N, K), mask
     (N, K)) from reference to moved positions. Members without a finite moved position are
     left out; a neighbourhood with fewer than 3 members left gets NaN."""
-    err2, keep = rigid_fit_residuals(reference, moved, index, mask)
-    rms = np.sqrt(err2.sum(1) / np.maximum(keep.sum(1), 1.0))
+    residual, keep = rigid_fit_residuals(reference, moved, index, mask)
+    rms = np.sqrt((residual**2).sum((1, 2)) / np.maximum(keep.sum(1), 1.0))
     return np.where(keep.sum(1) >= 3, rms, np.nan)
 
 

@@ -10,6 +10,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
+import cv2
 import numpy as np
 
 from ..config import TemplateConfig, ToolConfig
@@ -19,6 +20,8 @@ from .features import Features, detect_features, no_features
 from .matching import build_tracks, match_pair
 from .noise import (
     covariance_sigma,
+    image_noise_sigma,
+    localisation_variance_px2,
     pixel_noise_from_residuals,
     point_covariances,
     projection_jacobians,
@@ -27,6 +30,8 @@ from .outliers import surface_outliers
 from .pairing import PairPlan, PairPrediction, candidate_pairs, plan_pairs, predict_pairs
 from .tool import points_near_tool, tool_image_mask
 from .triangulate import Observations, reprojection_residuals, triangulate
+
+LOCALISATION_WINDOW_PX = 21  # ours: the patch a feature is located by (the KLT window)
 
 # What `build_template` reports through `on_step`, in order (for progress bars).
 STEPS = ("features", "matches", "points")
@@ -138,7 +143,7 @@ def build_template(
     )
     # The noise is measured on the geometrically good points; a point is then kept when the
     # depth accuracy its rays buy is good enough (not by a fixed triangulation angle).
-    pixel_px, cov = measured_covariances(tri.points, obs, poses, models, good)
+    pixel_px, cov = measured_covariances(tri.points, obs, poses, models, good, images)
     sigma = covariance_sigma(np.nan_to_num(cov, nan=np.inf))
     precise = np.isfinite(sigma) & (sigma <= cfg.max_sigma_mm * 1e-3)
     imprecise = good & ~precise
@@ -180,17 +185,31 @@ def build_template(
 
 
 def measured_covariances(points: np.ndarray, obs: Observations, poses: np.ndarray,
-                         models: list[CameraModel],
-                         use: np.ndarray) -> tuple[float, np.ndarray]:
+                         models: list[CameraModel], use: np.ndarray,
+                         images: list[np.ndarray | None]) -> tuple[float, np.ndarray]:
     """Pixel noise σ_px (px) measured from the reprojection residuals of the points `use`
-    (N,) bool, and every point's covariance (N, 3, 3) m² from its views at that noise."""
+    (N,) bool, and every point's covariance (N, 3, 3) m² from its views. Each view's
+    variance is the larger of σ_px² and the Cramér-Rao bound of locating it in its image
+    (core/noise.py): with two views the residuals only see the error across the epipolar
+    line, and a narrow-baseline stereo pair shares its tracker error, so the residuals
+    alone would understate the noise along it."""
     residual, _ = reprojection_residuals(points, obs, poses, models)
     views = np.bincount(obs.point, minlength=len(points))
     sel = use[obs.point]
     pixel_px = pixel_noise_from_residuals(residual[sel], views[obs.point[sel]])
     pixel_px = pixel_px if np.isfinite(pixel_px) and pixel_px > 0 else 1.0
+    variance = np.full(len(obs.point), pixel_px**2)
+    for c in np.unique(obs.camera):
+        image = images[c]
+        if image is None:
+            continue
+        grey = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
+        rows = obs.camera == c
+        bound = localisation_variance_px2(grey, obs.pixels[rows], LOCALISATION_WINDOW_PX,
+                                          image_noise_sigma(grey))
+        variance[rows] = np.maximum(variance[rows], np.where(np.isfinite(bound), bound, 0.0))
     focal = np.array([m.K[0, 0] for m in models])
     J, _ = projection_jacobians(np.nan_to_num(points[obs.point]), poses[obs.camera],
                                 focal[obs.camera])
-    cov = point_covariances(obs.point, J, np.full(len(obs.point), pixel_px**2), len(points))
-    return float(pixel_px), cov
+    cov = point_covariances(obs.point, J, variance, len(points))
+    return float(np.sqrt(np.median(variance[sel]))) if sel.any() else pixel_px, cov

@@ -12,6 +12,7 @@ atomically frame by frame so a killed run resumes:
                                 status (N,) u8, residual (N,) f32 (to the point's target, m,
                                 NaN without one), sigma (N,) f32 (RMS 3D uncertainty of the
                                 registered position, m), target_sigma (N,) f32,
+                                target_covariance (N,3,3) f32 m²,
                                 support_mm (N,) f32, pixels (N,C,2) f64, tracking_px,
                                 converged, seconds_target, seconds_register, failed, error
   RUN/clouds/NNNNNN.ply         registered positions, template colours, point_id,
@@ -146,6 +147,7 @@ def _write_frame(run_dir: Path, frame: int, result: FrameResult, rgb: np.ndarray
         residual=residual,
         sigma=sigma,
         target_sigma=target.sigma.astype(np.float32),
+        target_covariance=target.covariance.astype(np.float32),
         support_mm=result.support_mm.astype(np.float32),
         pixels=target.pixels,
         tracking_px=np.float64(target.noise.tracking_px),
@@ -181,6 +183,7 @@ def _write_failed(run_dir: Path, frame: int, base: BaseState, rgb: np.ndarray, n
         registered=nan, target=nan, status=np.full(n, OUTLIER, np.uint8),
         residual=np.full(n, np.nan, np.float32), sigma=np.full(n, np.inf, np.float32),
         target_sigma=np.full(n, np.nan, np.float32),
+        target_covariance=np.full((n, 3, 3), np.nan, np.float32),
         support_mm=np.full(n, np.inf, np.float32), pixels=np.full((n, n_cams, 2), np.nan),
         tracking_px=np.float64(np.nan), converged=np.bool_(False),
         seconds_target=np.float64(0.0), seconds_register=np.float64(0.0),
