@@ -199,9 +199,10 @@ def rigid_departure(template: np.ndarray, positions: np.ndarray, covariance: np.
     """Whether each neighbourhood (the point `rows` (M,) and its neighbours) departs from
     one rigid motion more than its noise explains, frame-0 template (N, 3) m to positions
     (N, 3) m with covariances (N, 3, 3) m²: (M,) bool (module docstring, step 3). The
-    fit is weighted by each member's mean precision tr(Σ⁻¹)/3; the statistic S = Σ_j r_jᵀ Σ_j⁻¹ r_j uses the full
-    covariance, so a direction the rig measures well counts fully even where depth is
-    poor. Neighbourhoods with fewer than 3 usable members are not significant."""
+    fit is weighted by each member's mean precision tr(Σ⁻¹)/3; the statistic
+    S = Σ_j r_jᵀ Σ_j⁻¹ r_j uses the full covariance, so a direction the rig measures well
+    counts fully even where depth is poor. Neighbourhoods with fewer than 3 usable members
+    are not significant."""
     index = np.concatenate([rows[:, None], nb.index[rows]], axis=1)
     mask = np.concatenate([np.ones((len(rows), 1), bool), nb.mask[rows]], axis=1)
     cov = np.asarray(covariance, float)
