@@ -55,7 +55,10 @@ def known_run(copy_run: Path, pipeline_log: Path):
         write_npz(copy_run / "registration" / f"{k:06d}.npz", transforms=T.astype(np.float32),
                   registered=registered, target=registered, status=np.zeros(n, np.uint8),
                   residual=np.zeros(n, np.float32), sigma=np.full(n, 1e-4, np.float32),
-                  target_sigma=np.full(n, 1e-4, np.float32), seconds_target=np.float64(0.1),
+                  target_sigma=np.full(n, 1e-4, np.float32),
+                  target_covariance=np.zeros((n, 3, 3), np.float32),
+                  target_pose_covariance=np.zeros((n, 3, 3), np.float32),
+                  seconds_target=np.float64(0.1),
                   seconds_register=np.float64(0.2))
     labels = truth.copy()
     static2 = np.flatnonzero(truth[2] == STATIC)[:10]

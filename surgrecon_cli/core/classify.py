@@ -84,14 +84,16 @@ class Evidence:
     """Per point uncertainties of one frame (metres): sigma (N,) of the registered position
     (inf = unsupported), template_sigma (N,) of the frame-0 position, measured (N, 3) the
     position the data give (target where there is one, else registered), measured_sigma
-    (N,) its uncertainty, and displacement_cov (N, 3, 3) m² the covariance of the
-    displacement from frame 0."""
+    (N,) its uncertainty, displacement_cov (N, 3, 3) m² the covariance of the displacement
+    from frame 0 and departure_cov (N, 3, 3) m² the part of it that is not a rigid error
+    shared by a whole neighbourhood (for the rigid-motion test)."""
 
     sigma: np.ndarray
     template_sigma: np.ndarray
     measured: np.ndarray
     measured_sigma: np.ndarray
     displacement_cov: np.ndarray
+    departure_cov: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -268,7 +270,7 @@ def classify_frame(template: np.ndarray, registered: np.ndarray, nb: Neighbourho
         deforming = measure >= cfg.deform_mm
     elif evidence is not None:
         significant = rigid_departure(
-            template, np.asarray(evidence.measured, float), evidence.displacement_cov, nb,
+            template, np.asarray(evidence.measured, float), evidence.departure_cov, nb,
             rows, cfg.significance)
         measure = rigid_rms_mm(template, registered, nb, rows)
         deforming = significant & (measure >= cfg.deform_mm)

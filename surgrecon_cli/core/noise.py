@@ -17,6 +17,13 @@ Three sources, each estimated from data the run already has:
   disagreement does not measure it: tracking the same images back retraces the same path,
   0.003 px on our simulator against 0.1-0.3 px of real error.)
 
+Cameras on one tracked body (a stereo endoscope carries one marker) share their pose error:
+their relative pose does not jitter (`shared_bodies` finds them from the pose streams). For
+views of such a body the pose error is not a per-view pixel error (it does not change the
+disparity) but a rigid error of the whole reconstruction, added to the covariance as such
+(`rigid_pose_covariance`); treating it per view would inflate a 5 mm baseline's depth
+uncertainty several times.
+
 From these and the camera geometry, every triangulated point gets a 3D covariance
 Σ = (Σ_v J_vᵀ J_v / s_v²)⁻¹ (J_v the 2x3 pixel Jacobian of view v, s_v² its pixel
 variance: pixel noise plus the tracker's pose error projected at the point's depth:
@@ -27,7 +34,7 @@ on how elongated Σ is. Pure numpy; no I/O.
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -47,6 +54,7 @@ class NoiseModel:
     tracking_px: float
     tracker_position_m: float
     tracker_rotation_rad: float
+    shared_body: tuple[bool, ...] = ()  # per camera index: shares its tracker body
 
     def pose_variance_px2(self, depth_m: np.ndarray, focal_px: np.ndarray) -> np.ndarray:
         """Pixel variance (px²) one view gets from the tracker's pose error, at depth (M,) m
@@ -58,28 +66,30 @@ class NoiseModel:
                 + (focal * self.tracker_rotation_rad) ** 2)
 
     def tracked_view_variance_px2(self, depth_m: np.ndarray, focal_px: np.ndarray,
-                                  localisation_px2: np.ndarray) -> np.ndarray:
+                                  localisation_px2: np.ndarray,
+                                  pose: np.ndarray | bool = True) -> np.ndarray:
         """Pixel variance (M,) px² of points found by tracking in a later frame: the base
-        position's pixel noise, the tracking's localisation variance (M,) px² and the
-        current pose error."""
-        return (self.pixel_px**2 + np.asarray(localisation_px2, float)
-                + self.pose_variance_px2(depth_m, focal_px))
+        position's pixel noise, the tracking's localisation variance (M,) px² and, where
+        `pose` (M,) bool, the current pose error."""
+        pose_var = np.where(pose, self.pose_variance_px2(depth_m, focal_px), 0.0)
+        return self.pixel_px**2 + np.asarray(localisation_px2, float) + pose_var
 
-    def to_dict(self) -> dict[str, float]:
-        """Figures for reports: px, mm and degrees."""
-        d = asdict(self)
-        return {
-            "pixel_px": d["pixel_px"],
-            "tracking_px": d["tracking_px"],
-            "tracker_position_mm": d["tracker_position_m"] * 1e3,
-            "tracker_rotation_deg": float(np.degrees(d["tracker_rotation_rad"])),
-        }
+    def on_shared_body(self, cameras: np.ndarray) -> np.ndarray:
+        """(M,) bool: each camera index (M,) shares its tracker body with another camera."""
+        flags = np.array((*self.shared_body, False), bool)
+        cams = np.asarray(cameras, int)
+        return flags[np.where((cams >= 0) & (cams < len(self.shared_body)), cams, -1)]
 
-    @classmethod
-    def from_dict(cls, d: dict[str, float]) -> NoiseModel:
-        return cls(pixel_px=float(d["pixel_px"]), tracking_px=float(d["tracking_px"]),
-                   tracker_position_m=float(d["tracker_position_mm"]) * 1e-3,
-                   tracker_rotation_rad=float(np.radians(d["tracker_rotation_deg"])))
+    def rigid_pose_covariance(self, points: np.ndarray, centres: np.ndarray) -> np.ndarray:
+        """(N, 3, 3) m²: a whole tracked body's pose error seen at points (N, 3) m from its
+        camera centre (N, 3) m: σ_pos² I + σ_rot² (‖r‖² I − r rᵀ) (a small rotation about
+        the camera moves a point at r by ω × r)."""
+        r = np.asarray(points, float) - np.asarray(centres, float)
+        eye = np.eye(3)[None]
+        rot = (np.einsum("ni,ni->n", r, r)[:, None, None] * eye
+               - np.einsum("ni,nj->nij", r, r))
+        return self.tracker_position_m**2 * eye + self.tracker_rotation_rad**2 * rot
+
 
 
 def robust_sigma(values: np.ndarray) -> float:
@@ -193,11 +203,38 @@ def covariance_sigma(cov: np.ndarray) -> np.ndarray:
     return np.sqrt(np.maximum(np.trace(cov, axis1=1, axis2=2), 0.0))
 
 
+def shared_bodies(own: list[tuple[float, float]],
+                  relative: dict[tuple[int, int], tuple[float, float]]) -> list[list[int]]:
+    """Groups of camera indices on one tracked body: cameras i, j whose relative pose
+    jitters less than half as much as either alone (independent markers would jitter √2
+    times as much), by position and rotation. own: per camera (σ_pos, σ_rot); relative:
+    (i, j) -> (σ_pos, σ_rot) of j's pose relative to i's. Cameras alone are left out."""
+    parent = list(range(len(own)))
+
+    def root(i: int) -> int:
+        while parent[i] != i:
+            i = parent[i]
+        return i
+
+    for (i, j), (pos, rot) in relative.items():
+        pos_ref = min(own[i][0], own[j][0])
+        rot_ref = min(own[i][1], own[j][1])
+        if (np.isfinite(pos) and np.isfinite(rot) and pos_ref > 0 and rot_ref > 0
+                and pos < 0.5 * pos_ref and rot < 0.5 * rot_ref):
+            parent[root(j)] = root(i)
+    groups: dict[int, list[int]] = {}
+    for i in range(len(own)):
+        groups.setdefault(root(i), []).append(i)
+    return [g for g in groups.values() if len(g) > 1]
+
+
 def combine_noise(pixel_px: float, tracking_px: float,
-                  streams: list[tuple[float, float]]) -> NoiseModel:
+                  streams: list[tuple[float, float]],
+                  shared: tuple[bool, ...] = ()) -> NoiseModel:
     """One NoiseModel from the pixel/tracking figures and the per-stream jitter
     (σ_position m, σ_rotation rad) of every camera's pose stream (median over streams;
-    NaN figures, e.g. of a too-short stream, are left out, and 0 is used if none remains)."""
+    NaN figures, e.g. of a too-short stream, are left out, and 0 is used if none remains);
+    shared: per camera index, whether it shares its tracker body."""
     def median(values: list[float]) -> float:
         finite = [v for v in values if np.isfinite(v)]
         return float(np.median(finite)) if finite else 0.0
@@ -207,4 +244,34 @@ def combine_noise(pixel_px: float, tracking_px: float,
         tracking_px=float(tracking_px) if np.isfinite(tracking_px) else 0.0,
         tracker_position_m=median([s[0] for s in streams]),
         tracker_rotation_rad=median([s[1] for s in streams]),
+        shared_body=tuple(bool(x) for x in shared),
     )
+
+
+def noise_from_report(report: dict, cameras: tuple[str, ...], pixel_px: float) -> NoiseModel:
+    """The run's noise model from ingest's report (per camera tracker_jitter_mm /
+    tracker_jitter_deg, tracker_bodies) and the template's pixel noise (px)."""
+    per_camera = report.get("cameras", {})
+    streams = []
+    for cid in cameras:
+        c = per_camera.get(cid, {})
+        pos, rot = c.get("tracker_jitter_mm"), c.get("tracker_jitter_deg")
+        streams.append((np.nan if pos is None else pos * 1e-3,
+                        np.nan if rot is None else float(np.radians(rot))))
+    on_body = {cid for group in report.get("tracker_bodies", []) for cid in group}
+    return combine_noise(pixel_px, 0.0, streams, shared=tuple(c in on_body for c in cameras))
+
+
+def body_pose_covariance(points: np.ndarray, point_index: np.ndarray, cameras: np.ndarray,
+                         centres: np.ndarray, noise: NoiseModel) -> np.ndarray:
+    """(N, 3, 3) m²: the rigid pose error of a shared tracker body for every point with a
+    view (point_index (M,), cameras (M,)) from a camera on such a body (camera centres
+    (C, 3) m); zero for the others."""
+    out = np.zeros((len(points), 3, 3))
+    shared = noise.on_shared_body(cameras)
+    if shared.any():
+        first = np.full(len(points), -1)
+        first[point_index[shared][::-1]] = cameras[shared][::-1]
+        has = first >= 0
+        out[has] = noise.rigid_pose_covariance(points[has], centres[first[has]])
+    return out

@@ -33,6 +33,7 @@ from .cameras import CameraModel, in_image, project, undistort_pixels
 from .labels import INTER, INTRA, OUTLIER, STATUS_NAMES, UNOBSERVED
 from .noise import (
     NoiseModel,
+    body_pose_covariance,
     covariance_sigma,
     image_noise_sigma,
     localisation_variance_px2,
@@ -50,14 +51,17 @@ class TargetCloud:
     """Per template point (N): target position (N, 3) m (latest position if unobserved, NaN
     for outliers), status (N,) uint8 (INTRA/INTER/OUTLIER/UNOBSERVED), views (N,) cameras
     that found it; pixels (N, C, 2) where it was found in each camera (NaN = not found);
-    covariance (N, 3, 3) m² of the target position and sigma (N,) m = √trace (NaN without
-    a target); the frame's noise model (its tracking_px measured in this frame)."""
+    covariance (N, 3, 3) m² of the target position from independent errors, pose_covariance
+    (N, 3, 3) m² the rigid error of a shared tracker body (core/noise.py; zero without one)
+    and sigma (N,) m = √trace of their sum (NaN without a target); the frame's noise model
+    (its tracking_px measured in this frame)."""
 
     positions: np.ndarray
     status: np.ndarray
     views: np.ndarray
     pixels: np.ndarray
     covariance: np.ndarray
+    pose_covariance: np.ndarray
     sigma: np.ndarray
     noise: NoiseModel
 
@@ -185,7 +189,9 @@ def reprojection_check(
     px² the tracking variance of each found pixel.
 
     Returns status (N,), positions (N, 3) (template position for intra, re-triangulated for
-    inter, NaN otherwise) and covariances (N, 3, 3) m² of those positions (NaN otherwise).
+    inter, NaN otherwise) and covariances (N, 3, 3) m² of those positions (NaN otherwise;
+    for views of a shared tracker body without its pose error, which is a rigid error of
+    the body: `body_pose_covariance`).
     """
     n, _n_cams = found.shape
     bound = gate_chi2(significance)
@@ -220,11 +226,13 @@ def reprojection_check(
         J, z = projection_jacobians(np.nan_to_num(tri.points[rows]), poses[cams], focal[cams])
         variance = noise.tracked_view_variance_px2(z, focal[cams],
                                                    localisation[idx[rows], cams])
+        independent = noise.tracked_view_variance_px2(
+            z, focal[cams], localisation[idx[rows], cams], pose=~noise.on_shared_body(cams))
         scaled = np.full(use.shape, -np.inf)
         scaled[rows, cams] = tri.error_px**2 / variance
         worst_scaled = np.max(scaled, axis=1)
         good = tri.in_front & (worst_scaled <= bound) & np.isfinite(tri.points).all(1)
-        cov = point_covariances(rows, J, variance, len(idx))
+        cov = point_covariances(rows, J, independent, len(idx))
         status[idx[good]] = INTER
         positions[idx[good]] = tri.points[good]
         covariances[idx[good]] = cov[good]
@@ -294,11 +302,15 @@ def build_target(
     covariances[on_tool] = np.nan
     unobserved = status == UNOBSERVED
     positions[unobserved] = latest[unobserved]
-    sigma = np.full(n, np.nan)
     has = (status == INTRA) | (status == INTER)
-    sigma[has] = covariance_sigma(covariances[has])
+    rows, cams = np.nonzero(found & (status == INTER)[:, None])
+    pose_cov = body_pose_covariance(np.nan_to_num(positions), rows, cams, cur_poses[:, :3, 3],
+                                    noise)
+    sigma = np.full(n, np.nan)
+    sigma[has] = covariance_sigma(covariances[has] + pose_cov[has])
     covariances[~has] = np.nan
-    return TargetCloud(positions, status, found.sum(1), pixels, covariances, sigma, noise)
+    return TargetCloud(positions, status, found.sum(1), pixels, covariances, pose_cov, sigma,
+                       noise)
 
 
 def new_target_points(candidates: np.ndarray, candidate_rgb: np.ndarray, tracked: np.ndarray,

@@ -13,6 +13,7 @@ from __future__ import annotations
 import functools
 import logging
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -63,7 +64,8 @@ def load_registration_frame(run_dir: Path, frame: int, n_points: int) -> dict[st
     for key, shape in (("registered", (n_points, 3)), ("transforms", (n_points, 3, 4)),
                        ("status", (n_points,)), ("sigma", (n_points,)),
                        ("target", (n_points, 3)), ("target_sigma", (n_points,)),
-                       ("target_covariance", (n_points, 3, 3))):
+                       ("target_covariance", (n_points, 3, 3)),
+                       ("target_pose_covariance", (n_points, 3, 3))):
         if key not in data or data[key].shape != shape:
             got = data[key].shape if key in data else "missing"
             raise RunFolderError(f"{path}: {key} should be {shape} for the {n_points}-point "
@@ -71,8 +73,18 @@ def load_registration_frame(run_dir: Path, frame: int, n_points: int) -> dict[st
     return data
 
 
-# template (N, 3) m, its neighbourhoods, its points' covariances (N, 3, 3) m²
-TemplateInputs = tuple[np.ndarray, Neighbourhoods, np.ndarray]
+@dataclass(frozen=True)
+class TemplateNoise:
+    """The template points' uncertainty: covariance (N, 3, 3) m² from independent errors,
+    pose_covariance (N, 3, 3) m² a shared tracker body's rigid error, sigma (N,) m."""
+
+    covariance: np.ndarray
+    pose_covariance: np.ndarray
+    sigma: np.ndarray
+
+
+# template (N, 3) m, its neighbourhoods, its points' uncertainty
+TemplateInputs = tuple[np.ndarray, Neighbourhoods, TemplateNoise]
 
 
 @functools.lru_cache(maxsize=4)
@@ -81,10 +93,12 @@ def _cached_template(run_dir: str, _stamp: tuple[int, ...], neighbourhood_mm: fl
     template, _ = load_template(Path(run_dir))
     nb = template_neighbourhoods(template, neighbourhood_mm, min_neighbours, max_neighbours)
     with np.load(Path(run_dir) / "template" / "observations.npz", allow_pickle=False) as z:
-        template_cov = z["covariance"].astype(float)
-    for array in (template, nb.index, nb.mask, template_cov):
+        cov = z["covariance"].astype(float)
+        pose_cov = z["pose_covariance"].astype(float)
+    noise = TemplateNoise(cov, pose_cov, covariance_sigma(cov + pose_cov))
+    for array in (template, nb.index, nb.mask, cov, pose_cov, noise.sigma):
         array.flags.writeable = False  # shared by every frame this process classifies
-    return template, nb, template_cov
+    return template, nb, noise
 
 
 def template_and_neighbourhoods(run_dir: Path, config: Config) -> TemplateInputs:
@@ -103,38 +117,39 @@ def classify_one_frame(run_dir: Path, frame: int,
                        config: Config) -> tuple[FrameClasses, np.ndarray]:
     """Labels of one frame k >= 1 from its registration (a task), and its reprojection
     check status (N,) uint8."""
-    template, nb, template_cov = template_and_neighbourhoods(run_dir, config)
-    template_sigma = covariance_sigma(template_cov)
+    template, nb, template_noise = template_and_neighbourhoods(run_dir, config)
     reg = load_registration_frame(run_dir, frame, len(template))
     cfg = config.classify
     transforms = reg["transforms"].astype(float) if cfg.measure == "transform_diff" else None
     registered = reg["registered"].astype(float)
     classes = classify_frame(template, registered, nb, cfg, transforms=transforms,
                              status=reg["status"],
-                             evidence=frame_evidence(reg, registered, template_sigma,
-                                                     template_cov))
+                             evidence=frame_evidence(reg, registered, template_noise))
     return classes, reg["status"].astype(np.uint8)
 
 
 def frame_evidence(reg: dict[str, np.ndarray], registered: np.ndarray,
-                   template_sigma: np.ndarray, template_cov: np.ndarray) -> Evidence:
+                   template: TemplateNoise) -> Evidence:
     """The classifier's uncertainties of one registered frame: measured positions are the
     targets where the reprojection check gave one, else the registered positions; the
     displacement's covariance is the target's plus the template point's where there is a
     target (a narrow baseline knows depth far worse than the other directions), else
-    isotropic from σ."""
+    isotropic from σ. The rigid-motion test leaves out a shared tracker body's pose error
+    (a rigid error of the whole neighbourhood, which the rigid fit absorbs)."""
     sigma = reg["sigma"].astype(float)
     target = reg["target"].astype(float)
     target_sigma = reg["target_sigma"].astype(float)
     has = np.isfinite(target_sigma) & np.isfinite(target).all(1)
-    iso = (np.nan_to_num(sigma, posinf=1e3) ** 2 + template_sigma**2) / 3.0
-    displacement_cov = iso[:, None, None] * np.eye(3)
-    target_cov = reg["target_covariance"].astype(float)
-    displacement_cov[has] = target_cov[has] + template_cov[has]
-    return Evidence(sigma=sigma, template_sigma=template_sigma,
+    iso = (np.nan_to_num(sigma, posinf=1e3) ** 2 + template.sigma**2) / 3.0
+    departure = iso[:, None, None] * np.eye(3)
+    departure[has] = reg["target_covariance"][has].astype(float) + template.covariance[has]
+    displacement = departure.copy()
+    displacement[has] += (reg["target_pose_covariance"][has].astype(float)
+                          + template.pose_covariance[has])
+    return Evidence(sigma=sigma, template_sigma=template.sigma,
                     measured=np.where(has[:, None], target, registered),
                     measured_sigma=np.where(has, target_sigma, sigma),
-                    displacement_cov=displacement_cov)
+                    displacement_cov=displacement, departure_cov=departure)
 
 
 def classify_task(run_dir: Path, config: Config, frame: int) -> Task:

@@ -19,9 +19,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from ..config import Config
-from ..core.noise import pose_jitter
+from ..core.geometry import interpolate_poses
+from ..core.noise import pose_jitter, shared_bodies
 from ..core.sync import (
     FrameGrouping,
     PoseStream,
@@ -203,6 +205,7 @@ def _assemble(collector: StreamCollector, reader: LogReader, config: Config,
 
     image_paths = _place_images(staging, cams, orders, image_index)
     report = _report(ids, cams, stamps, pose_streams, frames, image_index, usable, trimmed)
+    report["tracker_bodies"] = _tracker_bodies(ids, pose_streams, gap_ns)
     report.update(tool_rate_hz=rate_hz(tool.stamps_ns),
                   tool_pose_missing=int((~tool_valid).sum()),
                   joint_rate_hz=rate_hz(joint_stamps), joints=list(collector.joint_names),
@@ -234,6 +237,27 @@ def _place_images(staging: Path, cams: list, orders: list[np.ndarray],
             paths[t][c] = rel
     shutil.rmtree(staging / STAGED, ignore_errors=True)
     return tuple(tuple(row) for row in paths)
+
+
+def _tracker_bodies(ids: tuple[str, ...], streams: list[PoseStream],
+                    gap_ns: int) -> list[list[str]]:
+    """Cameras that share one tracked body (core/noise.shared_bodies), by camera id: j's
+    stream interpolated at i's stamps gives the relative pose stream, whose jitter is ~0
+    when both follow one marker."""
+    own = [pose_jitter(s.stamps_ns, s.positions, s.quats) for s in streams]
+    relative = {}
+    for i in range(len(streams)):
+        for j in range(i + 1, len(streams)):
+            a, b = streams[i], streams[j]
+            pos_b, quat_b, valid = interpolate_poses(b.stamps_ns, b.positions, b.quats,
+                                                     a.stamps_ns, gap_ns)
+            if valid.sum() < 3:
+                continue
+            rot_a = Rotation.from_quat(a.quats[valid])
+            rel_rot = rot_a.inv() * Rotation.from_quat(quat_b[valid])
+            rel_pos = rot_a.inv().apply(pos_b[valid] - a.positions[valid])
+            relative[(i, j)] = pose_jitter(a.stamps_ns[valid], rel_pos, rel_rot.as_quat())
+    return [[ids[c] for c in group] for group in shared_bodies(own, relative)]
 
 
 def _jitter(stream: PoseStream) -> dict[str, float | None]:

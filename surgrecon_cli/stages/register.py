@@ -12,7 +12,9 @@ atomically frame by frame so a killed run resumes:
                                 status (N,) u8, residual (N,) f32 (to the point's target, m,
                                 NaN without one), sigma (N,) f32 (RMS 3D uncertainty of the
                                 registered position, m), target_sigma (N,) f32,
-                                target_covariance (N,3,3) f32 m²,
+                                target_covariance (N,3,3) f32 m² (independent errors),
+                                target_pose_covariance (N,3,3) f32 m² (shared tracker
+                                body's rigid error),
                                 support_mm (N,) f32, pixels (N,C,2) f64, tracking_px,
                                 converged, seconds_target, seconds_register, failed, error
   RUN/clouds/NNNNNN.ply         registered positions, template colours, point_id,
@@ -33,13 +35,13 @@ import numpy as np
 from ..config import Config, to_dict
 from ..core.frame_step import BaseState, FrameResult, register_frame_step
 from ..core.labels import OUTLIER, UNKNOWN
-from ..core.noise import NoiseModel, combine_noise
+from ..core.noise import noise_from_report
 from ..core.tool import tool_pose_in_world
 from ..errors import GeometryError, RunFolderError
 from ..executors import Executor, Task
 from ..executors.serial import SerialExecutor
 from ..io.atomic import write_npz
-from ..io.ingest_store import IngestedLog, load_ingested
+from ..io.ingest_store import load_ingested
 from ..io.ply import read_ply, write_cloud_ply
 from ..io.run_folder import RunFolder
 from .common import stage_run
@@ -66,22 +68,13 @@ def load_template(run_dir: Path) -> tuple[np.ndarray, np.ndarray]:
 def _template_observations(run_dir: Path, n_points: int,
                            n_cams: int) -> tuple[np.ndarray, np.ndarray, float]:
     """Where each template point was seen at frame 0 (N, C, 2) px (NaN where not), its
-    covariance (N, 3, 3) m² and the measured pixel noise (px)."""
+    covariance (N, 3, 3) m² (independent errors plus a shared tracker body's) and the
+    measured pixel noise (px)."""
     with np.load(Path(run_dir) / "template" / "observations.npz", allow_pickle=False) as z:
         pixels = np.full((n_points, n_cams, 2), np.nan)
         pixels[z["point"], z["camera"]] = z["pixels"]
-        return pixels, z["covariance"].astype(float), float(z["pixel_noise_px"])
-
-
-def run_noise(log: IngestedLog, pixel_px: float) -> NoiseModel:
-    """The run's noise model: the template's pixel noise and the cameras' tracker jitter
-    measured at ingest (tracking noise is measured per frame)."""
-    cameras = log.report.get("cameras", {}).values()
-    streams = [(np.nan if c.get("tracker_jitter_mm") is None else c["tracker_jitter_mm"] * 1e-3,
-                np.nan if c.get("tracker_jitter_deg") is None
-                else np.radians(c["tracker_jitter_deg"]))
-               for c in cameras]
-    return combine_noise(pixel_px, 0.0, streams)
+        covariance = z["covariance"].astype(float) + z["pose_covariance"].astype(float)
+        return pixels, covariance, float(z["pixel_noise_px"])
 
 
 def base_frame(frame: int, update_every: int) -> int:
@@ -123,7 +116,8 @@ def register_frame(run_dir: Path, frame: int, config: Config) -> dict:
             template, rgb, template_cov, base, log.frame_images(base.frame),
             log.usable_poses(base.frame), log.frame_images(frame), log.usable_poses(frame),
             models, tool_pose_in_world(log.tool_poses[frame], config.tool),
-            run_noise(log, pixel_px), config, add_new_points=bool(every and frame % every == 0))
+            noise_from_report(log.report, log.cameras, pixel_px), config,
+            add_new_points=bool(every and frame % every == 0))
     except GeometryError as exc:
         _write_failed(run_dir, frame, base, rgb, len(models), str(exc))
         return {"frame": frame, "failed": str(exc), "base": base.frame}
@@ -148,6 +142,7 @@ def _write_frame(run_dir: Path, frame: int, result: FrameResult, rgb: np.ndarray
         sigma=sigma,
         target_sigma=target.sigma.astype(np.float32),
         target_covariance=target.covariance.astype(np.float32),
+        target_pose_covariance=target.pose_covariance.astype(np.float32),
         support_mm=result.support_mm.astype(np.float32),
         pixels=target.pixels,
         tracking_px=np.float64(target.noise.tracking_px),
@@ -184,6 +179,7 @@ def _write_failed(run_dir: Path, frame: int, base: BaseState, rgb: np.ndarray, n
         residual=np.full(n, np.nan, np.float32), sigma=np.full(n, np.inf, np.float32),
         target_sigma=np.full(n, np.nan, np.float32),
         target_covariance=np.full((n, 3, 3), np.nan, np.float32),
+        target_pose_covariance=np.zeros((n, 3, 3), np.float32),
         support_mm=np.full(n, np.inf, np.float32), pixels=np.full((n, n_cams, 2), np.nan),
         tracking_px=np.float64(np.nan), converged=np.bool_(False),
         seconds_target=np.float64(0.0), seconds_register=np.float64(0.0),

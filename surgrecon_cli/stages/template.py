@@ -3,7 +3,8 @@
 Writes RUN/template.ply, RUN/clouds/000000.ply (all points static; extra vertex properties
 n_views, reprojection_px and sigma: the point's 3D position uncertainty, RMS, metres),
 RUN/template/observations.npz (where each template point was seen at frame 0, for tracking;
-and each point's 3D covariance, m², from the measured pixel noise) and
+each point's 3D covariance, m², from the measured pixel noise, and pose_covariance, the
+rigid error of a shared tracker body, core/noise.py) and
 RUN/template/summary.json (counts, pair plan, pixel_noise_px).
 """
 
@@ -16,6 +17,7 @@ import numpy as np
 
 from ..config import Config
 from ..core.labels import STATIC
+from ..core.noise import body_pose_covariance, covariance_sigma, noise_from_report
 from ..core.template import TemplateResult, build_template
 from ..core.tool import tool_pose_in_world
 from ..errors import InputError
@@ -57,10 +59,15 @@ def run_build_template(
             map_calls=mapper(executor or SerialExecutor()),
         )
         n = len(result.points)
+        noise = noise_from_report(log.report, log.cameras, result.pixel_noise_px)
+        obs = result.observations
+        pose_cov = body_pose_covariance(result.points, obs.point, obs.camera,
+                                        np.nan_to_num(poses[:, :3, 3]), noise)
+        sigma = covariance_sigma(result.covariance + pose_cov) if n else np.zeros(0)
         extra = {
             "n_views": result.n_views.astype(np.uint8),
             "reprojection_px": result.reprojection_px.astype(np.float32),
-            "sigma": result.sigma.astype(np.float32),
+            "sigma": sigma.astype(np.float32),
         }
         for path in (run_dir / "template.ply", cloud_path(run_dir, 0)):
             write_cloud_ply(
@@ -72,13 +79,13 @@ def run_build_template(
                 residual=np.zeros(n, np.float32),
                 extra=extra,
             )
-        obs = result.observations
         write_npz(
             run_dir / "template" / "observations.npz",
             point=obs.point.astype(np.int32),
             camera=obs.camera.astype(np.int16),
             pixels=obs.pixels.astype(np.float32),
             covariance=result.covariance.astype(np.float64),
+            pose_covariance=pose_cov.astype(np.float64),
             pixel_noise_px=np.float64(result.pixel_noise_px),
         )
         plan = {
@@ -93,5 +100,6 @@ def run_build_template(
         write_json(run_dir / "template" / "summary.json", {"stats": result.stats, "pairs": plan})
         info.update(points=n, groups=plan["groups"], sequence=plan["sequence"], stats=result.stats,
                     pixel_noise_px=result.pixel_noise_px,
-                    sigma_median_mm=float(np.median(result.sigma) * 1e3) if n else None)
+                    tracker_bodies=log.report.get("tracker_bodies", []),
+                    sigma_median_mm=float(np.median(sigma) * 1e3) if n else None)
     return result
