@@ -153,6 +153,9 @@ class TargetConfig:
     klt_window_px: int = _doc(21, "KLT window size (px)")
     klt_levels: int = _doc(3, "KLT pyramid levels")
     klt_fb_px: float = _doc(0.7, "largest forward-backward KLT disagreement (px)")
+    min_ncc: float = _doc(
+        0.5, "smallest normalised cross-correlation of a tracked patch with the one it left "
+        "(photometric check against gross drift; median 0.96 on the sample; -1 = off)")
     occlusion_depth: float = _doc(0.002, "depth tolerance of the visibility test (m)")
     new_points_every: int = _doc(
         0, "triangulate new features into G (no id) every N frames (0 = off; ~3 s a frame)"
@@ -165,6 +168,7 @@ class TargetConfig:
         _require(0 < self.significance < 0.5, "target.significance", "must be in (0, 0.5)")
         _require(self.new_points_every >= 0, "target.new_points_every", "must be >= 0")
         _require(self.klt_window_px >= 5, "target.klt_window_px", "must be >= 5")
+        _require(-1 <= self.min_ncc < 1, "target.min_ncc", "must be in [-1, 1)")
 
 
 @dataclass(frozen=True)

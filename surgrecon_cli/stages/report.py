@@ -413,14 +413,17 @@ def _quality_section(data: _RunData, frames_later: np.ndarray, figs: _Figures) -
     noise = data.noise or {}
     jitter = [v for v in (noise.get("tracker_jitter_mm") or {}).values() if v is not None]
     jitter_deg = [v for v in (noise.get("tracker_jitter_deg") or {}).values() if v is not None]
+    bodies = data.log.report.get("tracker_bodies", [])
     sec.add(rh.table(("measured noise (1σ per axis)", "value"), [
         ("pixel noise at frame 0 (template residuals)", _fmt_num(noise.get("pixel_px"), "px")),
         ("tracker position jitter (median over cameras)",
          _fmt_num(float(np.median(jitter)) if jitter else None, "mm")),
         ("tracker rotation jitter (median over cameras)",
          _fmt_num(float(np.median(jitter_deg)) if jitter_deg else None, "°")),
-        ("KLT tracking noise (forward-backward, median over frames)",
+        ("tracking noise (Cramér-Rao bound of each tracked patch, median over frames)",
          _fmt_num(noise.get("tracking_px"), "px")),
+        ("cameras sharing one tracked body (pose error rigid for the group)",
+         "; ".join(", ".join(g) for g in bodies) or "none"),
     ]))
     series = {
         "observed": np.array([q.observed for q in quality]),
