@@ -95,3 +95,28 @@ def test_fixed_pose_stream_has_no_jitter():
     pos, rot = pose_jitter(stamps, np.tile([0.0, 0.0, 0.05], (10, 1)),
                            np.tile([0.0, 0.0, 0.0, 1.0], (10, 1)))
     assert pos == 0 and rot == 0
+
+
+def test_cameras_on_one_tracked_body_are_found():
+    """A stereo head's two cameras follow one marker: their relative pose does not jitter;
+    a third, separately tracked camera's does."""
+    from surgrecon_cli.core.noise import shared_bodies
+
+    rng = np.random.default_rng(6)
+    t = np.arange(400) * 0.025
+    stamps = (t * 1e9).astype(np.int64)
+    truth = np.column_stack([0.003 * np.sin(t), 0.002 * np.cos(0.7 * t), 0.05 + 0 * t])
+    head = truth + rng.normal(0, 6e-5, truth.shape)  # one marker measurement for both
+    own, rel = [], {}
+    streams = [head, head + np.array([0.005, 0, 0]), truth + rng.normal(0, 6e-5, truth.shape)]
+    noisy_quats = Rotation.from_rotvec(rng.normal(0, 5e-4, (len(t), 3))).as_quat()
+    rotations = [noisy_quats, noisy_quats, Rotation.from_rotvec(
+        rng.normal(0, 5e-4, (len(t), 3))).as_quat()]
+    for positions, q in zip(streams, rotations, strict=True):
+        own.append(pose_jitter(stamps, positions, q))
+    for i in range(3):
+        for j in range(i + 1, 3):
+            ri, rj = Rotation.from_quat(rotations[i]), Rotation.from_quat(rotations[j])
+            rel_pos = ri.inv().apply(streams[j] - streams[i])
+            rel[(i, j)] = pose_jitter(stamps, rel_pos, (ri.inv() * rj).as_quat())
+    assert shared_bodies(own, rel) == [[0, 1]]

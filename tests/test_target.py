@@ -81,3 +81,14 @@ def test_status_bookkeeping(tracked):
     unobserved = target.status == UNOBSERVED
     assert (target.views[unobserved] == 0).all()
     np.testing.assert_array_equal(target.positions[unobserved], template.points[unobserved])
+
+
+def test_photometric_check_rejects_a_drifted_track():
+    from surgrecon_cli.core.target import patch_ncc
+
+    rng = np.random.default_rng(0)
+    image = (rng.random((80, 80)) * 255).astype(np.uint8)
+    start = np.array([[40.0, 40.0], [30.5, 50.25]])
+    same = patch_ncc(image, start, image, start, 9)
+    drifted = patch_ncc(image, start, image, start + np.array([6.0, -5.0]), 9)
+    assert np.all(same > 0.999) and np.all(drifted < 0.5)
