@@ -157,17 +157,19 @@ def register_frame_step(
     noise: NoiseModel,
     config: Config,
     add_new_points: bool,
+    template_pose_cov: np.ndarray | None = None,
 ) -> FrameResult:
     """Target cloud and registration of one frame against its base.
 
-    template (N, 3) m frame-0 points, rgb (N, 3) uint8, covariances (N, 3, 3) m²; images
+    template (N, 3) m frame-0 points, rgb (N, 3) uint8, covariances (N, 3, 3) m² (of which
+    template_pose_cov from the cameras' pose errors); images
     per camera (H, W, 3) uint8 or None; poses (C, 4, 4) camera-to-world, NaN where unusable;
     tool_pose (4, 4) in the world (NaN = unknown). Raises GeometryError when the frame
     cannot be registered (e.g. too few tracked points)."""
     start = time.perf_counter()
     target = build_target(template, template_cov, base.latest, base_images, images,
                           base_poses, poses, base.pixels, models, tool_pose, noise,
-                          config.target, config.tool)
+                          config.target, config.tool, template_pose_cov)
     has_target = (target.status == INTRA) | (target.status == INTER)
     ids = np.flatnonzero(has_target)
     target_xyz, target_rgb = target.positions[ids], template_rgb[ids]

@@ -52,10 +52,11 @@ class TargetCloud:
     """Per template point (N): target position (N, 3) m (latest position if unobserved, NaN
     for outliers), status (N,) uint8 (INTRA/INTER/OUTLIER/UNOBSERVED), views (N,) cameras
     that found it; pixels (N, C, 2) where it was found in each camera (NaN = not found);
-    covariance (N, 3, 3) m² of the target position from independent errors, pose_covariance
-    (N, 3, 3) m² the rigid error of a shared tracker body (core/noise.py; zero without one)
-    and sigma (N,) m = √trace of their sum (NaN without a target); the frame's noise model
-    (its tracking_px measured in this frame)."""
+    covariance (N, 3, 3) m² of the target position from image noise, pose_covariance
+    (N, 3, 3) m² from the cameras' pose errors (per view, or the rigid error of a shared
+    tracker body; core/noise.py), common to nearby points, and sigma (N,) m = √trace of
+    their sum (NaN without a target); the frame's noise model (its tracking_px measured in
+    this frame)."""
 
     positions: np.ndarray
     status: np.ndarray
@@ -213,15 +214,17 @@ def reprojection_check(
     poses: np.ndarray,
     noise: NoiseModel,
     significance: float,
+    template_pose_cov: np.ndarray | None = None,
 ):
     """Split points by the reprojection-error check. template (N, 3) m frame-0 positions with
     covariances (N, 3, 3) m²; found (N, C) bool, pixels (N, C, 2) px, localisation (N, C)
     px² the tracking variance of each found pixel.
 
     Returns status (N,), positions (N, 3) (template position for intra, re-triangulated for
-    inter, NaN otherwise) and covariances (N, 3, 3) m² of those positions (NaN otherwise;
-    for views of a shared tracker body without its pose error, which is a rigid error of
-    the body: `body_pose_covariance`).
+    inter, NaN otherwise) and the covariances (N, 3, 3) m² of those positions from image
+    noise alone and from the cameras' pose errors (NaN otherwise; the pose part of views of
+    a shared tracker body is its rigid error: `body_pose_covariance`). template_pose_cov
+    (N, 3, 3): the pose part of template_cov (None = 0).
     """
     n, _n_cams = found.shape
     bound = gate_chi2(significance)
@@ -230,6 +233,8 @@ def reprojection_check(
     status[views == 0] = UNOBSERVED
     positions = np.full((n, 3), np.nan)
     covariances = np.full((n, 3, 3), np.nan)
+    pose_part = np.full((n, 3, 3), np.nan)
+    template_pose = np.zeros_like(template_cov) if template_pose_cov is None else template_pose_cov
     d2 = intra_distances(template, template_cov, found, pixels, localisation, models, poses,
                          noise)
     # One view cannot confirm a point static (it may move along that camera's ray), just as
@@ -237,7 +242,8 @@ def reprojection_check(
     intra = (views >= 2) & np.all(np.where(found, d2 <= bound, True), axis=1)
     status[intra] = INTRA
     positions[intra] = template[intra]
-    covariances[intra] = template_cov[intra]
+    covariances[intra] = template_cov[intra] - template_pose[intra]
+    pose_part[intra] = template_pose[intra]
     candidates = np.flatnonzero(~intra & (views >= 2))
     use = found[candidates].copy()
     focal = np.array([m.K[0, 0] for m in models])
@@ -258,18 +264,22 @@ def reprojection_check(
                                                    localisation[idx[rows], cams])
         independent = noise.tracked_view_variance_px2(
             z, focal[cams], localisation[idx[rows], cams], pose=~noise.on_shared_body(cams))
+        image_only = noise.tracked_view_variance_px2(
+            z, focal[cams], localisation[idx[rows], cams], pose=False)
         scaled = np.full(use.shape, -np.inf)
         scaled[rows, cams] = tri.error_px**2 / variance
         worst_scaled = np.max(scaled, axis=1)
         good = tri.in_front & (worst_scaled <= bound) & np.isfinite(tri.points).all(1)
-        cov = point_covariances(rows, J, independent, len(idx))
+        cov = point_covariances(rows, J, image_only, len(idx))
+        cov_all = point_covariances(rows, J, independent, len(idx))
         status[idx[good]] = INTER
         positions[idx[good]] = tri.points[good]
         covariances[idx[good]] = cov[good]
+        pose_part[idx[good]] = cov_all[good] - cov[good]
         worst = np.argmax(scaled, axis=1)
         use[np.arange(len(idx)), worst] = False
         candidates, use = idx[~good], use[~good]
-    return status, positions, covariances
+    return status, positions, covariances, pose_part
 
 
 def build_target(
@@ -286,10 +296,12 @@ def build_target(
     noise: NoiseModel,
     cfg: TargetConfig,
     tool_cfg: ToolConfig,
+    template_pose_cov: np.ndarray | None = None,
 ) -> TargetCloud:
     """Target cloud of a frame for template points (N, 3) at frame 0 (covariances (N, 3, 3)
-    m²) and latest positions, gated with the run's noise model and each tracked pixel's
-    localisation variance (core/noise.py; its median is the frame's tracking_px).
+    m², of which template_pose_cov from pose errors) and latest positions, gated with the
+    run's noise model and each tracked pixel's localisation variance (core/noise.py; its
+    median is the frame's tracking_px).
 
     prev_images/cur_images: per camera RGB (H, W, 3) uint8 or None, "prev" being the frame
     tracked from (any earlier frame: the pipeline passes the template base); poses (C, 4, 4)
@@ -321,9 +333,9 @@ def build_target(
             cur, tracked[ok], cfg.klt_window_px, image_noise_sigma(cur))
     if found.any():
         noise = replace(noise, tracking_px=float(np.sqrt(np.median(localisation[found]))))
-    status, positions, covariances = reprojection_check(
+    status, positions, covariances, pose_part = reprojection_check(
         template, template_cov, found, pixels, localisation, models, cur_poses, noise,
-        cfg.significance)
+        cfg.significance, template_pose_cov)
     # Tissue is pushed away by the tool, so visibility is judged in the images (mask);
     # a re-triangulated point inside the tool's capsule is a tool point, not tissue.
     on_tool = (status == INTER) & points_near_tool(np.nan_to_num(positions), tool_pose, tool_cfg)
@@ -335,7 +347,7 @@ def build_target(
     has = (status == INTRA) | (status == INTER)
     rows, cams = np.nonzero(found & (status == INTER)[:, None])
     pose_cov = body_pose_covariance(np.nan_to_num(positions), rows, cams, cur_poses[:, :3, 3],
-                                    noise)
+                                    noise) + np.nan_to_num(pose_part)
     sigma = np.full(n, np.nan)
     sigma[has] = covariance_sigma(covariances[has] + pose_cov[has])
     covariances[~has] = np.nan

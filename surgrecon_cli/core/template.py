@@ -15,10 +15,11 @@ import numpy as np
 
 from ..config import TemplateConfig, ToolConfig
 from ..errors import GeometryError
-from .cameras import CameraModel
+from .cameras import CameraModel, project
 from .features import Features, detect_features, no_features
 from .matching import build_tracks, match_pair
 from .noise import (
+    NoiseModel,
     covariance_sigma,
     image_noise_sigma,
     localisation_variance_px2,
@@ -49,8 +50,9 @@ def map_here(fn: Callable[..., Any], calls: Sequence[tuple[Any, ...]]) -> list[A
 @dataclass(frozen=True)
 class TemplateResult:
     """Template cloud: points (N, 3) m, rgb (N, 3) uint8, n_views (N,), mean reprojection
-    error (N,) px; covariance (N, 3, 3) m² and sigma (N,) m = √trace (core/noise.py) from the
-    measured pixel noise pixel_noise_px (px, per axis); the observations of each point at
+    error (N,) px; covariance (N, 3, 3) m² from image noise (pixel_noise_px, px per axis, and
+    the localisation bound), pose_covariance (N, 3, 3) m² from the cameras' pose errors and
+    sigma (N,) m = √trace of their sum (core/noise.py); the observations of each point at
     frame 0 (`observations.point` indexes points); the pair plan and prediction; counts of
     what each step kept."""
 
@@ -59,6 +61,7 @@ class TemplateResult:
     n_views: np.ndarray
     reprojection_px: np.ndarray
     covariance: np.ndarray
+    pose_covariance: np.ndarray
     sigma: np.ndarray
     pixel_noise_px: float
     observations: Observations
@@ -87,9 +90,12 @@ def build_template(
     tool_cfg: ToolConfig,
     on_step: Callable[[str], None] | None = None,
     map_calls: MapCalls = map_here,
+    noise: NoiseModel | None = None,
 ) -> TemplateResult:
     """Build the template from one frame: images[c] (H, W, 3) uint8 RGB or None (unusable),
-    poses (C, 4, 4) camera-to-world, tool_pose (4, 4) tool tip in the world (NaN = unknown).
+    poses (C, 4, 4) camera-to-world, tool_pose (4, 4) tool tip in the world (NaN = unknown);
+    `noise` (the tracker's measured jitter) makes each view's variance at least what the
+    pose error alone projects (`measured_covariances`).
 
     The feature detection of each camera and the matching of each candidate pair are
     independent calls, made through `map_calls` (in parallel when it is an executor's).
@@ -143,7 +149,8 @@ def build_template(
     )
     # The noise is measured on the geometrically good points; a point is then kept when the
     # depth accuracy its rays buy is good enough (not by a fixed triangulation angle).
-    pixel_px, cov = measured_covariances(tri.points, obs, poses, models, good, images)
+    pixel_px, cov, image_cov = measured_covariances(tri.points, obs, poses, models, good,
+                                                    images, noise)
     sigma = covariance_sigma(np.nan_to_num(cov, nan=np.inf))
     precise = np.isfinite(sigma) & (sigma <= cfg.max_sigma_mm * 1e-3)
     imprecise = good & ~precise
@@ -174,7 +181,8 @@ def build_template(
         rgb=obs_kept.mean_rgb(int(keep.sum())),
         n_views=tri.n_views[keep],
         reprojection_px=tri.mean_error_px[keep],
-        covariance=cov[keep],
+        covariance=image_cov[keep],
+        pose_covariance=cov[keep] - image_cov[keep],
         sigma=sigma[keep],
         pixel_noise_px=pixel_px,
         observations=obs_kept,
@@ -186,19 +194,25 @@ def build_template(
 
 def measured_covariances(points: np.ndarray, obs: Observations, poses: np.ndarray,
                          models: list[CameraModel], use: np.ndarray,
-                         images: list[np.ndarray | None]) -> tuple[float, np.ndarray]:
+                         images: list[np.ndarray | None],
+                         noise: NoiseModel | None = None
+                         ) -> tuple[float, np.ndarray, np.ndarray]:
     """Pixel noise σ_px (px) measured from the reprojection residuals of the points `use`
-    (N,) bool, and every point's covariance (N, 3, 3) m² from its views. Each view's
+    (N,) bool (at least the localisation bound), and every point's covariance (N, 3, 3) m²
+    from its views, in all and from image noise alone. Each view's
     variance is the larger of σ_px² and the Cramér-Rao bound of locating it in its image
-    (core/noise.py): with two views the residuals only see the error across the epipolar
-    line, and a narrow-baseline stereo pair shares its tracker error, so the residuals
-    alone would understate the noise along it."""
+    (core/noise.py) plus, for a camera not on a shared tracker body, the pose error the
+    tracker's measured jitter projects at the point's depth: with two views the residuals
+    only see the error across the epipolar line, and the triangulation absorbs much of
+    the cameras' pose errors into the points (measured: 0.25 mm of tracker noise left
+    0.50 px of residuals and a template 3x less accurate than they implied)."""
     residual, _ = reprojection_residuals(points, obs, poses, models)
     views = np.bincount(obs.point, minlength=len(points))
     sel = use[obs.point]
     pixel_px = pixel_noise_from_residuals(residual[sel], views[obs.point[sel]])
     pixel_px = pixel_px if np.isfinite(pixel_px) and pixel_px > 0 else 1.0
     variance = np.full(len(obs.point), pixel_px**2)
+    image_variance = variance.copy()
     for c in np.unique(obs.camera):
         image = images[c]
         if image is None:
@@ -207,9 +221,17 @@ def measured_covariances(points: np.ndarray, obs: Observations, poses: np.ndarra
         rows = obs.camera == c
         bound = localisation_variance_px2(grey, obs.pixels[rows], LOCALISATION_WINDOW_PX,
                                           image_noise_sigma(grey))
-        variance[rows] = np.maximum(variance[rows], np.where(np.isfinite(bound), bound, 0.0))
+        bound = np.where(np.isfinite(bound), bound, 0.0)
+        image_variance[rows] = np.maximum(variance[rows], bound)
+        if noise is not None and not noise.on_shared_body(np.array([c]))[0]:
+            _, depth = project(np.nan_to_num(points[obs.point[rows]]), poses[c], models[c])
+            bound = bound + noise.pose_variance_px2(depth, np.full(len(depth),
+                                                                   models[c].K[0, 0]))
+        variance[rows] = np.maximum(variance[rows], bound)
     focal = np.array([m.K[0, 0] for m in models])
     J, _ = projection_jacobians(np.nan_to_num(points[obs.point]), poses[obs.camera],
                                 focal[obs.camera])
     cov = point_covariances(obs.point, J, variance, len(points))
-    return float(np.sqrt(np.median(variance[sel]))) if sel.any() else pixel_px, cov
+    image_cov = point_covariances(obs.point, J, image_variance, len(points))
+    image_px = float(np.sqrt(np.median(image_variance[sel]))) if sel.any() else pixel_px
+    return image_px, cov, image_cov

@@ -12,9 +12,9 @@ atomically frame by frame so a killed run resumes:
                                 status (N,) u8, residual (N,) f32 (to the point's target, m,
                                 NaN without one), sigma (N,) f32 (RMS 3D uncertainty of the
                                 registered position, m), target_sigma (N,) f32,
-                                target_covariance (N,3,3) f32 m² (independent errors),
-                                target_pose_covariance (N,3,3) f32 m² (shared tracker
-                                body's rigid error),
+                                target_covariance (N,3,3) f32 m² (from image noise),
+                                target_pose_covariance (N,3,3) f32 m² (from pose
+                                errors, common to nearby points),
                                 support_mm (N,) f32, pixels (N,C,2) f64, tracking_px,
                                 converged, seconds_target, seconds_register, failed, error
   RUN/clouds/NNNNNN.ply         registered positions, template colours, point_id,
@@ -66,15 +66,15 @@ def load_template(run_dir: Path) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _template_observations(run_dir: Path, n_points: int,
-                           n_cams: int) -> tuple[np.ndarray, np.ndarray, float]:
+                           n_cams: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
     """Where each template point was seen at frame 0 (N, C, 2) px (NaN where not), its
-    covariance (N, 3, 3) m² (independent errors plus a shared tracker body's) and the
+    covariance (N, 3, 3) m² (image and pose errors), its pose part (N, 3, 3) m² and the
     measured pixel noise (px)."""
     with np.load(Path(run_dir) / "template" / "observations.npz", allow_pickle=False) as z:
         pixels = np.full((n_points, n_cams, 2), np.nan)
         pixels[z["point"], z["camera"]] = z["pixels"]
-        covariance = z["covariance"].astype(float) + z["pose_covariance"].astype(float)
-        return pixels, covariance, float(z["pixel_noise_px"])
+        pose = z["pose_covariance"].astype(float)
+        return pixels, z["covariance"].astype(float) + pose, pose, float(z["pixel_noise_px"])
 
 
 def base_frame(frame: int, update_every: int) -> int:
@@ -107,7 +107,8 @@ def register_frame(run_dir: Path, frame: int, config: Config) -> dict:
     log = load_ingested(run_dir / "ingest")
     template, rgb = load_template(run_dir)
     n, models = len(template), list(log.models)
-    pixels0, template_cov, pixel_px = _template_observations(run_dir, n, len(models))
+    pixels0, template_cov, template_pose_cov, pixel_px = _template_observations(
+        run_dir, n, len(models))
     base = _load_base(run_dir, base_frame(frame, config.registration.template_update_every),
                       config.registration.template_update_every, template, pixels0)
     every = config.target.new_points_every
@@ -117,7 +118,8 @@ def register_frame(run_dir: Path, frame: int, config: Config) -> dict:
             log.usable_poses(base.frame), log.frame_images(frame), log.usable_poses(frame),
             models, tool_pose_in_world(log.tool_poses[frame], config.tool),
             noise_from_report(log.report, log.cameras, pixel_px), config,
-            add_new_points=bool(every and frame % every == 0))
+            add_new_points=bool(every and frame % every == 0),
+            template_pose_cov=template_pose_cov)
     except GeometryError as exc:
         _write_failed(run_dir, frame, base, rgb, len(models), str(exc))
         return {"frame": frame, "failed": str(exc), "base": base.frame}

@@ -3,8 +3,8 @@
 Writes RUN/template.ply, RUN/clouds/000000.ply (all points static; extra vertex properties
 n_views, reprojection_px and sigma: the point's 3D position uncertainty, RMS, metres),
 RUN/template/observations.npz (where each template point was seen at frame 0, for tracking;
-each point's 3D covariance, m², from the measured pixel noise, and pose_covariance, the
-rigid error of a shared tracker body, core/noise.py) and
+each point's 3D covariance, m², from image noise, and pose_covariance, from the cameras'
+pose errors, including the rigid error of a shared tracker body, core/noise.py) and
 RUN/template/summary.json (counts, pair plan, pixel_noise_px).
 """
 
@@ -57,12 +57,14 @@ def run_build_template(
             config.tool,
             on_step=on_step,
             map_calls=mapper(executor or SerialExecutor()),
+            noise=noise_from_report(log.report, log.cameras, 0.0),
         )
         n = len(result.points)
         noise = noise_from_report(log.report, log.cameras, result.pixel_noise_px)
         obs = result.observations
         pose_cov = body_pose_covariance(result.points, obs.point, obs.camera,
                                         np.nan_to_num(poses[:, :3, 3]), noise)
+        pose_cov += result.pose_covariance
         sigma = covariance_sigma(result.covariance + pose_cov) if n else np.zeros(0)
         extra = {
             "n_views": result.n_views.astype(np.uint8),
