@@ -26,7 +26,7 @@ def classify_cmd(run_dir: Path, config: Any, quiet: bool) -> None:
     \b
     Example:
       surgrecon classify runs/sample
-      surgrecon classify runs/sample --set classify.deform_mm=0.2 --set classify.hysteresis_frames=2
+      surgrecon classify runs/sample --set classify.significance=0.001
     """
     from ..pipeline import open_executor
     from ..stages.classify import labels_path, run_classify

@@ -14,7 +14,7 @@ def config_cmd(config, quiet: bool) -> None:
 
     \b
     Example:
-      surgrecon config --set registration.alpha=2 > my.toml
+      surgrecon config --set registration.alpha=0.1 > my.toml
     """
     from ..config import to_toml
 

@@ -24,7 +24,7 @@ def register_cmd(run_dir: Path, config: Any, quiet: bool) -> None:
 
     \b
     Example:
-      surgrecon register runs/sample --set registration.alpha=2
+      surgrecon register runs/sample --set registration.alpha=0.1
       surgrecon register runs/sample --executor processes --workers 2
     """
     from ..io.ingest_store import load_ingested

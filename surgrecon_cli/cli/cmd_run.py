@@ -44,7 +44,7 @@ def run_cmd(logs: tuple[Path, ...], run_dir: Path, gt_path: Path | None, allow_t
     \b
     Example:
       surgrecon run sample_data/sample.mcap -o runs/sample
-      surgrecon run sample_data/sample.mcap -o runs/sample --set classify.deform_mm=0.2
+      surgrecon run sample_data/sample.mcap -o runs/sample --set classify.significance=0.001
       surgrecon run logs/*.mcap -o runs/ --executor processes --workers 2
       surgrecon run logs/*.mcap -o runs/ --scheduler tcp://10.0.0.5:8786
     """

@@ -26,7 +26,7 @@ def common_options(func: Callable[..., Any]) -> Callable[..., Any]:
     @click.option("--config", "config_path", type=click.Path(dir_okay=False, path_type=Path),
                   help="TOML config; keys not given keep their defaults.")
     @click.option("--set", "overrides", multiple=True, metavar="SECTION.KEY=VALUE",
-                  help="Override one config key (repeatable), e.g. --set registration.alpha=2.")
+                  help="Override one config key (repeatable), e.g. --set registration.alpha=0.1.")
     @click.option("--debug", is_flag=True, expose_value=False, is_eager=True, callback=_set_debug,
                   help="Show tracebacks and debug logging.")
     @click.option("--quiet", "-q", is_flag=True, help="No progress bars, warnings only.")
