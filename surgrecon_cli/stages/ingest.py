@@ -204,8 +204,10 @@ def _assemble(collector: StreamCollector, reader: LogReader, config: Config,
     joint_positions = interpolate_values(joint_stamps, joint_values, frame_stamps, gap_ns)
 
     image_paths = _place_images(staging, cams, orders, image_index)
-    report = _report(ids, cams, stamps, pose_streams, frames, image_index, usable, trimmed)
-    report["tracker_bodies"] = _tracker_bodies(ids, pose_streams, gap_ns)
+    jitter = [pose_jitter(s.stamps_ns, s.positions, s.quats) for s in pose_streams]
+    report = _report(ids, cams, stamps, pose_streams, jitter, frames, image_index, usable,
+                     trimmed)
+    report["tracker_bodies"] = _tracker_bodies(ids, pose_streams, jitter, gap_ns)
     report.update(tool_rate_hz=rate_hz(tool.stamps_ns),
                   tool_pose_missing=int((~tool_valid).sum()),
                   joint_rate_hz=rate_hz(joint_stamps), joints=list(collector.joint_names),
@@ -240,11 +242,11 @@ def _place_images(staging: Path, cams: list, orders: list[np.ndarray],
 
 
 def _tracker_bodies(ids: tuple[str, ...], streams: list[PoseStream],
-                    gap_ns: int) -> list[list[str]]:
-    """Cameras that share one tracked body (core/noise.shared_bodies), by camera id: j's
-    stream interpolated at i's stamps gives the relative pose stream, whose jitter is ~0
-    when both follow one marker."""
-    own = [pose_jitter(s.stamps_ns, s.positions, s.quats) for s in streams]
+                    own: list[tuple[float, float]], gap_ns: int) -> list[list[str]]:
+    """Cameras that share one tracked body (core/noise.shared_bodies), by camera id, from
+    each stream's own jitter `own` (σ_pos m, σ_rot rad): j's stream interpolated at i's
+    stamps gives the relative pose stream, whose jitter is ~0 when both follow one
+    marker."""
     relative = {}
     for i in range(len(streams)):
         for j in range(i + 1, len(streams)):
@@ -260,16 +262,15 @@ def _tracker_bodies(ids: tuple[str, ...], streams: list[PoseStream],
     return [[ids[c] for c in group] for group in shared_bodies(own, relative)]
 
 
-def _jitter(stream: PoseStream) -> dict[str, float | None]:
-    """The pose stream's measured per-axis noise (core/noise.py), mm and degrees."""
-    position, rotation = pose_jitter(stream.stamps_ns, stream.positions, stream.quats)
+def _jitter(position: float, rotation: float) -> dict[str, float | None]:
+    """A pose stream's measured per-axis noise (m, rad; core/noise.py) in mm and degrees."""
     return {"tracker_jitter_mm": float(position * 1e3) if np.isfinite(position) else None,
             "tracker_jitter_deg": float(np.degrees(rotation)) if np.isfinite(rotation) else None}
 
 
 def _report(ids: tuple[str, ...], cams: list, stamps: list[np.ndarray], pose_streams: list,
-            frames: FrameGrouping, image_index: np.ndarray, usable: np.ndarray,
-            trimmed: int) -> dict[str, Any]:
+            jitter: list[tuple[float, float]], frames: FrameGrouping, image_index: np.ndarray,
+            usable: np.ndarray, trimmed: int) -> dict[str, Any]:
     T = image_index.shape[0]
     per_camera = {}
     for c, cid in enumerate(ids):
@@ -288,7 +289,7 @@ def _report(ids: tuple[str, ...], cams: list, stamps: list[np.ndarray], pose_str
             "usable": int(usable[:, c].sum()),
             "image_rate_hz": rate_hz(stamps[c]),
             "tracker_rate_hz": rate_hz(pose_streams[c].stamps_ns),
-            **_jitter(pose_streams[c]),
+            **_jitter(*jitter[c]),
         }
         if per_camera[cid]["pose_gaps"]:
             logger.warning("camera %s: no tracked pose within the gap limit at %d of its images; "
