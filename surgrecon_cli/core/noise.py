@@ -34,6 +34,7 @@ on how elongated Σ is. Pure numpy; no I/O.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import cv2
@@ -228,38 +229,26 @@ def shared_bodies(own: list[tuple[float, float]],
     return [g for g in groups.values() if len(g) > 1]
 
 
-def combine_noise(pixel_px: float, tracking_px: float,
-                  streams: list[tuple[float, float]],
-                  shared: tuple[bool, ...] = ()) -> NoiseModel:
-    """One NoiseModel from the pixel/tracking figures and the per-stream jitter
-    (σ_position m, σ_rotation rad) of every camera's pose stream (median over streams;
-    NaN figures, e.g. of a too-short stream, are left out, and 0 is used if none remains);
-    shared: per camera index, whether it shares its tracker body."""
-    def median(values: list[float]) -> float:
-        finite = [v for v in values if np.isfinite(v)]
-        return float(np.median(finite)) if finite else 0.0
-
-    return NoiseModel(
-        pixel_px=float(pixel_px) if np.isfinite(pixel_px) else 0.0,
-        tracking_px=float(tracking_px) if np.isfinite(tracking_px) else 0.0,
-        tracker_position_m=median([s[0] for s in streams]),
-        tracker_rotation_rad=median([s[1] for s in streams]),
-        shared_body=tuple(bool(x) for x in shared),
-    )
-
-
 def noise_from_report(report: dict, cameras: tuple[str, ...], pixel_px: float) -> NoiseModel:
     """The run's noise model from ingest's report (per camera tracker_jitter_mm /
-    tracker_jitter_deg, tracker_bodies) and the template's pixel noise (px)."""
+    tracker_jitter_deg, tracker_bodies) and the template's pixel noise (px): the tracker
+    figures are the median over the cameras that have one (0 if none has); tracking_px is
+    measured per frame later (0 here)."""
     per_camera = report.get("cameras", {})
-    streams = []
-    for cid in cameras:
-        c = per_camera.get(cid, {})
-        pos, rot = c.get("tracker_jitter_mm"), c.get("tracker_jitter_deg")
-        streams.append((np.nan if pos is None else pos * 1e-3,
-                        np.nan if rot is None else float(np.radians(rot))))
+
+    def median(key: str, to_si: Callable[[float], float]) -> float:
+        values = [per_camera.get(cid, {}).get(key) for cid in cameras]
+        finite = [to_si(v) for v in values if v is not None and np.isfinite(v)]
+        return float(np.median(finite)) if finite else 0.0
+
     on_body = {cid for group in report.get("tracker_bodies", []) for cid in group}
-    return combine_noise(pixel_px, 0.0, streams, shared=tuple(c in on_body for c in cameras))
+    return NoiseModel(
+        pixel_px=float(pixel_px) if np.isfinite(pixel_px) else 0.0,
+        tracking_px=0.0,
+        tracker_position_m=median("tracker_jitter_mm", lambda mm: mm * 1e-3),
+        tracker_rotation_rad=median("tracker_jitter_deg", lambda deg: float(np.radians(deg))),
+        shared_body=tuple(cid in on_body for cid in cameras),
+    )
 
 
 def body_pose_covariance(points: np.ndarray, point_index: np.ndarray, cameras: np.ndarray,
