@@ -260,12 +260,13 @@ def reprojection_check(
         obs = Observations(rows, cams, px, normalized, np.zeros((len(rows), 3), np.uint8))
         tri = triangulate(obs, poses, models, len(idx))
         J, z = projection_jacobians(np.nan_to_num(tri.points[rows]), poses[cams], focal[cams])
-        variance = noise.tracked_view_variance_px2(z, focal[cams],
-                                                   localisation[idx[rows], cams])
-        independent = noise.tracked_view_variance_px2(
-            z, focal[cams], localisation[idx[rows], cams], pose=~noise.on_shared_body(cams))
+        # Image noise alone; with each view's pose error (gating); and with the pose error of
+        # views not on a shared tracker body (whose error is rigid for the body instead).
         image_only = noise.tracked_view_variance_px2(
             z, focal[cams], localisation[idx[rows], cams], pose=False)
+        pose_variance = noise.pose_variance_px2(z, focal[cams])
+        variance = image_only + pose_variance
+        independent = image_only + np.where(noise.on_shared_body(cams), 0.0, pose_variance)
         scaled = np.full(use.shape, -np.inf)
         scaled[rows, cams] = tri.error_px**2 / variance
         worst_scaled = np.max(scaled, axis=1)
