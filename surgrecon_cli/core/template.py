@@ -20,6 +20,7 @@ from .features import Features, detect_features, no_features
 from .matching import build_tracks, match_pair
 from .noise import (
     NoiseModel,
+    body_pose_covariance,
     covariance_sigma,
     image_noise_sigma,
     localisation_variance_px2,
@@ -51,8 +52,10 @@ def map_here(fn: Callable[..., Any], calls: Sequence[tuple[Any, ...]]) -> list[A
 class TemplateResult:
     """Template cloud: points (N, 3) m, rgb (N, 3) uint8, n_views (N,), mean reprojection
     error (N,) px; covariance (N, 3, 3) m² from image noise (pixel_noise_px, px per axis, and
-    the localisation bound), pose_covariance (N, 3, 3) m² from the cameras' pose errors and
-    sigma (N,) m = √trace of their sum (core/noise.py); the observations of each point at
+    the localisation bound), pose_covariance (N, 3, 3) m² from the cameras' pose errors
+    (including the rigid error of a shared tracker body; core/noise.py), and sigma (N,) m
+    the triangulation's uncertainty (√trace, per-view errors only: what the max_sigma_mm
+    cut uses); the observations of each point at
     frame 0 (`observations.point` indexes points); the pair plan and prediction; counts of
     what each step kept."""
 
@@ -94,8 +97,9 @@ def build_template(
 ) -> TemplateResult:
     """Build the template from one frame: images[c] (H, W, 3) uint8 RGB or None (unusable),
     poses (C, 4, 4) camera-to-world, tool_pose (4, 4) tool tip in the world (NaN = unknown);
-    `noise` (the tracker's measured jitter) makes each view's variance at least what the
-    pose error alone projects (`measured_covariances`).
+    `noise` (the tracker's measured jitter and shared bodies) makes each view's variance at
+    least what the pose error alone projects (`measured_covariances`) and adds a shared
+    body's rigid error.
 
     The feature detection of each camera and the matching of each candidate pair are
     independent calls, made through `map_calls` (in parallel when it is an executor's).
@@ -161,6 +165,11 @@ def build_template(
     off_surface[candidates] = surface_outliers(tri.points[candidates])
     keep = good & ~on_tool & ~off_surface
     obs_kept = obs.renumbered(keep)
+    # Pose errors: per view (in `cov`), and a shared tracker body's, rigid for the body.
+    pose_cov = cov[keep] - image_cov[keep]
+    if noise is not None:
+        pose_cov += body_pose_covariance(tri.points[keep], obs_kept.point, obs_kept.camera,
+                                         np.nan_to_num(poses[:, :3, 3]), noise)
     stats = {
         "features": [len(f) for f in features],
         "candidate_pairs": len(pairs),
@@ -182,7 +191,7 @@ def build_template(
         n_views=tri.n_views[keep],
         reprojection_px=tri.mean_error_px[keep],
         covariance=image_cov[keep],
-        pose_covariance=cov[keep] - image_cov[keep],
+        pose_covariance=pose_cov,
         sigma=sigma[keep],
         pixel_noise_px=pixel_px,
         observations=obs_kept,

@@ -17,7 +17,7 @@ import numpy as np
 
 from ..config import Config
 from ..core.labels import STATIC
-from ..core.noise import body_pose_covariance, covariance_sigma, noise_from_report
+from ..core.noise import covariance_sigma, noise_from_report
 from ..core.template import TemplateResult, build_template
 from ..core.tool import tool_pose_in_world
 from ..errors import InputError
@@ -57,15 +57,11 @@ def run_build_template(
             config.tool,
             on_step=on_step,
             map_calls=mapper(executor or SerialExecutor()),
-            noise=noise_from_report(log.report, log.cameras, 0.0),
+            noise=noise_from_report(log.report, log.cameras, pixel_px=0.0),
         )
         n = len(result.points)
-        noise = noise_from_report(log.report, log.cameras, result.pixel_noise_px)
         obs = result.observations
-        pose_cov = body_pose_covariance(result.points, obs.point, obs.camera,
-                                        np.nan_to_num(poses[:, :3, 3]), noise)
-        pose_cov += result.pose_covariance
-        sigma = covariance_sigma(result.covariance + pose_cov) if n else np.zeros(0)
+        sigma = covariance_sigma(result.covariance + result.pose_covariance) if n else np.zeros(0)
         extra = {
             "n_views": result.n_views.astype(np.uint8),
             "reprojection_px": result.reprojection_px.astype(np.float32),
@@ -87,7 +83,7 @@ def run_build_template(
             camera=obs.camera.astype(np.int16),
             pixels=obs.pixels.astype(np.float32),
             covariance=result.covariance.astype(np.float64),
-            pose_covariance=pose_cov.astype(np.float64),
+            pose_covariance=result.pose_covariance.astype(np.float64),
             pixel_noise_px=np.float64(result.pixel_noise_px),
         )
         plan = {
