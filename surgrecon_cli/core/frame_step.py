@@ -27,7 +27,7 @@ from scipy.spatial import cKDTree
 from ..config import Config
 from ..errors import GeometryError
 from .cameras import CameraModel
-from .labels import INTER, INTRA, UNOBSERVED
+from .labels import INTER, INTRA, OUTLIER, UNOBSERVED
 from .noise import NoiseModel, covariance_sigma
 from .registration import RegistrationResult, register
 from .target import TargetCloud, build_target, new_target_points
@@ -66,6 +66,23 @@ class FrameResult:
     converged: bool
     seconds_target: float
     seconds_register: float
+
+
+def unregistered(n_points: int, n_cams: int) -> FrameResult:
+    """The result of a frame that could not be registered: no position (NaN), no target,
+    every point an outlier with unbounded uncertainty (so classified unknown)."""
+    nan3 = np.full((n_points, 3), np.nan)
+    target = TargetCloud(
+        positions=nan3, status=np.full(n_points, OUTLIER, np.uint8),
+        views=np.zeros(n_points, np.int64), pixels=np.full((n_points, n_cams, 2), np.nan),
+        covariance=np.full((n_points, 3, 3), np.nan), pose_covariance=np.zeros((n_points, 3, 3)),
+        sigma=np.full(n_points, np.nan),
+        noise=NoiseModel(np.nan, np.nan, np.nan, np.nan))
+    return FrameResult(
+        transforms=np.full((n_points, 3, 4), np.nan), registered=nan3,
+        sigma=np.full(n_points, np.inf), residual=np.full(n_points, np.nan),
+        support_mm=np.full(n_points, np.inf), target=target, new_points=0, contact_points=0,
+        converged=False, seconds_target=0.0, seconds_register=0.0)
 
 
 def compose(outer: np.ndarray, inner: np.ndarray) -> np.ndarray:

@@ -33,8 +33,8 @@ from typing import Any
 import numpy as np
 
 from ..config import Config, to_dict
-from ..core.frame_step import BaseState, FrameResult, register_frame_step
-from ..core.labels import OUTLIER, UNKNOWN
+from ..core.frame_step import BaseState, FrameResult, register_frame_step, unregistered
+from ..core.labels import UNKNOWN
 from ..core.noise import noise_from_report
 from ..core.tool import tool_pose_in_world
 from ..errors import GeometryError, RunFolderError
@@ -121,7 +121,9 @@ def register_frame(run_dir: Path, frame: int, config: Config) -> dict:
             add_new_points=bool(every and frame % every == 0),
             template_pose_cov=template_pose_cov)
     except GeometryError as exc:
-        _write_failed(run_dir, frame, base, rgb, len(models), str(exc))
+        # Its cloud shows the base's positions, every point unknown.
+        _write_frame(run_dir, frame, unregistered(n, len(models)), rgb, cloud_xyz=base.source,
+                     error=str(exc))
         return {"frame": frame, "failed": str(exc), "base": base.frame}
     _write_frame(run_dir, frame, result, rgb)
     return {"frame": frame, "base": base.frame, "seconds_target": result.seconds_target,
@@ -129,7 +131,10 @@ def register_frame(run_dir: Path, frame: int, config: Config) -> dict:
             "tracking_px": result.target.noise.tracking_px, **result.target.counts()}
 
 
-def _write_frame(run_dir: Path, frame: int, result: FrameResult, rgb: np.ndarray) -> None:
+def _write_frame(run_dir: Path, frame: int, result: FrameResult, rgb: np.ndarray,
+                 cloud_xyz: np.ndarray | None = None, error: str = "") -> None:
+    """The frame's registration arrays and its cloud (at `cloud_xyz`, default the registered
+    positions), atomically; `error` marks a frame that could not be registered."""
     n = len(rgb)
     target = result.target
     residual = result.residual.astype(np.float32)
@@ -153,47 +158,18 @@ def _write_frame(run_dir: Path, frame: int, result: FrameResult, rgb: np.ndarray
         seconds_register=np.float64(result.seconds_register),
         new_points=np.int64(result.new_points),
         contact_points=np.int64(result.contact_points),
-        failed=np.bool_(False),
-        error=np.array(""),
+        failed=np.bool_(bool(error)),
+        error=np.array(error),
     )
     write_cloud_ply(
         cloud_path(run_dir, frame),
-        result.registered,
+        result.registered if cloud_xyz is None else cloud_xyz,
         rgb=rgb,
         point_id=np.arange(n, dtype=np.int32),
         label=np.full(n, UNKNOWN, np.uint8),
         residual=residual,
         extra={"status": target.status.astype(np.uint8), "views": target.views.astype(np.uint8),
                "sigma": sigma},
-    )
-
-
-def _write_failed(run_dir: Path, frame: int, base: BaseState, rgb: np.ndarray, n_cams: int,
-                  error: str) -> None:
-    """A frame that could not be registered: NaN positions (every point unknown), the
-    error; its cloud shows the base's positions, all labelled unknown."""
-    n = len(rgb)
-    nan = np.full((n, 3), np.nan)
-    write_npz(
-        registration_path(run_dir, frame),
-        transforms=np.full((n, 3, 4), np.nan, np.float32),
-        registered=nan, target=nan, status=np.full(n, OUTLIER, np.uint8),
-        residual=np.full(n, np.nan, np.float32), sigma=np.full(n, np.inf, np.float32),
-        target_sigma=np.full(n, np.nan, np.float32),
-        target_covariance=np.full((n, 3, 3), np.nan, np.float32),
-        target_pose_covariance=np.zeros((n, 3, 3), np.float32),
-        support_mm=np.full(n, np.inf, np.float32), pixels=np.full((n, n_cams, 2), np.nan),
-        tracking_px=np.float64(np.nan), converged=np.bool_(False),
-        seconds_target=np.float64(0.0), seconds_register=np.float64(0.0),
-        new_points=np.int64(0), contact_points=np.int64(0),
-        failed=np.bool_(True), error=np.array(error),
-    )
-    write_cloud_ply(
-        cloud_path(run_dir, frame), base.source, rgb=rgb,
-        point_id=np.arange(n, dtype=np.int32), label=np.full(n, UNKNOWN, np.uint8),
-        residual=np.full(n, np.nan, np.float32),
-        extra={"status": np.full(n, OUTLIER, np.uint8), "views": np.zeros(n, np.uint8),
-               "sigma": np.full(n, np.inf, np.float32)},
     )
 
 
