@@ -75,8 +75,9 @@ def load_registration_frame(run_dir: Path, frame: int, n_points: int) -> dict[st
 
 @dataclass(frozen=True)
 class TemplateNoise:
-    """The template points' uncertainty: covariance (N, 3, 3) m² from independent errors,
-    pose_covariance (N, 3, 3) m² a shared tracker body's rigid error, sigma (N,) m."""
+    """The template points' uncertainty: covariance (N, 3, 3) m² from image noise,
+    pose_covariance (N, 3, 3) m² from the cameras' pose errors (common to nearby points),
+    sigma (N,) m = √trace of their sum."""
 
     covariance: np.ndarray
     pose_covariance: np.ndarray
@@ -134,8 +135,8 @@ def frame_evidence(reg: dict[str, np.ndarray], registered: np.ndarray,
     targets where the reprojection check gave one, else the registered positions; the
     displacement's covariance is the target's plus the template point's where there is a
     target (a narrow baseline knows depth far worse than the other directions), else
-    isotropic from σ. The rigid-motion test leaves out a shared tracker body's pose error
-    (a rigid error of the whole neighbourhood, which the rigid fit absorbs)."""
+    isotropic from σ. The rigid-motion test leaves out the pose errors (common to nearby
+    points, so the neighbourhood's rigid fit absorbs them)."""
     sigma = reg["sigma"].astype(float)
     target = reg["target"].astype(float)
     target_sigma = reg["target_sigma"].astype(float)
