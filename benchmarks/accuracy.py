@@ -35,6 +35,8 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
+from surgrecon_cli.io.run_layout import RunLayout
+
 DEFAULT_VARIANTS = ("default", "stereo", "stereo-plus", "noisy", "rigid", "sweep")
 DEFAULT_SEEDS = (101, 102, 103, 104, 105)
 # Extra `surgrecon run` arguments a variant needs (its topics, ...): none so far, every
@@ -229,7 +231,7 @@ def run_one(variant: str, seed: int, args: argparse.Namespace, exe: str) -> dict
         if args.rerun:
             shutil.rmtree(run_dir, ignore_errors=True)
             run_time.unlink(missing_ok=True)
-        fresh_run = not (run_dir / "run.json").exists()
+        fresh_run = not RunLayout(run_dir).run_json.exists()
         timings["run"] = step("run", [exe, "run", str(log), "-o", str(run_dir), "-q",
                                       *run_args], out_log)
         if fresh_run:
@@ -239,7 +241,7 @@ def run_one(variant: str, seed: int, args: argparse.Namespace, exe: str) -> dict
             row["reused"] = True
         timings["evaluate"] = step("evaluate", [
             exe, "evaluate", str(run_dir), "--ground-truth", str(gt), "-q", *run_args], out_log)
-        evaluation_path = run_dir / "metrics" / "evaluation.json"
+        evaluation_path = RunLayout(run_dir).evaluation_json
         try:
             evaluation = json.loads(evaluation_path.read_text())
         except (OSError, ValueError) as exc:

@@ -13,12 +13,19 @@ from surgrecon_cli.config import Config
 from surgrecon_cli.core.labels import DEFORMING, STATIC
 from surgrecon_cli.core.scoring import label_scores, map_to_surface
 from surgrecon_cli.errors import InputError
+from surgrecon_cli.io.artefacts import (
+    FrameLabels,
+    FrameRegistration,
+    write_labels,
+    write_registration,
+)
 from surgrecon_cli.io.atomic import write_npz
 from surgrecon_cli.io.ground_truth import gt_path_beside, load_ground_truth
 from surgrecon_cli.io.ingest_store import load_ingested
 from surgrecon_cli.io.ply import write_cloud_ply
 from surgrecon_cli.io.run_folder import RunFolder
-from surgrecon_cli.stages.evaluate import evaluation_path, run_evaluate
+from surgrecon_cli.io.run_layout import RunLayout
+from surgrecon_cli.stages.evaluate import run_evaluate
 
 OFFSET_MM = 0.5
 
@@ -36,7 +43,8 @@ def known_run(copy_run: Path, pipeline_log: Path):
     points exactly on the true surface plus one on the tool shaft, every frame registered
     0.5 mm off along x, labels true except 10 static points called deforming at frame 2."""
     gt = load_ground_truth(gt_path_beside(pipeline_log))
-    log = load_ingested(copy_run / "ingest")
+    layout = RunLayout(copy_run)
+    log = load_ingested(layout.ingest_dir)
     rng = np.random.default_rng(0)
     v0, faces = gt.vertices[0], gt.faces
     near = np.flatnonzero(np.linalg.norm(v0[faces].mean(1)[:, :2], axis=1) < 0.03)
@@ -45,32 +53,33 @@ def known_run(copy_run: Path, pipeline_log: Path):
     tool = log.tool_poses[0]
     points = np.vstack([points, tool[:3, 3] + 0.02 * tool[:3, 2]])  # 20 mm up the shaft
     n = len(points)
-    write_cloud_ply(copy_run / "template.ply", points, point_id=np.arange(n, dtype=np.int32))
+    write_cloud_ply(layout.template_ply, points, point_id=np.arange(n, dtype=np.int32))
     mapping = map_to_surface(points, v0, faces)
     truth = gt.labels[:, mapping.nearest_vertex(faces)]
     for k in range(1, gt.n_frames):
         registered = mapping.follow(gt.vertices[k], faces) + np.array([OFFSET_MM * 1e-3, 0, 0])
         T = np.tile(np.eye(3, 4), (n, 1, 1))
         T[:, :, 3] = registered - points
-        write_npz(copy_run / "registration" / f"{k:06d}.npz", transforms=T.astype(np.float32),
-                  registered=registered, target=registered, status=np.zeros(n, np.uint8),
-                  residual=np.zeros(n, np.float32), sigma=np.full(n, 1e-4, np.float32),
-                  target_sigma=np.full(n, 1e-4, np.float32),
-                  target_covariance=np.zeros((n, 3, 3), np.float32),
-                  target_pose_covariance=np.zeros((n, 3, 3), np.float32),
-                  seconds_target=np.float64(0.1),
-                  seconds_register=np.float64(0.2))
+        write_registration(layout, k, FrameRegistration(
+            transforms=T, registered=registered, target=registered,
+            status=np.zeros(n, np.uint8), views=np.full(n, 2), residual=np.zeros(n),
+            sigma=np.full(n, 1e-4), target_sigma=np.full(n, 1e-4),
+            target_covariance=np.zeros((n, 3, 3)), target_pose_covariance=np.zeros((n, 3, 3)),
+            support_mm=np.zeros(n), pixels=np.full((n, 1, 2), np.nan), tracking_px=0.05,
+            base=0, converged=True, failed=False, error="", seconds_target=0.1,
+            seconds_register=0.2, new_points=0, contact_points=0))
     labels = truth.copy()
     static2 = np.flatnonzero(truth[2] == STATIC)[:10]
     labels[2, static2] = DEFORMING
-    write_npz(copy_run / "classify" / "labels.npz", labels=labels)
+    write_labels(layout, FrameLabels(labels, labels, np.zeros(labels.shape),
+                                     np.zeros(labels.shape), np.zeros(labels.shape, np.uint8)))
     return copy_run, gt, truth, labels
 
 
 def test_scores_of_known_errors(known_run):
     run_dir, gt, truth, labels = known_run
     result = run_evaluate(run_dir, Config(), gt.path)
-    assert _strict_json(evaluation_path(run_dir)) == json.loads(json.dumps(result))
+    assert _strict_json(RunLayout(run_dir).evaluation_json) == json.loads(json.dumps(result))
     n, frames = labels.shape[1], labels.shape[0]
     tpl = result["template"]
     assert tpl["points"] == n and tpl["error"]["count"] == n
@@ -120,4 +129,4 @@ def test_cli_prints_a_readable_summary(copy_run, capsys):
     out = capsys.readouterr().out
     assert "template:" in out and "registration error" in out and "macro-F1" in out
     assert "confusion (rows: truth, columns: predicted)" in out
-    assert out.strip().endswith(str(evaluation_path(copy_run)))
+    assert out.strip().endswith(str(RunLayout(copy_run).evaluation_json))

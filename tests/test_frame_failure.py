@@ -11,8 +11,9 @@ import numpy as np
 from surgrecon_cli.config import Config
 from surgrecon_cli.core.labels import UNKNOWN
 from surgrecon_cli.io.run_folder import RunFolder
-from surgrecon_cli.stages.classify import labels_path, run_classify
-from surgrecon_cli.stages.register import registration_path, run_register
+from surgrecon_cli.io.run_layout import RunLayout
+from surgrecon_cli.stages.classify import run_classify
+from surgrecon_cli.stages.register import run_register
 
 
 def _drop_frame_images(run_dir, frame: int) -> None:
@@ -39,13 +40,13 @@ def test_failed_frame_is_isolated_and_named(copy_run, caplog):
     assert entry["status"] == "done"
     assert set(entry["frames_failed"]) == {"2"}
     assert "tracked" in entry["frames_failed"]["2"]
-    with np.load(registration_path(copy_run, 2)) as z:
+    with np.load(RunLayout(copy_run).registration(2)) as z:
         assert bool(z["failed"]) and np.isnan(z["registered"]).all()
     # Frame 3's base (N_T = 2) is the failed frame 2: it is registered from frame 0 instead.
-    with np.load(registration_path(copy_run, 3)) as z:
+    with np.load(RunLayout(copy_run).registration(3)) as z:
         assert not bool(z["failed"]) and np.isfinite(z["registered"]).all()
     run_classify(copy_run, config)
-    with np.load(labels_path(copy_run)) as z:
+    with np.load(RunLayout(copy_run).labels) as z:
         labels = z["labels"]
     assert (labels[2] == UNKNOWN).all()
     assert (labels[3] != UNKNOWN).mean() > 0.9

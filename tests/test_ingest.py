@@ -85,7 +85,7 @@ def test_ingest_jpeg_raw_and_late_intrinsics(tmp_path: Path):
     assert (tmp_path / "a/ingest/images/00/000000.jpg").is_file()
     spec = SynthSpec(image_format="rgb8", cameras=(2, 4), joint_topic=None)
     assert run_ingest(synth_log.write(tmp_path / "b.mcap", spec, "foxglove-json"),
-                      tmp_path / "b") == 0
+                      tmp_path / "b", "--set", 'topics.joint_states=""') == 0
     check_log(tmp_path / "b", spec)
     log = load_ingested(tmp_path / "b/ingest")
     assert log.cameras == ("2", "4") and log.joint_positions.shape == (spec.frames, 0)

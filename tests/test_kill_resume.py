@@ -20,6 +20,7 @@ import io
 import json
 import os
 import random
+import re
 import signal
 import subprocess
 import sys
@@ -316,3 +317,33 @@ def test_killed_at_the_first_write(pipeline_log: Path, tmp_path: Path, leftover:
     (run / leftover).write_bytes(b"")
     RunFolder(run).mark_stage("ingest", "running")  # killed again, later
     assert main(["ingest", str(pipeline_log), "-o", str(run), "-q"]) == 0
+
+
+@pytest.mark.parametrize("executor", ["serial", "processes"])
+def test_ctrl_c_keeps_registered_frames(pipeline_log: Path, tmp_path: Path, executor: str):
+    """Ctrl-C (SIGINT to the process group, as a terminal sends it) during register keeps
+    the frames recorded so far, as SIGKILL does; the rerun resumes from them."""
+    run = tmp_path / "run"
+    proc = subprocess.Popen([*SURGRECON, "run", str(pipeline_log), "-o", str(run), "-q",
+                             "--executor", executor, "--workers", "2"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            start_new_session=True)
+    seen: list[int] = []
+    deadline = time.perf_counter() + 120
+    while proc.poll() is None and time.perf_counter() < deadline:
+        seen = (stage_entry(run, "register") or {}).get("frames_done", [])
+        if len(seen) >= 2:
+            os.killpg(proc.pid, signal.SIGINT)
+            break
+        time.sleep(0.01)
+    _, err = proc.communicate(timeout=60)
+    if proc.returncode == 0:
+        pytest.fail("the run finished before it could be interrupted")
+    assert proc.returncode == 130, err.decode()
+    entry = stage_entry(run, "register")
+    assert entry["status"] == "failed" and "Ctrl-C" in entry["error"]
+    assert set(seen) <= set(entry["frames_done"])
+    out = subprocess.run([*SURGRECON, "run", str(pipeline_log), "-o", str(run)],
+                         capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert re.search(r"register\s+resumed", out.stdout + out.stderr)

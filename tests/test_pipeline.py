@@ -5,10 +5,12 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from surgrecon_cli.cli.main import main
 from surgrecon_cli.config import load_config
 from surgrecon_cli.core.labels import STATIC, UNKNOWN
+from surgrecon_cli.errors import RunFolderError
 from surgrecon_cli.io.ply import read_ply
 from surgrecon_cli.io.run_folder import RunFolder, file_sha256
 from surgrecon_cli.pipeline import STAGES, run_pipeline
@@ -103,12 +105,16 @@ def test_killed_register_resumes_at_the_next_frame(copy_run, pipeline_log):
                 np.testing.assert_array_equal(z[name], value)
 
 
-def test_another_input_starts_over(copy_run, pipeline_log):
+def test_another_input_is_refused_unless_forced(copy_run, pipeline_log):
     run = RunFolder(copy_run)
     data = run.read()
     data["input"]["sha256"] = "0" * 64  # as if the run had been made from another log
     run.write(data)
-    result = run_pipeline(pipeline_log, copy_run, load_config())
+    before = _mtimes(copy_run, "registration/*.npz")
+    with pytest.raises(RunFolderError, match="--force"):
+        run_pipeline(pipeline_log, copy_run, load_config())
+    assert _mtimes(copy_run, "registration/*.npz") == before  # nothing lost
+    result = run_pipeline(pipeline_log, copy_run, load_config(), force=True)
     assert result.actions == {stage: "ran" for stage in STAGES}
     assert run.input_hash == file_sha256(pipeline_log)
     assert all(run.is_done(stage) for stage in STAGES)

@@ -9,10 +9,10 @@ from surgrecon_cli.config import Config
 from surgrecon_cli.core.cameras import world_to_camera
 from surgrecon_cli.core.labels import DEFORMING, UNKNOWN
 from surgrecon_cli.io.ingest_store import load_ingested
+from surgrecon_cli.io.run_layout import RunLayout
 from surgrecon_cli.pipeline import run_pipeline
 from surgrecon_cli.sim.simulate import simulate
 from surgrecon_cli.sim.variants import variant_config
-from surgrecon_cli.stages.classify import labels_path
 from surgrecon_cli.stages.ingest import ingest
 from surgrecon_cli.stages.template import run_build_template
 
@@ -22,7 +22,7 @@ def test_rigid_scene_yields_no_deforming(tmp_path):
     simulate(log, variant_config("rigid", frames=5, width=320, height=240, seed=21))
     run_dir = tmp_path / "run"
     run_pipeline(log, run_dir, Config())
-    with np.load(labels_path(run_dir)) as z:
+    with np.load(RunLayout(run_dir).labels) as z:
         labels = z["labels"][1:]
     labelled = labels != UNKNOWN
     assert labelled.mean() > 0.8

@@ -51,7 +51,7 @@ def test_check_config_names_the_changed_key(tmp_path: Path):
     changed = dataclasses.replace(Config(), ingest=IngestConfig(pose_gap_ms=50.0))
     with pytest.raises(RunFolderError, match=r"ingest\.pose_gap_ms = 100\.0, now 50\.0"):
         run.check_config(changed)
-    run.check_config(changed, sections=("topics", "registration"))
+    run.check_config(changed, keys=("topics", "registration"))
 
 
 def test_corrupt_run_json(tmp_path: Path):

@@ -27,6 +27,7 @@ def build_template_cmd(run_dir: Path, config: Any, quiet: bool) -> None:
       surgrecon build-template runs/sample --executor processes --workers 2
     """
     from ..core.template import STEPS
+    from ..io.run_layout import RunLayout
     from ..pipeline import open_executor
     from ..stages.template import run_build_template
 
@@ -46,7 +47,7 @@ def build_template_cmd(run_dir: Path, config: Any, quiet: bool) -> None:
     click.echo(
         f"template: {stats['points']} points ({stats['rejected_geometry']} rejected by "
         f"reprojection/angle, {stats['removed_off_surface']} off-surface, "
-        f"{stats['removed_tool']} on the tool) -> {run_dir / 'template.ply'}"
+        f"{stats['removed_tool']} on the tool) -> {RunLayout(run_dir).template_ply}"
     )
 
 

@@ -28,8 +28,9 @@ def classify_cmd(run_dir: Path, config: Any, quiet: bool) -> None:
       surgrecon classify runs/sample
       surgrecon classify runs/sample --set classify.significance=0.001
     """
+    from ..io.run_layout import RunLayout
     from ..pipeline import open_executor
-    from ..stages.classify import labels_path, run_classify
+    from ..stages.classify import run_classify
 
     with open_executor(config) as executor, \
             progress(quiet)(desc="classify", unit="step") as bar:
@@ -42,4 +43,5 @@ def classify_cmd(run_dir: Path, config: Any, quiet: bool) -> None:
     total = max(sum(counts.values()), 1)
     shares = ", ".join(f"{name} {n / total:.1%}" for name, n in counts.items())
     click.echo(f"{info['points']} points x {info['frames']} frames; frames 1..: {shares}")
-    click.echo(f"labels -> {labels_path(run_dir)}; labelled clouds -> {run_dir / 'clouds'}")
+    layout = RunLayout(run_dir)
+    click.echo(f"labels -> {layout.labels}; labelled clouds -> {layout.clouds_dir}")

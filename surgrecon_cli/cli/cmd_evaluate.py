@@ -29,7 +29,8 @@ def evaluate_cmd(run_dir: Path, gt_path: Path | None, config: Any, quiet: bool) 
     Example:
       surgrecon evaluate runs/sample --ground-truth sample_data/sample.gt.npz
     """
-    from ..stages.evaluate import evaluation_path, run_evaluate
+    from ..io.run_layout import RunLayout
+    from ..stages.evaluate import run_evaluate
 
     gt_path = gt_path or _default_gt(run_dir)
     with progress(quiet)(desc="evaluate", unit="frame") as bar:
@@ -39,7 +40,7 @@ def evaluate_cmd(run_dir: Path, gt_path: Path | None, config: Any, quiet: bool) 
 
         result = run_evaluate(run_dir, config, gt_path, on_step=on_step)
     click.echo(format_evaluation(result))
-    click.echo(f"-> {evaluation_path(run_dir)}")
+    click.echo(f"-> {RunLayout(run_dir).evaluation_json}")
 
 
 def _default_gt(run_dir: Path) -> Path:

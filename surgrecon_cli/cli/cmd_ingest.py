@@ -42,6 +42,7 @@ def ingest_cmd(
       surgrecon ingest sample_data/sample.mcap -o runs/sample
       surgrecon ingest my_raven.mcap -o runs/raven --config raven.toml --allow-truncated
     """
+    from ..io.run_layout import RunLayout
     from ..stages.ingest import ingest
 
     with progress(quiet)(total=log.stat().st_size, unit="B", unit_scale=True, desc="ingest") as bar:
@@ -51,7 +52,8 @@ def ingest_cmd(
     if not quiet:
         click.echo(format_report(result.report))
         click.echo(
-            f"{result.n_frames} frames from {len(result.cameras)} cameras -> {run_dir / 'ingest'}"
+            f"{result.n_frames} frames from {len(result.cameras)} cameras -> "
+            f"{RunLayout(run_dir).ingest_dir}"
         )
 
 

@@ -28,15 +28,17 @@ def register_cmd(run_dir: Path, config: Any, quiet: bool) -> None:
       surgrecon register runs/sample --executor processes --workers 2
     """
     from ..io.ingest_store import load_ingested
+    from ..io.run_layout import RunLayout
     from ..pipeline import open_executor
     from ..stages.register import run_register
 
-    n_frames = load_ingested(run_dir / "ingest").n_frames
+    layout = RunLayout(run_dir)
+    n_frames = load_ingested(layout.ingest_dir).n_frames
     with open_executor(config) as executor, \
             progress(quiet)(total=max(n_frames - 1, 0), desc="register", unit="frame") as bar:
         processed = run_register(run_dir, config, on_frame=lambda _f, _n: bar.update(1),
                                  executor=executor)
     click.echo(
         f"registered {len(processed)} frame(s) ({n_frames - 1 - len(processed)} already "
-        f"done) -> {run_dir / 'clouds'}"
+        f"done) -> {layout.registration_dir} (labelled clouds: `surgrecon classify`)"
     )

@@ -24,17 +24,21 @@ from .common import common_options, executor_options, progress
                    "if there is one). One log only.")
 @click.option("--allow-truncated", is_flag=True,
               help="Use the data before a truncation or corrupt chunk instead of failing.")
+@click.option("--force", is_flag=True,
+              help="Replace a run folder that holds the run of another log (refused "
+                   "without it).")
 @common_options
 @executor_options
 def run_cmd(logs: tuple[Path, ...], run_dir: Path, gt_path: Path | None, allow_truncated: bool,
-            config: Any, quiet: bool) -> None:
+            force: bool, config: Any, quiet: bool) -> None:
     """Run every stage on LOG: ingest, build-template, register, classify, report
     (and evaluate when ground truth is available).
 
-    Resumable: rerunning on the same RUN skips finished stages (and registered frames). A
-    changed input log restarts everything; a changed config section reruns the first
-    stage that depends on it and all later ones (e.g. registration.* reruns register,
-    classify and report, not ingest or the template). Prints the report's path at the end.
+    Resumable: rerunning on the same RUN skips finished stages (and registered frames); a
+    RUN made from another log is refused (--force replaces it). A changed config section
+    reruns the first stage that depends on it and all later ones (e.g. registration.*
+    reruns register, classify and report, not ingest or the template). Prints the report's
+    path at the end.
 
     The stages' tasks run on --executor (serial, processes, or dask on a LocalCluster or the
     cluster at --scheduler); the outputs are the same whichever runs them. Several logs
@@ -55,13 +59,14 @@ def run_cmd(logs: tuple[Path, ...], run_dir: Path, gt_path: Path | None, allow_t
                          "NAME.gt.npz beside it is used")
     with open_executor(config) as executor:
         if len(logs) == 1:
-            _run_one(logs[0], run_dir, gt_path, allow_truncated, config, quiet, executor)
+            _run_one(logs[0], run_dir, gt_path, allow_truncated, force, config, quiet,
+                     executor)
         else:
-            _run_many(list(logs), run_dir, allow_truncated, config, quiet, executor)
+            _run_many(list(logs), run_dir, allow_truncated, force, config, quiet, executor)
 
 
 def _run_one(log: Path, run_dir: Path, gt_path: Path | None, allow_truncated: bool,
-             config: Any, quiet: bool, executor: Any) -> None:
+             force: bool, config: Any, quiet: bool, executor: Any) -> None:
     from ..pipeline import run_pipeline
     from .cmd_evaluate import format_evaluation
 
@@ -73,7 +78,7 @@ def _run_one(log: Path, run_dir: Path, gt_path: Path | None, allow_truncated: bo
 
         result = run_pipeline(log, run_dir, config, ground_truth=gt_path,
                               allow_truncated=allow_truncated, on_progress=on_progress,
-                              executor=executor)
+                              executor=executor, force=force)
     for stage, action in result.actions.items():
         seconds = result.seconds.get(stage)
         timing = f" in {seconds:.1f} s" if seconds is not None else ""
@@ -83,8 +88,8 @@ def _run_one(log: Path, run_dir: Path, gt_path: Path | None, allow_truncated: bo
     click.echo(f"report: {result.report}")
 
 
-def _run_many(logs: list[Path], runs_root: Path, allow_truncated: bool, config: Any,
-              quiet: bool, executor: Any) -> None:
+def _run_many(logs: list[Path], runs_root: Path, allow_truncated: bool, force: bool,
+              config: Any, quiet: bool, executor: Any) -> None:
     import threading
 
     from ..pipeline import run_many
@@ -99,7 +104,7 @@ def _run_many(logs: list[Path], runs_root: Path, allow_truncated: bool, config: 
                 bar.update(max(round(sum(fractions.values()) * 100, 1) - bar.n, 0))
 
         results = run_many(logs, runs_root, config, allow_truncated=allow_truncated,
-                           executor=executor, on_progress=on_progress)
+                           executor=executor, on_progress=on_progress, force=force)
     failed = 0
     for log, result in zip(logs, results, strict=True):
         if isinstance(result, Exception):

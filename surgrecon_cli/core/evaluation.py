@@ -13,7 +13,7 @@ import numpy as np
 from ..config import ToolConfig
 from .geometry import point_to_segment_distance
 from .scoring import SurfaceMapping, distance_stats_mm
-from .tool import shaft_segment, tool_pose_in_world
+from .tool import shaft_segment
 
 CLINICAL_MM = 1.0  # the spec's clinical accuracy requirement
 
@@ -21,7 +21,7 @@ CLINICAL_MM = 1.0  # the spec's clinical accuracy requirement
 def on_tool(points: np.ndarray, tool_pose: np.ndarray, cfg: ToolConfig) -> np.ndarray | None:
     """(N,) bool: points (N, 3) m closer to the shaft axis (tip + shaft_length along the tool
     frame's +z) than the shaft radius; None when the tool pose (4, 4) is unknown (NaN)."""
-    pose = tool_pose_in_world(np.asarray(tool_pose, float), cfg)
+    pose = np.asarray(tool_pose, float)
     if not np.isfinite(pose).all():
         return None
     start, end = shaft_segment(pose, cfg)

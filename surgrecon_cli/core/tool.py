@@ -14,7 +14,7 @@ import numpy as np
 
 from ..config import ToolConfig
 from .cameras import CameraModel, pixel_rays
-from .geometry import make_pose, point_to_segment_distance
+from .geometry import point_to_segment_distance
 
 
 def shaft_segment(tool_pose: np.ndarray, cfg: ToolConfig) -> tuple[np.ndarray, np.ndarray]:
@@ -43,14 +43,6 @@ def push_out_of_tool(points: np.ndarray, tool_pose: np.ndarray, cfg: ToolConfig
     inside &= along > surface
     pushed[inside] -= ((along - surface)[inside] + 1e-6)[:, None] * axis  # 1 µm clear
     return inside, pushed
-
-
-def tool_pose_in_world(tool_pose: np.ndarray, cfg: ToolConfig) -> np.ndarray:
-    """Apply `[tool] base_to_world` when the robot reports the tip in its base frame."""
-    if not cfg.base_to_world:
-        return tool_pose
-    b = np.asarray(cfg.base_to_world, float)
-    return make_pose(b[:3], b[3:]) @ tool_pose
 
 
 def ray_segment_distance(origin: np.ndarray, dirs: np.ndarray, a: np.ndarray, b: np.ndarray):

@@ -1,11 +1,8 @@
 """The `RUN/ingest/` folder: what ingest extracted, in a form later stages load quickly.
 
-Layout:
-  ingest/cameras.json       camera ids (sorted strings), intrinsics, per-camera report
-  ingest/frames.npz         per-frame arrays (see `IngestedLog`)
-  ingest/images/CC/FFFFFF.{jpg,png}   image of camera index CC at frame FFFFFF, as recorded
-                            (compressed bytes kept; raw images stored as PNG)
-Camera ids never become paths: folders use the camera's index in the sorted id list.
+cameras.json holds the camera ids (sorted strings), intrinsics and the ingest report;
+frames.npz the per-frame arrays (see `IngestedLog`); images/ every image as recorded
+(compressed bytes kept; raw images stored as PNG). Paths: io/run_layout.py.
 """
 
 from __future__ import annotations
@@ -20,6 +17,7 @@ import numpy as np
 from ..core.cameras import CameraModel
 from ..errors import InputError, RunFolderError
 from .atomic import write_json, write_npz
+from .run_layout import RunLayout
 
 
 @dataclass(frozen=True)
@@ -74,15 +72,11 @@ class IngestedLog:
         return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
 
 
-def image_relpath(camera_index: int, frame: int, ext: str) -> str:
-    return f"images/{camera_index:02d}/{frame:06d}.{ext}"
-
-
 def save_ingested(log: IngestedLog) -> None:
     """Write cameras.json and frames.npz (images are written by ingest as it streams)."""
     root = log.root
     write_json(
-        root / "cameras.json",
+        RunLayout.ingest_cameras(root),
         {
             "cameras": list(log.cameras),
             "models": [m.to_dict() for m in log.models],
@@ -90,7 +84,7 @@ def save_ingested(log: IngestedLog) -> None:
         },
     )
     write_npz(
-        root / "frames.npz",
+        RunLayout.ingest_frames(root),
         stamps_ns=log.stamps_ns.astype(np.int64),
         image_stamps_ns=log.image_stamps_ns.astype(np.int64),
         poses=log.poses,
@@ -108,8 +102,8 @@ def load_ingested(root: Path) -> IngestedLog:
     """Load `RUN/ingest/`; raises RunFolderError if ingest has not completed."""
     root = Path(root)
     try:
-        meta = json.loads((root / "cameras.json").read_text())
-        with np.load(root / "frames.npz", allow_pickle=False) as z:
+        meta = json.loads(RunLayout.ingest_cameras(root).read_text())
+        with np.load(RunLayout.ingest_frames(root), allow_pickle=False) as z:
             arrays = {k: z[k] for k in z.files}
     except FileNotFoundError as exc:
         raise RunFolderError(f"{root}: no ingested data; run `surgrecon ingest` first") from exc

@@ -20,6 +20,7 @@ from .. import __version__
 from ..config import Config, to_dict, to_toml
 from ..errors import RunFolderError
 from .atomic import write_json, write_text
+from .run_layout import RunLayout
 
 STATUSES = ("running", "done", "failed")
 _PACKAGES = {
@@ -57,9 +58,20 @@ def file_sha256(path: Path) -> str:
     return sha.hexdigest()
 
 
-def _plain(obj: Any) -> Any:
+def plain(obj: Any) -> Any:
     """JSON round trip (tuples -> lists), for comparing a config with the recorded one."""
     return json.loads(json.dumps(obj))
+
+
+def config_value(config: dict[str, Any], key: str) -> Any:
+    """The value of a section ("target") or `section.key` in a config dict (None if
+    absent)."""
+    value: Any = config
+    for part in key.split("."):
+        if not isinstance(value, dict):
+            return None
+        value = value.get(part)
+    return value
 
 
 class RunFolder:
@@ -70,7 +82,7 @@ class RunFolder:
 
     @property
     def run_json(self) -> Path:
-        return self.path / "run.json"
+        return RunLayout(self.path).run_json
 
     def exists(self) -> bool:
         return self.run_json.is_file()
@@ -101,16 +113,16 @@ class RunFolder:
             "surgrecon": __version__,
             "input": {"path": str(Path(input_path).resolve()), "sha256": None,
                       "bytes": Path(input_path).stat().st_size},
-            "config": _plain(to_dict(config)),
+            "config": plain(to_dict(config)),
             "versions": package_versions(),
             "stages": {},
         })
-        write_text(self.path / "config.toml", to_toml(config))
+        write_text(RunLayout(self.path).config_toml, to_toml(config))
 
     def update(self, **fields: Any) -> None:
         """Set top-level fields of run.json (e.g. input=..., ingest=...)."""
         data = self.read()
-        data.update(_plain(fields))
+        data.update(plain(fields))
         self.write(data)
 
     def stage(self, name: str) -> dict[str, Any]:
@@ -138,7 +150,7 @@ class RunFolder:
         if status not in STATUSES:
             raise ValueError(f"stage status must be one of {STATUSES}, got {status!r}")
         data = self.read()
-        data.setdefault("stages", {})[name] = {"status": status, **_plain(info)}
+        data.setdefault("stages", {})[name] = {"status": status, **plain(info)}
         self.write(data)
 
     @property
@@ -153,15 +165,20 @@ class RunFolder:
             raise RunFolderError(f"{self.path} was made from another log than {input_path} "
                                  "(SHA-256 differs); use a new run folder")
 
-    def check_config(self, config: Config, sections: tuple[str, ...] | None = None) -> None:
-        """RunFolderError naming the first key where `config` differs from the recorded one
-        (only `sections` if given, e.g. ("topics", "ingest"))."""
+    def check_config(self, config: Config, keys: tuple[str, ...] | None = None) -> None:
+        """RunFolderError naming the first key where `config` differs from the recorded one,
+        among `keys` (sections such as "topics" or `section.key`s; default all)."""
         recorded = self.read().get("config", {})
-        current = _plain(to_dict(config))
-        for section in sections or tuple(current):
-            old, new = recorded.get(section, {}), current.get(section, {})
-            for key in sorted(set(old) | set(new)):
-                if old.get(key) != new.get(key):
+        current = plain(to_dict(config))
+        for key in current if keys is None else keys:
+            old, new = config_value(recorded, key), config_value(current, key)
+            if not isinstance(old, dict) or not isinstance(new, dict):
+                old, new = {key: old}, {key: new}
+                prefix = ""
+            else:
+                prefix = f"{key}."
+            for name in sorted(set(old) | set(new)):
+                if old.get(name) != new.get(name):
                     raise RunFolderError(
-                        f"{self.path} was made with {section}.{key} = {old.get(key)!r}, now "
-                        f"{new.get(key)!r}; use the run's config.toml or a new run folder")
+                        f"{self.path} was made with {prefix}{name} = {old.get(name)!r}, now "
+                        f"{new.get(name)!r}; use the run's config.toml or a new run folder")

@@ -8,33 +8,42 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-from ..config import Config
+from ..config import Config, to_dict
 from ..errors import SurgReconError
-from ..io.run_folder import RunFolder
+from ..io.run_folder import RunFolder, plain
+from .registry import config_keys, config_part, spec, upstream_config_keys
+
+
+def recorded_config(config: Config, name: str) -> dict[str, Any]:
+    """The config keys stage `name`'s outputs depend on, as recorded in its run.json entry."""
+    return config_part(plain(to_dict(config)), config_keys(name))
+
+
+def _mark_failed(run: RunFolder, name: str, keep: tuple[str, ...], error: str) -> None:
+    """Mark a stage failed, keeping its progress (`keep` keys of its entry as it is now,
+    e.g. the frames a resumable stage finished before Ctrl-C), so a rerun resumes."""
+    current = run.stage(name)
+    run.mark_stage(name, "failed", error=error, **{k: current[k] for k in keep if k in current})
 
 
 @contextlib.contextmanager
-def stage_run(
-    run_dir: Path,
-    name: str,
-    config: Config,
-    needs: tuple[str, ...] = ("ingest",),
-    config_sections: tuple[str, ...] = (),
-    keep: tuple[str, ...] = (),
-) -> Iterator[dict[str, Any]]:
+def stage_run(run_dir: Path, name: str, config: Config,
+              keep: tuple[str, ...] = ()) -> Iterator[dict[str, Any]]:
     """Mark stage `name` running; on success mark it done with the info the body put in the
-    yielded dict (plus its wall time); on a SurgReconError mark it failed and re-raise.
+    yielded dict, its wall time and the config its outputs depend on; on a SurgReconError
+    mark it failed and re-raise.
 
-    Earlier stages in `needs` must be done; `config_sections` must match the run's config
-    (they shaped earlier outputs this stage builds on). `keep`: keys of the stage's previous
-    entry carried into the "running" one (a resumable stage's progress, so that a run killed
-    before it records new progress does not lose the old).
+    The stages the registry says it needs must be done; a stage that reads upstream config
+    refuses a config that differs from the one the earlier stages were made with. `keep`:
+    keys of the stage's previous entry carried into the "running" one (a resumable stage's
+    progress, so that a run killed before it records new progress does not lose the old).
     """
     run = RunFolder(run_dir)
-    for stage in needs:
-        run.require_done(stage)
-    if config_sections:
-        run.check_config(config, config_sections)
+    stage = spec(name)
+    for needed in stage.needs:
+        run.require_done(needed)
+    if stage.checks_upstream_config:
+        run.check_config(config, upstream_config_keys(name))
     previous = run.stage(name)
     run.mark_stage(name, "running", **{k: previous[k] for k in keep if k in previous})
     info: dict[str, Any] = {}
@@ -42,9 +51,13 @@ def stage_run(
     try:
         yield info
     except SurgReconError as exc:
-        run.mark_stage(name, "failed", error=str(exc))
+        _mark_failed(run, name, keep, str(exc))
+        raise
+    except KeyboardInterrupt:
+        _mark_failed(run, name, keep, "interrupted (Ctrl-C)")
         raise
     except BaseException:
-        run.mark_stage(name, "failed", error="interrupted or internal error")
+        _mark_failed(run, name, keep, "interrupted or internal error")
         raise
-    run.mark_stage(name, "done", seconds=round(time.perf_counter() - start, 3), **info)
+    run.mark_stage(name, "done", seconds=round(time.perf_counter() - start, 3),
+                   **{"config": recorded_config(config, name), **info})

@@ -1,4 +1,4 @@
-"""Stage `evaluate`: score a run against the simulator's ground truth (SPEC section 6).
+"""Stage `evaluate`: score a run against the simulator's ground truth (README "Accuracy").
 
 Scores whatever parts the run has: the template (always), the registration (when `register`
 is done) and the labels (when `classify` is done). Ground-truth frame k is the k-th
@@ -22,15 +22,16 @@ from ..config import Config
 from ..core.evaluation import error_summary, on_tool, registration_errors, true_point_labels
 from ..core.labels import UNKNOWN
 from ..core.scoring import distance_stats_mm, label_scores, map_to_surface
-from ..errors import InputError, RunFolderError
+from ..errors import InputError
+from ..io.artefacts import read_labels, read_registration, read_template
 from ..io.atomic import write_npz
 from ..io.ground_truth import GroundTruth, load_ground_truth
 from ..io.ingest_store import load_ingested
 from ..io.metrics import finite_json, write_metrics_json
 from ..io.run_folder import RunFolder
-from .classify import labels_path, load_registration_frame
+from ..io.run_layout import RunLayout
 from .common import stage_run
-from .register import load_template
+from .registry import StageContext
 
 logger = logging.getLogger(__name__)
 
@@ -38,31 +39,23 @@ STAGE = "evaluate"
 UNSUPPORTED_MM = 5.0  # the issue's bound: a labelled point without data this far off is a lie
 
 
-def evaluation_path(run_dir: Path) -> Path:
-    return Path(run_dir) / "metrics" / "evaluation.json"
-
-
-def errors_path(run_dir: Path) -> Path:
-    return Path(run_dir) / "metrics" / "evaluation_errors.npz"
-
-
 def run_evaluate(run_dir: Path, config: Config, gt_path: Path,
                  on_step: Callable[[int, int], None] | None = None) -> dict[str, Any]:
     """Evaluate the run against `gt_path`; returns the evaluation (as written to JSON).
 
     `on_step(done, total)` reports progress over the frames."""
-    run_dir = Path(run_dir)
-    run = RunFolder(run_dir)
+    layout = RunLayout(run_dir)
+    run = RunFolder(layout.root)
     step = on_step or (lambda _d, _t: None)
-    with stage_run(run_dir, STAGE, config, needs=("ingest", "build-template")) as info:
+    with stage_run(layout.root, STAGE, config) as info:
         gt = load_ground_truth(gt_path)
-        log = load_ingested(run_dir / "ingest")
+        log = load_ingested(layout.ingest_dir)
         if gt.n_frames != log.n_frames:
             raise InputError(
                 f"{gt.path} has {gt.n_frames} frames but {run_dir} ingested {log.n_frames}; "
                 "ground-truth frame k must be the k-th ingested frame (wrong file, or a "
                 "truncated log?)")
-        template, _ = load_template(run_dir)
+        template = read_template(layout).points
         mapping = map_to_surface(template, gt.vertices[0], gt.faces)
         tool_mask = on_tool(template, log.tool_poses[0], config.tool)
         result: dict[str, Any] = {
@@ -80,19 +73,19 @@ def run_evaluate(run_dir: Path, config: Config, gt_path: Path,
         has_data = np.zeros((n_frames, n), bool)
         truth = true_point_labels(mapping, gt.faces, gt.labels).astype(np.uint8)
         if run.is_done("register"):
-            result["registration"] = _registration_part(run_dir, gt, mapping, errors, sigma,
+            result["registration"] = _registration_part(layout, gt, mapping, errors, sigma,
                                                         has_data, step)
         if run.is_done("classify"):
-            result["labels"] = _labels_part(run_dir, truth)
+            labels = read_labels(layout, truth.shape).labels
+            result["labels"] = _labels_part(labels, truth)
             if result["registration"] is not None:
-                _honesty_part(result, _load_labels(run_dir, truth.shape), errors, sigma,
-                              has_data)
-        write_npz(errors_path(run_dir),
+                _honesty_part(result, labels, errors, sigma, has_data)
+        write_npz(layout.evaluation_errors,
                   template_error_mm=(mapping.distance * 1e3).astype(np.float32),
                   on_tool=np.zeros(n, bool) if tool_mask is None else tool_mask,
                   registration_error_mm=errors, true_labels=truth)
         result = finite_json(result)
-        write_metrics_json(evaluation_path(run_dir), result)
+        write_metrics_json(layout.evaluation_json, result)
         step(n_frames, n_frames)
         info.update(ground_truth=result["ground_truth"],
                     parts=[p for p in ("template", "registration", "labels") if result[p]])
@@ -113,7 +106,7 @@ def _template_part(distance_m: np.ndarray, tool_mask: np.ndarray | None,
     return part
 
 
-def _registration_part(run_dir: Path, gt: GroundTruth, mapping: Any, errors: np.ndarray,
+def _registration_part(layout: RunLayout, gt: GroundTruth, mapping: Any, errors: np.ndarray,
                        sigma: np.ndarray, has_data: np.ndarray,
                        step: Callable[[int, int], None]) -> dict[str, Any]:
     """Registration errors per frame; fills errors (T, N) mm, sigma (T, N) mm (the run's
@@ -121,27 +114,14 @@ def _registration_part(run_dir: Path, gt: GroundTruth, mapping: Any, errors: np.
     n_frames, n = errors.shape
     per_frame = []
     for k in range(1, n_frames):
-        reg = load_registration_frame(run_dir, k, n)
-        err_m = registration_errors(mapping, gt.vertices[k], gt.faces, reg["registered"])
+        reg = read_registration(layout, k, n)
+        err_m = registration_errors(mapping, gt.vertices[k], gt.faces, reg.registered)
         errors[k] = err_m * 1e3
-        sigma[k] = reg["sigma"] * 1e3
-        has_data[k] = np.isfinite(reg["target_sigma"])
+        sigma[k] = reg.sigma * 1e3
+        has_data[k] = np.isfinite(reg.target_sigma)
         per_frame.append({"frame": k, **error_summary(err_m)})
         step(k, n_frames)
     return {"overall": error_summary(errors[1:].astype(float) * 1e-3), "per_frame": per_frame}
-
-
-def _load_labels(run_dir: Path, shape: tuple[int, ...]) -> np.ndarray:
-    path = labels_path(run_dir)
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            labels = z["labels"]
-    except (OSError, KeyError, ValueError) as exc:
-        raise RunFolderError(f"{path}: unreadable ({exc}); re-run classify") from exc
-    if labels.shape != shape:
-        raise RunFolderError(f"{path}: labels {labels.shape} do not match the run "
-                             f"{shape}; re-run classify")
-    return labels
 
 
 def _honesty_part(result: dict[str, Any], labels: np.ndarray, errors: np.ndarray,
@@ -160,8 +140,14 @@ def _honesty_part(result: dict[str, Any], labels: np.ndarray, errors: np.ndarray
         (labelled & ~has_data[1:] & (err > UNSUPPORTED_MM)).sum())
 
 
-def _labels_part(run_dir: Path, truth: np.ndarray) -> dict[str, Any]:
-    labels = _load_labels(run_dir, truth.shape)
+def _labels_part(labels: np.ndarray, truth: np.ndarray) -> dict[str, Any]:
     per_frame = [{"frame": k, **label_scores(labels[k], truth[k])} for k in range(1, len(labels))]
     overall = label_scores(labels[1:], truth[1:]) if len(labels) > 1 else None
     return {"frames": "1..", "overall": overall, "per_frame": per_frame}
+
+
+def pipeline_step(ctx: StageContext, progress: Callable[[float], None]) -> None:
+    """The stage within `surgrecon run` (only with ground truth)."""
+    if ctx.ground_truth is not None:
+        ctx.evaluation = run_evaluate(ctx.run_dir, ctx.config, ctx.ground_truth,
+                                      on_step=lambda d, t: progress(d / t))

@@ -34,10 +34,13 @@ from ..core.sync import (
     rate_hz,
 )
 from ..errors import InputError, RunFolderError, SurgReconError
-from ..io.ingest_store import IngestedLog, image_relpath, save_ingested
+from ..io.ingest_store import IngestedLog, save_ingested
 from ..io.mcap import LogReader
 from ..io.run_folder import RunFolder
-from .ingest_streams import STAGED, StreamCollector
+from ..io.run_layout import INGEST_STAGING_PREFIX, TEMPORARY_SUFFIX, RunLayout
+from .common import recorded_config
+from .ingest_streams import StreamCollector
+from .registry import StageContext
 
 logger = logging.getLogger(__name__)
 
@@ -77,9 +80,10 @@ def ingest(
                        on_bytes)
     reader.check_magic()
     run = _prepare_run_folder(run_dir, log_path, config, force)
-    for leftover in run_dir.glob(".ingest-*"):
+    layout = RunLayout(run_dir)
+    for leftover in run_dir.glob(f"{INGEST_STAGING_PREFIX}*"):
         shutil.rmtree(leftover, ignore_errors=True)
-    staging = run_dir / f".ingest-{uuid.uuid4().hex[:12]}"
+    staging = layout.ingest_staging(uuid.uuid4().hex[:12])
     staging.mkdir()  # (mkdtemp would make it 0700; this respects the umask)
     try:
         collector = StreamCollector(staging)
@@ -88,7 +92,7 @@ def ingest(
         reader.check_roles()
         log, report = _assemble(collector, reader, config, staging)
         save_ingested(log)
-        _swap_in(staging, run_dir / "ingest")
+        _swap_in(staging, layout.ingest_dir)
     except BaseException as exc:
         shutil.rmtree(staging, ignore_errors=True)
         message = str(exc) if isinstance(exc, SurgReconError) else type(exc).__name__
@@ -104,8 +108,23 @@ def ingest(
                       "bytes": reader.size},
                ingest={"cameras": cameras, "frames": log.n_frames})
     run.mark_stage(STAGE, "done", cameras=cameras, frames=log.n_frames,
-                   truncated=reader.damage, usable_views=int(log.usable.sum()))
+                   truncated=reader.damage, usable_views=int(log.usable.sum()),
+                   config=recorded_config(config, STAGE))
     return IngestResult(run_dir, log.cameras, log.n_frames, report)
+
+
+def pipeline_step(ctx: StageContext, progress: Callable[[float], None]) -> None:
+    """The stage within `surgrecon run`: progress by bytes read from the log."""
+    size = max(ctx.log.stat().st_size, 1)
+    read = [0]
+
+    def on_bytes(n: int) -> None:
+        read[0] += n
+        progress(read[0] / size)
+
+    ingest(ctx.log, ctx.run_dir, ctx.config, allow_truncated=ctx.allow_truncated,
+           force=ctx.force_ingest, on_bytes=on_bytes)
+    ctx.force_ingest = False
 
 
 def _prepare_run_folder(run_dir: Path, log_path: Path, config: Config, force: bool) -> RunFolder:
@@ -132,14 +151,14 @@ def _prepare_run_folder(run_dir: Path, log_path: Path, config: Config, force: bo
 
 def _leftover(path: Path) -> bool:
     """A temporary file or staging folder of a run killed before it wrote run.json."""
-    return path.name.startswith(".") and (path.name.endswith(".tmp")
-                                          or path.name.startswith(".ingest-"))
+    return path.name.startswith(".") and (path.name.endswith(TEMPORARY_SUFFIX)
+                                          or path.name.startswith(INGEST_STAGING_PREFIX))
 
 
 def _swap_in(staging: Path, final: Path) -> None:
     """Rename the staging folder to `final`, replacing an older one."""
     if final.exists():
-        old = final.with_name(f".ingest-old-{os.getpid()}")
+        old = final.with_name(f"{INGEST_STAGING_PREFIX}old-{os.getpid()}")
         final.rename(old)
         staging.rename(final)
         shutil.rmtree(old, ignore_errors=True)
@@ -186,6 +205,7 @@ def _assemble(collector: StreamCollector, reader: LogReader, config: Config,
         rows = np.flatnonzero(frames.image_index[:, c] >= 0)
         image_stamps[rows, c] = stamps[c][frames.image_index[rows, c]]
         poses[rows, c], usable[rows, c] = poses_at(pose_streams[c], image_stamps[rows, c], gap_ns)
+    _check_clocks(ids, cams, stamps, pose_streams, usable, reader, config)
     keep = _trim_incomplete_tail(frames, usable) if reader.damage else T
     if keep == 0:
         raise InputError(f"{reader.path}: no complete frame before the damage "
@@ -196,8 +216,9 @@ def _assemble(collector: StreamCollector, reader: LogReader, config: Config,
     image_index, image_stamps = frames.image_index[:T], image_stamps[:T]
     poses, usable = poses[:T], usable[:T]
 
+    robot = bool(config.topics.tool_pose)
     tool_poses, tool_valid = poses_at(tool, frame_stamps, gap_ns)
-    if config.tool.base_to_world:
+    if robot and config.tool.base_to_world:
         tool_poses = np.einsum("ij,tjk->tik", base_to_world_pose(config.tool.base_to_world),
                                tool_poses)
     joint_stamps, joint_values = collector.joints()
@@ -208,11 +229,15 @@ def _assemble(collector: StreamCollector, reader: LogReader, config: Config,
     report = _report(ids, cams, stamps, pose_streams, jitter, frames, image_index, usable,
                      trimmed)
     report["tracker_bodies"] = _tracker_bodies(ids, pose_streams, jitter, gap_ns)
-    report.update(tool_rate_hz=rate_hz(tool.stamps_ns),
-                  tool_pose_missing=int((~tool_valid).sum()),
+    report.update(robot=robot, tool_pose_topic=collector.tool_topic,
+                  tool_rate_hz=rate_hz(tool.stamps_ns),
+                  tool_pose_missing=int((~tool_valid).sum()) if robot else 0,
                   joint_rate_hz=rate_hz(joint_stamps), joints=list(collector.joint_names),
                   truncated=reader.damage, log=str(reader.path))
-    if report["tool_pose_missing"]:
+    if not robot:
+        logger.warning("%s: no robot kinematics (topics.tool_pose = \"\"): tool removal is "
+                       "off", reader.path)
+    elif report["tool_pose_missing"]:
         logger.warning("tool pose unknown at %d of %d frames (gap > %g ms or outside the stream)",
                        report["tool_pose_missing"], T, config.ingest.pose_gap_ms)
     log = IngestedLog(
@@ -225,6 +250,34 @@ def _assemble(collector: StreamCollector, reader: LogReader, config: Config,
     return log, report
 
 
+def _check_clocks(ids: tuple[str, ...], cams: list, stamps: list[np.ndarray],
+                  pose_streams: list[PoseStream], usable: np.ndarray, reader: LogReader,
+                  config: Config) -> None:
+    """Fail at once, naming the streams and their clocks, when no camera's images overlap
+    its pose stream in time (e.g. images stamped on the log clock, poses on the header
+    clock): nothing could be used, and later stages would fail obscurely."""
+    if usable.any():
+        return
+    lines = []
+    for cid, cam, image_stamps, poses in zip(ids, cams, stamps, pose_streams, strict=True):
+        pose_topic = cam.pose_topic
+        lines.append(
+            f"camera {cid}: images on {cam.image_topic} at "
+            f"{_span(image_stamps)} ({reader.clock_of(cam.image_topic)}), poses on "
+            f"{pose_topic} at {_span(poses.stamps_ns)} "
+            f"({reader.clock_of(pose_topic)})")
+    raise InputError(
+        f"{reader.path}: no image has a pose within ingest.pose_gap_ms = "
+        f"{config.ingest.pose_gap_ms:g} ms: the streams are on different clocks? "
+        f"{'; '.join(lines)}; try --set ingest.time_source=log_time, or fix the stamps")
+
+
+def _span(stamps_ns: np.ndarray) -> str:
+    if not len(stamps_ns):
+        return "no stamps"
+    return f"{stamps_ns.min() / 1e9:.3f}..{stamps_ns.max() / 1e9:.3f} s"
+
+
 def _place_images(staging: Path, cams: list, orders: list[np.ndarray],
                   image_index: np.ndarray) -> tuple[tuple[str, ...], ...]:
     """Rename staged images to `images/CC/FFFFFF.ext` by frame; delete the unused ones."""
@@ -233,11 +286,11 @@ def _place_images(staging: Path, cams: list, orders: list[np.ndarray],
     for c, (cam, order) in enumerate(zip(cams, orders, strict=True)):
         for t in np.flatnonzero(image_index[:, c] >= 0):
             staged = cam.files[int(order[image_index[t, c]])]
-            rel = image_relpath(c, int(t), staged.rsplit(".", 1)[1])
+            rel = RunLayout.image_relpath(c, int(t), staged.rsplit(".", 1)[1])
             (staging / rel).parent.mkdir(parents=True, exist_ok=True)
             os.replace(staging / staged, staging / rel)
             paths[t][c] = rel
-    shutil.rmtree(staging / STAGED, ignore_errors=True)
+    shutil.rmtree(RunLayout.staged_dir(staging), ignore_errors=True)
     return tuple(tuple(row) for row in paths)
 
 

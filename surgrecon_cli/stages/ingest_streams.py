@@ -16,10 +16,10 @@ from ..errors import GeometryError, InputError
 from ..io.images import prepare_image
 from ..io.mcap import LogItem
 from ..io.records import CameraInfoRecord, ImageRecord, JointStateRecord, PoseRecord
+from ..io.run_layout import RunLayout
 
 logger = logging.getLogger(__name__)
 
-STAGED = "staged"
 _DISTORTION_MODELS = ("plumb_bob", "rational_polynomial", "")
 
 
@@ -60,6 +60,7 @@ class CameraStreams:
     model: CameraModel | None = None
     info_changed: bool = False
     poses: _Poses | None = None
+    pose_topic: str = ""
 
 
 class StreamCollector:
@@ -91,6 +92,7 @@ class StreamCollector:
             if cam.poses is None:
                 frame = f" [{record.child_frame_id}]" if record.child_frame_id else ""
                 cam.poses = _Poses(f"{item.topic}{frame}")
+                cam.pose_topic = item.topic
             cam.poses.add(record)
         elif item.role == "tool_pose" and isinstance(record, PoseRecord):
             if not self.tool_topic:
@@ -111,7 +113,7 @@ class StreamCollector:
                              f"does not decode ({exc})") from exc
         if cam.model is not None:
             self._check_size(item.camera, record.stamp_ns, stored.width, stored.height)
-        rel = f"{STAGED}/{cam.index:02d}/{len(cam.files):08d}.{stored.ext}"
+        rel = RunLayout.staged_relpath(cam.index, len(cam.files), stored.ext)
         path = self.root / rel
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_bytes(stored.data)

@@ -9,7 +9,6 @@ Uses whatever stages are done and writes atomically
 from __future__ import annotations
 
 import dataclasses
-import json
 import logging
 import re
 from collections.abc import Callable
@@ -26,20 +25,26 @@ from ..config import Config, ToolConfig
 from ..core.cameras import in_image, project
 from ..core.labels import CLASS_NAMES, DEFORMING, SHIFTING, STATIC, STATUS_NAMES, UNKNOWN
 from ..core.quality import FrameQuality, frame_quality
-from ..core.tool import tool_pixel_mask, tool_pose_in_world
+from ..core.tool import tool_pixel_mask
 from ..errors import RunFolderError
 from ..executors import Executor, Task
 from ..executors.serial import SerialExecutor
 from ..io import plots
 from ..io import report_html as rh
+from ..io.artefacts import (
+    FrameRegistration,
+    read_json,
+    read_labels,
+    read_registration,
+    read_template,
+)
 from ..io.atomic import write_text
 from ..io.ingest_store import IngestedLog, load_ingested
 from ..io.metrics import finite_json, write_csv, write_metrics_json
 from ..io.run_folder import RunFolder
-from .classify import labels_path, load_registration_frame
+from ..io.run_layout import DESCRIBED_FILES, RunLayout
 from .common import stage_run
-from .evaluate import errors_path, evaluation_path
-from .register import load_template
+from .registry import StageContext
 
 logger = logging.getLogger(__name__)
 
@@ -68,10 +73,6 @@ class ReportFiles:
     summary_json: Path
 
 
-def report_path(run_dir: Path) -> Path:
-    return Path(run_dir) / "report.html"
-
-
 @dataclass
 class _RunData:
     """Everything the report shows, gathered from the run folder (None = stage not done)."""
@@ -98,13 +99,13 @@ def run_report(run_dir: Path, config: Config,
     """Write frames.csv, summary.json and report.html for a run (any stages done); the
     figures are drawn as tasks on `executor` (default: serial)."""
     run_dir = Path(run_dir)
+    layout = RunLayout(run_dir)
     step = on_step or (lambda _d, _t: None)
-    with stage_run(run_dir, STAGE, config, needs=("ingest",)) as info:
+    with stage_run(run_dir, STAGE, config) as info:
         data = _gather(run_dir)
         step(1, 4)
         rows = frame_rows(data)
-        files = ReportFiles(report_path(run_dir), run_dir / "metrics" / "frames.csv",
-                            run_dir / "metrics" / "summary.json")
+        files = ReportFiles(layout.report_html, layout.frames_csv, layout.summary_json)
         write_csv(files.frames_csv, FRAME_COLUMNS, rows)
         summary = _summary(data, rows, config)
         write_metrics_json(files.summary_json, summary)
@@ -120,14 +121,14 @@ def run_report(run_dir: Path, config: Config,
 
 # ----------------------------------------------------------------------------- gathering
 def _gather(run_dir: Path) -> _RunData:
+    layout = RunLayout(run_dir)
     run = RunFolder(run_dir)
-    data = _RunData(run=run.read(), log=load_ingested(run_dir / "ingest"))
+    data = _RunData(run=run.read(), log=load_ingested(layout.ingest_dir))
     n_frames = data.log.n_frames
     if run.is_done("build-template"):
-        data.template, _ = load_template(run_dir)
-        summary = run_dir / "template" / "summary.json"
-        if summary.is_file():
-            data.template_summary = json.loads(summary.read_text(encoding="utf-8"))
+        data.template = read_template(layout).points
+        if layout.template_summary.is_file():
+            data.template_summary = read_json(layout.template_summary, "build-template")
     if data.template is None:
         return data
     n = len(data.template)
@@ -139,47 +140,39 @@ def _gather(run_dir: Path) -> _RunData:
         residual = [np.zeros(0)]
         frames_reg = []
         for k in range(1, n_frames):
-            reg = load_registration_frame(run_dir, k, n)
+            reg = read_registration(layout, k, n)
             frames_reg.append(reg)
-            registered[k] = reg["registered"]
-            status[k] = reg["status"]
-            has = (reg["status"] == 0) | (reg["status"] == 1)
-            residual.append(reg["residual"][has].astype(float) * 1e3)
-            seconds[k] = [float(reg.get("seconds_target", np.nan)),
-                          float(reg.get("seconds_register", np.nan))]
+            registered[k] = reg.registered
+            status[k] = reg.status
+            residual.append(reg.residual[reg.has_target].astype(float) * 1e3)
+            seconds[k] = [reg.seconds_target, reg.seconds_register]
         data.registered, data.status, data.seconds, data.residual_mm = (
             registered, status, seconds, residual)
         data.displacement_mm = np.linalg.norm(registered - data.template, axis=2) * 1e3
-    if run.is_done("classify") and labels_path(run_dir).is_file():
-        with np.load(labels_path(run_dir), allow_pickle=False) as z:
-            labels = z["labels"]
-        if labels.shape != (n_frames, n):
-            raise RunFolderError(f"{labels_path(run_dir)}: labels {labels.shape} do not match "
-                                 f"the run ({n_frames}, {n}); re-run classify")
-        data.labels = labels
+    if run.is_done("classify"):
+        data.labels = read_labels(layout, (n_frames, n)).labels
     if run.is_done("register"):
         data.quality = [
-            frame_quality(k, reg["status"], None if data.labels is None else data.labels[k],
-                          reg["sigma"].astype(float), reg["residual"].astype(float),
-                          reg["target_sigma"].astype(float), bool(reg["failed"]),
-                          bool(reg["converged"]), str(reg["error"]))
+            frame_quality(k, reg.status, None if data.labels is None else data.labels[k],
+                          reg.sigma.astype(float), reg.residual.astype(float),
+                          reg.target_sigma.astype(float), reg.failed, reg.converged, reg.error)
             for k, reg in enumerate(frames_reg, start=1)]
         data.noise = _noise_figures(data.log, data.template_summary, frames_reg)
-    if run.is_done("evaluate") and evaluation_path(run_dir).is_file():
-        data.evaluation = json.loads(evaluation_path(run_dir).read_text(encoding="utf-8"))
-        if errors_path(run_dir).is_file():
-            with np.load(errors_path(run_dir), allow_pickle=False) as z:
+    if run.is_done("evaluate") and layout.evaluation_json.is_file():
+        data.evaluation = read_json(layout.evaluation_json, "evaluate")
+        if layout.evaluation_errors.is_file():
+            with np.load(layout.evaluation_errors, allow_pickle=False) as z:
                 data.errors = {k: z[k] for k in z.files}
     return data
 
 
 def _noise_figures(log: IngestedLog, template_summary: dict[str, Any] | None,
-                   frames: list[dict[str, np.ndarray]]) -> dict[str, Any]:
+                   frames: list[FrameRegistration]) -> dict[str, Any]:
     """The run's measured noise: pixel noise (template), tracker jitter per camera (ingest),
     tracking noise (median over frames) and the median template σ."""
     stats = (template_summary or {}).get("stats", {})
     cams = log.report.get("cameras", {})
-    tracking = [float(f["tracking_px"]) for f in frames if np.isfinite(f["tracking_px"])]
+    tracking = [f.tracking_px for f in frames if np.isfinite(f.tracking_px)]
     return {
         "pixel_px": stats.get("pixel_noise_px"),
         "tracking_px": float(np.median(tracking)) if tracking else None,
@@ -361,7 +354,7 @@ def _best_camera(data: _RunData, frame: int, xyz: np.ndarray,
     log = data.log
     best: tuple[int, np.ndarray] | None = None
     best_count = 0
-    tool_pose = tool_pose_in_world(log.tool_poses[frame], tool)
+    tool_pose = log.tool_poses[frame]
     for c, model in enumerate(log.models):
         if not log.usable[frame, c]:
             continue
@@ -522,6 +515,10 @@ def _html(run_dir: Path, data: _RunData, rows: list[dict[str, Any]], summary: di
             f"verified; {stats.get('rejected_geometry')} rejected by reprojection/angle, "
             f"{stats.get('removed_off_surface')} off the surface, {stats.get('removed_tool')} "
             f"on the tool.", note=True))
+    if not log.report.get("robot", True):
+        cams.add(rh.paragraph(
+            "No robot kinematics in this log (topics.tool_pose = \"\"): tool removal is off, "
+            "so points on the tool are kept and may be labelled as tissue.", note=True))
     sections.append(cams)
 
     # --- quality without ground truth
@@ -588,14 +585,9 @@ def _html(run_dir: Path, data: _RunData, rows: list[dict[str, Any]], summary: di
         sections.append(_evaluation_section(data, frames_later, figs))
 
     files = rh.Section("files", "Files")
+    layout = RunLayout(run_dir)
     files.add(rh.table(("file", "contents"), [
-        ("clouds/NNNNNN.ply", "labelled cloud per frame (x y z, RGB, point_id, label, residual)"),
-        ("classify/labels.npz", "labels (T, N) and the measures behind them"),
-        ("registration/NNNNNN.npz", "per-point affines, targets, reprojection status"),
-        ("metrics/frames.csv", "the per-frame table behind these plots"),
-        ("metrics/summary.json", "this run at a glance"),
-        ("metrics/evaluation.json", "scores against ground truth (when evaluated)"),
-        ("run.json / config.toml", "stage status, input hash, versions, effective config")]))
+        (layout.relative(getattr(layout, name)), what) for name, what in DESCRIBED_FILES]))
     sections.append(files)
 
     created = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
@@ -681,3 +673,9 @@ def _evaluation_section(data: _RunData, frames_later: np.ndarray,
                               "F1 per class and frame (gaps: the class is absent in that "
                               "frame's truth)."))
     return sec
+
+
+def pipeline_step(ctx: StageContext, progress: Callable[[float], None]) -> None:
+    """The stage within `surgrecon run`."""
+    run_report(ctx.run_dir, ctx.config, on_step=lambda d, t: progress(d / t),
+               executor=ctx.executor)

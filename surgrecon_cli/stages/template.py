@@ -1,7 +1,8 @@
 """Stage `build-template`: the template cloud P from the run's first frame.
 
-Writes RUN/template.ply, RUN/clouds/000000.ply (all points static; extra vertex properties
-n_views, reprojection_px and sigma: the point's 3D position uncertainty, RMS, metres),
+Writes RUN/template.ply (extra vertex properties n_views, reprojection_px and sigma: the
+point's 3D position uncertainty, RMS, metres; the labelled frame-0 cloud is written by
+classify),
 RUN/template/observations.npz (where each template point was seen at frame 0, for tracking;
 each point's 3D covariance, m², from image noise, and pose_covariance, from the cameras'
 pose errors, including the rigid error of a shared tracker body, core/noise.py) and
@@ -16,23 +17,24 @@ from pathlib import Path
 import numpy as np
 
 from ..config import Config
-from ..core.labels import STATIC
 from ..core.noise import covariance_sigma, noise_from_report
-from ..core.template import TemplateResult, build_template
-from ..core.tool import tool_pose_in_world
+from ..core.template import STEPS, TemplateResult, build_template
 from ..errors import InputError
 from ..executors import Executor, mapper
 from ..executors.serial import SerialExecutor
-from ..io.atomic import write_json, write_npz
+from ..io.artefacts import (
+    TemplateCloud,
+    TemplateObservations,
+    write_observations,
+    write_template,
+    write_template_summary,
+)
 from ..io.ingest_store import load_ingested
-from ..io.ply import write_cloud_ply
+from ..io.run_layout import RunLayout
 from .common import stage_run
+from .registry import StageContext
 
 STAGE = "build-template"
-
-
-def cloud_path(run_dir: Path, frame: int) -> Path:
-    return Path(run_dir) / "clouds" / f"{frame:06d}.ply"
 
 
 def run_build_template(
@@ -41,18 +43,17 @@ def run_build_template(
 ) -> TemplateResult:
     """Build and write the template of frame 0 of an ingested run; the features of each
     camera and the matches of each pair are tasks on `executor` (default: serial)."""
-    run_dir = Path(run_dir)
-    with stage_run(run_dir, STAGE, config, config_sections=("topics", "ingest")) as info:
-        log = load_ingested(run_dir / "ingest")
+    layout = RunLayout(run_dir)
+    with stage_run(layout.root, STAGE, config) as info:
+        log = load_ingested(layout.ingest_dir)
         if log.n_frames == 0:
             raise InputError(f"{run_dir}: the ingested log has no frames")
         images, poses = log.frame_images(0), log.usable_poses(0)
-        tool_pose = tool_pose_in_world(log.tool_poses[0], config.tool)
         result = build_template(
             images,
             list(log.models),
             poses,
-            tool_pose,
+            log.tool_poses[0],
             config.template,
             config.tool,
             on_step=on_step,
@@ -62,30 +63,11 @@ def run_build_template(
         n = len(result.points)
         obs = result.observations
         sigma = covariance_sigma(result.covariance + result.pose_covariance) if n else np.zeros(0)
-        extra = {
-            "n_views": result.n_views.astype(np.uint8),
-            "reprojection_px": result.reprojection_px.astype(np.float32),
-            "sigma": sigma.astype(np.float32),
-        }
-        for path in (run_dir / "template.ply", cloud_path(run_dir, 0)):
-            write_cloud_ply(
-                path,
-                result.points,
-                rgb=result.rgb,
-                point_id=np.arange(n, dtype=np.int32),
-                label=np.full(n, STATIC, np.uint8),
-                residual=np.zeros(n, np.float32),
-                extra=extra,
-            )
-        write_npz(
-            run_dir / "template" / "observations.npz",
-            point=obs.point.astype(np.int32),
-            camera=obs.camera.astype(np.int16),
-            pixels=obs.pixels.astype(np.float32),
-            covariance=result.covariance.astype(np.float64),
-            pose_covariance=result.pose_covariance.astype(np.float64),
-            pixel_noise_px=np.float64(result.pixel_noise_px),
-        )
+        write_template(layout, TemplateCloud(result.points, result.rgb, result.n_views,
+                                             result.reprojection_px, sigma))
+        write_observations(layout, TemplateObservations(
+            obs.point, obs.camera, obs.pixels, result.covariance, result.pose_covariance,
+            result.pixel_noise_px))
         plan = {
             "groups": [[log.cameras[c] for c in g] for g in result.plan.groups],
             "sequence": [
@@ -95,9 +77,15 @@ def run_build_template(
             "view_angle_deg": result.prediction.angle_deg.round(1).tolist(),
             "baseline_ratio": result.prediction.baseline_ratio.round(3).tolist(),
         }
-        write_json(run_dir / "template" / "summary.json", {"stats": result.stats, "pairs": plan})
+        write_template_summary(layout, {"stats": result.stats, "pairs": plan})
         info.update(points=n, groups=plan["groups"], sequence=plan["sequence"], stats=result.stats,
                     pixel_noise_px=result.pixel_noise_px,
                     tracker_bodies=log.report.get("tracker_bodies", []),
                     sigma_median_mm=float(np.median(sigma) * 1e3) if n else None)
     return result
+
+
+def pipeline_step(ctx: StageContext, progress: Callable[[float], None]) -> None:
+    """The stage within `surgrecon run`: progress by template-building step."""
+    run_build_template(ctx.run_dir, ctx.config, executor=ctx.executor,
+                       on_step=lambda name: progress((STEPS.index(name) + 1) / len(STEPS)))

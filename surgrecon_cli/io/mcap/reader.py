@@ -28,7 +28,7 @@ from ..records import PoseRecord, Record
 from .base import SchemaDecoder
 from .bounded import BoundedFile, chunk_records, read_summary
 from .registry import DESERIALIZERS, find_decoder, supported
-from .topics import REQUIRED_ROLES, ROLE_KINDS, TopicRoles
+from .topics import ROLE_KINDS, TopicRoles
 
 logger = logging.getLogger(__name__)
 
@@ -112,6 +112,7 @@ class LogReader:
         self._transform_frames: dict[str, set[str]] = {}
         self._found: set[str] = set()
         self._deserializers: dict[str, Any] = {}
+        self._log_time_stamps: dict[str, int] = {}  # records stamped by log time, per topic
 
     # -- channels and roles --------------------------------------------------------------
     def _classify(self, topic: str, schema_name: str, encoding: str) -> _ChannelInfo:
@@ -148,7 +149,9 @@ class LogReader:
         more = f", ... ({len(listed) - _MAX_LISTED} more)" if len(listed) > _MAX_LISTED else ""
         return TopicError(
             f"{self.path}: no topic for {wanted}; topics in the log: "
-            f"{', '.join(listed[:_MAX_LISTED]) or 'none'}{more}; set [topics] in a --config file")
+            f"{', '.join(listed[:_MAX_LISTED]) or 'none'}{more}; set [topics] in a --config file "
+            "(`surgrecon info LOG --write-config FILE` writes one; a robot role the log does "
+            "not record, tool_pose or joint_states, is set to \"\")")
 
     def _early_check(self) -> None:
         """Check roles from the summary section, when the file has an intact one."""
@@ -169,16 +172,18 @@ class LogReader:
             channels[ch.topic] = f"{name} ({ch.message_encoding})"
             info = self._classify(ch.topic, name, ch.message_encoding)
             found.update(role for role, _ in info.roles)
-        missing = [r for r in REQUIRED_ROLES if r not in found]
+        missing = [r for r in self.roles.required if r not in found]
         if missing and self.require_roles:
             raise self._missing_roles_error(missing, channels)
 
     def check_roles(self) -> None:
         """After iteration: every required role has a channel and (transforms) a frame."""
-        missing = [r for r in REQUIRED_ROLES if r not in self._role_topics]
+        missing = [r for r in self.roles.required if r not in self._role_topics]
         if missing:
             raise self._missing_roles_error(missing, self.channels)
         for role, frame_key in (("camera_pose", "camera_frame"), ("tool_pose", "tool_frame")):
+            if role not in self.roles.patterns:
+                continue
             transform_topics = [t for t in self._role_topics[role] if t in self._transform_frames]
             if transform_topics and role not in self._found:
                 frames = sorted(set().union(*(self._transform_frames[t] for t in transform_topics)))
@@ -187,9 +192,6 @@ class LogReader:
                     f"child frame matching topics.{frame_key} = "
                     f"{getattr(self.roles.config, frame_key)!r}; child frames seen: "
                     f"{', '.join(frames[:_MAX_LISTED]) or 'none'}")
-        if "joint_states" not in self._role_topics:
-            logger.warning("%s: no topic for topics.joint_states = %r; joint positions unknown",
-                           self.path, self.roles.patterns["joint_states"])
 
     # -- streaming -----------------------------------------------------------------------
     def check_magic(self) -> None:
@@ -276,12 +278,28 @@ class LogReader:
                 f"does not decode as {info.schema_name} ({_one_line(exc)})") from exc
         for record in records:
             if self.use_log_time or record.stamp_ns <= 0:
+                self._note_log_time(info.topic)
                 record = replace(record, stamp_ns=message.log_time)
             for role, camera in info.roles:
                 cam = self._assign(info, role, camera, record)
                 if cam is not None:
                     self._found.add(role)
                     yield LogItem(role, cam, info.topic, message.log_time, record)
+
+    def _note_log_time(self, topic: str) -> None:
+        count = self._log_time_stamps.get(topic, 0)
+        self._log_time_stamps[topic] = count + 1
+        if count == 0 and not self.use_log_time:
+            logger.warning("%s: %s has messages with a zero header stamp; they are placed at "
+                           "their log time (set ingest.time_source = \"log_time\" to use "
+                           "the log time for every message)", self.path, topic)
+
+    def clock_of(self, topic: str) -> str:
+        """Which clock stamped `topic`'s records: "header stamps", "log time", or a mix."""
+        fallback = self._log_time_stamps.get(topic, 0)
+        if self.use_log_time or (fallback and fallback >= self.message_counts.get(topic, 0)):
+            return "log time"
+        return f"header stamps, {fallback} at log time" if fallback else "header stamps"
 
     def _assign(self, info: _ChannelInfo, role: str, camera: str, record: Record) -> str | None:
         """Camera id ("" for non-camera roles) this record has in `role`, or None if none."""

@@ -3,7 +3,9 @@ pose, and which carries the tool pose and joint states.
 
 Patterns hold a `{camera}` placeholder that captures the camera id (`[^/]+`). A pose role whose
 topic carries transforms (TFMessage, FrameTransform(s)) picks its transforms by child frame:
-`camera_frame` (with `{camera}`) for cameras, `tool_frame` for the tool.
+`camera_frame` (with `{camera}`) for cameras, `tool_frame` for the tool. The robot's roles
+(`tool_pose`, `joint_states`) are optional: an empty pattern says the log does not record
+it (tool removal is then off); a configured one must be found in the log.
 """
 
 from __future__ import annotations
@@ -14,7 +16,8 @@ from dataclasses import dataclass
 from ...config import TopicsConfig
 
 ROLES = ("image", "camera_info", "camera_pose", "tool_pose", "joint_states")
-REQUIRED_ROLES = ("image", "camera_info", "camera_pose", "tool_pose")
+REQUIRED_ROLES = ("image", "camera_info", "camera_pose")
+OPTIONAL_ROLES = ("tool_pose", "joint_states")
 ROLE_KINDS: dict[str, tuple[str, ...]] = {
     "image": ("image",),
     "camera_info": ("camera_info",),
@@ -47,8 +50,10 @@ class TopicRoles:
 
     def __init__(self, topics: TopicsConfig) -> None:
         self.config = topics
-        self.patterns = {role: getattr(topics, role) for role in ROLES}
+        self.patterns = {role: getattr(topics, role) for role in ROLES if getattr(topics, role)}
         self._topic_re = {role: pattern_regex(p) for role, p in self.patterns.items()}
+        # Every role the config names must be found in the log.
+        self.required = (*REQUIRED_ROLES, *(r for r in OPTIONAL_ROLES if r in self.patterns))
         self._camera_frame = pattern_regex(topics.camera_frame)
         self._tool_frame = pattern_regex(topics.tool_frame)
 

@@ -1,0 +1,165 @@
+"""Every path of a run folder, in one place: nothing else in the package spells a file name.
+
+  RUN/run.json                   status of every stage (io/run_folder.py)
+  RUN/config.toml                the effective config
+  RUN/ingest/cameras.json        camera ids, intrinsics, ingest report (io/ingest_store.py)
+  RUN/ingest/frames.npz          per-frame stamps, poses, tool poses, joints
+  RUN/ingest/images/CC/FFFFFF.*  image of camera index CC at frame FFFFFF, as recorded
+  RUN/template.ply               the template cloud P (frame 0)
+  RUN/template/observations.npz  where each template point was seen, its covariance
+  RUN/template/summary.json      template counts and pair plan
+  RUN/registration/FFFFFF.npz    one registered frame k >= 1 (io/artefacts.FrameRegistration)
+  RUN/classify/labels.npz        labels (T, N) and the measures behind them
+  RUN/clouds/FFFFFF.ply          every frame's labelled cloud (written once, by classify)
+  RUN/metrics/evaluation.json    scores against ground truth
+  RUN/metrics/evaluation_errors.npz  per-point errors behind them
+  RUN/metrics/frames.csv         one row per frame
+  RUN/metrics/summary.json       the run at a glance
+  RUN/report.html                the report
+
+Camera ids never become paths: image folders use the camera's index in the sorted id list.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+# Temporary names of interrupted writes (io/atomic.py) and of ingest's staging folder.
+TEMPORARY_SUFFIX = ".tmp"
+INGEST_STAGING_PREFIX = ".ingest-"
+
+
+@dataclass(frozen=True)
+class RunLayout:
+    """The paths of one run folder `root`."""
+
+    root: Path
+
+    def __init__(self, root: Path | str) -> None:
+        object.__setattr__(self, "root", Path(root))
+
+    # run bookkeeping
+    @property
+    def run_json(self) -> Path:
+        return self.root / "run.json"
+
+    @property
+    def config_toml(self) -> Path:
+        return self.root / "config.toml"
+
+    # ingest
+    @property
+    def ingest_dir(self) -> Path:
+        return self.root / "ingest"
+
+    @staticmethod
+    def ingest_cameras(ingest_dir: Path) -> Path:
+        """cameras.json of an ingest folder (the final one or ingest's staging folder)."""
+        return Path(ingest_dir) / "cameras.json"
+
+    @staticmethod
+    def ingest_frames(ingest_dir: Path) -> Path:
+        return Path(ingest_dir) / "frames.npz"
+
+    @staticmethod
+    def image_relpath(camera_index: int, frame: int, ext: str) -> str:
+        """Path of a stored image relative to the ingest folder."""
+        return f"images/{camera_index:02d}/{frame:06d}.{ext}"
+
+    @staticmethod
+    def staged_dir(ingest_dir: Path) -> Path:
+        """Where ingest writes images as they stream in, before naming them by frame."""
+        return Path(ingest_dir) / "staged"
+
+    @staticmethod
+    def staged_relpath(camera_index: int, count: int, ext: str) -> str:
+        """Path, relative to the ingest folder, of a camera's `count`-th streamed image."""
+        return f"staged/{camera_index:02d}/{count:08d}.{ext}"
+
+    def ingest_staging(self, token: str) -> Path:
+        return self.root / f"{INGEST_STAGING_PREFIX}{token}"
+
+    # template
+    @property
+    def template_ply(self) -> Path:
+        return self.root / "template.ply"
+
+    @property
+    def template_dir(self) -> Path:
+        return self.root / "template"
+
+    @property
+    def observations(self) -> Path:
+        return self.template_dir / "observations.npz"
+
+    @property
+    def template_summary(self) -> Path:
+        return self.template_dir / "summary.json"
+
+    # registration
+    @property
+    def registration_dir(self) -> Path:
+        return self.root / "registration"
+
+    def registration(self, frame: int) -> Path:
+        return self.registration_dir / f"{frame:06d}.npz"
+
+    # classification and clouds
+    @property
+    def classify_dir(self) -> Path:
+        return self.root / "classify"
+
+    @property
+    def labels(self) -> Path:
+        return self.classify_dir / "labels.npz"
+
+    @property
+    def clouds_dir(self) -> Path:
+        return self.root / "clouds"
+
+    def cloud(self, frame: int) -> Path:
+        return self.clouds_dir / f"{frame:06d}.ply"
+
+    # evaluation and report
+    @property
+    def metrics_dir(self) -> Path:
+        return self.root / "metrics"
+
+    @property
+    def evaluation_json(self) -> Path:
+        return self.metrics_dir / "evaluation.json"
+
+    @property
+    def evaluation_errors(self) -> Path:
+        return self.metrics_dir / "evaluation_errors.npz"
+
+    @property
+    def frames_csv(self) -> Path:
+        return self.metrics_dir / "frames.csv"
+
+    @property
+    def summary_json(self) -> Path:
+        return self.metrics_dir / "summary.json"
+
+    @property
+    def report_html(self) -> Path:
+        return self.root / "report.html"
+
+    def relative(self, path: Path) -> str:
+        """`path` relative to the run folder, with forward slashes (for the report)."""
+        return Path(path).relative_to(self.root).as_posix()
+
+
+# What the report's "Files" table lists, in order: (layout attribute, what it holds).
+DESCRIBED_FILES = (
+    ("run_json", "status, timings and config of every stage"),
+    ("config_toml", "the effective config (rerun with `--config`)"),
+    ("template_ply", "the template cloud P (frame 0)"),
+    ("clouds_dir", "one labelled cloud per frame (PLY, point_id, label, residual, sigma)"),
+    ("registration_dir", "per-frame transforms, targets and uncertainties (npz)"),
+    ("labels", "labels (T, N) and the measures behind them"),
+    ("frames_csv", "the per-frame table behind these plots"),
+    ("summary_json", "this run at a glance"),
+    ("evaluation_json", "scores against ground truth (when evaluated)"),
+)
