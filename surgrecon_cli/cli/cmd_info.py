@@ -25,6 +25,7 @@ def info_cmd(log: Path, write_config: Path | None, force: bool, config: Any,
     images, camera infos, camera poses, tool pose, joint states, tf) the candidate topics
     and frames, found from the schemas and the names. Checks the [topics] of the effective
     config against the log. Fast: reads the summary and indexes where the log has them.
+    With --quiet and --write-config only the file is written.
 
     \b
     Examples:
@@ -39,7 +40,8 @@ def info_cmd(log: Path, write_config: Path | None, force: bool, config: Any,
     if write_config is not None and write_config.exists() and not force:
         raise InputError(f"{write_config} exists; pass --force to replace it")
     info = scan_log(log, config.ingest.time_source)
-    click.echo(format_info(info, config.topics))
+    if not (quiet and write_config is not None):
+        click.echo(format_info(info, config.topics))
     if write_config is not None:
         with atomic_open(write_config, "w") as f:
             f.write(topics_toml(info))
@@ -66,7 +68,7 @@ def _header(info: Any) -> str:
            else "no usable index: streamed"),
     ]
     if info.damage:
-        lines.append(f"damaged: {info.damage}")
+        lines.append(f"damaged log: {info.damage}")
     return "\n".join(lines)
 
 
@@ -123,6 +125,10 @@ _ROLE_LABELS = {
 
 
 def _roles_section(info: Any) -> str:
+    from ..io.log_info import captures
+
+    chosen = [r.pattern for r in info.roles if r.pattern]
+    camera_frames = info.role("image").frame_pattern
     lines = ["roles (candidates from schemas and names; `--write-config FILE` writes them):"]
     for r in info.roles:
         if r.role == "tf":
@@ -137,12 +143,17 @@ def _roles_section(info: Any) -> str:
             extra.append(f"cameras {' '.join(r.cameras)}")
         if r.frame_pattern:
             extra.append(f"frame {r.frame_pattern}")
+        elif r.frames and camera_frames and len(captures(camera_frames, r.frames)) == len(
+                r.frames):
+            extra.append(f"frame {camera_frames}")
         elif r.frames:
             shown = ", ".join(r.frames[:6]) + (", ..." if len(r.frames) > 6 else "")
             extra.append(f"frame{'s' if len(r.frames) > 1 else ''} {shown}")
+        if r.parent_frames:
+            extra.append(f"in {', '.join(r.parent_frames)}")
         if r.note:
             extra.append(r.note)
-        others = [t for t in r.topics if not _matches(r.pattern, t)]
+        others = [t for t in r.topics if not any(captures(p, [t]) for p in chosen)]
         if others:
             extra.append(f"other candidates {', '.join(others[:6])}"
                          + (", ..." if len(others) > 6 else ""))
@@ -153,16 +164,11 @@ def _roles_section(info: Any) -> str:
     return "\n".join(lines)
 
 
-def _matches(pattern: str, topic: str) -> bool:
-    from ..io.log_info import captures
-
-    return bool(pattern) and topic in captures(pattern, [topic])
-
-
 def _config_section(info: Any, topics: Any) -> str:
     from ..io.log_info import check_topics
 
     problems = check_topics(info, topics)
     if not problems:
         return "the config's [topics] find every role in this log"
-    return "the config's [topics] and this log:\n" + "\n".join(f"  {p}" for p in problems)
+    return ("the config's [topics] do not fit this log (`--write-config FILE` writes a block "
+            "that does):\n" + "\n".join(f"  {p}" for p in problems))

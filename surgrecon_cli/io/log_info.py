@@ -72,7 +72,8 @@ class ChannelInfo:
 class RoleGuess:
     """The candidate topics of one role (`ROLE_NAMES`): `topics` every channel of a fitting
     schema, `pattern` the chosen `[topics]` value ("" none), `cameras` the ids it captures,
-    `frames` the frame ids found (message frame ids, or TF child frames), `frame_pattern` the
+    `frames` the frame ids found (image / intrinsics frame ids, or TF child frames),
+    `parent_frames` the frames that pose topics are given in, `frame_pattern` the
     `camera_frame`/`tool_frame` value when poses come as transforms, `note` a remark."""
 
     role: str
@@ -82,6 +83,7 @@ class RoleGuess:
     frames: tuple[str, ...] = ()
     frame_pattern: str = ""
     note: str = ""
+    parent_frames: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -311,7 +313,7 @@ def guess_roles(channels: Sequence[ChannelInfo], tree: TfTree | None
     roles: dict[str, RoleGuess] = {}
 
     images = by_kind.get("image", [])
-    image_names = [c.topic for c in images]
+    image_names = sorted(c.topic for c in images)
     image_pattern, image_caps = camera_pattern(image_names, prefer=_IMAGE_WORDS)
     ids = _sort_ids(image_caps.values())
     image_frames = [c.frame_id for c in images if c.topic in image_caps and c.frame_id]
@@ -322,7 +324,7 @@ def guess_roles(channels: Sequence[ChannelInfo], tree: TfTree | None
         topics["image"] = image_pattern
 
     infos = by_kind.get("camera_info", [])
-    info_names = [c.topic for c in infos]
+    info_names = sorted(c.topic for c in infos)
     info_pattern, info_caps = camera_pattern(info_names, ids) if ids else camera_pattern(
         info_names)
     roles["camera_info"] = RoleGuess(
@@ -333,10 +335,10 @@ def guess_roles(channels: Sequence[ChannelInfo], tree: TfTree | None
         topics["camera_info"] = info_pattern
 
     poses = by_kind.get("pose", [])
-    pose_names = [c.topic for c in poses]
+    pose_names = sorted(c.topic for c in poses)
     pose_pattern, pose_caps = (camera_pattern(pose_names, ids, prefer=_POSE_WORDS)
                                if ids else ("", {}))
-    tf_channels = by_kind.get("transforms", [])
+    tf_channels = sorted(by_kind.get("transforms", []), key=lambda c: c.topic)
     tf_guess = _tf_cameras(tree, tf_channels, ids, frame_from_images) if tree else None
     world = ""
     use_tf = tf_guess is not None and len(set(tf_guess[2].values())) > len(
@@ -346,8 +348,8 @@ def guess_roles(channels: Sequence[ChannelInfo], tree: TfTree | None
         roles["camera_pose"] = RoleGuess(
             "camera_pose", (tf_topic, *pose_names), tf_topic, _sort_ids(frame_caps.values()),
             tuple(sorted(frame_caps)), frame_pattern,
-            note=_join(f"camera-to-{world} through the TF tree", _missing(ids,
-                                                                           frame_caps.values())))
+            note=_join("through the TF tree", _missing(ids, frame_caps.values())),
+            parent_frames=(world,))
         topics["camera_pose"] = tf_topic
         topics["camera_frame"] = frame_pattern
         pose_caps = {}
@@ -356,7 +358,7 @@ def guess_roles(channels: Sequence[ChannelInfo], tree: TfTree | None
                                     and c.frame_id}))
         roles["camera_pose"] = RoleGuess(
             "camera_pose", tuple(pose_names), pose_pattern, _sort_ids(pose_caps.values()),
-            pose_frames, note=_missing(ids, pose_caps.values()))
+            note=_missing(ids, pose_caps.values()), parent_frames=pose_frames)
         if pose_pattern:
             topics["camera_pose"] = pose_pattern
             if frame_from_images:
@@ -432,8 +434,8 @@ def _tool(names: Sequence[str], poses: Sequence[ChannelInfo], tree: TfTree | Non
         topic = scored[0]
         frame = next((c.frame_id for c in poses if c.topic == topic and c.frame_id), "")
         note = "" if _word_score(topic, _TOOL_WORDS) > 0 else "guessed: the only other pose topic"
-        return RoleGuess("tool_pose", tuple(scored), topic, (), (frame,) if frame else (),
-                         note=note), {"tool_pose": topic}
+        return RoleGuess("tool_pose", tuple(scored), topic, note=note,
+                         parent_frames=(frame,) if frame else ()), {"tool_pose": topic}
     if tree is not None and tf_channels:
         camera_frames = set(camera.frames)
         above = set()
@@ -448,7 +450,7 @@ def _tool(names: Sequence[str], poses: Sequence[ChannelInfo], tree: TfTree | Non
             frame = ranked[0]
             topic = _publisher(tree, frame, tf_channels)
             return (RoleGuess("tool_pose", (topic, *scored), topic, (), tuple(ranked), frame,
-                              note=f"TF frame {frame} in {tree.root_of(frame)}"),
+                              note="through the TF tree", parent_frames=(tree.root_of(frame),)),
                     {"tool_pose": topic, "tool_frame": frame})
     note = "no tool pose found: tool_pose = \"\" (no robot, tool removal off)"
     return RoleGuess("tool_pose", tuple(scored), "", note=note), {"tool_pose": ""}

@@ -294,8 +294,8 @@ def _scan_stream(path: Path, f: BoundedFile, header: Header, select: Select,
         except _ERRORS as exc:
             t = max(last.values(), default=None)
             when = f"log time {t / 1e9:.6f} s" if t is not None else "before any message"
-            damage = (f"damaged or truncated: valid data ends at byte {valid} of {f.size} "
-                      f"({when}; {_one_line(exc)})")
+            damage = (f"valid data ends at byte {valid} of {f.size} ({when}): truncated or "
+                      f"corrupt ({_one_line(exc)})")
             break
         valid = f.pos
         if isinstance(record, Schema):

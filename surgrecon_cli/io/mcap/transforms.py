@@ -164,6 +164,6 @@ def read_transforms(path: Path, time_source: str = "header",
     collector = TransformCollector(path, use_log_time=time_source == "log_time")
     scan = scan_mcap(Path(path), collector.select, collector.add)
     if scan.damage and not allow_truncated:
-        raise InputError(f"{path}: {scan.damage}; re-copy or repair the log, or pass "
+        raise InputError(f"{path}: damaged log: {scan.damage}; re-copy or repair the log, or pass "
                          "--allow-truncated to use the data before the damage")
     return collector.result(scan)
