@@ -125,9 +125,8 @@ _ROLE_LABELS = {
 
 
 def _roles_section(info: Any) -> str:
-    from ..io.log_info import captures
+    from ..io.log_info import captures, other_candidates
 
-    chosen = [r.pattern for r in info.roles if r.pattern]
     camera_frames = info.role("image").frame_pattern
     lines = ["roles (candidates from schemas and names; `--write-config FILE` writes them):"]
     for r in info.roles:
@@ -153,7 +152,7 @@ def _roles_section(info: Any) -> str:
             extra.append(f"in {', '.join(r.parent_frames)}")
         if r.note:
             extra.append(r.note)
-        others = [t for t in r.topics if not any(captures(p, [t]) for p in chosen)]
+        others = other_candidates(info, r)
         if others:
             extra.append(f"other candidates {', '.join(others[:6])}"
                          + (", ..." if len(others) > 6 else ""))

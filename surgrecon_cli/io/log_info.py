@@ -473,13 +473,13 @@ def topics_toml(info: LogInfo) -> str:
     """A `[topics]` TOML block for the log (keys in the order of configs/default.toml), with
     a comment per key saying what was found; keys that were not found are commented out."""
     comments = {
-        "image": _role_comment(info.role("image")),
-        "camera_info": _role_comment(info.role("camera_info")),
-        "camera_pose": _role_comment(info.role("camera_pose")),
+        "image": _role_comment(info, info.role("image")),
+        "camera_info": _role_comment(info, info.role("camera_info")),
+        "camera_pose": _role_comment(info, info.role("camera_pose")),
         "camera_frame": "camera child frame pattern (poses as transforms)",
-        "tool_pose": _role_comment(info.role("tool_pose")),
+        "tool_pose": _role_comment(info, info.role("tool_pose")),
         "tool_frame": "tool child frame (poses as transforms)",
-        "joint_states": _role_comment(info.role("joint_states")),
+        "joint_states": _role_comment(info, info.role("joint_states")),
     }
     lines = [f"# [topics] for {info.path.name}, written by `surgrecon info --write-config`.",
              "# Check the patterns; {camera} captures the camera id.", "[topics]"]
@@ -495,12 +495,17 @@ def topics_toml(info: LogInfo) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _role_comment(guess: RoleGuess) -> str:
+def other_candidates(info: LogInfo, guess: RoleGuess) -> list[str]:
+    """Candidate topics of a role that no chosen `[topics]` value matches."""
+    chosen = [r.pattern for r in info.roles if r.pattern]
+    return [t for t in guess.topics if not any(captures(p, [t]) for p in chosen)]
+
+
+def _role_comment(info: LogInfo, guess: RoleGuess) -> str:
     parts = [guess.role]
     if guess.cameras:
         parts.append(f"cameras {' '.join(guess.cameras)}")
-    others = [t for t in guess.topics if t != guess.pattern and t not in captures(
-        guess.pattern, guess.topics)] if guess.pattern else []
+    others = other_candidates(info, guess)
     if others:
         parts.append(f"other candidates: {', '.join(others[:6])}")
     if guess.note:
