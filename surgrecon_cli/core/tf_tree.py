@@ -1,0 +1,335 @@
+"""A time-indexed TF tree: transforms between named frames, composed through the tree.
+
+Pure numpy, no I/O. Input are transform samples as `/tf` and `/tf_static` carry them (ROS
+`tf2_msgs/TFMessage`, Foxglove `FrameTransform(s)`): sample i is the pose of frame `child[i]` in
+frame `parent[i]` at `stamps_ns[i]` (translation m, unit quaternion x y z w), i.e.
+p_parent = T_i @ p_child. Each child has one parent (the tf2 convention), so the frames form a
+forest; an *edge* is one (parent, child) pair with all its samples.
+
+- A dynamic edge (from `/tf`) is interpolated to the query stamps like the tracker streams
+  (`sync.validate_pose_stream` + `geometry.interpolate_poses`: linear translation, slerp
+  rotation); a query before its first sample, after its last, or inside a gap between two
+  samples longer than `max_gap_ns`, is invalid (NaN), never extrapolated.
+- A static edge (from `/tf_static`) is latched: constant over the whole log whatever its stamp;
+  when it is published several times the last sample wins (as in tf2).
+
+`TfTree.lookup(target, source, stamps)` returns T_target_source (Q, 4, 4): the pose of `source`
+in `target` (p_target = T @ p_source), composed from the source up to the frames' common
+ancestor and down to the target. A camera-to-world pose is `lookup("world", camera_frame, t)`.
+Stamps are int64 nanoseconds.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..errors import InputError
+from .geometry import invert_pose, make_pose
+from .sync import PoseStream, poses_at, rate_hz, validate_pose_stream
+
+_MAX_LISTED = 40
+
+
+@dataclass(frozen=True)
+class TransformSamples:
+    """Transform samples, in any order.
+
+    parent, child (N,) str: frame names (sample i is the pose of child[i] in parent[i]);
+    stamps_ns (N,) int64 ns; translations (N, 3) m; quats (N, 4) x y z w (unit);
+    static (N,) bool: latched (from `/tf_static`), valid for the whole log whatever its stamp.
+    """
+
+    parent: np.ndarray
+    child: np.ndarray
+    stamps_ns: np.ndarray
+    translations: np.ndarray
+    quats: np.ndarray
+    static: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.stamps_ns.shape[0])
+
+
+def make_samples(
+    parent: Sequence[str] | np.ndarray,
+    child: Sequence[str] | np.ndarray,
+    stamps_ns: Sequence[int] | np.ndarray,
+    translations: Sequence[Sequence[float]] | np.ndarray,
+    quats: Sequence[Sequence[float]] | np.ndarray,
+    static: bool | Sequence[bool] | np.ndarray = False,
+) -> TransformSamples:
+    """`TransformSamples` from array-likes of N samples (shapes checked); `static` may be one
+    bool for all. Raises ValueError on mismatched lengths or shapes."""
+    par = np.asarray(parent, dtype=str).reshape(-1)
+    chi = np.asarray(child, dtype=str).reshape(-1)
+    n = len(par)
+    stamps = np.asarray(stamps_ns, dtype=np.int64).reshape(-1)
+    trans = np.asarray(translations, dtype=float).reshape(-1, 3) if n else np.zeros((0, 3))
+    q = np.asarray(quats, dtype=float).reshape(-1, 4) if n else np.zeros((0, 4))
+    stat = np.broadcast_to(np.asarray(static, dtype=bool), (n,)).copy()
+    if not (len(chi) == len(stamps) == len(trans) == len(q) == n):
+        raise ValueError(f"transform samples: {n} parents, {len(chi)} children, "
+                         f"{len(stamps)} stamps, {len(trans)} translations, {len(q)} quats")
+    return TransformSamples(par, chi, stamps, trans, q, stat)
+
+
+def concat_samples(parts: Sequence[TransformSamples]) -> TransformSamples:
+    """All samples of `parts`, in order."""
+    if not parts:
+        return make_samples([], [], [], [], [])
+    return TransformSamples(
+        np.concatenate([p.parent for p in parts]).astype(str),
+        np.concatenate([p.child for p in parts]).astype(str),
+        np.concatenate([p.stamps_ns for p in parts]).astype(np.int64),
+        np.concatenate([p.translations for p in parts]).reshape(-1, 3),
+        np.concatenate([p.quats for p in parts]).reshape(-1, 4),
+        np.concatenate([p.static for p in parts]).astype(bool),
+    )
+
+
+@dataclass(frozen=True)
+class TfEdge:
+    """The transforms of `child` in `parent`: `stream` holds the samples sorted by stamp with
+    repeated stamps dropped (a static edge: its one latched sample); `published` counts the
+    samples received."""
+
+    parent: str
+    child: str
+    static: bool
+    stream: PoseStream
+    published: int
+
+    @property
+    def rate_hz(self) -> float:
+        """Mean sample rate (Hz); 0 for a static edge."""
+        return 0.0 if self.static else rate_hz(self.stream.stamps_ns)
+
+    def at(self, stamps_ns: np.ndarray, max_gap_ns: int) -> np.ndarray:
+        """Poses of child in parent (Q, 4, 4) at stamps (Q,) ns; NaN where invalid (module
+        docstring); a static edge is valid everywhere."""
+        query = np.asarray(stamps_ns, dtype=np.int64).reshape(-1)
+        if self.static:
+            pose = make_pose(self.stream.positions[0], self.stream.quats[0])
+            return np.broadcast_to(pose, (len(query), 4, 4)).copy()
+        return poses_at(self.stream, query, max_gap_ns)[0]
+
+
+@dataclass(frozen=True)
+class FrameSummary:
+    """One frame of the tree, for display: `parent` "" for a root (then `static` False and
+    `samples` 0); `depth` 0 for a root; `samples` = transforms received for the edge to the
+    parent; rate (Hz, 0 when static) and first/last stamps (ns) of that edge."""
+
+    frame: str
+    parent: str
+    depth: int
+    static: bool
+    samples: int
+    rate_hz: float
+    first_ns: int
+    last_ns: int
+
+
+@dataclass(frozen=True)
+class TfTree:
+    """Frames connected by edges (one per child frame); build with `build_tf_tree`."""
+
+    edges: tuple[TfEdge, ...]
+    _by_child: dict[str, TfEdge] = field(init=False, repr=False, compare=False)
+    _children: dict[str, tuple[str, ...]] = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        by_child = {e.child: e for e in self.edges}
+        if len(by_child) != len(self.edges):
+            raise ValueError("TfTree: one edge per child frame")
+        children: dict[str, list[str]] = {}
+        for e in self.edges:
+            children.setdefault(e.parent, []).append(e.child)
+        object.__setattr__(self, "_by_child", by_child)
+        object.__setattr__(self, "_children",
+                           {p: tuple(sorted(c)) for p, c in children.items()})
+        _check_acyclic(by_child)
+
+    # -- structure -----------------------------------------------------------------------
+    @property
+    def frames(self) -> tuple[str, ...]:
+        """Every frame name, sorted."""
+        return tuple(sorted(set(self._by_child) | set(self._children)))
+
+    @property
+    def roots(self) -> tuple[str, ...]:
+        """Frames without a parent, sorted."""
+        return tuple(sorted(set(self._children) - set(self._by_child)))
+
+    def parent(self, frame: str) -> str | None:
+        """The parent of `frame`, None for a root; InputError for an unknown frame."""
+        self._check_frame(frame)
+        edge = self._by_child.get(frame)
+        return None if edge is None else edge.parent
+
+    def children(self, frame: str) -> tuple[str, ...]:
+        """Child frames of `frame`, sorted."""
+        return self._children.get(frame, ())
+
+    def edge(self, child: str) -> TfEdge | None:
+        """The edge from `child` to its parent, None for a root or an unknown frame."""
+        return self._by_child.get(child)
+
+    def root_of(self, frame: str) -> str:
+        """The root of the tree holding `frame`."""
+        return self._up(frame)[-1]
+
+    def is_connected(self, frame_a: str, frame_b: str) -> bool:
+        """True when both frames exist and share a root."""
+        known = set(self.frames)
+        return frame_a in known and frame_b in known and self.root_of(frame_a) == self.root_of(
+            frame_b)
+
+    def chain(self, target_frame: str, source_frame: str) -> tuple[list[TfEdge], list[TfEdge]]:
+        """Edges from the source up to the common ancestor and from the target up to it.
+
+        Raises InputError naming both frames (and listing the frames) when a frame is unknown
+        or the two are in different trees.
+        """
+        self._check_frame(target_frame)
+        self._check_frame(source_frame)
+        up_source = self._up(source_frame)
+        up_target = self._up(target_frame)
+        if up_source[-1] != up_target[-1]:
+            raise InputError(
+                f"TF frames {target_frame!r} and {source_frame!r} are not connected: "
+                f"{source_frame!r} is in the tree under {up_source[-1]!r}, {target_frame!r} "
+                f"under {up_target[-1]!r}; {self._listing()}")
+        on_target_path = set(up_target)
+        ancestor = next(f for f in up_source if f in on_target_path)
+        source_edges = [self._by_child[f] for f in up_source[: up_source.index(ancestor)]]
+        target_edges = [self._by_child[f] for f in up_target[: up_target.index(ancestor)]]
+        return source_edges, target_edges
+
+    # -- lookup --------------------------------------------------------------------------
+    def lookup(self, target_frame: str, source_frame: str, stamps_ns: np.ndarray,
+               max_gap_ns: int) -> np.ndarray:
+        """T_target_source (Q, 4, 4): pose of `source_frame` in `target_frame` at stamps (Q,)
+        int64 ns, composed through the common ancestor. A row is NaN where any dynamic edge
+        on the chain is invalid (outside its samples or in a gap > `max_gap_ns`); validity is
+        `np.isfinite(T[:, 0, 0])`. Raises InputError when the frames are not connected."""
+        query = np.asarray(stamps_ns, dtype=np.int64).reshape(-1)
+        source_edges, target_edges = self.chain(target_frame, source_frame)
+        ancestor_source = _compose(source_edges, query, max_gap_ns)
+        ancestor_target = _compose(target_edges, query, max_gap_ns)
+        valid = np.isfinite(ancestor_source).all(axis=(1, 2)) & np.isfinite(
+            ancestor_target).all(axis=(1, 2))
+        out = np.full((len(query), 4, 4), np.nan)
+        out[valid] = invert_pose(ancestor_target[valid]) @ ancestor_source[valid]
+        return out
+
+    # -- description ---------------------------------------------------------------------
+    def describe(self) -> tuple[FrameSummary, ...]:
+        """Every frame in depth-first order from the roots (children sorted by name)."""
+        out: list[FrameSummary] = []
+        stack = [(root, 0) for root in reversed(self.roots)]
+        while stack:
+            frame, depth = stack.pop()
+            e = self._by_child.get(frame)
+            if e is None:
+                out.append(FrameSummary(frame, "", depth, False, 0, 0.0, 0, 0))
+            else:
+                s = e.stream.stamps_ns
+                out.append(FrameSummary(frame, e.parent, depth, e.static, e.published,
+                                        e.rate_hz, int(s[0]), int(s[-1])))
+            stack.extend((c, depth + 1) for c in reversed(self.children(frame)))
+        return tuple(out)
+
+    # -- helpers -------------------------------------------------------------------------
+    def _up(self, frame: str) -> list[str]:
+        """`frame`, its parent, ... up to its root."""
+        path = [frame]
+        while path[-1] in self._by_child:
+            path.append(self._by_child[path[-1]].parent)
+        return path
+
+    def _check_frame(self, frame: str) -> None:
+        if frame not in self._by_child and frame not in self._children:
+            raise InputError(f"TF frame {frame!r} is not in the TF tree; {self._listing()}")
+
+    def _listing(self) -> str:
+        frames = self.frames
+        more = f", ... ({len(frames) - _MAX_LISTED} more)" if len(frames) > _MAX_LISTED else ""
+        return f"frames in the tree: {', '.join(frames[:_MAX_LISTED]) or 'none'}{more}"
+
+
+def _compose(edges: list[TfEdge], query: np.ndarray, max_gap_ns: int) -> np.ndarray:
+    """Product of the edges' poses (Q, 4, 4), the edge nearest the ancestor leftmost:
+    T_ancestor_frame for `edges` listed from the frame up to the ancestor."""
+    out = np.broadcast_to(np.eye(4), (len(query), 4, 4)).copy()
+    for e in edges:
+        out = e.at(query, max_gap_ns) @ out
+    return out
+
+
+def build_tf_tree(samples: TransformSamples) -> TfTree:
+    """Group samples into edges and check the tree.
+
+    Raises InputError when a child frame has two parents (naming the child and both parents),
+    when an edge is both static and dynamic, when the edges form a cycle, when a sample's
+    child is its own parent, and (naming the edge and stamp) on a non-finite value or a
+    non-unit quaternion.
+    """
+    n = len(samples)
+    if n == 0:
+        return TfTree(())
+    bad = samples.parent == samples.child
+    if bad.any():
+        k = int(np.argmax(bad))
+        raise InputError(f"TF transform from frame {samples.parent[k]!r} to itself")
+    children, inverse = np.unique(samples.child, return_inverse=True)
+    order = np.argsort(inverse, kind="stable")  # by child, arrival order within a child
+    bounds = np.cumsum(np.bincount(inverse, minlength=len(children)))[:-1]
+    edges = []
+    for child, idx in zip(children, np.split(order, bounds), strict=True):
+        edges.append(_edge(str(child), samples, idx))
+    return TfTree(tuple(edges))
+
+
+def _edge(child: str, samples: TransformSamples, idx: np.ndarray) -> TfEdge:
+    parents, counts = np.unique(samples.parent[idx], return_counts=True)
+    if len(parents) > 1:
+        listed = ", ".join(f"{str(p)!r} ({c} transform{'s' if c > 1 else ''})"
+                           for p, c in zip(parents, counts, strict=True))
+        raise InputError(
+            f"TF frame {child!r} has {len(parents)} parents: {listed}; a frame has one parent in "
+            "a TF tree (fix the publishers, or drop one of the transforms)")
+    parent = str(parents[0])
+    static = samples.static[idx]
+    name = f"TF transform {parent!r} -> {child!r}"
+    if static.any() and not static.all():
+        raise InputError(
+            f"{name} is published both as static ({int(static.sum())} on /tf_static) and as "
+            f"dynamic ({int((~static).sum())} on /tf); publish it on one of them")
+    if static[0]:
+        idx = idx[-1:]  # latched: the last one published wins
+    stream = validate_pose_stream(name, samples.stamps_ns[idx], samples.translations[idx],
+                                  samples.quats[idx])
+    return TfEdge(parent, child, bool(static[0]), stream, len(static))
+
+
+def _check_acyclic(by_child: dict[str, TfEdge]) -> None:
+    """InputError naming the frames of a cycle, if the edges have one."""
+    parent_of = {child: e.parent for child, e in by_child.items()}
+    done: set[str] = set()
+    for start in parent_of:
+        path: list[str] = []
+        on_path: set[str] = set()
+        frame: str | None = start
+        while frame is not None and frame not in done:
+            if frame in on_path:
+                cycle = [*path[path.index(frame):], frame][::-1]
+                raise InputError(f"TF transforms form a cycle: {' -> '.join(cycle)} (parent "
+                                 "-> child); a TF tree has no cycles")
+            path.append(frame)
+            on_path.add(frame)
+            frame = parent_of.get(frame)
+        done.update(path)
