@@ -23,3 +23,8 @@ class RunFolderError(SurgReconError):
 
 class GeometryError(SurgReconError):
     """Degenerate geometry: too few points, singular systems, invalid transforms."""
+
+
+class ExecutorError(SurgReconError):
+    """An executor could not start, lost its workers, or a task failed unexpectedly
+    (raised by surgrecon_cli/executors, which re-exports it)."""

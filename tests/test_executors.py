@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from surgrecon_cli import errors
 from surgrecon_cli.config import Config, RunConfig, load_config
 from surgrecon_cli.errors import ConfigError
 from surgrecon_cli.executors import (
@@ -68,9 +69,25 @@ def test_graph_errors_are_named():
         list(topological_order([Task("a", pow, (1, 1)), Task("a", pow, (1, 1))]))
     with pytest.raises(ExecutorError, match="unknown"):
         list(topological_order([Task("a", pow, (1, 1), deps=("z",))]))
-    with pytest.raises(ExecutorError, match="cycle"):
+    with pytest.raises(ExecutorError, match=r"cycle: '(a' -> 'b' -> 'a|b' -> 'a' -> 'b)'$"):
         list(topological_order([Task("a", pow, (1, 1), deps=("b",)),
-                                Task("b", pow, (1, 1), deps=("a",))]))
+                                Task("b", pow, (1, 1), deps=("a",)), Task("c", pow, (1, 1))]))
+    with pytest.raises(ExecutorError, match="cycle: 'a' -> 'a'"):
+        check_graph([Task("a", pow, (1, 1), deps=("a",))])
+
+
+def test_executor_error_lives_in_errors_and_is_re_exported():
+    assert ExecutorError is errors.ExecutorError and issubclass(ExecutorError,
+                                                                 errors.SurgReconError)
+
+
+def test_graph_order_is_the_given_order_where_dependencies_allow():
+    tasks = [Task("d", pow, (1, 1), deps=("b", "b")), Task("c", pow, (1, 1)),
+             Task("b", pow, (1, 1), deps=("a",)), Task("a", pow, (1, 1))]
+    graph = check_graph(tasks)
+    assert [t.key for t in graph.order] == ["c", "a", "b", "d"]
+    assert graph.dependants == {"d": (), "c": (), "b": ("d",), "a": ("b",)}
+    assert graph.rank == {"d": 1, "c": 1, "b": 2, "a": 3}
 
 
 class _Future:

@@ -4,12 +4,11 @@ and the `register-pair` command end to end."""
 from __future__ import annotations
 
 import numpy as np
+import plyfile
 import pytest
 
 from surgrecon_cli.errors import InputError
 from surgrecon_cli.io.ply import read_ply, read_ply_counted, write_cloud_ply
-
-plyfile = pytest.importorskip("plyfile")
 
 
 def cloud(n: int = 200, seed: int = 0):
@@ -42,10 +41,14 @@ def test_round_trip_with_plyfile_and_open3d(tmp_path):
     assert data.text is False and data.byte_order == "<"
     v = data["vertex"].data
     names = list(v.dtype.names)
-    assert names[:9] == ["x", "y", "z", "red", "green", "blue", "point_id", "label", "residual"]
-    assert [v.dtype[k].str for k in names[:9]] == ["<f4"] * 3 + ["|u1"] * 3 + ["<i4", "|u1", "<f4"]
-    assert np.array_equal(v["label"], label)
+    assert names[:10] == ["x", "y", "z", "red", "green", "blue", "point_id", "label", "residual",
+                          "scalar_label"]
+    assert [v.dtype[k].str for k in names[:10]] == (["<f4"] * 3 + ["|u1"] * 3
+                                                    + ["<i4", "|u1", "<f4", "<f4"])
+    assert np.array_equal(v["label"], label) and np.array_equal(v["scalar_label"], label)
     np.testing.assert_allclose(v["residual"], residual, rtol=1e-6)
+    documented = {c.split(":")[0] for c in data.comments}
+    assert "written by surgrecon" in data.comments and set(names) <= documented
 
     o3d = pytest.importorskip("open3d")
     pc = o3d.io.read_point_cloud(str(path))
@@ -64,6 +67,36 @@ def test_defaults_and_non_finite_points_dropped(tmp_path):
     assert np.array_equal(out["point_id"], [0, 1, 2, 4, 5, 6, 8, 9])  # ids survive the drop
     assert np.all(out["label"] == 255) and np.all(out["residual"] == 0)
     assert np.all(out["red"] == 128)
+
+
+def test_nan_residual_and_sigma_are_kept_only_positions_drop(tmp_path):
+    xyz, _ = cloud(6)
+    xyz[2, 2] = np.nan
+    residual = np.array([0.001, np.nan, 0.002, np.nan, 0.0, 0.003])
+    sigma = np.array([np.nan, 0.001, 0.001, 0.002, np.nan, 0.001])
+    path = tmp_path / "n.ply"
+    assert write_cloud_ply(path, xyz, residual=residual, extra={"sigma": sigma}) == 1
+    out, dropped = read_ply_counted(path)
+    assert dropped == 0 and list(out["point_id"]) == [0, 1, 3, 4, 5]
+    np.testing.assert_array_equal(out["residual"], residual[[0, 1, 3, 4, 5]].astype(np.float32))
+    np.testing.assert_array_equal(out["sigma"], sigma[[0, 1, 3, 4, 5]].astype(np.float32))
+
+
+def test_rewrite_of_a_read_cloud_rederives_scalar_label(tmp_path):
+    """As classify's relabelling does: every read property but the spec's columns goes back
+    as an extra, `scalar_label` included, and follows the new labels."""
+    xyz, rgb = cloud(8)
+    path = tmp_path / "r.ply"
+    write_cloud_ply(path, xyz, rgb, extra={"views": np.full(8, 2, np.uint8)})
+    cloud_in = read_ply(path)
+    spec = ("x", "y", "z", "red", "green", "blue", "point_id", "label", "residual")
+    extra = {k: v for k, v in cloud_in.items() if k not in spec}
+    assert set(extra) == {"scalar_label", "views"}
+    labels = np.arange(8, dtype=np.uint8) % 3
+    write_cloud_ply(path, xyz, rgb, label=labels, extra=extra)
+    out = read_ply(path)
+    assert np.array_equal(out["scalar_label"], labels) and out["scalar_label"].dtype == np.float32
+    assert np.array_equal(out["views"], extra["views"])
 
 
 @pytest.mark.parametrize("text,byte_order", [(True, "="), (False, ">"), (False, "<")])
@@ -113,6 +146,11 @@ GOOD_HEAD = "ply\nformat binary_little_endian 1.0\nelement vertex {n}\n" \
     ("ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\n"
      "property float z\nend_header\n", b"1 2 abc\n", "non-numeric"),
     ("ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nend_header\n", b"1\n", "x, y, z"),
+    (GOOD_HEAD.format(n=-3), np.zeros(3, "<f4").tobytes(), "-3 records"),
+    ("ply\nformat ascii 1.0\ncomment \u00e9\nelement vertex 1\nproperty float x\n"
+     "property float y\nproperty float z\nend_header\n", b"1 2 3\n", "non-ASCII"),
+    ("ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\n"
+     "property uchar z\nend_header\n", b"1 2 300\n", "out of range"),
     ("ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\n", b"", "end_header"),
     ("ply\nformat ascii 1.0\nelement face 1\nproperty list uchar int vertex_indices\n"
      "end_header\n", b"3 0 1 2\n", "no vertex"),

@@ -1,48 +1,35 @@
 """Rigid-body helpers: quaternions (x, y, z, w), homogeneous poses, slerp, rigid fits.
 
-Pure numpy, vectorised over leading axes.
+Quaternion conversions and slerp use `scipy.spatial.transform.Rotation` (scalar-last order,
+as here); everything is vectorised over leading axes.
 """
 
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from ..errors import GeometryError
 
 
 def quat_to_matrix(q: np.ndarray) -> np.ndarray:
-    """Unit quaternions (..., 4) as (x, y, z, w) -> rotation matrices (..., 3, 3)."""
+    """Quaternions (..., 4) (x, y, z, w) -> rotation matrices (..., 3, 3).
+
+    Normalised first; a zero or non-finite quaternion gives a NaN matrix.
+    """
     q = np.asarray(q, dtype=float)
-    x, y, z, w = np.moveaxis(q, -1, 0)
-    return np.stack(
-        [
-            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
-            np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
-            np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
-        ],
-        -2,
-    )
+    flat = q.reshape(-1, 4)
+    ok = np.isfinite(flat).all(axis=1) & (np.linalg.norm(flat, axis=1) > 0)
+    out = np.full((len(flat), 3, 3), np.nan)
+    if ok.any():
+        out[ok] = Rotation.from_quat(flat[ok]).as_matrix()
+    return out.reshape((*q.shape[:-1], 3, 3))
 
 
 def matrix_to_quat(R: np.ndarray) -> np.ndarray:
     """Rotation matrices (..., 3, 3) -> unit quaternions (..., 4) (x, y, z, w), w >= 0."""
     R = np.asarray(R, dtype=float)
-    m = R.reshape(-1, 3, 3)
-    # Shepperd's method via the symmetric 4x4 K matrix's dominant eigenvector (robust everywhere).
-    K = np.empty((m.shape[0], 4, 4))
-    K[:, 0, 0] = m[:, 0, 0] - m[:, 1, 1] - m[:, 2, 2]
-    K[:, 1, 1] = m[:, 1, 1] - m[:, 0, 0] - m[:, 2, 2]
-    K[:, 2, 2] = m[:, 2, 2] - m[:, 0, 0] - m[:, 1, 1]
-    K[:, 3, 3] = m[:, 0, 0] + m[:, 1, 1] + m[:, 2, 2]
-    K[:, 0, 1] = K[:, 1, 0] = m[:, 0, 1] + m[:, 1, 0]
-    K[:, 0, 2] = K[:, 2, 0] = m[:, 0, 2] + m[:, 2, 0]
-    K[:, 1, 2] = K[:, 2, 1] = m[:, 1, 2] + m[:, 2, 1]
-    K[:, 0, 3] = K[:, 3, 0] = m[:, 2, 1] - m[:, 1, 2]
-    K[:, 1, 3] = K[:, 3, 1] = m[:, 0, 2] - m[:, 2, 0]
-    K[:, 2, 3] = K[:, 3, 2] = m[:, 1, 0] - m[:, 0, 1]
-    _, vecs = np.linalg.eigh(K / 3.0)
-    q = vecs[:, :, -1]
-    q = q * np.where(q[:, 3:4] < 0, -1.0, 1.0)
+    q = Rotation.from_matrix(R.reshape(-1, 3, 3)).as_quat(canonical=True)
     return q.reshape((*R.shape[:-2], 4))
 
 
@@ -72,19 +59,11 @@ def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
 
 
 def slerp(q0: np.ndarray, q1: np.ndarray, s: np.ndarray) -> np.ndarray:
-    """Spherical interpolation between quaternions (N, 4) at fractions s (N,) in [0, 1]."""
-    q0 = np.asarray(q0, float)
-    q1 = np.asarray(q1, float).copy()
-    dot = np.sum(q0 * q1, axis=-1)
-    q1[dot < 0] *= -1
-    dot = np.abs(dot).clip(-1.0, 1.0)
-    theta = np.arccos(dot)
-    sin_t = np.sin(theta)
-    small = sin_t < 1e-8
-    w0 = np.where(small, 1 - s, np.sin((1 - s) * theta) / np.where(small, 1, sin_t))
-    w1 = np.where(small, s, np.sin(s * theta) / np.where(small, 1, sin_t))
-    q = w0[:, None] * q0 + w1[:, None] * q1
-    return q / np.linalg.norm(q, axis=-1, keepdims=True)
+    """Spherical interpolation between unit quaternions (N, 4) (x, y, z, w) at fractions
+    s (N,) in [0, 1], along the shorter arc; s = 0 gives q0 itself (same sign)."""
+    r0 = Rotation.from_quat(q0)
+    step = (r0.inv() * Rotation.from_quat(q1)).as_rotvec()  # angle <= pi: the shorter arc
+    return (r0 * Rotation.from_rotvec(np.asarray(s, float)[:, None] * step)).as_quat()
 
 
 def interpolate_poses(
@@ -118,7 +97,7 @@ def interpolate_poses(
     s = np.where(exact, 1.0, (query_ns - stamps_ns[lo_c]) / span).clip(0, 1)
     lo_c = np.where(exact, hi_c, lo_c)
     out_p[valid] = (positions[lo_c] * (1 - s[:, None]) + positions[hi_c] * s[:, None])[valid]
-    out_q[valid] = slerp(quats[lo_c], quats[hi_c], s)[valid]
+    out_q[valid] = slerp(quats[lo_c[valid]], quats[hi_c[valid]], s[valid])
     return out_p, out_q, valid
 
 

@@ -23,19 +23,16 @@ import heapq
 import os
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
+from graphlib import CycleError, TopologicalSorter
 from typing import TYPE_CHECKING, Any, Protocol
 
 from ..config import RunConfig
-from ..errors import SurgReconError
+from ..errors import ExecutorError  # re-exported: raised by every executor
 
 if TYPE_CHECKING:
     from ..core.template import MapCalls
 
 _THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
-
-
-class ExecutorError(SurgReconError):
-    """An executor could not start, lost its workers, or a task failed unexpectedly."""
 
 
 @dataclass(frozen=True)
@@ -84,36 +81,39 @@ class Graph:
 
 def check_graph(tasks: Sequence[Task]) -> Graph:
     """The `Graph` of `tasks`; ExecutorError on a duplicate key, a dependency outside the
-    graph or a cycle. Linear in the number of tasks and dependencies."""
+    graph or a cycle (`graphlib`), before anything runs."""
     by_key: dict[str, Task] = {}
     for task in tasks:
         if task.key in by_key:
             raise ExecutorError(f"task {task.key!r} appears twice in one graph")
         by_key[task.key] = task
     dependants: dict[str, list[str]] = {key: [] for key in by_key}
-    missing: dict[str, int] = {}
+    sorter: TopologicalSorter[str] = TopologicalSorter()
     for task in tasks:
         unknown = [d for d in task.deps if d not in by_key]
         if unknown:
             raise ExecutorError(f"task {task.key!r} depends on unknown task(s) {unknown}")
-        for dep in set(task.deps):
+        deps = tuple(dict.fromkeys(task.deps))
+        for dep in deps:
             dependants[dep].append(task.key)
-        missing[task.key] = len(set(task.deps))
+        sorter.add(task.key, *deps)
+    try:
+        sorter.prepare()
+    except CycleError as exc:
+        cycle = exc.args[1]  # [a, b, ..., a]
+        shown = " -> ".join(map(repr, cycle[:8])) + (" -> ..." if len(cycle) > 8 else "")
+        raise ExecutorError(f"tasks depend on each other in a cycle: {shown}") from exc
     position = {key: i for i, key in enumerate(by_key)}
-    ready = [position[k] for k, n in missing.items() if n == 0]
+    ready = [position[k] for k in sorter.get_ready()]
     heapq.heapify(ready)
     keys = list(by_key)
     order: list[Task] = []
-    while ready:
+    while ready:  # the earliest given of the ready tasks next: a stable order
         key = keys[heapq.heappop(ready)]
         order.append(by_key[key])
-        for child in dependants[key]:
-            missing[child] -= 1
-            if missing[child] == 0:
-                heapq.heappush(ready, position[child])
-    if len(order) < len(by_key):
-        stuck = [k for k in keys if missing[k] > 0]
-        raise ExecutorError(f"tasks {stuck[:5]} depend on each other in a cycle")
+        sorter.done(key)
+        for child in sorter.get_ready():
+            heapq.heappush(ready, position[child])
     rank: dict[str, int] = {}
     for task in reversed(order):
         rank[task.key] = 1 + max((rank[c] for c in dependants[task.key]), default=0)

@@ -1,22 +1,12 @@
-"""Typed, frozen configuration loaded from TOML.
-
-Defaults are the dataclass defaults below; `configs/default.toml` mirrors them (a test
-keeps the two equal). A user file needs only the keys it changes; `--set section.key=value`
-overrides single keys. Unknown sections/keys, wrong types and out-of-range values raise
-`ConfigError` naming the key. Lengths are metres unless the key name ends in `_mm`/`_px`.
-"""
+"""Config schema: one frozen dataclass per TOML section, defaults, one-line docs (field
+metadata "doc") and range checks (`ConfigError` naming the key) in `__post_init__`."""
 
 from __future__ import annotations
 
-import dataclasses
-import typing
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
-import tomllib
-
-from .errors import ConfigError
+from ..errors import ConfigError
 
 
 def _doc(default: Any, doc: str) -> Any:
@@ -349,121 +339,3 @@ class Config:
     classify: ClassifyConfig = field(default_factory=ClassifyConfig)
     labels: LabelsConfig = field(default_factory=LabelsConfig)
     run: RunConfig = field(default_factory=RunConfig)
-
-
-def _coerce(value: Any, annotation: Any, key: str) -> Any:
-    """Check a TOML value against a field's type; ints are accepted for floats."""
-    origin = typing.get_origin(annotation)
-    if origin is tuple:
-        _require(isinstance(value, list | tuple), key, f"expected a list, got {value!r}")
-        return tuple(_coerce(v, float, key) for v in value)
-    if annotation is float:
-        _require(
-            isinstance(value, int | float) and not isinstance(value, bool),
-            key,
-            f"expected a number, got {value!r}",
-        )
-        return float(value)
-    if annotation is int:
-        _require(
-            isinstance(value, int) and not isinstance(value, bool),
-            key,
-            f"expected an integer, got {value!r}",
-        )
-        return value
-    if annotation is bool:
-        _require(isinstance(value, bool), key, f"expected true/false, got {value!r}")
-        return value
-    _require(isinstance(value, str), key, f"expected a string, got {value!r}")
-    return value
-
-
-def _section_types(section_cls: type) -> dict[str, Any]:
-    return typing.get_type_hints(section_cls)
-
-
-def from_dict(data: dict[str, Any], base: Config | None = None) -> Config:
-    """Merge a nested dict (as read from TOML) over `base` (default: the defaults)."""
-    base = base or Config()
-    sections = {}
-    section_types = _section_types(Config)
-    for name, values in data.items():
-        _require(
-            name in section_types,
-            name,
-            f"unknown config section (known: {', '.join(section_types)})",
-        )
-        _require(isinstance(values, dict), name, "must be a table")
-        cls = section_types[name]
-        hints = _section_types(cls)
-        current = getattr(base, name)
-        updates = {}
-        for key, value in values.items():
-            full = f"{name}.{key}"
-            _require(key in hints, full, f"unknown key (known: {', '.join(hints)})")
-            updates[key] = _coerce(value, hints[key], full)
-        sections[name] = dataclasses.replace(current, **updates)
-    return dataclasses.replace(base, **sections)
-
-
-def parse_override(text: str) -> dict[str, Any]:
-    """`section.key=value` -> {section: {key: value}}; the value is read as TOML, else a string."""
-    if "=" not in text or "." not in text.split("=", 1)[0]:
-        raise ConfigError(f"--set {text!r}: expected section.key=value")
-    path, raw = text.split("=", 1)
-    section, key = path.strip().split(".", 1)
-    try:
-        value = tomllib.loads(f"v = {raw}")["v"]
-    except tomllib.TOMLDecodeError:
-        value = raw
-    return {section: {key: value}}
-
-
-def load_config(path: Path | None = None, overrides: typing.Sequence[str] = ()) -> Config:
-    """Defaults, then the TOML file at `path`, then each `--set` override in order."""
-    config = Config()
-    if path is not None:
-        try:
-            data = tomllib.loads(Path(path).read_text(encoding="utf-8"))
-        except FileNotFoundError as exc:
-            raise ConfigError(f"{path}: config file not found") from exc
-        except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-            raise ConfigError(f"{path}: not valid TOML ({exc})") from exc
-        config = from_dict(data, config)
-    for text in overrides:
-        config = from_dict(parse_override(text), config)
-    return config
-
-
-_TOML_ESCAPES = {"\\": "\\\\", '"': '\\"'}
-
-
-def _toml_value(value: Any) -> str:
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, str):  # TOML forbids control characters: escape all non-printables
-        return '"' + "".join(_TOML_ESCAPES.get(c) or (c if c.isprintable() else f"\\U{ord(c):08x}")
-                             for c in value) + '"'
-    if isinstance(value, tuple | list):
-        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
-    return repr(value)
-
-
-def to_toml(config: Config, with_docs: bool = True) -> str:
-    """Serialise a config to TOML (with each key's docstring as a comment)."""
-    lines: list[str] = []
-    for section in dataclasses.fields(config):
-        obj = getattr(config, section.name)
-        lines.append(f"[{section.name}]")
-        for f in dataclasses.fields(obj):
-            line = f"{f.name} = {_toml_value(getattr(obj, f.name))}"
-            if with_docs and f.metadata.get("doc"):
-                line = f"# {f.metadata['doc']}\n{line}"
-            lines.append(line)
-        lines.append("")
-    return "\n".join(lines)
-
-
-def to_dict(config: Config) -> dict[str, Any]:
-    """Plain nested dict of the config (for run.json)."""
-    return dataclasses.asdict(config)

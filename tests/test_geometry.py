@@ -1,0 +1,37 @@
+"""core.geometry: quaternion order and sign conventions, slerp, batched shapes."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from surgrecon_cli.core.geometry import make_pose, matrix_to_quat, quat_to_matrix, slerp
+
+HALF = np.sqrt(0.5)
+
+
+def test_quaternions_are_x_y_z_w_with_w_non_negative():
+    quarter_z = np.array([0.0, 0.0, HALF, HALF])  # +90 degrees about z
+    np.testing.assert_allclose(quat_to_matrix(quarter_z) @ [1, 0, 0], [0, 1, 0], atol=1e-15)
+    np.testing.assert_allclose(matrix_to_quat(quat_to_matrix(-quarter_z)), quarter_z, atol=1e-15)
+    rng = np.random.default_rng(0)
+    q = rng.normal(size=(2, 5, 4))
+    q /= np.linalg.norm(q, axis=-1, keepdims=True)
+    back = matrix_to_quat(quat_to_matrix(q))
+    assert back.shape == (2, 5, 4) and (back[..., 3] >= 0).all()
+    np.testing.assert_allclose(back, q * np.sign(q[..., 3:]), atol=1e-12)
+    assert make_pose(np.zeros((2, 5, 3)), q).shape == (2, 5, 4, 4)
+
+
+def test_invalid_quaternion_gives_nan_matrix():
+    R = quat_to_matrix(np.array([[0.0, 0, 0, 0], [np.nan, 0, 0, 1], [0, 0, 0, 2]]))
+    assert np.isnan(R[:2]).all()
+    np.testing.assert_allclose(R[2], np.eye(3))  # normalised
+
+
+def test_slerp_takes_the_shorter_arc_from_q0():
+    q0 = np.tile([0.0, 0, 0, 1], (3, 1))
+    q1 = -np.array([[0.0, 0, HALF, HALF]] * 3)  # the same rotation, other sign
+    q = slerp(q0, q1, np.array([0.0, 0.5, 1.0]))
+    np.testing.assert_array_equal(q[0], q0[0])
+    np.testing.assert_allclose(q[1], [0, 0, np.sin(np.pi / 8), np.cos(np.pi / 8)], atol=1e-15)
+    np.testing.assert_allclose(q[2], -q1[2], atol=1e-15)  # in q0's hemisphere
