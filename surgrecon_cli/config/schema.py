@@ -30,17 +30,25 @@ class TopicsConfig:
         "camera-to-world pose topic pattern, or the transform topic (e.g. /tf)",
     )
     camera_frame: str = _doc(
-        "endoscope_{camera}_optical", "child frame pattern when poses come as transforms"
+        "endoscope_{camera}_optical",
+        "camera optical frame pattern: its pose is the TF chain from it to world_frame",
     )
-    tool_pose: str = _doc("/raven/tool_tip", "tool tip pose topic (or transform topic)")
-    tool_frame: str = _doc("raven_tool_tip", "tool child frame when poses come as transforms")
-    joint_states: str = _doc("/raven/joint_states", "robot joint states topic")
+    tool_pose: str = _doc(
+        "/raven/tool_tip", "tool tip pose topic (or transform topic); \"\" = no robot in the log"
+    )
+    tool_frame: str = _doc("raven_tool_tip", "tool tip frame when poses come as transforms")
+    joint_states: str = _doc("/raven/joint_states", "robot joint states topic; \"\" = none")
+    world_frame: str = _doc(
+        "world", "frame the reconstruction is in; poses in other frames go through the TF tree"
+    )
 
     def __post_init__(self) -> None:
         for key in ("image", "camera_info"):
             _require(
                 "{camera}" in getattr(self, key), f"topics.{key}", "needs a {camera} placeholder"
             )
+        for key in ("camera_pose", "world_frame"):
+            _require(bool(getattr(self, key)), f"topics.{key}", "must not be empty")
 
 
 @dataclass(frozen=True)

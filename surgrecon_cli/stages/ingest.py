@@ -39,6 +39,7 @@ from ..io.mcap import LogReader
 from ..io.run_folder import RunFolder
 from ..io.run_layout import INGEST_STAGING_PREFIX, TEMPORARY_SUFFIX, RunLayout
 from .common import recorded_config
+from .ingest_frames import check_clocks, log_span, world_poses
 from .ingest_streams import StreamCollector
 from .registry import StageContext
 
@@ -90,7 +91,7 @@ def ingest(
         for item in reader:
             collector.add(item)
         reader.check_roles()
-        log, report = _assemble(collector, reader, config, staging)
+        log, report = _assemble(collector, reader, config, staging, allow_truncated)
         save_ingested(log)
         _swap_in(staging, layout.ingest_dir)
     except BaseException as exc:
@@ -174,8 +175,8 @@ def _trim_incomplete_tail(frames: FrameGrouping, usable: np.ndarray) -> int:
     return keep
 
 
-def _assemble(collector: StreamCollector, reader: LogReader, config: Config,
-              staging: Path) -> tuple[IngestedLog, dict[str, Any]]:
+def _assemble(collector: StreamCollector, reader: LogReader, config: Config, staging: Path,
+              allow_truncated: bool) -> tuple[IngestedLog, dict[str, Any]]:
     """Sync, interpolate, validate, name the images by frame; returns the log and report."""
     with_images = {cid: cam for cid, cam in collector.cameras.items() if len(cam.stamps)}
     if not with_images:
@@ -187,15 +188,13 @@ def _assemble(collector: StreamCollector, reader: LogReader, config: Config,
         if cam.model is None:
             raise InputError(f"camera {cid}: images on {cam.image_topic} but no intrinsics on "
                              f"a topic matching topics.camera_info = {config.topics.camera_info!r}")
-        if cam.poses is None or not len(cam.poses.stamps):
-            raise InputError(f"camera {cid}: images on {cam.image_topic} but no pose on "
-                             f"topics.camera_pose = {config.topics.camera_pose!r}")
-    pose_streams = [cam.poses.validated() for cam in cams if cam.poses is not None]
-    tool = collector.tool.validated()
-    gap_ns = round(config.ingest.pose_gap_ms * 1e6)
-
     orders = [np.argsort(np.array(cam.stamps, np.int64), kind="stable") for cam in cams]
     stamps = [np.array(cam.stamps, np.int64)[o] for cam, o in zip(cams, orders, strict=True)]
+    poses_in_world = world_poses(ids, cams, collector.tool, reader, config, log_span(stamps),
+                                 allow_truncated)
+    pose_streams, tool = poses_in_world.cameras, poses_in_world.tool
+    gap_ns = round(config.ingest.pose_gap_ms * 1e6)
+
     frames = group_frames(stamps, round(config.ingest.sync_tolerance_ms * 1e6))
     T, C = frames.image_index.shape
     image_stamps = np.full((T, C), -1, dtype=np.int64)
@@ -205,7 +204,7 @@ def _assemble(collector: StreamCollector, reader: LogReader, config: Config,
         rows = np.flatnonzero(frames.image_index[:, c] >= 0)
         image_stamps[rows, c] = stamps[c][frames.image_index[rows, c]]
         poses[rows, c], usable[rows, c] = poses_at(pose_streams[c], image_stamps[rows, c], gap_ns)
-    _check_clocks(ids, cams, stamps, pose_streams, usable, reader, config)
+    check_clocks(cams, stamps, pose_streams, usable, reader, config)
     keep = _trim_incomplete_tail(frames, usable) if reader.damage else T
     if keep == 0:
         raise InputError(f"{reader.path}: no complete frame before the damage "
@@ -229,6 +228,9 @@ def _assemble(collector: StreamCollector, reader: LogReader, config: Config,
     report = _report(ids, cams, stamps, pose_streams, jitter, frames, image_index, usable,
                      trimmed)
     report["tracker_bodies"] = _tracker_bodies(ids, pose_streams, jitter, gap_ns)
+    for cid in ids:
+        report["cameras"][cid]["pose_source"] = poses_in_world.sources[cid]
+    report["tool_pose_source"] = poses_in_world.sources.get("tool", "")
     report.update(robot=robot, tool_pose_topic=collector.tool_topic,
                   tool_rate_hz=rate_hz(tool.stamps_ns),
                   tool_pose_missing=int((~tool_valid).sum()) if robot else 0,
@@ -248,34 +250,6 @@ def _assemble(collector: StreamCollector, reader: LogReader, config: Config,
         image_paths=image_paths, report=report,
     )
     return log, report
-
-
-def _check_clocks(ids: tuple[str, ...], cams: list, stamps: list[np.ndarray],
-                  pose_streams: list[PoseStream], usable: np.ndarray, reader: LogReader,
-                  config: Config) -> None:
-    """Fail at once, naming the streams and their clocks, when no camera's images overlap
-    its pose stream in time (e.g. images stamped on the log clock, poses on the header
-    clock): nothing could be used, and later stages would fail obscurely."""
-    if usable.any():
-        return
-    lines = []
-    for cid, cam, image_stamps, poses in zip(ids, cams, stamps, pose_streams, strict=True):
-        pose_topic = cam.pose_topic
-        lines.append(
-            f"camera {cid}: images on {cam.image_topic} at "
-            f"{_span(image_stamps)} ({reader.clock_of(cam.image_topic)}), poses on "
-            f"{pose_topic} at {_span(poses.stamps_ns)} "
-            f"({reader.clock_of(pose_topic)})")
-    raise InputError(
-        f"{reader.path}: no image has a pose within ingest.pose_gap_ms = "
-        f"{config.ingest.pose_gap_ms:g} ms: the streams are on different clocks? "
-        f"{'; '.join(lines)}; try --set ingest.time_source=log_time, or fix the stamps")
-
-
-def _span(stamps_ns: np.ndarray) -> str:
-    if not len(stamps_ns):
-        return "no stamps"
-    return f"{stamps_ns.min() / 1e9:.3f}..{stamps_ns.max() / 1e9:.3f} s"
 
 
 def _place_images(staging: Path, cams: list, orders: list[np.ndarray],

@@ -30,16 +30,28 @@ def fmt_stamp(stamp_ns: int) -> str:
 
 
 @dataclass
-class _Poses:
+class Poses:
     """A pose stream being collected (compact arrays, not Python objects per sample)."""
 
     name: str
     stamps: array = field(default_factory=lambda: array("q"))
     values: array = field(default_factory=lambda: array("d"))  # x y z qx qy qz qw per sample
+    frames: set[str] = field(default_factory=set)  # frame ids the poses are given in
 
     def add(self, record: PoseRecord) -> None:
+        if record.frame_id not in self.frames:
+            if self.frames:
+                raise InputError(f"{self.name}: poses in frames {sorted(self.frames)[0]!r} and "
+                                 f"{record.frame_id!r} (at {fmt_stamp(record.stamp_ns)}); "
+                                 "one pose topic must keep one frame")
+            self.frames.add(record.frame_id)
         self.stamps.append(record.stamp_ns)
         self.values.extend(np.concatenate([record.position, record.orientation]).tolist())
+
+    @property
+    def frame(self) -> str:
+        """The frame id the poses are given in ("" if unnamed or no pose yet)."""
+        return next(iter(self.frames), "")
 
     def validated(self) -> PoseStream:
         v = np.array(self.values, dtype=float).reshape(-1, 7)
@@ -52,6 +64,7 @@ class CameraStreams:
     """What ingest keeps of one camera while streaming."""
 
     index: int  # discovery order; names the staging folder (camera ids never become paths)
+    camera_id: str = ""
     image_topic: str = ""
     stamps: array = field(default_factory=lambda: array("q"))
     sizes: array = field(default_factory=lambda: array("q"))  # width, height per image
@@ -59,7 +72,7 @@ class CameraStreams:
     info_topic: str = ""
     model: CameraModel | None = None
     info_changed: bool = False
-    poses: _Poses | None = None
+    poses: Poses | None = None
     pose_topic: str = ""
 
 
@@ -69,7 +82,7 @@ class StreamCollector:
     def __init__(self, root: Path) -> None:
         self.root = Path(root)
         self.cameras: dict[str, CameraStreams] = {}
-        self.tool = _Poses("tool pose")
+        self.tool = Poses("tool pose")
         self.tool_topic = ""
         self.joint_names: tuple[str, ...] = ()
         self.joint_topic = ""
@@ -78,7 +91,7 @@ class StreamCollector:
 
     def _camera(self, camera: str) -> CameraStreams:
         if camera not in self.cameras:
-            self.cameras[camera] = CameraStreams(index=len(self.cameras))
+            self.cameras[camera] = CameraStreams(index=len(self.cameras), camera_id=camera)
         return self.cameras[camera]
 
     def add(self, item: LogItem) -> None:
@@ -91,7 +104,7 @@ class StreamCollector:
             cam = self._camera(item.camera)
             if cam.poses is None:
                 frame = f" [{record.child_frame_id}]" if record.child_frame_id else ""
-                cam.poses = _Poses(f"{item.topic}{frame}")
+                cam.poses = Poses(f"{item.topic}{frame}")
                 cam.pose_topic = item.topic
             cam.poses.add(record)
         elif item.role == "tool_pose" and isinstance(record, PoseRecord):

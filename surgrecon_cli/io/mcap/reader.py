@@ -24,7 +24,7 @@ from mcap.stream_reader import CRCValidationError, StreamReader
 
 from ...config import TopicsConfig
 from ...errors import InputError, TopicError
-from ..records import PoseRecord, Record
+from ..records import Record
 from .base import SchemaDecoder
 from .bounded import BoundedFile, chunk_records, read_summary
 from .registry import DESERIALIZERS, find_decoder, supported
@@ -109,10 +109,9 @@ class LogReader:
         self.channels: dict[str, str] = {}
         self.message_counts: dict[str, int] = {}
         self._role_topics: dict[str, set[str]] = {}
-        self._transform_frames: dict[str, set[str]] = {}
-        self._found: set[str] = set()
         self._deserializers: dict[str, Any] = {}
         self._log_time_stamps: dict[str, int] = {}  # records stamped by log time, per topic
+        self.transform_topics: set[str] = set()  # role topics carrying transforms (TF)
 
     # -- channels and roles --------------------------------------------------------------
     def _classify(self, topic: str, schema_name: str, encoding: str) -> _ChannelInfo:
@@ -132,6 +131,8 @@ class LogReader:
                     "topics.camera_frame")
             info.decoder = decoder
             info.roles.append((m.role, m.camera))
+            if decoder.kind == "transforms":
+                self.transform_topics.add(topic)
         if rejected and not info.roles:
             role = rejected[0]
             raise TopicError(
@@ -181,17 +182,6 @@ class LogReader:
         missing = [r for r in self.roles.required if r not in self._role_topics]
         if missing:
             raise self._missing_roles_error(missing, self.channels)
-        for role, frame_key in (("camera_pose", "camera_frame"), ("tool_pose", "tool_frame")):
-            if role not in self.roles.patterns:
-                continue
-            transform_topics = [t for t in self._role_topics[role] if t in self._transform_frames]
-            if transform_topics and role not in self._found:
-                frames = sorted(set().union(*(self._transform_frames[t] for t in transform_topics)))
-                raise TopicError(
-                    f"{self.path}: no transform on {', '.join(sorted(transform_topics))} has a "
-                    f"child frame matching topics.{frame_key} = "
-                    f"{getattr(self.roles.config, frame_key)!r}; child frames seen: "
-                    f"{', '.join(frames[:_MAX_LISTED]) or 'none'}")
 
     # -- streaming -----------------------------------------------------------------------
     def check_magic(self) -> None:
@@ -268,8 +258,8 @@ class LogReader:
     def _message(self, info: _ChannelInfo, message: Message) -> Iterator[LogItem]:
         self.message_counts[info.topic] = self.message_counts.get(info.topic, 0) + 1
         self.last_log_time_ns = message.log_time
-        if info.decoder is None or info.deserialize is None:
-            return
+        if info.decoder is None or info.deserialize is None or info.topic in self.transform_topics:
+            return  # transforms are read into the TF tree (io/mcap/transforms.py)
         try:
             records = info.decoder.convert(info.deserialize(message.data))
         except Exception as exc:  # third-party decoders raise anything on malformed bytes
@@ -281,10 +271,11 @@ class LogReader:
                 self._note_log_time(info.topic)
                 record = replace(record, stamp_ns=message.log_time)
             for role, camera in info.roles:
-                cam = self._assign(info, role, camera, record)
-                if cam is not None:
-                    self._found.add(role)
-                    yield LogItem(role, cam, info.topic, message.log_time, record)
+                yield LogItem(role, camera, info.topic, message.log_time, record)
+
+    def role_uses_transforms(self, role: str) -> bool:
+        """Whether `role`'s topics carry transforms (its poses then come from the TF tree)."""
+        return any(t in self.transform_topics for t in self._role_topics.get(role, ()))
 
     def _note_log_time(self, topic: str) -> None:
         count = self._log_time_stamps.get(topic, 0)
@@ -300,20 +291,6 @@ class LogReader:
         if self.use_log_time or (fallback and fallback >= self.message_counts.get(topic, 0)):
             return "log time"
         return f"header stamps, {fallback} at log time" if fallback else "header stamps"
-
-    def _assign(self, info: _ChannelInfo, role: str, camera: str, record: Record) -> str | None:
-        """Camera id ("" for non-camera roles) this record has in `role`, or None if none."""
-        if not (isinstance(record, PoseRecord) and info.decoder is not None
-                and info.decoder.kind == "transforms"):
-            return camera
-        frames = self._transform_frames.setdefault(info.topic, set())
-        if len(frames) < 1000:
-            frames.add(record.child_frame_id)
-        if role == "camera_pose":
-            return self.roles.camera_of_frame(record.child_frame_id)
-        if role == "tool_pose":
-            return "" if self.roles.is_tool_frame(record.child_frame_id) else None
-        return None
 
     def _on_damage(self, exc: BaseException, data_complete: bool) -> None:
         if isinstance(exc, EndOfFile | EOFError):

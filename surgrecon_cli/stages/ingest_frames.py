@@ -1,0 +1,144 @@
+"""Ingest's poses in one frame, `topics.world_frame`: per camera and for the tool, a pose
+stream from its pose topic (moved into the world through the TF tree when given in another
+frame) or from the TF tree itself (the chain from `topics.camera_frame` / `tool_frame` to
+the world, through any intermediate frames; `/tf_static` latched for the whole log).
+
+Nothing is taken on trust: a frame the tree cannot connect to the world is refused in one
+line naming both frames and the config key that chose them.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..config import Config
+from ..core.sync import PoseStream
+from ..core.tf_tree import TfTree, build_tf_tree
+from ..core.world_poses import chain_stream, stream_to_world
+from ..errors import InputError
+from ..io.mcap import LogReader
+from ..io.mcap.transforms import read_transforms
+from .ingest_streams import CameraStreams, Poses
+
+
+@dataclass(frozen=True)
+class WorldPoses:
+    """Camera-to-world pose streams (one per camera, sorted ids), the tool tip's (empty
+    without a robot), and for the report where each came from."""
+
+    cameras: list[PoseStream]
+    tool: PoseStream
+    sources: dict[str, str]
+
+
+def world_poses(ids: Sequence[str], cams: Sequence[CameraStreams], tool: Poses,
+                reader: LogReader, config: Config, span_ns: tuple[int, int],
+                allow_truncated: bool) -> WorldPoses:
+    """Every pose stream of the log in `topics.world_frame` (see the module docstring)."""
+    topics = config.topics
+    world = topics.world_frame
+    gap_ns = round(config.ingest.pose_gap_ms * 1e6)
+    tree = _tree(reader, config, allow_truncated)
+    streams, sources = [], {}
+    for cid, cam in zip(ids, cams, strict=True):
+        what = f"camera {cid}"
+        if reader.role_uses_transforms("camera_pose"):
+            frame = topics.camera_frame.replace("{camera}", cid)
+            streams.append(_chain(tree, world, frame, span_ns, gap_ns,
+                                  f"{what} (topics.camera_frame = {topics.camera_frame!r})"))
+            sources[cid] = _chain_text(tree, world, frame)
+            continue
+        if cam.poses is None or not len(cam.poses.stamps):
+            raise InputError(f"{what}: images on {cam.image_topic} but no pose on "
+                             f"topics.camera_pose = {topics.camera_pose!r}")
+        frame = cam.poses.frame
+        streams.append(stream_to_world(cam.poses.validated(), cam.pose_topic, frame, tree,
+                                       world, gap_ns, what))
+        sources[cid] = _topic_text(cam.pose_topic, frame, world)
+    if not topics.tool_pose:
+        tool_stream = tool.validated()
+    elif reader.role_uses_transforms("tool_pose"):
+        tool_stream = _chain(tree, world, topics.tool_frame, span_ns, gap_ns,
+                             f"tool (topics.tool_frame = {topics.tool_frame!r})")
+        sources["tool"] = _chain_text(tree, world, topics.tool_frame)
+    elif config.tool.base_to_world:  # the tip in the robot's base frame: ingest applies it
+        tool_stream = tool.validated()
+        sources["tool"] = f"{tool.name} through tool.base_to_world"
+    else:
+        tool_stream = stream_to_world(tool.validated(), tool.name, tool.frame, tree, world,
+                                      gap_ns, "tool")
+        sources["tool"] = _topic_text(tool.name, tool.frame, world)
+    return WorldPoses(streams, tool_stream, sources)
+
+
+def _tree(reader: LogReader, config: Config, allow_truncated: bool) -> TfTree | None:
+    """The log's TF tree (None when it has no transform channel)."""
+    log = read_transforms(reader.path, config.ingest.time_source, allow_truncated)
+    return build_tf_tree(log.samples) if len(log.samples) else None
+
+
+def _chain(tree: TfTree | None, world: str, frame: str, span_ns: tuple[int, int],
+           gap_ns: int, what: str) -> PoseStream:
+    if tree is None:
+        raise InputError(f"{what}: the pose topic carries transforms but the log has no TF "
+                         "tree (no transform was read)")
+    try:
+        return chain_stream(tree, world, frame, span_ns, gap_ns, f"TF {world} <- {frame}")
+    except InputError as exc:
+        raise InputError(f"{what}: {exc}") from exc
+
+
+def _chain_text(tree: TfTree | None, world: str, frame: str) -> str:
+    assert tree is not None  # _chain succeeded on it
+    up, down = tree.chain(world, frame)
+    path = [frame, *(e.parent for e in up)]
+    path += [e.child for e in reversed(down)]
+    kinds = "".join("s" if e.static else "d" for e in (*up, *down))
+    return f"TF {' -> '.join(path)} ({kinds.count('d')} dynamic, {kinds.count('s')} static)"
+
+
+def _topic_text(topic: str, frame: str, world: str) -> str:
+    if frame in ("", world):
+        return f"{topic} in {world}"
+    return f"{topic} in {frame}, moved into {world} through the TF tree"
+
+
+def log_span(stamps: Sequence[np.ndarray]) -> tuple[int, int]:
+    """First and last stamp (ns) over the image streams."""
+    return (int(min(s.min() for s in stamps)), int(max(s.max() for s in stamps)))
+
+
+def check_clocks(cams: Sequence[CameraStreams], stamps: Sequence[np.ndarray],
+                 pose_streams: Sequence[PoseStream], usable: np.ndarray, reader: LogReader,
+                 config: Config) -> None:
+    """Fail at once, naming the streams and their clocks, when no camera's images overlap
+    its pose stream in time (e.g. images stamped on the log clock, poses on the header
+    clock): nothing could be used, and later stages would fail obscurely. (A truncated
+    log has its own message.)"""
+    gap = config.ingest.pose_gap_ms * 1e6
+    if usable.any() or reader.damage or any(
+            len(s) and len(p.stamps_ns) and s.min() <= p.stamps_ns.max() + gap
+            and p.stamps_ns.min() - gap <= s.max() for s, p in zip(stamps, pose_streams,
+                                                                   strict=True)):
+        return
+    lines = []
+    for cam, image_stamps, poses in zip(cams, stamps, pose_streams, strict=True):
+        pose_topic = cam.pose_topic
+        lines.append(
+            f"camera {cam.camera_id}: images on {cam.image_topic} at "
+            f"{_span(image_stamps)} ({reader.clock_of(cam.image_topic)}), poses on "
+            f"{pose_topic} at {_span(poses.stamps_ns)} "
+            f"({reader.clock_of(pose_topic)})")
+    raise InputError(
+        f"{reader.path}: no camera's images overlap its poses in time: the streams are on "
+        "different clocks? "
+        f"{'; '.join(lines)}; try --set ingest.time_source=log_time, or fix the stamps")
+
+
+def _span(stamps_ns: np.ndarray) -> str:
+    if not len(stamps_ns):
+        return "no stamps"
+    return f"{stamps_ns.min() / 1e9:.3f}..{stamps_ns.max() / 1e9:.3f} s"
