@@ -347,18 +347,35 @@ def projection_jacobian(
     return J, z
 
 
-def view_distortion_jacobians(points: np.ndarray, cam_to_world: np.ndarray,
-                              camera: CameraModel) -> np.ndarray:
-    """∂ distorted / ∂ undistorted normalised coordinates (N, 2, 2) where world points
-    (N, 3) m project in a camera (identity for points behind it)."""
-    pc = world_to_camera(np.asarray(points, float), cam_to_world)
-    z = pc[:, 2]
-    front = z > 1e-9
-    xy = np.zeros((len(pc), 2))
-    xy[front] = pc[front, :2] / z[front, None]
-    J = distortion_jacobian(xy, camera.dist, camera.model)
-    J[~front] = np.eye(2)
+def distortion_jacobians(normalized: np.ndarray, cameras: np.ndarray,
+                         models: list[CameraModel]) -> np.ndarray:
+    """∂ distorted / ∂ undistorted normalised coordinates (M, 2, 2) of observations at
+    undistorted normalised coordinates (M, 2) in cameras (M,) (indices into `models`);
+    identity where the coordinates are not finite. Multiplying a pinhole Jacobian by it
+    (times the focal length) gives the pixel Jacobian of any model."""
+    xy = np.asarray(normalized, float).reshape(-1, 2)
+    cameras = np.asarray(cameras, int)
+    J = np.broadcast_to(np.eye(2), (len(xy), 2, 2)).copy()
+    finite = np.isfinite(xy).all(1)
+    for c in np.unique(cameras[finite]):
+        sel = finite & (cameras == c)
+        J[sel] = distortion_jacobian(xy[sel], models[c].dist, models[c].model)
     return J
+
+
+def view_distortion_jacobians(points: np.ndarray, cameras: np.ndarray, poses: np.ndarray,
+                              models: list[CameraModel]) -> np.ndarray:
+    """`distortion_jacobians` where world points (M, 3) m project in cameras (M,) with
+    camera-to-world poses (C, 4, 4) (identity for points behind their camera)."""
+    points = np.asarray(points, float).reshape(-1, 3)
+    cameras = np.asarray(cameras, int)
+    T = invert_pose(np.asarray(poses, float))[cameras]
+    pc = np.einsum("mij,mj->mi", T[:, :3, :3], points) + T[:, :3, 3]
+    z = pc[:, 2]
+    xy = np.full((len(pc), 2), np.nan)
+    front = z > 1e-9
+    xy[front] = pc[front, :2] / z[front, None]
+    return distortion_jacobians(xy, cameras, models)
 
 
 def in_image(uv: np.ndarray, camera: CameraModel, border: float = 0.0) -> np.ndarray:
