@@ -29,7 +29,7 @@ DISTORTION_MODELS: dict[str, int] = {"plumb_bob": 5, "rational_polynomial": 8, "
 """Supported distortion models -> number of coefficients."""
 
 _UNDISTORT_ITERATIONS = 20
-_UNDISTORT_TOL = 1e-14  # normalised units (~1e-11 px at f = 1000 px)
+_UNDISTORT_TOL = 1e-13  # normalised units (1e-10 px at f = 1000 px)
 
 
 @dataclass(frozen=True)
@@ -46,8 +46,8 @@ class CameraModel:
 
     def __post_init__(self) -> None:
         if self.model not in DISTORTION_MODELS:
-            raise GeometryError(f"distortion model {self.model!r} is not supported (supported: "
-                                f"{', '.join(DISTORTION_MODELS)})")
+            raise GeometryError(f"distortion model {self.model!r} is not supported; supported: "
+                                f"{', '.join(DISTORTION_MODELS)}")
         n = DISTORTION_MODELS[self.model]
         K = np.asarray(self.K, float).reshape(3, 3)
         d = np.asarray(self.dist, float).ravel()
@@ -135,8 +135,8 @@ def distortion_model_name(name: str, coefficients: np.ndarray) -> str:
         return key
     if not key or not np.any(np.asarray(coefficients, float) != 0):
         return "plumb_bob"
-    raise GeometryError(f"distortion model {name!r} is not supported (supported: "
-                        f"{', '.join(DISTORTION_MODELS)})")
+    raise GeometryError(f"distortion model {name!r} is not supported; supported: "
+                        f"{', '.join(DISTORTION_MODELS)}")
 
 
 def reduce_intrinsics(
