@@ -343,10 +343,10 @@ def test_image_of_wrong_size(tmp_path: Path, capsys, info_first: bool):
 
 def test_unsupported_raw_encoding(tmp_path: Path, capsys):
     spec = SynthSpec(image_format="rgb8",
-                     mutate=_replace_image(2, 0, format="bayer_rggb8"))
+                     mutate=_replace_image(2, 0, format="nv21"))  # Bayer/YUV: test_encodings
     log = synth_log.write(tmp_path / "log.mcap", spec, "ros2")
     assert run_ingest(log, tmp_path / "run") == 2
-    assert_failed(tmp_path / "run", capsys, "bayer_rggb8", "not supported")
+    assert_failed(tmp_path / "run", capsys, "nv21", "not supported")
 
 
 def test_failed_reingest_does_not_keep_done_status(tmp_path: Path, capsys):

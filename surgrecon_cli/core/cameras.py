@@ -1,7 +1,18 @@
-"""Pinhole cameras with plumb_bob distortion (k1 k2 p1 p2 k3), OpenCV/ROS conventions.
+"""Pinhole cameras with lens distortion, OpenCV/ROS conventions.
+
+Distortion models (ROS `sensor_msgs/CameraInfo.distortion_model` names, OpenCV order):
+
+- `plumb_bob` (5 coefficients k1 k2 p1 p2 k3): OpenCV's standard model, `cv2.projectPoints`;
+- `rational_polynomial` (8: k1 k2 p1 p2 k3 k4 k5 k6): radial term
+  (1 + k1 r² + k2 r⁴ + k3 r⁶) / (1 + k4 r² + k5 r⁴ + k6 r⁶), same tangential terms;
+- `equidistant` (4: k1 k2 k3 k4): OpenCV's fisheye model, `cv2.fisheye.projectPoints`:
+  θ = atan r, θd = θ (1 + k1 θ² + k2 θ⁴ + k3 θ⁶ + k4 θ⁸), distorted point = (θd / r) (x, y).
+  Points are handled in normalised coordinates (x/z, y/z), so rays at 90° or more from the
+  optical axis (fields of view of 180° and wider) are not represented.
 
 Poses are camera-to-world (4, 4) in the optical frame: x right, y down, z forward.
-Pixels are (u, v) with the origin at the top-left pixel's centre.
+Pixels are (u, v) with the origin at the top-left pixel's centre. Normalised coordinates are
+(x/z, y/z), dimensionless; pixels are K applied to the *distorted* normalised coordinates.
 """
 
 from __future__ import annotations
@@ -14,21 +25,37 @@ import numpy as np
 from ..errors import GeometryError
 from .geometry import invert_pose
 
+DISTORTION_MODELS: dict[str, int] = {"plumb_bob": 5, "rational_polynomial": 8, "equidistant": 4}
+"""Supported distortion models -> number of coefficients."""
+
+_UNDISTORT_ITERATIONS = 20
+_UNDISTORT_TOL = 1e-13  # normalised units (1e-10 px at f = 1000 px)
+
 
 @dataclass(frozen=True)
 class CameraModel:
-    """Intrinsics of one camera: K (3, 3) in px, distortion (5,) plumb_bob, image size in px."""
+    """Intrinsics of one camera: K (3, 3) in px, distortion coefficients `dist` of `model`
+    ((5,) plumb_bob, (8,) rational_polynomial, (4,) equidistant; fewer are padded with
+    zeros), image size in px."""
 
     K: np.ndarray
     dist: np.ndarray
     width: int
     height: int
+    model: str = "plumb_bob"
 
     def __post_init__(self) -> None:
+        if self.model not in DISTORTION_MODELS:
+            raise GeometryError(f"distortion model {self.model!r} is not supported; supported: "
+                                f"{', '.join(DISTORTION_MODELS)}")
+        n = DISTORTION_MODELS[self.model]
         K = np.asarray(self.K, float).reshape(3, 3)
-        dist = np.zeros(5)
-        d = np.asarray(self.dist, float).ravel()[:5]
-        dist[: d.size] = d
+        d = np.asarray(self.dist, float).ravel()
+        if d.size > n and np.any(d[n:] != 0):
+            raise GeometryError(f"{self.model} distortion has {n} coefficients, got {d.size} "
+                                f"with non-zero ones after the {n}th: {d.tolist()}")
+        dist = np.zeros(n)
+        dist[: min(n, d.size)] = d[:n]
         if not (np.isfinite(K).all() and np.isfinite(dist).all()) or K[0, 0] <= 0 or K[1, 1] <= 0:
             raise GeometryError(f"invalid intrinsics K={K.tolist()} dist={dist.tolist()}")
         if self.width <= 0 or self.height <= 0:
@@ -42,22 +69,237 @@ class CameraModel:
             "dist": self.dist.tolist(),
             "width": self.width,
             "height": self.height,
+            "model": self.model,
         }
 
     @classmethod
     def from_dict(cls, d: dict) -> CameraModel:
-        return cls(np.asarray(d["K"]), np.asarray(d["dist"]), int(d["width"]), int(d["height"]))
+        """Inverse of `to_dict`; dicts written before models were recorded are plumb_bob."""
+        return cls(np.asarray(d["K"]), np.asarray(d["dist"]), int(d["width"]), int(d["height"]),
+                   str(d.get("model", "plumb_bob")))
+
+    def same_as(self, other: CameraModel) -> bool:
+        """Same model, image size and (to float tolerance) K and coefficients."""
+        return (self.model == other.model and (self.width, self.height) == (other.width,
+                                                                            other.height)
+                and np.allclose(self.K, other.K) and np.allclose(self.dist, other.dist))
+
+    @classmethod
+    def from_camera_info(
+        cls,
+        K: np.ndarray,
+        D: np.ndarray,
+        distortion_model: str,
+        width: int,
+        height: int,
+        binning_x: int = 0,
+        binning_y: int = 0,
+        roi: tuple[int, int, int, int, bool] = (0, 0, 0, 0, False),
+    ) -> CameraModel:
+        """The model of the images a `sensor_msgs/CameraInfo` describes.
+
+        K (3, 3) px and width/height px are the full-resolution calibration; D its
+        coefficients; roi = (x_offset, y_offset, width, height, do_rectify) in full-resolution
+        px. Binning and ROI are applied as ROS `image_geometry.PinholeCameraModel` does
+        (`fromCameraInfo`, `reducedResolution`), for the raw (distorted) images:
+
+        - binning 0 means 1 (no binning); an all-zero ROI means the full image;
+        - the principal point moves by the ROI offset, then the x row of K (fx, cx) is
+          divided by binning_x and the y row (fy, cy) by binning_y
+          (u_image = (u_full - x_offset) / binning_x, likewise v). image_geometry leaves a
+          skew K[0, 1] unscaled; here it is scaled with its row so that the mapping stays
+          exact (ROS calibrations have zero skew). The half-pixel shift between the pixel
+          centres of binned and unbinned images is ignored, as in image_geometry;
+        - the image is roi.width // binning_x by roi.height // binning_y px;
+        - D is unchanged: distortion acts on normalised coordinates, before K;
+        - do_rectify only asks for a rectified ROI (the bounding box of the undistorted raw
+          ROI) for *rectified* images; raw images cover the raw ROI, so it changes nothing
+          here.
+
+        Raises GeometryError (one line) for an unsupported distortion model, an ROI outside
+        the full image, or invalid intrinsics.
+        """
+        D = np.asarray(D, float).ravel()
+        model = distortion_model_name(distortion_model, D)
+        Kr, w, h = reduce_intrinsics(np.asarray(K, float).reshape(3, 3), int(width), int(height),
+                                     binning_x, binning_y, roi)
+        return cls(Kr, D, w, h, model)
 
 
-def distort_normalized(xy: np.ndarray, dist: np.ndarray) -> np.ndarray:
-    """Apply plumb_bob distortion to normalised coordinates (N, 2)."""
-    k1, k2, p1, p2, k3 = dist
+def distortion_model_name(name: str, coefficients: np.ndarray) -> str:
+    """The supported model a CameraInfo's `distortion_model` names (case and surrounding
+    blanks ignored). An empty name is plumb_bob; an unknown one is accepted as plumb_bob only
+    when every coefficient is zero (no distortion). GeometryError otherwise."""
+    key = str(name).strip().lower()
+    if key in DISTORTION_MODELS:
+        return key
+    if not key or not np.any(np.asarray(coefficients, float) != 0):
+        return "plumb_bob"
+    raise GeometryError(f"distortion model {name!r} is not supported; supported: "
+                        f"{', '.join(DISTORTION_MODELS)}")
+
+
+def reduce_intrinsics(
+    K: np.ndarray, width: int, height: int, binning_x: int = 0, binning_y: int = 0,
+    roi: tuple[int, int, int, int, bool] = (0, 0, 0, 0, False),
+) -> tuple[np.ndarray, int, int]:
+    """Full-resolution K (3, 3) px and size -> (K, width, height) of the binned ROI image;
+    rules in `CameraModel.from_camera_info`."""
+    bx, by = int(binning_x) or 1, int(binning_y) or 1
+    x0, y0, rw, rh = (int(v) for v in roi[:4])
+    if min(bx, by, x0, y0, rw, rh) < 0:
+        raise GeometryError(f"invalid binning {bx}x{by} or ROI {tuple(roi[:4])}")
+    if (x0, y0, rw, rh) == (0, 0, 0, 0):
+        rw, rh = width, height
+    if rw <= 0 or rh <= 0 or x0 + rw > width or y0 + rh > height:
+        raise GeometryError(f"ROI x_offset={x0} y_offset={y0} width={rw} height={rh} is not "
+                            f"inside the {width}x{height} px image")
+    Kr = np.array(K, float).reshape(3, 3)
+    Kr[0, 2] -= x0
+    Kr[1, 2] -= y0
+    Kr[0, :] /= bx
+    Kr[1, :] /= by
+    return Kr, rw // bx, rh // by
+
+
+def _coefficients(dist: np.ndarray, model: str) -> np.ndarray:
+    """Coefficients padded to the model's count ((8,) for plumb_bob/rational, (4,) fisheye)."""
+    n = 4 if model == "equidistant" else 8
+    out = np.zeros(n)
+    d = np.asarray(dist, float).ravel()[:n]
+    out[: d.size] = d
+    return out
+
+
+def _rational_terms(xy: np.ndarray, c: np.ndarray):
+    """Radial factor s (N,) and ds/dr² (N,) of plumb_bob / rational_polynomial."""
+    k1, k2, _p1, _p2, k3, k4, k5, k6 = c
+    r2 = xy[:, 0] ** 2 + xy[:, 1] ** 2
+    a = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    b = 1 + r2 * (k4 + r2 * (k5 + r2 * k6))
+    da = k1 + r2 * (2 * k2 + 3 * k3 * r2)
+    db = k4 + r2 * (2 * k5 + 3 * k6 * r2)
+    return a / b, (da * b - a * db) / (b * b), r2
+
+
+def _fisheye_terms(xy: np.ndarray, c: np.ndarray):
+    """Scale g = θd / r (N,) and (dg/dr) / r (N,) of the equidistant model, r = |xy|."""
+    k1, k2, k3, k4 = c
+    r = np.hypot(xy[:, 0], xy[:, 1])
+    theta = np.arctan(r)
+    t2 = theta * theta
+    theta_d = theta * (1 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4))))
+    dtheta_d = 1 + t2 * (3 * k1 + t2 * (5 * k2 + t2 * (7 * k3 + t2 * 9 * k4)))
+    small = r < 1e-8
+    rs = np.where(small, 1.0, r)
+    g = np.where(small, 1.0, theta_d / rs)
+    # dg/dr = (θd'(θ) r / (1 + r²) - θd) / r²; its limit over r at r -> 0 is 2 (k1 - 1/3).
+    dg_r = np.where(small, 2 * (k1 - 1.0 / 3.0),
+                    (dtheta_d * rs / (1 + rs * rs) - theta_d) / rs**3)
+    return g, dg_r
+
+
+def distort_normalized(xy: np.ndarray, dist: np.ndarray, model: str = "plumb_bob") -> np.ndarray:
+    """Undistorted normalised coordinates (N, 2) -> distorted ones (N, 2) under `model`
+    with coefficients `dist` (see the module docstring)."""
+    xy = np.asarray(xy, float)
+    c = _coefficients(dist, model)
     x, y = xy[:, 0], xy[:, 1]
-    r2 = x * x + y * y
-    radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-    xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+    if model == "equidistant":
+        g, _ = _fisheye_terms(xy, c)
+        return xy * g[:, None]
+    p1, p2 = c[2], c[3]
+    s, _, r2 = _rational_terms(xy, c)
+    xd = x * s + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+    yd = y * s + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
     return np.stack([xd, yd], axis=1)
+
+
+def distortion_jacobian(xy: np.ndarray, dist: np.ndarray, model: str = "plumb_bob") -> np.ndarray:
+    """∂ distorted / ∂ undistorted normalised coordinates (N, 2, 2) at xy (N, 2), analytic."""
+    xy = np.asarray(xy, float)
+    c = _coefficients(dist, model)
+    x, y = xy[:, 0], xy[:, 1]
+    J = np.empty((len(xy), 2, 2))
+    if model == "equidistant":
+        g, dg_r = _fisheye_terms(xy, c)
+        J[:, 0, 0] = g + dg_r * x * x
+        J[:, 1, 1] = g + dg_r * y * y
+        J[:, 0, 1] = J[:, 1, 0] = dg_r * x * y
+        return J
+    p1, p2 = c[2], c[3]
+    s, ds, _ = _rational_terms(xy, c)
+    J[:, 0, 0] = s + 2 * x * x * ds + 2 * p1 * y + 6 * p2 * x
+    J[:, 1, 1] = s + 2 * y * y * ds + 6 * p1 * y + 2 * p2 * x
+    J[:, 0, 1] = J[:, 1, 0] = 2 * x * y * ds + 2 * p1 * x + 2 * p2 * y
+    return J
+
+
+def undistort_normalized(xy_d: np.ndarray, dist: np.ndarray,
+                         model: str = "plumb_bob") -> np.ndarray:
+    """Distorted normalised coordinates (N, 2) -> undistorted ones (N, 2), the inverse of
+    `distort_normalized` to ~1e-14 inside the calibrated field of view.
+
+    plumb_bob / rational_polynomial: OpenCV's fixed-point `cv2.undistortPointsIter`, then
+    Newton steps with `distortion_jacobian`, each kept only where it lowers the residual
+    (beyond the fold-over radius of a strong distortion, the best estimate, as OpenCV).
+    equidistant: Newton on θ of θd(θ) = |xy_d|, as `cv2.fisheye.undistortPoints`; NaN where
+    it does not converge or θ >= 90° (no ray in front of the camera)."""
+    xy_d = np.asarray(xy_d, float).reshape(-1, 2)
+    if len(xy_d) == 0:
+        return np.zeros((0, 2))
+    c = _coefficients(dist, model)
+    if model == "equidistant":
+        return _undistort_fisheye(xy_d, c)
+    finite = np.isfinite(xy_d).all(1)
+    xy = np.full_like(xy_d, np.nan)
+    if finite.any():
+        pts = np.ascontiguousarray(xy_d[finite]).reshape(-1, 1, 2)
+        start = cv2.undistortPointsIter(
+            pts, np.eye(3), c, None, None,
+            (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-12)).reshape(-1, 2)
+        xy[finite] = start
+    err = np.linalg.norm(distort_normalized(xy, c, model) - xy_d, axis=1)
+    for _ in range(_UNDISTORT_ITERATIONS):
+        active = err > _UNDISTORT_TOL
+        if not active.any():
+            break
+        J = distortion_jacobian(xy[active], c, model)
+        r = distort_normalized(xy[active], c, model) - xy_d[active]
+        det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
+        ok = np.abs(det) > 1e-12
+        safe = np.where(ok, det, 1.0)
+        step = np.stack([J[:, 1, 1] * r[:, 0] - J[:, 0, 1] * r[:, 1],
+                         J[:, 0, 0] * r[:, 1] - J[:, 1, 0] * r[:, 0]], 1) / safe[:, None]
+        cand = xy[active] - np.where(ok[:, None], step, 0.0)
+        cand_err = np.linalg.norm(distort_normalized(cand, c, model) - xy_d[active], axis=1)
+        better = cand_err < err[active]
+        idx = np.flatnonzero(active)[better]
+        xy[idx], err[idx] = cand[better], cand_err[better]
+        if not better.any():
+            break
+    return xy
+
+
+def _undistort_fisheye(xy_d: np.ndarray, c: np.ndarray) -> np.ndarray:
+    k1, k2, k3, k4 = c
+    theta_d = np.hypot(xy_d[:, 0], xy_d[:, 1])
+    theta = theta_d.copy()
+    for _ in range(_UNDISTORT_ITERATIONS):
+        t2 = theta * theta
+        f = theta * (1 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4)))) - theta_d
+        df = 1 + t2 * (3 * k1 + t2 * (5 * k2 + t2 * (7 * k3 + t2 * 9 * k4)))
+        step = f / np.where(np.abs(df) > 1e-12, df, np.nan)
+        theta = theta - step
+        if np.all(~(np.abs(step) > _UNDISTORT_TOL)):
+            break
+    t2 = theta * theta
+    residual = theta * (1 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4)))) - theta_d
+    small = theta_d < 1e-12
+    scale = np.where(small, 1.0, np.tan(theta) / np.where(small, 1.0, theta_d))
+    bad = ~((np.abs(residual) <= 1e-10 * (1 + theta_d)) & (theta >= 0) & (theta < np.pi / 2))
+    scale[bad] = np.nan
+    return xy_d * scale[:, None]
 
 
 def world_to_camera(points: np.ndarray, cam_to_world: np.ndarray) -> np.ndarray:
@@ -69,7 +311,8 @@ def world_to_camera(points: np.ndarray, cam_to_world: np.ndarray) -> np.ndarray:
 def project(
     points: np.ndarray, cam_to_world: np.ndarray, camera: CameraModel, distort: bool = True
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Project world points (N, 3) into a camera. Returns pixels (N, 2) and depth z (N,) in m.
+    """Project world points (N, 3) m into a camera. Returns pixels (N, 2) and depth z (N,) m;
+    distort=False gives the undistorted (pinhole) pixels.
 
     Points with z <= 0 get NaN pixels.
     """
@@ -79,9 +322,60 @@ def project(
         xy = pc[:, :2] / z[:, None]
     xy[z <= 1e-9] = np.nan
     if distort:
-        xy = distort_normalized(xy, camera.dist)
+        xy = distort_normalized(xy, camera.dist, camera.model)
     uv = xy @ camera.K[:2, :2].T + camera.K[:2, 2]
     return uv, z
+
+
+def projection_jacobian(
+    points: np.ndarray, cam_to_world: np.ndarray, camera: CameraModel, distort: bool = True
+) -> tuple[np.ndarray, np.ndarray]:
+    """∂ pixel / ∂ world point (N, 2, 3) px/m of `project` at points (N, 3) m, analytic
+    (lens distortion included unless distort=False), and the depths z (N,) m. NaN rows for
+    points with z <= 0."""
+    T = invert_pose(cam_to_world)
+    pc = np.asarray(points, float) @ T[:3, :3].T + T[:3, 3]
+    z = pc[:, 2]
+    inv_z = np.where(z > 1e-9, 1.0 / np.where(z > 1e-9, z, 1.0), np.nan)
+    xy = pc[:, :2] * inv_z[:, None]
+    dxy = np.zeros((len(pc), 2, 3))  # ∂ normalised / ∂ camera-frame point
+    dxy[:, 0, 0] = dxy[:, 1, 1] = inv_z
+    dxy[:, :, 2] = -xy * inv_z[:, None]
+    if distort:
+        dxy = np.einsum("nab,nbc->nac", distortion_jacobian(xy, camera.dist, camera.model), dxy)
+    J = np.einsum("ab,nbc,cd->nad", camera.K[:2, :2], dxy, T[:3, :3])
+    return J, z
+
+
+def distortion_jacobians(normalized: np.ndarray, cameras: np.ndarray,
+                         models: list[CameraModel]) -> np.ndarray:
+    """∂ distorted / ∂ undistorted normalised coordinates (M, 2, 2) of observations at
+    undistorted normalised coordinates (M, 2) in cameras (M,) (indices into `models`);
+    identity where the coordinates are not finite. Multiplying a pinhole Jacobian by it
+    (times the focal length) gives the pixel Jacobian of any model."""
+    xy = np.asarray(normalized, float).reshape(-1, 2)
+    cameras = np.asarray(cameras, int)
+    J = np.broadcast_to(np.eye(2), (len(xy), 2, 2)).copy()
+    finite = np.isfinite(xy).all(1)
+    for c in np.unique(cameras[finite]):
+        sel = finite & (cameras == c)
+        J[sel] = distortion_jacobian(xy[sel], models[c].dist, models[c].model)
+    return J
+
+
+def view_distortion_jacobians(points: np.ndarray, cameras: np.ndarray, poses: np.ndarray,
+                              models: list[CameraModel]) -> np.ndarray:
+    """`distortion_jacobians` where world points (M, 3) m project in cameras (M,) with
+    camera-to-world poses (C, 4, 4) (identity for points behind their camera)."""
+    points = np.asarray(points, float).reshape(-1, 3)
+    cameras = np.asarray(cameras, int)
+    T = invert_pose(np.asarray(poses, float))[cameras]
+    pc = np.einsum("mij,mj->mi", T[:, :3, :3], points) + T[:, :3, 3]
+    z = pc[:, 2]
+    xy = np.full((len(pc), 2), np.nan)
+    front = z > 1e-9
+    xy[front] = pc[front, :2] / z[front, None]
+    return distortion_jacobians(xy, cameras, models)
 
 
 def in_image(uv: np.ndarray, camera: CameraModel, border: float = 0.0) -> np.ndarray:
@@ -96,19 +390,13 @@ def in_image(uv: np.ndarray, camera: CameraModel, border: float = 0.0) -> np.nda
 
 
 def undistort_pixels(uv: np.ndarray, camera: CameraModel) -> np.ndarray:
-    """Distorted pixels (N, 2) -> normalised undistorted coordinates (N, 2) (iterative)."""
+    """Distorted pixels (N, 2) -> normalised undistorted coordinates (N, 2), the inverse of
+    `project` (see `undistort_normalized`)."""
+    uv = np.asarray(uv, float).reshape(-1, 2)
     if len(uv) == 0:
         return np.zeros((0, 2))
-    pts = np.ascontiguousarray(uv, dtype=np.float64).reshape(-1, 1, 2)
-    out = cv2.undistortPointsIter(
-        pts,
-        camera.K,
-        camera.dist,
-        None,
-        None,
-        (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-10),
-    )
-    return out.reshape(-1, 2)
+    xy_d = (uv - camera.K[:2, 2]) @ np.linalg.inv(camera.K[:2, :2]).T
+    return undistort_normalized(xy_d, camera.dist, camera.model)
 
 
 def pixel_rays(

@@ -168,9 +168,13 @@ def pose_jitter(stamps_ns: np.ndarray, positions: np.ndarray,
 
 
 def projection_jacobians(points: np.ndarray, cam_to_world: np.ndarray,
-                         focal_px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Pinhole pixel Jacobians J (M, 2, 3) px/m of points (M, 3) m in cameras with poses
-    (M, 4, 4) and focal lengths (M,) px, and the points' depths (M,) m."""
+                         focal_px: np.ndarray, distortion: np.ndarray | None = None
+                         ) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel Jacobians J (M, 2, 3) px/m of points (M, 3) m in cameras with poses (M, 4, 4)
+    and focal lengths (M,) px, and the points' depths (M,) m. distortion (M, 2, 2): the lens
+    distortion's Jacobian at each view (`cameras.view_distortion_jacobians`), making J the
+    Jacobian of the distorted pixel for any distortion model; None: pinhole (undistorted)
+    pixels."""
     R = cam_to_world[:, :3, :3]
     Xc = np.einsum("mji,mj->mi", R, points - cam_to_world[:, :3, 3])  # R^T (X - c)
     z = Xc[:, 2]
@@ -179,6 +183,8 @@ def projection_jacobians(points: np.ndarray, cam_to_world: np.ndarray,
     dproj[:, 0, 0] = dproj[:, 1, 1] = inv_z
     dproj[:, 0, 2] = -Xc[:, 0] * inv_z**2
     dproj[:, 1, 2] = -Xc[:, 1] * inv_z**2
+    if distortion is not None:
+        dproj = np.einsum("mab,mbc->mac", distortion, dproj)
     J = np.einsum("mab,mcb->mac", dproj, R) * np.asarray(focal_px, float)[:, None, None]
     return J, z
 

@@ -29,7 +29,13 @@ from scipy.spatial import cKDTree
 from scipy.stats import chi2
 
 from ..config import TargetConfig, ToolConfig
-from .cameras import CameraModel, in_image, project, undistort_pixels
+from .cameras import (
+    CameraModel,
+    in_image,
+    project,
+    undistort_pixels,
+    view_distortion_jacobians,
+)
 from .labels import INTER, INTRA, OUTLIER, STATUS_NAMES, UNOBSERVED
 from .noise import (
     NoiseModel,
@@ -175,8 +181,9 @@ def _view_terms(points: np.ndarray, camera: int, rows: np.ndarray, pixels: np.nd
     found at pixels[rows, camera] in `camera` (localisation (N, C) px² per view)."""
     uv, _ = project(points, poses[camera], models[camera])
     focal = np.full(len(points), models[camera].K[0, 0])
+    cams = np.full(len(points), camera)
     J, z = projection_jacobians(points, np.broadcast_to(poses[camera], (len(points), 4, 4)),
-                                focal)
+                                focal, view_distortion_jacobians(points, cams, poses, models))
     variance = noise.tracked_view_variance_px2(z, focal, localisation[rows, camera])
     e = uv - pixels[rows, camera]
     e[~(z > 0)] = np.inf
@@ -259,7 +266,9 @@ def reprojection_check(
             normalized[cams == c] = undistort_pixels(px[cams == c], models[c])
         obs = Observations(rows, cams, px, normalized, np.zeros((len(rows), 3), np.uint8))
         tri = triangulate(obs, poses, models, len(idx))
-        J, z = projection_jacobians(np.nan_to_num(tri.points[rows]), poses[cams], focal[cams])
+        at = np.nan_to_num(tri.points[rows])
+        J, z = projection_jacobians(at, poses[cams], focal[cams],
+                                    view_distortion_jacobians(at, cams, poses, models))
         # Image noise alone; with each view's pose error (gating); and with the pose error of
         # views not on a shared tracker body (whose error is rigid for the body instead).
         image_only = noise.tracked_view_variance_px2(

@@ -15,7 +15,7 @@ import numpy as np
 
 from ..config import TemplateConfig, ToolConfig
 from ..errors import GeometryError
-from .cameras import CameraModel, project
+from .cameras import CameraModel, project, view_distortion_jacobians
 from .features import Features, detect_features, no_features
 from .matching import build_tracks, match_pair
 from .noise import (
@@ -238,8 +238,9 @@ def measured_covariances(points: np.ndarray, obs: Observations, poses: np.ndarra
                                                                    models[c].K[0, 0]))
         variance[rows] = np.maximum(variance[rows], bound)
     focal = np.array([m.K[0, 0] for m in models])
-    J, _ = projection_jacobians(np.nan_to_num(points[obs.point]), poses[obs.camera],
-                                focal[obs.camera])
+    at = np.nan_to_num(points[obs.point])
+    J, _ = projection_jacobians(at, poses[obs.camera], focal[obs.camera],
+                                view_distortion_jacobians(at, obs.camera, poses, models))
     cov = point_covariances(obs.point, J, variance, len(points))
     image_cov = point_covariances(obs.point, J, image_variance, len(points))
     image_px = float(np.sqrt(np.median(image_variance[sel]))) if sel.any() else pixel_px

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .cameras import CameraModel, project
+from .cameras import CameraModel, distortion_jacobians, project
 from .geometry import invert_pose
 
 
@@ -86,22 +86,26 @@ def triangulate_linear(obs: Observations, poses: np.ndarray, n_points: int) -> n
 
 
 def refine_points(
-    points: np.ndarray, obs: Observations, poses: np.ndarray, focal: np.ndarray, iterations: int = 6
+    points: np.ndarray, obs: Observations, poses: np.ndarray, focal: np.ndarray,
+    iterations: int = 6, distortion: np.ndarray | None = None,
 ) -> np.ndarray:
-    """Gauss-Newton on Σ (f_c · ‖π(R_c X + t_c) − x‖)² per point (≈ pixel error), damped."""
+    """Gauss-Newton on Σ ‖f_c D_v (π(R_c X + t_c) − x_v)‖² per point, damped: the pixel
+    error to first order, D_v (M, 2, 2) the lens distortion's Jacobian at each observation
+    (`cameras.distortion_jacobians`; None: identity, the undistorted-pixel error)."""
     P = _world_to_camera(poses)
     R, t = P[obs.camera, :, :3], P[obs.camera, :, 3]
     w = focal[obs.camera][:, None]
+    D = np.broadcast_to(np.eye(2), (len(obs.point), 2, 2)) if distortion is None else distortion
     X = points.copy()
     for _ in range(iterations):
         Xc = np.einsum("mij,mj->mi", R, X[obs.point]) + t
         z = Xc[:, 2:3]
         proj = Xc[:, :2] / z
-        r = (proj - obs.normalized) * w  # (M, 2)
+        r = np.einsum("mab,mb->ma", D, proj - obs.normalized) * w  # (M, 2) ≈ px
         dproj = np.zeros((len(z), 2, 3))
         dproj[:, 0, 0] = dproj[:, 1, 1] = 1 / z[:, 0]
         dproj[:, :, 2] = -proj / z
-        J = np.einsum("mab,mbc->mac", dproj, R) * w[:, :, None]  # (M, 2, 3)
+        J = np.einsum("mab,mbc,mcd->mad", D, dproj, R) * w[:, :, None]  # (M, 2, 3)
         JtJ = np.zeros((len(X), 3, 3))
         Jtr = np.zeros((len(X), 3))
         np.add.at(JtJ, obs.point, np.einsum("mai,maj->mij", J, J))
@@ -119,7 +123,8 @@ def triangulate(
     X = triangulate_linear(obs, poses, n_points)
     finite = np.isfinite(X).all(1)
     X[~finite] = 0.0
-    X = refine_points(X, obs, poses, focal)
+    X = refine_points(X, obs, poses, focal,
+                      distortion=distortion_jacobians(obs.normalized, obs.camera, models))
     X[~finite] = np.nan
     residual, depth = reprojection_residuals(X, obs, poses, models)
     error = np.linalg.norm(residual, axis=1)

@@ -1,5 +1,6 @@
 """Image messages -> bytes to store: compressed JPEG/PNG kept as recorded, anything else
-(raw `rgb8`/`bgr8`/`mono8`/..., other compressed formats) stored as PNG.
+(raw `rgb8`/`bgr8`/`mono8`/..., Bayer mosaics, YUV 4:2:2, other compressed formats) stored
+as PNG.
 
 The size an image claims (raw width/height, PNG/JPEG header) is checked against
 `MAX_IMAGE_PIXELS` before anything is allocated for it. What the C decoders print while
@@ -32,18 +33,37 @@ MAX_IMAGE_PIXELS = 1 << 26
 _JPEG_MAGIC = b"\xff\xd8\xff"
 _PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 _CORRUPT = ("Corrupt JPEG data", "Premature end of JPEG file")  # libjpeg: data was damaged
-# encoding -> (channels, dtype, cv2 conversion to BGR or None)
+# ROS sensor_msgs/image_encodings name -> (channels, dtype, cv2 conversion to BGR or None).
+# Bayer names give the colours of the top-left 2x2 block; OpenCV names its codes after the
+# second row's second and third pixels, hence rggb -> BayerBG (as cv_bridge maps them).
+# yuv422 is UYVY (U0 Y0 V0 Y1), yuv422_yuy2 is YUYV (Y0 U0 Y1 V0); OpenCV converts them with
+# BT.601 limited-range coefficients.
 _RAW = {
     "rgb8": (3, np.uint8, cv2.COLOR_RGB2BGR),
     "bgr8": (3, np.uint8, None),
     "8uc3": (3, np.uint8, None),
     "rgba8": (4, np.uint8, cv2.COLOR_RGBA2BGR),
     "bgra8": (4, np.uint8, cv2.COLOR_BGRA2BGR),
+    "rgb16": (3, np.uint16, cv2.COLOR_RGB2BGR),
+    "bgr16": (3, np.uint16, None),
+    "rgba16": (4, np.uint16, cv2.COLOR_RGBA2BGR),
+    "bgra16": (4, np.uint16, cv2.COLOR_BGRA2BGR),
     "mono8": (1, np.uint8, None),
     "8uc1": (1, np.uint8, None),
     "mono16": (1, np.uint16, None),
     "16uc1": (1, np.uint16, None),
+    "bayer_rggb8": (1, np.uint8, cv2.COLOR_BayerBG2BGR),
+    "bayer_bggr8": (1, np.uint8, cv2.COLOR_BayerRG2BGR),
+    "bayer_gbrg8": (1, np.uint8, cv2.COLOR_BayerGR2BGR),
+    "bayer_grbg8": (1, np.uint8, cv2.COLOR_BayerGB2BGR),
+    "bayer_rggb16": (1, np.uint16, cv2.COLOR_BayerBG2BGR),
+    "bayer_bggr16": (1, np.uint16, cv2.COLOR_BayerRG2BGR),
+    "bayer_gbrg16": (1, np.uint16, cv2.COLOR_BayerGR2BGR),
+    "bayer_grbg16": (1, np.uint16, cv2.COLOR_BayerGB2BGR),
+    "yuv422": (2, np.uint8, cv2.COLOR_YUV2BGR_UYVY),
+    "yuv422_yuy2": (2, np.uint8, cv2.COLOR_YUV2BGR_YUY2),
 }
+_EVEN_WIDTH = ("bayer_", "yuv422")  # 2x2 mosaics and 4:2:2 pairs need even sizes
 
 
 @dataclass(frozen=True)
@@ -87,20 +107,32 @@ def prepare_image(record: ImageRecord) -> StoredImage:
 
 
 def _raw(record: ImageRecord) -> StoredImage:
-    spec = _RAW.get(record.format.lower())
+    """Raw pixels (ROS `sensor_msgs/Image` / Foxglove RawImage layout: rows of `step` bytes)
+    -> PNG of the BGR (or mono) image; Bayer mosaics demosaiced (bilinear), YUV 4:2:2
+    converted, 16-bit data byte-swapped when the message says big-endian."""
+    encoding = record.format.lower()
+    spec = _RAW.get(encoding)
     if spec is None:
         raise ValueError(f"raw encoding {record.format!r} is not supported "
                          f"(supported: {', '.join(sorted(_RAW))})")
     channels, dtype, conversion = spec
     width, height = int(record.width), int(record.height)
     _check_pixels(width, height)
+    if encoding.startswith(_EVEN_WIDTH) and (width % 2 or (encoding.startswith("bayer_")
+                                                           and height % 2)):
+        raise ValueError(f"raw {record.format} image is {width}x{height} px; the encoding "
+                         "needs an even width" + (" and height" if "bayer" in encoding else ""))
     row = width * channels * np.dtype(dtype).itemsize
     step = int(record.step) or row
     if width <= 0 or height <= 0 or step < row or len(record.data) < step * height:
         raise ValueError(f"raw {record.format} image {width}x{height} (step {step}) needs "
                          f"{step * height} bytes, has {len(record.data)}")
     buf = np.frombuffer(record.data, np.uint8, count=step * height).reshape(height, step)[:, :row]
-    img = np.ascontiguousarray(buf).view(dtype).reshape(height, width, channels)
+    order = ">" if record.big_endian else "<"
+    img = np.ascontiguousarray(buf).view(np.dtype(dtype).newbyteorder(order))
+    img = img.astype(dtype).reshape(height, width, channels)
+    if channels == 1:
+        img = img[:, :, 0]
     if conversion is not None:
         img = cv2.cvtColor(img, conversion)
     return StoredImage(_png(img), "png", width, height)

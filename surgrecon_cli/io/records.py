@@ -14,7 +14,8 @@ import numpy as np
 @dataclass(frozen=True)
 class ImageRecord:
     """One camera image: compressed (`format` 'jpeg'/'png') or raw (`format` = ROS encoding,
-    e.g. 'rgb8', 'bgr8', 'mono8', with width/height/step)."""
+    e.g. 'rgb8', 'bgr8', 'mono8', 'bayer_rggb8', 'yuv422', with width/height/step in px/bytes;
+    big_endian: 16-bit samples are big-endian, ROS `is_bigendian`)."""
 
     stamp_ns: int
     frame_id: str
@@ -23,11 +24,17 @@ class ImageRecord:
     width: int = 0
     height: int = 0
     step: int = 0
+    big_endian: bool = False
 
 
 @dataclass(frozen=True)
 class CameraInfoRecord:
-    """Intrinsics: K (3, 3) px, D distortion coefficients (plumb_bob: k1 k2 p1 p2 k3)."""
+    """Intrinsics as recorded: K (3, 3) px and width/height px of the full-resolution sensor,
+    D distortion coefficients of `distortion_model` (plumb_bob: k1 k2 p1 p2 k3;
+    rational_polynomial: k1 k2 p1 p2 k3 k4 k5 k6; equidistant: k1 k2 k3 k4), ROS binning
+    (0 = 1) and roi = (x_offset, y_offset, width, height, do_rectify) in full-resolution px
+    (all zero = full image). `core.cameras.CameraModel.from_camera_info` turns these into
+    the model of the published images."""
 
     stamp_ns: int
     frame_id: str
@@ -36,6 +43,9 @@ class CameraInfoRecord:
     K: np.ndarray
     D: np.ndarray
     distortion_model: str = "plumb_bob"
+    binning_x: int = 0
+    binning_y: int = 0
+    roi: tuple[int, int, int, int, bool] = (0, 0, 0, 0, False)
 
 
 @dataclass(frozen=True)

@@ -150,7 +150,8 @@ def ros_message(record: Record, ros1: bool, seq: int = 0) -> tuple[str, dict[str
             }
         return "sensor_msgs/Image", {
             "header": header(record.frame_id), "height": record.height, "width": record.width,
-            "encoding": record.format, "is_bigendian": 0, "step": record.step,
+            "encoding": record.format, "is_bigendian": int(record.big_endian),
+            "step": record.step,
             "data": record.data,
         }
     if isinstance(record, CameraInfoRecord):
@@ -162,6 +163,10 @@ def ros_message(record: Record, ros1: bool, seq: int = 0) -> tuple[str, dict[str
             "header": header(record.frame_id), "height": record.height, "width": record.width,
             "distortion_model": record.distortion_model,
             **{n: [float(x) for x in v] for n, v in zip(names, values, strict=True)},
+            "binning_x": int(record.binning_x), "binning_y": int(record.binning_y),
+            "roi": dict(zip(("x_offset", "y_offset", "width", "height"),
+                            (int(v) for v in record.roi[:4]), strict=True),
+                        do_rectify=bool(record.roi[4])),
         }
     if isinstance(record, PoseRecord):
         p = [float(x) for x in record.position]

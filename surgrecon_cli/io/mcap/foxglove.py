@@ -16,6 +16,7 @@ import numpy as np
 from mcap.records import Schema
 from mcap_protobuf.decoder import DecoderFactory
 
+from ...core.cameras import distortion_model_name
 from ..records import CameraInfoRecord, ImageRecord, JointStateRecord, PoseRecord, Record
 from .base import stamp_ns
 
@@ -105,10 +106,14 @@ def raw_image(msg: Any) -> list[Record]:
 
 
 def camera_calibration(msg: Any) -> list[Record]:
+    """CameraCalibration (no binning or ROI fields); the distortion model name is checked and
+    canonical as for ROS CameraInfo."""
     K = _floats(msg.K)
+    D = _floats(msg.D)
     return [CameraInfoRecord(
         _time(msg.timestamp), msg.frame_id or "", int(msg.width or 0), int(msg.height or 0),
-        K.reshape(3, 3) if K.size == 9 else K, _floats(msg.D), str(msg.distortion_model or ""),
+        K.reshape(3, 3) if K.size == 9 else K, D,
+        distortion_model_name(str(msg.distortion_model or ""), D),
     )]
 
 

@@ -1,13 +1,16 @@
 """The explicit table of supported schemas: (message encoding, schema name) -> decoder.
 
 Decoding is chosen by the channel's encoding and schema name only, never by its topic.
+A `geometry_msgs/TransformStamped` is read as a pose (kind "pose", like a PoseStamped: the
+topic says whose pose it is), its header and child frame ids kept in the record.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
+from functools import partial
 
-from . import foxglove, ros1, ros2
+from . import foxglove, ros1, ros2, ros_common
 from .base import Deserializer, SchemaDecoder
 
 DECODERS: dict[tuple[str, str], SchemaDecoder] = {
@@ -18,6 +21,8 @@ DECODERS: dict[tuple[str, str], SchemaDecoder] = {
     ("cdr", "sensor_msgs/msg/Image"): SchemaDecoder("image", ros2.DECODE.raw_image),
     ("cdr", "sensor_msgs/msg/CameraInfo"): SchemaDecoder("camera_info", ros2.DECODE.camera_info),
     ("cdr", "geometry_msgs/msg/PoseStamped"): SchemaDecoder("pose", ros2.DECODE.pose_stamped),
+    ("cdr", "geometry_msgs/msg/TransformStamped"): SchemaDecoder(
+        "pose", partial(ros_common.transform_stamped, ros=ros2.FLAVOR)),
     ("cdr", "tf2_msgs/msg/TFMessage"): SchemaDecoder("transforms", ros2.DECODE.tf_message),
     ("cdr", "sensor_msgs/msg/JointState"): SchemaDecoder("joint_states", ros2.DECODE.joint_state),
     # ROS 1 (converted bags, e.g. Raven-II / dVRK recordings)
@@ -25,6 +30,8 @@ DECODERS: dict[tuple[str, str], SchemaDecoder] = {
     ("ros1", "sensor_msgs/Image"): SchemaDecoder("image", ros1.DECODE.raw_image),
     ("ros1", "sensor_msgs/CameraInfo"): SchemaDecoder("camera_info", ros1.DECODE.camera_info),
     ("ros1", "geometry_msgs/PoseStamped"): SchemaDecoder("pose", ros1.DECODE.pose_stamped),
+    ("ros1", "geometry_msgs/TransformStamped"): SchemaDecoder(
+        "pose", partial(ros_common.transform_stamped, ros=ros1.FLAVOR)),
     ("ros1", "tf2_msgs/TFMessage"): SchemaDecoder("transforms", ros1.DECODE.tf_message),
     ("ros1", "tf/tfMessage"): SchemaDecoder("transforms", ros1.DECODE.tf_message),
     ("ros1", "sensor_msgs/JointState"): SchemaDecoder("joint_states", ros1.DECODE.joint_state),

@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 from mcap.records import Schema
 
+from ...core.cameras import distortion_model_name
 from ..records import CameraInfoRecord, ImageRecord, JointStateRecord, PoseRecord, Record
 
 
@@ -46,15 +47,26 @@ def compressed_image(msg: Any, ros: RosFlavor) -> list[Record]:
 
 def raw_image(msg: Any, ros: RosFlavor) -> list[Record]:
     return [ImageRecord(ros.stamp(msg.header), msg.header.frame_id, str(msg.encoding),
-                        bytes(msg.data), int(msg.width), int(msg.height), int(msg.step))]
+                        bytes(msg.data), int(msg.width), int(msg.height), int(msg.step),
+                        bool(getattr(msg, "is_bigendian", 0)))]
 
 
 def camera_info(msg: Any, ros: RosFlavor) -> list[Record]:
+    """CameraInfo as recorded (full-resolution K and size, binning, ROI); the distortion
+    model name is checked and canonical (`core.cameras.distortion_model_name`: an unknown
+    model with non-zero coefficients raises, naming it)."""
     K = np.asarray(getattr(msg, ros.k), dtype=float)
+    D = np.asarray(getattr(msg, ros.d), dtype=float)
+    roi = getattr(msg, "roi", None)
+    roi_values = (0, 0, 0, 0, False) if roi is None else (
+        int(roi.x_offset), int(roi.y_offset), int(roi.width), int(roi.height),
+        bool(roi.do_rectify))
     return [CameraInfoRecord(
         ros.stamp(msg.header), msg.header.frame_id, int(msg.width), int(msg.height),
-        K.reshape(3, 3) if K.size == 9 else K, np.asarray(getattr(msg, ros.d), dtype=float),
-        str(msg.distortion_model),
+        K.reshape(3, 3) if K.size == 9 else K, D,
+        distortion_model_name(str(msg.distortion_model), D),
+        int(getattr(msg, "binning_x", 0) or 0), int(getattr(msg, "binning_y", 0) or 0),
+        roi_values,
     )]
 
 
@@ -69,6 +81,13 @@ def _xyzw(q: Any) -> np.ndarray:
 def pose_stamped(msg: Any, ros: RosFlavor) -> list[Record]:
     return [PoseRecord(ros.stamp(msg.header), msg.header.frame_id, "",
                        _xyz(msg.pose.position), _xyzw(msg.pose.orientation))]
+
+
+def transform_stamped(msg: Any, ros: RosFlavor) -> list[Record]:
+    """geometry_msgs/TransformStamped read where a PoseStamped is: the pose of
+    `child_frame_id` in `header.frame_id`, both kept in the record."""
+    return [PoseRecord(ros.stamp(msg.header), msg.header.frame_id, msg.child_frame_id,
+                       _xyz(msg.transform.translation), _xyzw(msg.transform.rotation))]
 
 
 def tf_message(msg: Any, ros: RosFlavor) -> list[Record]:
