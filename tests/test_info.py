@@ -61,7 +61,7 @@ def sim_logs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     for name, encoding, tf in (("ros2", "ros2", False), ("json", "foxglove-json", False),
                                ("tf", "ros2", True)):
         out[name] = folder / f"{name}.mcap"
-        simulate(out[name], cfg, encoding=encoding, poses_as_tf=tf)
+        simulate(out[name], cfg, encoding=encoding, convention="tf" if tf else "topics")
     return out
 
 

@@ -142,10 +142,10 @@ def _outputs(run: Path, n_frames: int) -> dict[str, list[Path]]:
     reg = [run / "registration" / f"{k:06d}.npz" for k in range(1, n_frames)]
     return {
         "ingest": [run / "ingest" / "frames.npz", run / "ingest" / "cameras.json"],
-        "build-template": [run / "template.ply", run / "clouds" / "000000.ply",
-                           run / "template" / "observations.npz"],
-        "register": reg + [run / "clouds" / f"{k:06d}.ply" for k in range(1, n_frames)],
-        "classify": [run / "classify" / "labels.npz"],
+        "build-template": [run / "template.ply", run / "template" / "observations.npz"],
+        "register": reg,
+        "classify": [run / "classify" / "labels.npz",
+                     *(run / "clouds" / f"{k:06d}.ply" for k in range(n_frames))],
         "evaluate": [run / "metrics" / "evaluation.json",
                      run / "metrics" / "evaluation_errors.npz"],
         "report": [run / "report.html", run / "metrics" / "frames.csv",
@@ -176,8 +176,8 @@ def check_consistent(run: Path, n_frames: int) -> tuple[str, list[int]]:
         assert all((run / "ingest" / p).is_file() for p in paths)
     frames = sorted(stages.get("register", {}).get("frames_done", []))
     for k in frames:
-        for path in (run / "registration" / f"{k:06d}.npz", run / "clouds" / f"{k:06d}.ply"):
-            assert path.is_file(), f"run.json says frame {k} registered, {path} is missing"
+        path = run / "registration" / f"{k:06d}.npz"
+        assert path.is_file(), f"run.json says frame {k} registered, {path} is missing"
     at = next((s for s in STAGES if stages.get(s, {}).get("status") != "done"), "finished")
     return at, frames
 

@@ -8,6 +8,7 @@ from pathlib import Path
 import click
 from click.core import ParameterSource
 
+from ..sim.conventions import CONVENTIONS
 from ..sim.variants import VARIANTS
 from .common import common_options
 
@@ -91,11 +92,13 @@ def _explicit(ctx: click.Context, name: str) -> bool:
 @click.option("--encoding", type=click.Choice(ENCODINGS), default="ros2", show_default=True)
 @click.option(
     "--poses",
-    type=click.Choice(["topics", "tf"]),
+    type=click.Choice(list(CONVENTIONS)),
     default="topics",
     show_default=True,
-    help="Camera/tool poses as PoseStamped per topic, or as transforms on /tf "
-    "(then ingest needs --set topics.camera_pose=/tf --set topics.tool_pose=/tf).",
+    help="How the log gives the camera and tool poses: PoseStamped per topic in world; "
+    "transforms on /tf; a navigation TF tree (tracker, markers, hand-eye on /tf_static); "
+    "cameras in the tracker's frame; the tool in the robot's base frame. The `--set` "
+    "keys to ingest it with are printed.",
 )
 @click.option("--separated", is_flag=True, help="Place the last camera where it shares no view.")
 @common_options
@@ -140,7 +143,7 @@ def simulate_cmd(
             out,
             cfg,
             encoding=encoding,
-            poses_as_tf=poses == "tf",
+            convention=poses,
             labels=config.labels,
             on_frame=lambda _: bar.update(1),
         )
@@ -153,3 +156,6 @@ def simulate_cmd(
     click.echo(
         f"ground truth {result.gt_path}; classes over frames 1..{cfg.frames - 1}: {fractions}"
     )
+    settings = CONVENTIONS[poses].settings
+    if settings:
+        click.echo("ingest it with: " + " ".join(f"--set '{s}'" for s in settings))

@@ -22,6 +22,7 @@ from ..core.geometry import make_pose, matrix_to_quat, quat_to_matrix
 from ..core.labels import CLASS_NAMES, true_labels
 from ..io.atomic import write_npz
 from ..io.records import CameraInfoRecord, ImageRecord, JointStateRecord, PoseRecord
+from .conventions import CONVENTIONS
 from .log_writer import write_log
 from .render import Renderer, tool_mesh
 from .scene import Motion, SimConfig, make_tissue, vertex_normals
@@ -214,34 +215,6 @@ class LogBuilder:
         )
 
 
-def tf_messages(messages: Iterator[Message]) -> Iterator[Message]:
-    """Move camera and tool poses onto `/tf` as transforms (child frames name the camera)."""
-    for topic, log_ns, record in messages:
-        if topic.startswith("/navigation/endoscope_") and isinstance(record, PoseRecord):
-            cam = topic.split("/")[2].removeprefix("endoscope_")
-            yield (
-                "/tf",
-                log_ns,
-                PoseRecord(
-                    record.stamp_ns,
-                    WORLD,
-                    f"endoscope_{cam}_optical",
-                    record.position,
-                    record.orientation,
-                ),
-            )
-        elif topic == "/raven/tool_tip" and isinstance(record, PoseRecord):
-            yield (
-                "/tf",
-                log_ns,
-                PoseRecord(
-                    record.stamp_ns, WORLD, "raven_tool_tip", record.position, record.orientation
-                ),
-            )
-        else:
-            yield topic, log_ns, record
-
-
 def class_fractions(labels: np.ndarray) -> dict[str, float]:
     """Fraction of (frame, vertex) pairs in each class, frames >= 1 (frame 0 is all static)."""
     later = labels[1:] if len(labels) > 1 else labels
@@ -257,16 +230,18 @@ def simulate(
     out: Path,
     cfg: SimConfig,
     encoding: str = "ros2",
-    poses_as_tf: bool = False,
+    convention: str = "topics",
     labels: LabelsConfig | None = None,
     on_frame: Callable[[int], None] | None = None,
 ) -> SimResult:
-    """Render the log to `out` and its ground truth to `NAME.gt.npz` (both atomically)."""
+    """Render the log to `out` and its ground truth to `NAME.gt.npz` (both atomically), its
+    poses in `convention` (sim/conventions.py)."""
     labels = labels or LabelsConfig()
     builder = LogBuilder(cfg)
     stream = builder.messages(on_frame)
-    if poses_as_tf:
-        stream = tf_messages(stream)
+    rewrite = CONVENTIONS[convention].rewrite
+    if rewrite is not None:
+        stream = rewrite(stream)
     counted = _Counter(stream)
     write_log(Path(out), counted, encoding)
     vertices = builder.true_vertices()

@@ -20,9 +20,6 @@ from ..io.run_layout import RunLayout
 
 logger = logging.getLogger(__name__)
 
-_DISTORTION_MODELS = ("plumb_bob", "rational_polynomial", "")
-
-
 def fmt_stamp(stamp_ns: int) -> str:
     """ns -> 'S.NNNNNNNNN s'."""
     stamp = int(stamp_ns)
@@ -145,17 +142,10 @@ class StreamCollector:
     def _info(self, item: LogItem, record: CameraInfoRecord) -> None:
         cam = self._camera(item.camera)
         where = f"{item.topic}: intrinsics at stamp {fmt_stamp(record.stamp_ns)}"
-        D = np.asarray(record.D, float).ravel()
-        model_name = record.distortion_model.strip().lower()
-        if model_name not in _DISTORTION_MODELS and np.any(D != 0):
-            raise InputError(f"{where} use distortion model {record.distortion_model!r}; "
-                             "only plumb_bob (k1 k2 p1 p2 k3) is supported")
-        if D.size > 5 and np.any(D[5:] != 0):
-            raise InputError(f"{where} have {D.size} distortion coefficients with k4..k6 "
-                             "non-zero; only plumb_bob (k1 k2 p1 p2 k3) is supported")
         try:
-            model = CameraModel(np.asarray(record.K, float).reshape(3, 3), D[:5],
-                                int(record.width), int(record.height))
+            model = CameraModel.from_camera_info(
+                record.K, record.D, record.distortion_model, int(record.width),
+                int(record.height), record.binning_x, record.binning_y, record.roi)
         except (GeometryError, ValueError) as exc:
             raise InputError(f"{where} are invalid ({exc})") from exc
         if cam.model is None:
@@ -164,10 +154,7 @@ class StreamCollector:
             sizes = np.array(cam.sizes, dtype=np.int64).reshape(-1, 2)
             for k, (w, h) in enumerate(sizes):
                 self._check_size(item.camera, cam.stamps[k], int(w), int(h))
-        elif not cam.info_changed and not (
-            np.allclose(model.K, cam.model.K) and np.allclose(model.dist, cam.model.dist)
-            and (model.width, model.height) == (cam.model.width, cam.model.height)
-        ):
+        elif not cam.info_changed and not model.same_as(cam.model):
             cam.info_changed = True
             logger.warning("%s changes at stamp %s; the first intrinsics are used",
                            item.topic, fmt_stamp(record.stamp_ns))
