@@ -152,13 +152,14 @@ class LogReader:
         if self.damage:
             return InputError(f"{self.path}: no complete frame before the damage "
                               f"({self.damage}); nothing read for {wanted}")
-        listed = [f"{t} ({s})" for t, s in sorted(channels.items())]
-        more = f", ... ({len(listed) - _MAX_LISTED} more)" if len(listed) > _MAX_LISTED else ""
+        listed = [f"{t}  {s}" for t, s in sorted(channels.items())]
+        if len(listed) > _MAX_LISTED:
+            listed = [*listed[:_MAX_LISTED], f"... ({len(listed) - _MAX_LISTED} more)"]
         return TopicError(
-            f"{self.path}: no topic for {wanted}; topics in the log: "
-            f"{', '.join(listed[:_MAX_LISTED]) or 'none'}{more}; set [topics] in a --config file "
-            "(`surgrecon info LOG --write-config FILE` writes one; a robot role the log does "
-            "not record, tool_pose or joint_states, is set to \"\")")
+            f"{self.path}: no topic for {wanted}; set [topics] in a --config file "
+            f"(`surgrecon info {self.path} --write-config FILE` writes one; a robot role the "
+            "log does not record, tool_pose or joint_states, is set to \"\"); topics in the "
+            f"log{':' if listed else ': none'}", details=tuple(listed))
 
     def _early_check(self) -> None:
         """Check roles from the summary sections, when every file has an intact one."""
