@@ -1,5 +1,5 @@
-"""Scoring a run against ground truth (SPEC section 6), per part: template, registration,
-labels. Pure numpy on top of core/scoring.py; the stage (stages/evaluate.py) does the I/O.
+"""Scoring a run against the simulator's ground truth (io/ground_truth.py), per part:
+template, registration, labels. Pure numpy on top of core/scoring.py; the stage (stages/evaluate.py) does the I/O.
 
 Template points are mapped once onto the true frame-0 surface (`map_to_surface`); that
 material point is followed through the frames (`SurfaceMapping.follow`) and its nearest true

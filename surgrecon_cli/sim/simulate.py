@@ -2,8 +2,9 @@
 
 Streams: per camera JPEG images at `frame_rate` (each camera with its own small clock
 offset and jitter) and CameraInfo; per camera tracker poses at `tracker_rate` with noise;
-robot tool-tip pose and joint states at `robot_rate`. Ground truth (`NAME.gt.npz`, SPEC
-section 6) holds the true surface at every frame and its labels by the spec's rule.
+robot tool-tip pose and joint states at `robot_rate`. Ground truth (`NAME.gt.npz`,
+io/ground_truth.py) holds the true surface at every frame and its labels by the rule of
+core/labels.py.
 """
 
 from __future__ import annotations
