@@ -1,5 +1,6 @@
 """Scoring a run against the simulator's ground truth (io/ground_truth.py), per part:
-template, registration, labels. Pure numpy on top of core/scoring.py; the stage (stages/evaluate.py) does the I/O.
+template, registration, labels. Pure numpy on top of core/scoring.py; the stage
+(stages/evaluate.py) does the I/O.
 
 Template points are mapped once onto the true frame-0 surface (`map_to_surface`); that
 material point is followed through the frames (`SurfaceMapping.follow`) and its nearest true

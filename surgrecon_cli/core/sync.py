@@ -3,7 +3,8 @@
 Pure numpy. A *frame* is the set of images (at most one per camera) whose stamps lie within
 the sync tolerance of each other (`ingest.sync_tolerance_ms`). Tracker and robot streams
 are interpolated (linear position, slerp rotation, `geometry.interpolate_poses`) to
-image/frame stamps and never extrapolated: a query outside a stream or inside a gap longer than the limit is invalid.
+image/frame stamps and never extrapolated: a query outside a stream or inside a gap longer
+than the limit is invalid.
 Stamps are int64 nanoseconds.
 """
 
