@@ -20,13 +20,13 @@ CLINICAL_MM = 1.0  # the spec's clinical accuracy requirement
 
 
 def on_tool(points: np.ndarray, tool_pose: np.ndarray, cfg: ToolConfig) -> np.ndarray | None:
-    """(N,) bool: points (N, 3) m closer to the shaft axis (tip + shaft_length along the tool
+    """(N,) bool: points (N, 3) m closer to the shaft axis (tip + shaft_length_m along the tool
     frame's +z) than the shaft radius; None when the tool pose (4, 4) is unknown (NaN)."""
     pose = np.asarray(tool_pose, float)
     if not np.isfinite(pose).all():
         return None
     start, end = shaft_segment(pose, cfg)
-    return point_to_segment_distance(points, start, end) < cfg.shaft_radius
+    return point_to_segment_distance(points, start, end) < cfg.shaft_radius_m
 
 
 def error_summary(errors_m: np.ndarray) -> dict[str, float]:

@@ -81,13 +81,13 @@ def visible_points(
     points: np.ndarray,
     camera: CameraModel,
     pose: np.ndarray,
-    occlusion_depth: float,
+    occlusion_depth_m: float,
     cell_px: int = 8,
     border: float = 8.0,
 ):
     """Predicted pixels (N, 2) and visibility (N,) of points in one camera: in front, inside
     the image (with a KLT border), and not behind other points of the cloud (a z-buffer on
-    `cell_px` cells, tolerance `occlusion_depth` m)."""
+    `cell_px` cells, tolerance `occlusion_depth_m` m)."""
     uv, z = project(points, pose, camera)
     ok = (z > 0) & in_image(uv, camera, border) & np.isfinite(points).all(1)
     cells_x = camera.width // cell_px + 1
@@ -95,7 +95,7 @@ def visible_points(
     cell[ok] = (uv[ok, 1] // cell_px).astype(int) * cells_x + (uv[ok, 0] // cell_px).astype(int)
     zbuf = np.full(cells_x * (camera.height // cell_px + 1), np.inf)
     np.minimum.at(zbuf, cell[ok], z[ok])
-    ok[ok] &= z[ok] <= zbuf[cell[ok]] + occlusion_depth
+    ok[ok] &= z[ok] <= zbuf[cell[ok]] + occlusion_depth_m
     return uv, ok
 
 
@@ -326,7 +326,7 @@ def build_target(
     for c in range(n_cams):
         if cur_images[c] is None or prev_images[c] is None:
             continue
-        guess, visible = visible_points(latest, models[c], cur_poses[c], cfg.occlusion_depth)
+        guess, visible = visible_points(latest, models[c], cur_poses[c], cfg.occlusion_depth_m)
         start = prev_pixels[:, c].copy()
         missing = ~np.isfinite(start).all(1)
         if missing.any() and np.isfinite(prev_poses[c]).all():
