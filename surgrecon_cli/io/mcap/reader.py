@@ -26,7 +26,7 @@ from ...config import TopicsConfig
 from ...errors import InputError, TopicError
 from ..records import Record
 from .base import SchemaDecoder
-from .bounded import BoundedFile, chunk_records, read_summary
+from .bounded import BoundedFile, as_stream, chunk_records, read_summary
 from .registry import DESERIALIZERS, find_decoder, supported
 from .topics import ROLE_KINDS, TopicRoles
 
@@ -166,7 +166,8 @@ class LogReader:
             return
         if summary is None or not summary[1]:
             return
-        channels, found = {}, set()
+        channels: dict[str, str] = {}
+        found: set[str] = set()
         for ch in summary[1].values():
             schema = summary[0].get(ch.schema_id)
             name = schema.name if schema else ""
@@ -202,7 +203,7 @@ class LogReader:
             self.sha256 = tracked.sha.hexdigest()
 
     def _stream(self, tracked: _TrackedFile) -> Iterator[LogItem]:
-        stream = StreamReader(tracked, validate_crcs=True, emit_chunks=True,
+        stream = StreamReader(as_stream(tracked), validate_crcs=True, emit_chunks=True,
                               record_size_limit=self.size)
         records = _expand_chunks(stream.records)
         schemas: dict[int, Schema] = {}
