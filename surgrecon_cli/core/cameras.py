@@ -255,7 +255,7 @@ def undistort_normalized(xy_d: np.ndarray, dist: np.ndarray,
     xy = np.full_like(xy_d, np.nan)
     if finite.any():
         pts = np.ascontiguousarray(xy_d[finite]).reshape(-1, 1, 2)
-        start = cv2.undistortPointsIter(
+        start = cv2.undistortPointsIter(  # type: ignore[call-overload]  # cv2 stub: R, P take None
             pts, np.eye(3), c, None, None,
             (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-12)).reshape(-1, 2)
         xy[finite] = start

@@ -22,6 +22,7 @@ moves the gate with the noise instead of a fixed pixel count:
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import Any
 
 import cv2
 import numpy as np
@@ -121,17 +122,17 @@ def klt_track(
     (M, 2) and ok (M,)."""
     if len(start) == 0:
         return np.zeros((0, 2)), np.zeros(0, bool)
-    params = dict(
+    params: dict[str, Any] = dict(
         winSize=(cfg.klt_window_px, cfg.klt_window_px),
         maxLevel=cfg.klt_levels,
         criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01),
     )
     p0 = start.astype(np.float32).reshape(-1, 1, 2)
-    p1 = guess.astype(np.float32).reshape(-1, 1, 2).copy()
+    p1: np.ndarray = guess.astype(np.float32).reshape(-1, 1, 2).copy()
     p1, st1, _ = cv2.calcOpticalFlowPyrLK(
         prev_gray, cur_gray, p0, p1, flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **params
     )
-    back = p0.copy()
+    back: np.ndarray = p0.copy()
     back, st2, _ = cv2.calcOpticalFlowPyrLK(
         cur_gray, prev_gray, p1, back, flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **params
     )
@@ -324,7 +325,8 @@ def build_target(
     found = np.zeros((n, n_cams), bool)
     localisation = np.full((n, n_cams), np.inf)
     for c in range(n_cams):
-        if cur_images[c] is None or prev_images[c] is None:
+        cur_image, prev_image = cur_images[c], prev_images[c]
+        if cur_image is None or prev_image is None:
             continue
         guess, visible = visible_points(latest, models[c], cur_poses[c], cfg.occlusion_depth_m)
         start = prev_pixels[:, c].copy()
@@ -333,8 +335,8 @@ def build_target(
             start[missing] = project(latest[missing], prev_poses[c], models[c])[0]
         visible &= np.isfinite(start).all(1) & in_image(start, models[c], 8.0)
         idx = np.flatnonzero(visible)
-        cur = _gray(cur_images[c])
-        tracked, ok = klt_track(_gray(prev_images[c]), cur, start[idx], guess[idx], cfg)
+        cur = _gray(cur_image)
+        tracked, ok = klt_track(_gray(prev_image), cur, start[idx], guess[idx], cfg)
         ok &= in_image(tracked, models[c], 2.0)
         ok &= ~tool_pixel_mask(tracked, models[c], cur_poses[c], tool_pose, tool_cfg)
         pixels[idx[ok], c] = tracked[ok]

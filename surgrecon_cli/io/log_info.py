@@ -548,8 +548,8 @@ def check_topics(info: LogInfo, topics: TopicsConfig) -> list[str]:
             key = "camera_frame" if role == "camera_pose" else "tool_frame"
             frames = info.tf_tree.frames if info.tf_tree is not None else c.child_frames
             if role == "camera_pose":
-                ids.update(roles.camera_of_frame(f) for f in frames
-                           if roles.camera_of_frame(f) is not None)
+                ids.update(cam_id for f in frames
+                           if (cam_id := roles.camera_of_frame(f)) is not None)
             hit = [f for f in frames if (roles.camera_of_frame(f) is not None
                                           if role == "camera_pose" else roles.is_tool_frame(f))]
             if not hit:

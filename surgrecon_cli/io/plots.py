@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import io
 from collections.abc import Sequence
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from matplotlib import rc_context
@@ -16,11 +17,14 @@ from matplotlib.colors import LinearSegmentedColormap
 from matplotlib.figure import Figure
 from matplotlib.ticker import FuncFormatter, MaxNLocator
 
+if TYPE_CHECKING:
+    from matplotlib.typing import RcKeyType
+
 CLASS_COLOURS = {"static": "#4C78A8", "shifting": "#F2A541", "deforming": "#D1495B",
                  "unknown": "#BAB0AC"}
 STATUS_COLOURS = {"intra": "#4C78A8", "inter": "#59A14F", "outlier": "#D1495B",
                   "unobserved": "#BAB0AC"}
-_STYLE = {
+_STYLE: dict[RcKeyType, Any] = {
     "font.size": 9, "axes.titlesize": 10, "axes.titleweight": "bold", "axes.labelsize": 9,
     "axes.spines.top": False, "axes.spines.right": False, "axes.grid": True,
     "grid.color": "#e6e6e6", "grid.linewidth": 0.6, "axes.edgecolor": "#888888",
@@ -51,7 +55,7 @@ def stacked_counts(frames: np.ndarray, counts: dict[str, np.ndarray], colours: d
             ax.stackplot(frames, values, labels=names, colors=[colours[n] for n in names],
                          alpha=0.9, linewidth=0)
         else:
-            bottom = 0.0
+            bottom: float | np.ndarray = 0.0
             for name, v in zip(names, values, strict=True):
                 ax.bar(frames, v, bottom=bottom, color=colours[name], label=name, width=0.6)
                 bottom += v
@@ -101,8 +105,9 @@ def histogram(values: np.ndarray, title: str, xlabel: str, lines: dict[str, floa
         groups = by or {"all": np.ones(len(v), bool)}
         for name, mask in groups.items():
             sel = v[finite & np.asarray(mask, bool)]
-            if sel.size:
-                ax.hist(np.minimum(sel, edges[-1]), bins=edges, histtype="stepfilled", alpha=0.55,
+            if sel.size:  # `bins` takes an array; matplotlib's stub omits arrays
+                ax.hist(np.minimum(sel, edges[-1]), bins=edges,  # type: ignore[arg-type]
+                        histtype="stepfilled", alpha=0.55,
                         color=(colours or {}).get(name, "#4C78A8"), label=f"{name} ({sel.size})")
         for label, x in (lines or {}).items():
             ax.axvline(x, color="#333333", linestyle="--", linewidth=1, label=label)

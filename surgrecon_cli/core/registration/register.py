@@ -190,7 +190,7 @@ def register(
                               gate=gate)
     else:
         R, t = np.eye(3), np.zeros(3)
-    X = np.zeros((n_nodes, 4, 3))
+    X: np.ndarray = np.zeros((n_nodes, 4, 3))
     X[:, :3, :] = R.T
     X[:, 3, :] = nodes_q @ R.T + t
     X = X.reshape(-1, 3)

@@ -29,7 +29,7 @@ from ...errors import InputError, TopicError
 from ..log_input import resolve_log
 from ..records import Record
 from .base import SchemaDecoder
-from .bounded import BoundedFile, chunk_records, read_summary
+from .bounded import BoundedFile, as_stream, chunk_records, read_summary
 from .registry import DESERIALIZERS, find_decoder, supported
 from .topics import ROLE_KINDS, TopicRoles
 
@@ -219,7 +219,7 @@ class LogReader:
         self.sha256 = sha.hexdigest()
 
     def _stream(self, tracked: _TrackedFile, size: int) -> Iterator[LogItem]:
-        stream = StreamReader(tracked, validate_crcs=True, emit_chunks=True,
+        stream = StreamReader(as_stream(tracked), validate_crcs=True, emit_chunks=True,
                               record_size_limit=size)
         records = _expand_chunks(stream.records)
         schemas: dict[int, Schema] = {}
