@@ -27,36 +27,13 @@ Figures = Mapping[str, bytes]
 
 def compose(layout: RunLayout, data: RunData, metrics: Metrics, views: list[CloudView],
             config: Config, pngs: Figures, created: datetime) -> str:
-    """The report's HTML document (created: when, for the footer)."""
+    """The report's HTML document; `created` (UTC) dates the footer."""
     log, m = data.log, metrics.measures
-    classify = config.classify
     sections = [_overview(data, metrics), _cameras(data, pngs)]
     if m is not None and log.n_frames > 1:
         sections.append(_quality(data, m, pngs))
-    sections.append(rh.Section("labels", "Labels over time").add(
-        *_place(pngs, "class-counts",
-               f"Static: registered displacement below {classify.static_mm:g} mm; deforming: "
-               f"neighbourhood ({classify.neighbourhood_mm:g} mm) {classify.measure} at or "
-               f"above {classify.deform_mm:g} mm; shifting otherwise."),
-        *_place(pngs, "status-counts",
-               "Intra-camera inliers (frame-0 position still reprojects: static evidence), "
-               "inter-camera inliers (re-triangulated: dynamic), outliers, and points not "
-               "visible.")))
-    sections.append(rh.Section("clouds", "Labelled clouds").add(
-        *(block for v in views for block in _place(pngs, cloud_key(v.frame), _cloud_caption(v)))))
-    sections.append(rh.Section("registration", "Registration").add(
-        *_place(pngs, "displacement",
-               "Registered displacement ‖T_i p_i − p_i‖ per frame (boxes: quartiles, whiskers: "
-               "5–95 %)."),
-        *_place(pngs, "residual",
-               "Distance of each point with a target (intra/inter-camera inlier) to its target "
-               "after registration.")))
-    early = data.run.get("stages", {}).get("classify", {}).get("classified_with_register")
-    note = (f" {early} frames were classified as they were registered: their time counts "
-            "under register." if early else "")
-    sections.append(rh.Section("timing", "Timing").add(*_place(
-        pngs, "timing", "Wall time of each stage (left) and of target-cloud building and "
-                        "non-rigid registration per frame (right)." + note)))
+    sections += [_labels(config, pngs), _clouds(views, pngs), _registration(pngs),
+                 _timing(data.run, pngs)]
     if data.evaluation:
         sections.append(_evaluation(data.evaluation, pngs))
     sections.append(rh.Section("files", "Files").add(rh.table(("file", "contents"), [
@@ -105,9 +82,9 @@ def _cameras(data: RunData, pngs: Figures) -> rh.Section:
     log = data.log
     sec = rh.Section("cameras", "Cameras and template")
     sec.add(*_place(pngs, "camera-layout",
-                   "Camera positions at frame 0 over the template (grey). Lines: pairs matched "
-                   "when building the template, numbered in matching order; one colour per "
-                   "camera group."))
+                    "Camera positions at frame 0 over the template (grey). Lines: pairs matched "
+                    "when building the template, numbered in matching order; one colour per "
+                    "camera group."))
     pairs = (data.template_summary or {}).get("pairs", {})
     groups, sequences = pairs.get("groups", []), pairs.get("sequence", [])
     for g, group in enumerate(groups):
@@ -156,10 +133,10 @@ def _quality(data: RunData, m: Measures, pngs: Figures) -> rh.Section:
          "; ".join(", ".join(g) for g in bodies) or "none"),
     ]))
     sec.add(*_place(pngs, "quality",
-                   "Left: share of template points observed in the frame, labelled unknown "
-                   "(too far from data) and rejected as outliers. Right: median uncertainty σ "
-                   "of the labelled points, and the median registration residual in units of "
-                   "the target's σ (about 1 when the fit is as good as the noise allows)."))
+                    "Left: share of template points observed in the frame, labelled unknown "
+                    "(too far from data) and rejected as outliers. Right: median uncertainty σ "
+                    "of the labelled points, and the median registration residual in units of "
+                    "the target's σ (about 1 when the fit is as good as the noise allows)."))
     warnings = [w for q in m.quality for w in q.warnings]
     if warnings:
         sec.add(rh.paragraph("Frames not to trust: " + "; ".join(warnings) + "."))
@@ -167,6 +144,47 @@ def _quality(data: RunData, m: Measures, pngs: Figures) -> rh.Section:
         sec.add(rh.paragraph("Every frame is supported by data and fits within its noise.",
                              note=True))
     return sec
+
+
+def _labels(config: Config, pngs: Figures) -> rh.Section:
+    """Points per class and per reprojection status over time."""
+    c = config.classify
+    return rh.Section("labels", "Labels over time").add(
+        *_place(pngs, "class-counts",
+                f"Static: registered displacement below {c.static_mm:g} mm; deforming: "
+                f"neighbourhood ({c.neighbourhood_mm:g} mm) {c.measure} at or above "
+                f"{c.deform_mm:g} mm; shifting otherwise."),
+        *_place(pngs, "status-counts",
+                "Intra-camera inliers (frame-0 position still reprojects: static evidence), "
+                "inter-camera inliers (re-triangulated: dynamic), outliers, and points not "
+                "visible."))
+
+
+def _clouds(views: list[CloudView], pngs: Figures) -> rh.Section:
+    """The rendered frames, in frame order."""
+    return rh.Section("clouds", "Labelled clouds").add(
+        *(block for v in views for block in _place(pngs, cloud_key(v.frame), _cloud_caption(v))))
+
+
+def _registration(pngs: Figures) -> rh.Section:
+    """Displacement and residual distributions per frame."""
+    return rh.Section("registration", "Registration").add(
+        *_place(pngs, "displacement",
+                "Registered displacement ‖T_i p_i − p_i‖ per frame (boxes: quartiles, "
+                "whiskers: 5–95 %)."),
+        *_place(pngs, "residual",
+                "Distance of each point with a target (intra/inter-camera inlier) to its "
+                "target after registration."))
+
+
+def _timing(run: dict[str, Any], pngs: Figures) -> rh.Section:
+    """Wall time per stage and per frame (run: run.json)."""
+    early = run.get("stages", {}).get("classify", {}).get("classified_with_register")
+    note = (f" {early} frames were classified as they were registered: their time counts "
+            "under register." if early else "")
+    return rh.Section("timing", "Timing").add(*_place(
+        pngs, "timing", "Wall time of each stage (left) and of target-cloud building and "
+                        "non-rigid registration per frame (right)." + note))
 
 
 def _cloud_caption(view: CloudView) -> str:
