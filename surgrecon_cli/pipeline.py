@@ -46,7 +46,8 @@ STAGES = registry.NAMES
 Progress = Callable[[str, float], None]
 # Modules of the task functions, imported by parallel workers as they start.
 TASK_MODULES = ("surgrecon_cli.core.template", "surgrecon_cli.stages.register",
-                "surgrecon_cli.stages.classify", "surgrecon_cli.io.plots")
+                "surgrecon_cli.stages.classify", "surgrecon_cli.io.plots",
+                "surgrecon_cli.io.plots_evaluation")
 
 
 def open_executor(config: Config) -> closing[Executor]:

@@ -15,7 +15,7 @@ import numpy as np
 from ..config import Config
 from ..core.labels import CLASS_NAMES, UNKNOWN
 from ..executors import Executor, Task
-from ..io import plots
+from ..io import plots, plots_evaluation
 from .gather import CloudView, RunData
 from .metrics import CLASS_COLUMNS, STATUS_COLUMNS, Metrics, stage_seconds
 
@@ -119,18 +119,18 @@ def _evaluation_tasks(ev: dict[str, Any], errors: dict[str, np.ndarray],
             return np.array([np.nan if r.get(key) is None else r[key] for r in pf])
 
         tasks.append(Task("error-over-time", partial(
-            plots.error_over_time, np.array([r["frame"] for r in pf]), get("median_mm"),
+            plots_evaluation.error_over_time, np.array([r["frame"] for r in pf]), get("median_mm"),
             get("p95_mm"), get("max_mm"))))
         if "registration_error_mm" in errors:
             err = errors["registration_error_mm"]
             tasks.append(Task("error-histograms", partial(
-                plots.error_histograms, frames_later, [err[k] for k in frames_later])))
+                plots_evaluation.error_histograms, frames_later, [err[k] for k in frames_later])))
     labels = ev.get("labels")
     if labels and labels.get("overall"):
         o = labels["overall"]
         axes = o["confusion_axes"]
         tasks.append(Task("confusion", partial(
-            plots.confusion, np.array(o["confusion"]), axes["rows"], axes["cols"])))
+            plots_evaluation.confusion, np.array(o["confusion"]), axes["rows"], axes["cols"])))
         pf = labels["per_frame"]
         if pf:
             per_class = {name: np.array([r["per_class"][name]["f1"]
@@ -138,5 +138,6 @@ def _evaluation_tasks(ev: dict[str, Any], errors: dict[str, np.ndarray],
                                          for r in pf]) for name in CLASS_NAMES.values()}
             macro = np.array([np.nan if r["macro_f1"] is None else r["macro_f1"] for r in pf])
             tasks.append(Task("f1-over-time", partial(
-                plots.f1_over_time, np.array([r["frame"] for r in pf]), per_class, macro)))
+                plots_evaluation.f1_over_time, np.array([r["frame"] for r in pf]), per_class,
+                macro)))
     return tasks

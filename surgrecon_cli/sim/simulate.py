@@ -25,8 +25,9 @@ from ..io.atomic import write_npz
 from ..io.records import CameraInfoRecord, ImageRecord, JointStateRecord, PoseRecord
 from .conventions import CONVENTIONS
 from .log_writer import write_log
+from .motion import Motion
 from .render import Renderer, tool_mesh
-from .scene import Motion, SimConfig, make_tissue, vertex_normals
+from .scene import SimConfig, make_tissue, vertex_normals
 from .texture import make_texture
 
 T0_NS = 1_700_000_000_000_000_000  # fixed epoch so that logs are bit-for-bit reproducible

@@ -12,7 +12,8 @@ from __future__ import annotations
 
 import dataclasses
 import io
-from typing import IO, Protocol, cast
+from collections.abc import Callable
+from typing import IO, Any, Protocol, cast
 
 import zstandard
 from mcap.exceptions import McapError, UnsupportedCompressionError
@@ -117,3 +118,26 @@ def read_summary(f: BoundedFile) -> tuple[dict[int, Schema], dict[int, Channel]]
         elif isinstance(record, Chunk):
             return None  # not a summary section
     return None
+
+
+class TrackedFile:
+    """File wrapper: SHA-256 and position of everything read, progress callback."""
+
+    def __init__(self, raw: IO[bytes] | BoundedFile,
+                 on_bytes: Callable[[int], None] | None, sha: Any) -> None:
+        self.raw = raw
+        self.on_bytes = on_bytes
+        self.sha = sha  # one hash over the log's files in order
+        self.pos = 0
+
+    def read(self, n: int = -1) -> bytes:
+        data = self.raw.read(n)
+        self.sha.update(data)
+        self.pos += len(data)
+        if self.on_bytes is not None and data:
+            self.on_bytes(len(data))
+        return data
+
+    def drain(self) -> None:
+        while self.read(1 << 20):
+            pass

@@ -17,7 +17,7 @@ import struct
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import IO, Any
+from typing import Any
 
 import zstandard
 from mcap.exceptions import EndOfFile, InvalidMagic, McapError, RecordLengthLimitExceeded
@@ -29,7 +29,7 @@ from ...errors import InputError, TopicError
 from ..log_input import resolve_log
 from ..records import Record
 from .base import SchemaDecoder
-from .bounded import BoundedFile, as_stream, chunk_records, read_summary
+from .bounded import BoundedFile, TrackedFile, as_stream, chunk_records, read_summary
 from .registry import DESERIALIZERS, find_decoder, supported
 from .topics import ROLE_KINDS, TopicRoles
 
@@ -60,29 +60,6 @@ class _ChannelInfo:
     roles: list[tuple[str, str]] = field(default_factory=list)
     decoder: SchemaDecoder | None = None
     deserialize: Callable[[bytes], Any] | None = None
-
-
-class _TrackedFile:
-    """File wrapper: SHA-256 and position of everything read, progress callback."""
-
-    def __init__(self, raw: IO[bytes] | BoundedFile,
-                 on_bytes: Callable[[int], None] | None, sha: Any) -> None:
-        self.raw = raw
-        self.on_bytes = on_bytes
-        self.sha = sha  # one hash over the log's files in order
-        self.pos = 0
-
-    def read(self, n: int = -1) -> bytes:
-        data = self.raw.read(n)
-        self.sha.update(data)
-        self.pos += len(data)
-        if self.on_bytes is not None and data:
-            self.on_bytes(len(data))
-        return data
-
-    def drain(self) -> None:
-        while self.read(1 << 20):
-            pass
 
 
 class LogReader:
@@ -211,14 +188,14 @@ class LogReader:
             self._deserializers = {}  # schema ids are per file; decoders cache by id
             size = path.stat().st_size
             with open(path, "rb") as raw:
-                tracked = _TrackedFile(BoundedFile(raw, size), self.on_bytes, sha)
+                tracked = TrackedFile(BoundedFile(raw, size), self.on_bytes, sha)
                 if self.damage is None:  # after damage, nothing later is used
                     yield from self._stream(tracked, size)
                 tracked.drain()  # the hash covers the whole log, damaged part included
             self._offset += size
         self.sha256 = sha.hexdigest()
 
-    def _stream(self, tracked: _TrackedFile, size: int) -> Iterator[LogItem]:
+    def _stream(self, tracked: TrackedFile, size: int) -> Iterator[LogItem]:
         stream = StreamReader(as_stream(tracked), validate_crcs=True, emit_chunks=True,
                               record_size_limit=size)
         records = _expand_chunks(stream.records)
