@@ -49,6 +49,9 @@ def _header(info: LogInfo) -> str:
     ]
     if info.damage:
         lines.append(f"damaged log: {info.damage}")
+        if info.files[-1].damage is None:
+            lines.append("  (ingest reads nothing after the first damage: the later files are "
+                         "described here, but not used)")
     return "\n".join(lines)
 
 
