@@ -79,6 +79,7 @@ def topics_toml(info: LogInfo) -> str:
             lines.append(f"# {key}: no candidate found; set it by hand")
             lines.append(f"# {key} = \"\"")
     plan = info.poses
+    world = info.world_frame
     for chain in plan.chains if plan is not None else ():
         if not chain.problem:
             continue
@@ -86,8 +87,8 @@ def topics_toml(info: LogInfo) -> str:
         if chain.who == "tool" and not chain.via_tf and chain.frame:
             lines += _comment(
                 f"The tool pose on {chain.topic} is in frame {chain.frame!r}, which no TF "
-                f"transform connects to {plan.world!r}: ingest needs the pose of "
-                f"{chain.frame!r} in {plan.world!r} (x y z in m, quaternion qx qy qz qw). "
+                f"transform connects to {world!r}: ingest needs the pose of "
+                f"{chain.frame!r} in {world!r} (x y z in m, quaternion qx qy qz qw). "
                 "The log does not hold it, so `info` cannot write it: set it below, or set "
                 "tool_pose = \"\" above to ingest without the robot.")
             lines += ["# [tool]", "# base_to_world = [x, y, z, qx, qy, qz, qw]"]
@@ -142,8 +143,7 @@ def check_topics(info: LogInfo, topics: TopicsConfig,
             key = "camera_frame" if role == "camera_pose" else "tool_frame"
             frames = info.tf_tree.frames if info.tf_tree is not None else c.child_frames
             if role == "camera_pose":
-                ids.update(roles.camera_of_frame(f) for f in frames
-                           if roles.camera_of_frame(f) is not None)
+                ids.update(cid for f in frames if (cid := roles.camera_of_frame(f)) is not None)
             hit = [f for f in frames if (roles.camera_of_frame(f) is not None
                                           if role == "camera_pose" else roles.is_tool_frame(f))]
             if not hit:
@@ -156,10 +156,10 @@ def check_topics(info: LogInfo, topics: TopicsConfig,
             if role in cameras and lacking:
                 problems.append(f"topics.{role} finds no topic/frame for camera(s) "
                                 f"{', '.join(lacking)} of topics.image")
-    ids = sort_ids(cameras.get("image", set()) & cameras.get("camera_pose", set()))
-    plan = plan_poses(info.channels, info.tf_tree, topics, ids, bool(base_to_world))
+    posed = sort_ids(cameras.get("image", set()) & cameras.get("camera_pose", set()))
+    plan = plan_poses(info.channels, info.tf_tree, topics, posed, bool(base_to_world))
     problems += grouped_problems(plan.chains)
-    world = suggest_world(info.channels, info.tf_tree, topics, ids)
+    world = suggest_world(info.channels, info.tf_tree, topics, posed)
     if world != topics.world_frame and any(c.problem and c.found for c in plan.cameras):
         problems.append(f"the camera poses lead to {world!r}: set topics.world_frame = "
                         f"{world!r} if that is the world")

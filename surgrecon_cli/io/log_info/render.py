@@ -5,6 +5,7 @@ ingest will compose it, and the check of the effective config's `[topics]`."""
 from __future__ import annotations
 
 import textwrap
+from collections.abc import Sequence
 
 from ...config import TopicsConfig
 from .config_text import check_topics
@@ -77,7 +78,7 @@ def _stamp(ns: int) -> str:
     return f"{ns // 1_000_000_000}.{ns % 1_000_000_000:09d} s"
 
 
-def _table(rows: list[tuple[str, ...]], right: set[int]) -> list[str]:
+def _table(rows: Sequence[tuple[str, ...]], right: set[int]) -> list[str]:
     widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
     return ["  ".join(v.rjust(w) if i in right else v.ljust(w)
                       for i, (v, w) in enumerate(zip(row, widths, strict=True))).rstrip()
