@@ -153,6 +153,19 @@ def test_data_operator_reproduces_an_affine_motion_of_blended_points(cloud):
     np.testing.assert_allclose(D @ affine_field(cloud, A, t), points @ A + t, atol=1e-12)
 
 
+def test_blend_weights_are_continuous_where_the_node_set_changes(cloud):
+    """A node's weight falls to 0 as it leaves a point's k nearest, so the blended field has
+    no seams: along a fine path through the cloud no weight jumps."""
+    s = np.linspace(0.0, 1.0, 4001)[:, None]
+    path = (1 - s) * np.array([-0.9, -0.8, -0.7]) + s * np.array([0.9, 0.8, 0.6])
+    idx, w = graph.interpolation(path, cloud, cKDTree(cloud), 4)
+    dense = np.zeros((len(path), len(cloud)))
+    np.put_along_axis(dense, idx, w, axis=1)
+    changes = (np.sort(idx, axis=1)[1:] != np.sort(idx, axis=1)[:-1]).any(axis=1).sum()
+    assert changes >= 10  # the path crosses many changes of the node set
+    assert np.abs(np.diff(dense, axis=0)).max() < 0.02
+
+
 def test_linear_selector_picks_the_linear_parts(cloud):
     X = np.random.default_rng(7).normal(size=(len(cloud), 4, 3))
     L = graph.linear_selector(len(cloud))
