@@ -102,18 +102,15 @@ def world(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     root = tmp_path_factory.mktemp("help_world")
     log = root / "tiny.mcap"
     simulate(log, SimConfig(cameras=6, frames=2, width=320, height=240))
-    states = {"log": log, "gt": root / "tiny.gt.npz"}
-    steps = [("ingested", ["ingest", str(log), "-o"]), ("templated", ["build-template"]),
-             ("registered", ["register"]), ("classified", ["classify"])]
-    previous = None
-    for state, argv in steps:
-        run = root / state
-        if previous is None:
-            assert main([*argv, str(run), "-q"]) == 0
-        else:
-            shutil.copytree(previous, run)
-            assert main([*argv, str(run), "-q"]) == 0
-        states[state] = previous = run
+    states = {"log": log, "gt": root / "tiny.gt.npz", "ingested": root / "ingested"}
+    assert main(["ingest", str(log), "-o", str(states["ingested"]), "-q"]) == 0
+    previous = states["ingested"]
+    for state, command in [("templated", "build-template"), ("registered", "register"),
+                           ("classified", "classify")]:
+        states[state] = root / state
+        shutil.copytree(previous, states[state])
+        assert main([command, str(states[state]), "-q"]) == 0
+        previous = states[state]
     return states
 
 
@@ -162,7 +159,7 @@ def _prepare(argv: list[str], world: dict[str, Path], scheduler) -> list[str]:
         option = token if token in takes_value else None
         value = argv[k + 1] if option else token
         k += 2 if option else 1
-        if option in ("--scheduler",):
+        if option == "--scheduler":
             out += [option, scheduler()]
             continue
         if option == "--config" and not Path(value).exists():
