@@ -5,11 +5,10 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import tomllib
 import typing
 from pathlib import Path
 from typing import Any
-
-import tomllib
 
 from ..errors import ConfigError
 from .schema import Config, _require

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 
 from ..config import Config
@@ -61,7 +61,7 @@ def run_report(run_dir: Path, config: Config,
         pngs = draw_figures(data, metrics, views, config, executor or SerialExecutor())
         step(3, 4)
         write_text(files.html, compose(layout, data, metrics, views, config, pngs,
-                                       datetime.now(timezone.utc)))
+                                       datetime.now(UTC)))
         step(4, 4)
         info.update(html=str(files.html), frames=data.log.n_frames)
     return files
