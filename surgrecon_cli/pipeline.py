@@ -1,7 +1,7 @@
 """`surgrecon run`: every stage in order on one run folder, resumable; `run_many`: many
 logs, one run folder each, over one executor.
 
-ingest -> build-template -> register -> classify -> [evaluate] -> report
+ingest -> build-template -> register -> classify -> measure -> [evaluate] -> report
 
 Rerunning on the same folder skips what is finished and still valid, and resumes the
 register stage frame by frame. Validity is checked against run.json:
@@ -47,7 +47,7 @@ Progress = Callable[[str, float], None]
 # Modules of the task functions, imported by parallel workers as they start.
 TASK_MODULES = ("surgrecon_cli.core.template", "surgrecon_cli.stages.register",
                 "surgrecon_cli.stages.classify", "surgrecon_cli.io.plots",
-                "surgrecon_cli.io.plots_evaluation")
+                "surgrecon_cli.io.plots_evaluation", "surgrecon_cli.io.plots_deformation")
 
 
 def open_executor(config: Config) -> closing[Executor]:

@@ -12,6 +12,7 @@ from .load import from_dict, load_config
 from .schema import (
     ClassifyConfig,
     Config,
+    DeformationConfig,
     IngestConfig,
     LabelsConfig,
     RegistrationConfig,
@@ -27,6 +28,7 @@ __all__ = [
     "ClassifyConfig",
     "Config",
     "ConfigError",
+    "DeformationConfig",
     "IngestConfig",
     "LabelsConfig",
     "RegistrationConfig",

@@ -4,19 +4,9 @@ metadata "doc") and range checks (`ConfigError` naming the key) in `__post_init_
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
 
-from ..errors import ConfigError
-
-
-def _doc(default: Any, doc: str) -> Any:
-    """A dataclass field with a one-line docstring (shown by `surgrecon config`)."""
-    return field(default=default, metadata={"doc": doc})
-
-
-def _require(cond: bool, key: str, message: str) -> None:
-    if not cond:
-        raise ConfigError(f"{key}: {message}")
+from .fields import _doc, _require
+from .schema_deformation import DeformationConfig
 
 
 @dataclass(frozen=True)
@@ -345,5 +335,6 @@ class Config:
     target: TargetConfig = field(default_factory=TargetConfig)
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
     classify: ClassifyConfig = field(default_factory=ClassifyConfig)
+    deformation: DeformationConfig = field(default_factory=DeformationConfig)
     labels: LabelsConfig = field(default_factory=LabelsConfig)
     run: RunConfig = field(default_factory=RunConfig)

@@ -1,8 +1,8 @@
 """Typed readers and writers of the run folder's artefacts (paths: io/run_layout.py).
 
 One dataclass per artefact: the template cloud, its observations, one registered frame,
-the labels. Writers are atomic; readers check shapes against the template and fail in one
-line naming the file and the stage to re-run.
+the labels, the contact and indentation measures. Writers are atomic; readers check shapes
+against the template and fail in one line naming the file and the stage to re-run.
 """
 
 from __future__ import annotations
@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 
+from ..core.indentation import SERIES_KEYS, Deformation, DeformationField, DeformationSeries
 from ..core.labels import STATIC
 from ..errors import RunFolderError
 from .atomic import write_json, write_npz
@@ -259,6 +260,32 @@ def read_labels(layout: RunLayout, shape: tuple[int, int]) -> FrameLabels:
                                                "deformation_mm", "status")}, "classify")
     return FrameLabels(z["labels"], z["raw_labels"], z["displacement_mm"].astype(float),
                        z["deformation_mm"].astype(float), z["status"])
+
+
+# ---------------------------------------------------------------------- deformation
+_FIELD = ("inward_mm", "magnitude_mm", "sigma_mm", "deformed")
+
+
+def write_deformation(layout: RunLayout, measured: Deformation, summary: dict[str, Any]) -> None:
+    """The measures (core/indentation.Deformation) and their summary, atomically."""
+    series, field = measured.series, measured.field
+    write_npz(layout.deformation, **{k: getattr(series, k) for k in SERIES_KEYS},
+              **{k: getattr(field, k) for k in _FIELD})
+    write_json(layout.deformation_summary, summary)
+
+
+def read_deformation(layout: RunLayout, shape: tuple[int, int]) -> Deformation:
+    """The measures of a run of `shape` (T frames, N template points)."""
+    path = layout.deformation
+    z = _load_npz(path, "measure", "contact and indentation measures")
+    _check_shapes(path, z, {**{k: shape[:1] for k in SERIES_KEYS},
+                            **{k: shape for k in _FIELD}}, "measure")
+    return Deformation(DeformationSeries(**{k: z[k] for k in SERIES_KEYS}),
+                       DeformationField(**{k: z[k] for k in _FIELD}))
+
+
+def read_deformation_summary(layout: RunLayout) -> dict[str, Any]:
+    return read_json(layout.deformation_summary, "measure")
 
 
 # ------------------------------------------------------------------------------- clouds

@@ -1,5 +1,8 @@
 """The simulator's ground truth file `NAME.gt.npz` read and validated:
-faces (F, 3), vertices (T, V, 3) m, labels (T, V) by core/labels.true_labels, stamps_ns (T,)."""
+faces (F, 3), vertices (T, V, 3) m, labels (T, V) by core/labels.true_labels, stamps_ns (T,);
+optional (files written before the deformation measures lack them): tool_poses (T, 4, 4)
+the true tool-tip pose in the world at every frame, indentation_m (T,) the simulator's dent
+depth along the tool axis."""
 
 from __future__ import annotations
 
@@ -13,12 +16,14 @@ from ..errors import InputError
 from .run_folder import file_sha256
 
 _KEYS = ("faces", "vertices", "labels", "stamps_ns")
+_OPTIONAL = ("tool_poses", "indentation_m")
 
 
 @dataclass(frozen=True)
 class GroundTruth:
     """faces (F, 3) int; vertices (T, V, 3) m; labels (T, V) uint8; stamps_ns (T,) int64;
-    path and SHA-256 of the file it came from."""
+    path and SHA-256 of the file it came from; tool_poses (T, 4, 4) and indentation_m (T,)
+    m, or None in files that do not have them."""
 
     path: Path
     sha256: str
@@ -26,6 +31,8 @@ class GroundTruth:
     vertices: np.ndarray
     labels: np.ndarray
     stamps_ns: np.ndarray
+    tool_poses: np.ndarray | None = None
+    indentation_m: np.ndarray | None = None
 
     @property
     def n_frames(self) -> int:
@@ -47,7 +54,7 @@ def load_ground_truth(path: Path) -> GroundTruth:
             if missing:
                 raise InputError(f"{path}: not a surgrecon ground truth (missing "
                                  f"{', '.join(missing)}; expected {', '.join(_KEYS)})")
-            data = {k: z[k] for k in _KEYS}
+            data = {k: z[k] for k in (*_KEYS, *_OPTIONAL) if k in z.files}
     except FileNotFoundError as exc:
         raise InputError(f"{path}: no such ground-truth file") from exc
     except (OSError, ValueError, zipfile.BadZipFile) as exc:
@@ -67,6 +74,12 @@ def load_ground_truth(path: Path) -> GroundTruth:
         raise InputError(f"{path}: stamps_ns must be ({n_frames},), got {stamps.shape}")
     if not np.isfinite(vertices).all():
         raise InputError(f"{path}: vertices contain NaN/Inf")
+    optional = {}
+    for key, shape in (("tool_poses", (n_frames, 4, 4)), ("indentation_m", (n_frames,))):
+        if key in data:
+            if data[key].shape != shape:
+                raise InputError(f"{path}: {key} must be {shape}, got {data[key].shape}")
+            optional[key] = data[key].astype(float)
     return GroundTruth(path=path, sha256=file_sha256(path), faces=faces.astype(np.int64),
                        vertices=vertices.astype(float), labels=labels.astype(np.uint8),
-                       stamps_ns=stamps.astype(np.int64))
+                       stamps_ns=stamps.astype(np.int64), **optional)

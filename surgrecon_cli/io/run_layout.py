@@ -11,6 +11,9 @@
   RUN/registration/FFFFFF.npz    one registered frame k >= 1 (io/artefacts.FrameRegistration)
   RUN/classify/labels.npz        labels (T, N) and the measures behind them
   RUN/clouds/FFFFFF.ply          every frame's labelled cloud (written once, by classify)
+  RUN/measure/deformation.npz    tool-tissue contact and indentation per frame, the field
+  RUN/measure/summary.json       contact onset / release, deepest indentation, ...
+  RUN/metrics/deformation.csv    one row per frame: contact, indentation, area, volume, force
   RUN/metrics/evaluation.json    scores against ground truth
   RUN/metrics/evaluation_errors.npz  per-point errors behind them
   RUN/metrics/frames.csv         one row per frame
@@ -121,6 +124,23 @@ class RunLayout:
     def cloud(self, frame: int) -> Path:
         return self.clouds_dir / f"{frame:06d}.ply"
 
+    # contact and indentation
+    @property
+    def measure_dir(self) -> Path:
+        return self.root / "measure"
+
+    @property
+    def deformation(self) -> Path:
+        return self.measure_dir / "deformation.npz"
+
+    @property
+    def deformation_summary(self) -> Path:
+        return self.measure_dir / "summary.json"
+
+    @property
+    def deformation_csv(self) -> Path:
+        return self.metrics_dir / "deformation.csv"
+
     # evaluation and report
     @property
     def metrics_dir(self) -> Path:
@@ -160,6 +180,8 @@ DESCRIBED_FILES = (
     ("registration_dir", "per-frame transforms, targets and uncertainties (npz)"),
     ("labels", "labels (T, N) and the measures behind them"),
     ("frames_csv", "the per-frame table behind these plots"),
+    ("deformation_csv", "per frame: tool-tissue contact, indentation, area, volume, force"),
+    ("deformation", "the rigid-motion-compensated displacement field and the per-frame measures"),
     ("summary_json", "this run at a glance"),
     ("evaluation_json", "scores against ground truth (when evaluated)"),
 )

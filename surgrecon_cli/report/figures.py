@@ -15,7 +15,7 @@ import numpy as np
 from ..config import Config
 from ..core.labels import CLASS_NAMES, UNKNOWN
 from ..executors import Executor, Task
-from ..io import plots, plots_evaluation
+from ..io import plots, plots_deformation, plots_evaluation
 from .gather import CloudView, RunData
 from .metrics import CLASS_COLUMNS, STATUS_COLUMNS, Metrics, stage_seconds
 
@@ -72,6 +72,8 @@ def figure_tasks(data: RunData, metrics: Metrics, views: list[CloudView],
         tasks.append(Task("residual", partial(
             plots.per_frame_boxes, frames_later, [m.residual_mm[k] for k in later],
             "data residual", "mm")))
+    if data.deformation is not None:
+        tasks.extend(_deformation_tasks(data, config))
     seconds = stage_seconds(data.run)
     if seconds:
         per_frame = {}
@@ -81,6 +83,35 @@ def figure_tasks(data: RunData, metrics: Metrics, views: list[CloudView],
         tasks.append(Task("timing", partial(plots.timing, seconds, frames_later, per_frame)))
     if data.evaluation:
         tasks.extend(_evaluation_tasks(data.evaluation, data.errors or {}, frames_later))
+    return tasks
+
+
+def _deformation_tasks(data: RunData, config: Config) -> list[Task]:
+    """Indentation, area (and force) over time; the displacement map of the deepest frame."""
+    assert data.deformation is not None and data.template is not None
+    series, field = data.deformation.series, data.deformation.field
+    frames = np.arange(series.n_frames)
+    scores = (data.evaluation or {}).get("deformation") or {}
+    truth = {key: np.array([np.nan if r[f"true_{key}"] is None else r[f"true_{key}"]
+                            for r in scores["per_frame"]]) for key in ("indentation_mm",
+                                                                       "area_mm2")
+             } if scores.get("per_frame") else {}
+    d = config.deformation
+    force = series.force_n if d.youngs_modulus_kpa > 0 else None
+    label = (f"Hertz, E = {d.youngs_modulus_kpa:g} kPa, ν = {d.poisson_ratio:g}, "
+             f"R = {config.tool.shaft_radius_m * 1e3:g} mm")
+    tasks = [Task("deformation-over-time", partial(
+        plots_deformation.deformation_over_time, frames, series.contact,
+        series.depth_under_tip_mm, np.nan_to_num(series.depth_sigma_mm),
+        series.penetration_mm, series.area_mm2, force, label,
+        truth.get("indentation_mm"), truth.get("area_mm2")))]
+    deepest = (data.deformation_summary or {}).get("deepest_frame")
+    if deepest is not None:
+        pose = data.log.tool_poses[deepest]
+        tasks.append(Task("deformation-map", partial(
+            plots_deformation.displacement_map, data.template[:, :2] * 1e3,
+            field.inward_mm[deepest], field.deformed[deepest], pose[:2, 3] * 1e3, pose[:2, 2],
+            f"frame {deepest}: displacement, the rigid motion of each ring removed")))
     return tasks
 
 

@@ -14,9 +14,12 @@ from typing import Any
 import numpy as np
 
 from ..config import ToolConfig
+from ..core.indentation import Deformation
 from ..core.views import best_camera, pick_frames
 from ..errors import RunFolderError
 from ..io.artefacts import (
+    read_deformation,
+    read_deformation_summary,
     read_evaluation,
     read_evaluation_errors,
     read_labels,
@@ -57,7 +60,8 @@ class RunData:
     """What the report shows, as read from the run folder (None: that stage is not done).
 
     run: run.json; log: the ingested frames; template (N, 3) m and its summary; registered
-    frames; labels (T, N); evaluation scores and the per-point errors behind them."""
+    frames; labels (T, N); evaluation scores and the per-point errors behind them; the
+    contact and indentation measures and their summary."""
 
     run: dict[str, Any]
     log: IngestedLog
@@ -67,6 +71,8 @@ class RunData:
     labels: np.ndarray | None = None
     evaluation: dict[str, Any] | None = None
     errors: dict[str, np.ndarray] | None = None
+    deformation: Deformation | None = None
+    deformation_summary: dict[str, Any] | None = None
 
 
 @dataclass(frozen=True)
@@ -92,6 +98,8 @@ def gather(run_dir: Path) -> RunData:
         return RunData(run, log)
     template = read_template(layout).points
     evaluation = read_evaluation(layout) if folder.is_done("evaluate") else None
+    measured = folder.is_done("measure")
+    shape = (log.n_frames, len(template))
     return RunData(
         run, log, template, read_template_summary(layout),
         registered=(_read_registered(layout, template, log.n_frames)
@@ -99,7 +107,9 @@ def gather(run_dir: Path) -> RunData:
         labels=(read_labels(layout, (log.n_frames, len(template))).labels
                 if folder.is_done("classify") else None),
         evaluation=evaluation,
-        errors=None if evaluation is None else read_evaluation_errors(layout))
+        errors=None if evaluation is None else read_evaluation_errors(layout),
+        deformation=read_deformation(layout, shape) if measured else None,
+        deformation_summary=read_deformation_summary(layout) if measured else None)
 
 
 def _read_registered(layout: RunLayout, template: np.ndarray, n_frames: int) -> RegisteredFrames:

@@ -31,7 +31,7 @@ FRAME_COLUMNS = (
     "error_median_mm", "error_p95_mm", "error_max_mm", "macro_f1",
 )
 # The stages the report times, in pipeline order (the report itself is not one of them).
-TIMED_STAGES = ("ingest", "build-template", "register", "classify", "evaluate")
+TIMED_STAGES = ("ingest", "build-template", "register", "classify", "measure", "evaluate")
 _CODES = {"static": STATIC, "shifting": SHIFTING, "deforming": DEFORMING, "unknown": UNKNOWN}
 
 
@@ -203,6 +203,13 @@ def run_summary(data: RunData, measures: Measures | None, rows: list[dict[str, A
             "registration_error_mm": (ev.get("registration") or {}).get("overall"),
             "macro_f1": ((ev.get("labels") or {}).get("overall") or {}).get("macro_f1"),
         }
+    if data.deformation_summary is not None:
+        summary["deformation"] = data.deformation_summary
+        scores = (data.evaluation or {}).get("deformation")
+        if scores:
+            summary.setdefault("evaluation", {})["deformation"] = {
+                k: scores[k] for k in ("onset_error_frames", "release_error_frames",
+                                       "indentation_error_mm", "area_error_share", "goals")}
     if measures is not None:
         summary["noise"] = measures.noise
         summary["quality"] = {

@@ -21,6 +21,7 @@ from ..io.run_layout import DESCRIBED_FILES, RunLayout
 from .figures import cloud_key
 from .gather import CloudView, RunData
 from .metrics import TIMED_STAGES, Measures, Metrics
+from .page_deformation import contact_section
 
 Figures = Mapping[str, bytes]
 
@@ -33,7 +34,7 @@ def compose(layout: RunLayout, data: RunData, metrics: Metrics, views: list[Clou
     if m is not None and log.n_frames > 1:
         sections.append(_quality(data, m, pngs))
     sections += [_labels(config, pngs), _clouds(views, pngs), _registration(pngs),
-                 _timing(data.run, pngs)]
+                 contact_section(data, config, pngs), _timing(data.run, pngs)]
     if data.evaluation:
         sections.append(_evaluation(data.evaluation, pngs))
     sections.append(rh.Section("files", "Files").add(rh.table(("file", "contents"), [

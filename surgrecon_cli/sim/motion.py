@@ -27,6 +27,9 @@ class Motion:
         self.t_contact = 0.1 * duration
         self.t_full = 0.35 * duration
         self.t_release = 0.75 * duration
+        direction = np.array([0.35, 0.15, 1.0])
+        self.breath_direction = direction / np.linalg.norm(direction)
+        self.contact_breath = float(self.breath_weight(self.contact_rest[0]))
         # Cameras: a ring, each drifting slowly and independently (a few mm, a few degrees).
         n = cfg.cameras
         angles = np.linspace(0, 2 * np.pi, n, endpoint=False) + rng.uniform(-0.2, 0.2, n)
@@ -114,6 +117,10 @@ class Motion:
             return 0.0
         return cfg.breath_amplitude * 0.5 * (1 - np.cos(2 * np.pi * t / cfg.breath_period))
 
+    def breath_weight(self, x: np.ndarray) -> np.ndarray:
+        """Share (same shape as x) of the breathing shift a rest position at x (m) takes."""
+        return smoothstep((x - self.cfg.breath_edge) / self.cfg.breath_width + 0.5)
+
     def indentation(self, t: float) -> float:
         """Indentation depth (m) at time t: ramps in, holds, partly releases (0 if rigid)."""
         cfg = self.cfg
@@ -128,8 +135,19 @@ class Motion:
             )
         if t <= self.t_release:
             return cfg.indent_depth
-        s = smoothstep((t - self.t_release) / max(duration - self.t_release, 1e-6))
-        return cfg.indent_depth * (1 - 0.6 * s)
+        span = max(duration - self.t_release, 1e-6)
+        if cfg.release >= 1:  # all released within half the time left; the tool then lifts off
+            return cfg.indent_depth * (1 - smoothstep((t - self.t_release) / (0.5 * span)))
+        s = smoothstep((t - self.t_release) / span)
+        return cfg.indent_depth * (1 - cfg.release * s)
+
+    def lift(self, t: float) -> float:
+        """How far (m) the tool has lifted off after a full release (`release` >= 1), else 0."""
+        cfg = self.cfg
+        if cfg.release < 1:
+            return 0.0
+        span = max(cfg.frames / cfg.frame_rate - self.t_release, 1e-6)
+        return 0.012 * float(smoothstep((t - self.t_release - 0.5 * span) / (0.5 * span)))
 
     def tissue_vertices(self, t: float) -> np.ndarray:
         """Tissue vertex positions (V, 3) m at time t."""
@@ -138,24 +156,26 @@ class Motion:
         if cfg.rigid_scene:
             R, shift = self.rigid_motion(t)
             return rest @ R.T + shift
-        weight = smoothstep((rest[:, 0] - cfg.breath_edge) / cfg.breath_width + 0.5)
-        direction = np.array([0.35, 0.15, 1.0])
-        direction /= np.linalg.norm(direction)
-        moved = rest + (self.breathing(t) * weight)[:, None] * direction
+        weight = self.breath_weight(rest[:, 0])
+        moved = rest + (self.breathing(t) * weight)[:, None] * self.breath_direction
         d2 = ((rest - self.contact_rest) ** 2).sum(1)
         dent = self.indentation(t) * np.exp(-d2 / (2 * cfg.indent_sigma**2))
         return moved - dent[:, None] * self.tool_axis
 
     # ---- tool ---------------------------------------------------------------------------
     def tool_tip(self, t: float) -> np.ndarray:
-        """Tool tip position (3,) m: hovers above the contact point, then follows the dent.
-        In a rigid scene it only hovers, descending slowly to `rigid_tool_hover`."""
+        """Tool tip position (3,) m: hovers above the contact point, then follows the dent
+        (`tool_clearance` above it; lifting off after a full release). In a rigid scene it
+        only hovers, descending slowly to `rigid_tool_hover`."""
         if self.cfg.rigid_scene:
             s = float(smoothstep(np.asarray(t / self.cfg.duration)))
             hover = self.cfg.rigid_tool_hover + 0.010 * (1 - s)
             return self.contact_rest + hover * self.tool_axis
         hover = 0.012 * (1 - smoothstep(t / max(self.t_contact, 1e-6)))
-        return self.contact_rest + (hover - self.indentation(t)) * self.tool_axis
+        hover = hover + self.lift(t) + self.cfg.tool_clearance
+        tip = self.contact_rest + (hover - self.indentation(t)) * self.tool_axis
+        # the tissue at the contact point breathes (not in the default scene): the tip follows
+        return tip + self.breathing(t) * self.contact_breath * self.breath_direction
 
     def tool_pose(self, t: float) -> tuple[np.ndarray, np.ndarray]:
         """Tool tip pose in the world: position (3,), quaternion (4,); its +z is the shaft."""

@@ -6,7 +6,9 @@ resemble an insufflated abdomen, not taken from the paper):
 - breathing: the part of the dome with x > `breath_edge` shifts rigidly by up to
   `breath_amplitude` (smooth-step transition of width `breath_width`), cos² in time;
 - tool: a cylindrical shaft approaches a contact point in the still part of the dome and
-  indents it along its axis by up to `indent_depth` (Gaussian dent of width `indent_sigma`).
+  indents it along its axis by up to `indent_depth` (Gaussian dent of width `indent_sigma`),
+  then releases `release` of the dent (>= 1: all of it, and the tool lifts off); the tip
+  follows the tissue's breathing at the contact point and keeps `tool_clearance` above it.
 
 Rig and scene variants (all off by default; `sim/variants.py` names presets of them):
 - `stereo_baseline` > 0: cameras 0 and 1 are a rigid stereo head (one tracker marker):
@@ -53,6 +55,8 @@ class SimConfig:
     indent_depth: float = 0.007  # peak tool indentation (m)
     indent_sigma: float = 0.006  # dent width (m)
     contact_xy: tuple[float, float] = (-0.022, 0.010)  # material contact point (m)
+    release: float = 0.6  # share of the dent released by the end; >= 1: released, then lifts off
+    tool_clearance: float = 0.0  # tip stays this far above the tissue along its axis (m)
     tool_radius: float = 0.004  # shaft radius (m), matches [tool] defaults
     tool_length: float = 0.15  # shaft length (m)
     camera_ring_radius: float = 0.030  # cameras on a ring around the dome axis (m)

@@ -4,7 +4,7 @@ Streams: per camera JPEG images at `frame_rate` (each camera with its own small 
 offset and jitter) and CameraInfo; per camera tracker poses at `tracker_rate` with noise;
 robot tool-tip pose and joint states at `robot_rate`. Ground truth (`NAME.gt.npz`,
 io/ground_truth.py) holds the true surface at every frame and its labels by the rule of
-core/labels.py.
+core/labels.py, the true tool-tip pose at every frame and the simulator's dent depth.
 """
 
 from __future__ import annotations
@@ -251,12 +251,15 @@ def simulate(
         vertices, labels.static_mm, labels.neighbourhood_mm, labels.rigid_rms_mm
     )
     gt_path = gt_path_for(Path(out))
+    tool_poses = np.stack([make_pose(*builder.motion.tool_pose(t)) for t in builder.frame_times])
     write_npz(
         gt_path,
         faces=builder.mesh.faces.astype(np.int32),
         vertices=vertices.astype(np.float64),
         labels=gt_labels.astype(np.uint8),
         stamps_ns=np.array([_ns(t) for t in builder.frame_times], dtype=np.int64),
+        tool_poses=tool_poses.astype(np.float64),
+        indentation_m=np.array([builder.motion.indentation(t) for t in builder.frame_times]),
     )
     return SimResult(Path(out), gt_path, cfg.frames, counted.count, class_fractions(gt_labels))
 

@@ -49,6 +49,16 @@ VARIANTS: dict[str, Variant] = {
             {"sweep_deg": 35.0},
         ),
         Variant(
+            "press-release",
+            "the tool presses, releases the dent fully and lifts off before the end",
+            {"release": 1.0},
+        ),
+        Variant(
+            "hover",
+            "breathing alone: the tool hovers 1 mm above a breathing part of the tissue",
+            {"indent_depth": 0.0, "tool_clearance": 0.0017, "contact_xy": (0.015, -0.005)},
+        ),
+        Variant(
             "noisy",
             "tracker noise 0.25 mm / 0.1 deg (default 0.1 mm / 0.05 deg)",
             {"tracker_noise_pos": 0.25e-3, "tracker_noise_deg": 0.1},

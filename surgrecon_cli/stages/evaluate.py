@@ -1,8 +1,10 @@
 """Stage `evaluate`: score a run against the simulator's ground truth (README "Accuracy").
 
 Scores whatever parts the run has: the template (always), the registration (when `register`
-is done) and the labels (when `classify` is done). Ground-truth frame k is the k-th
-ingested frame. Writes atomically
+is done), the labels (when `classify` is done) and the contact and indentation measures
+(when `measure` is done; core/deformation_scoring.py: the same definitions on the true
+surface, with the true tool poses, or the ingested ones for ground truth written before
+they were recorded). Ground-truth frame k is the k-th ingested frame. Writes atomically
   RUN/metrics/evaluation.json         the scores (mm)
   RUN/metrics/evaluation_errors.npz   template_error_mm (N,), on_tool (N,) bool,
                                       registration_error_mm (T, N) (frame 0: NaN),
@@ -19,14 +21,16 @@ from typing import Any
 import numpy as np
 
 from ..config import Config
+from ..core.deformation_scoring import score_deformation, true_deformation
 from ..core.evaluation import error_summary, on_tool, registration_errors, true_point_labels
+from ..core.indentation import camera_viewpoint
 from ..core.labels import UNKNOWN
 from ..core.scoring import distance_stats_mm, label_scores, map_to_surface
 from ..errors import InputError
-from ..io.artefacts import read_labels, read_registration, read_template
+from ..io.artefacts import read_deformation, read_labels, read_registration, read_template
 from ..io.atomic import write_npz
 from ..io.ground_truth import GroundTruth, load_ground_truth
-from ..io.ingest_store import load_ingested
+from ..io.ingest_store import IngestedLog, load_ingested
 from ..io.metrics import finite_json, write_metrics_json
 from ..io.run_folder import RunFolder
 from ..io.run_layout import RunLayout
@@ -66,6 +70,7 @@ def run_evaluate(run_dir: Path, config: Config, gt_path: Path,
             "template": _template_part(mapping.distance, tool_mask, config),
             "registration": None,
             "labels": None,
+            "deformation": None,
         }
         n_frames, n = log.n_frames, len(template)
         errors = np.full((n_frames, n), np.nan, np.float32)
@@ -80,6 +85,8 @@ def run_evaluate(run_dir: Path, config: Config, gt_path: Path,
             result["labels"] = _labels_part(labels, truth)
             if result["registration"] is not None:
                 _honesty_part(result, labels, errors, sigma, has_data)
+        if run.is_done("measure"):
+            result["deformation"] = _deformation_part(layout, gt, log, config, len(template))
         write_npz(layout.evaluation_errors,
                   template_error_mm=(mapping.distance * 1e3).astype(np.float32),
                   on_tool=np.zeros(n, bool) if tool_mask is None else tool_mask,
@@ -88,7 +95,8 @@ def run_evaluate(run_dir: Path, config: Config, gt_path: Path,
         write_metrics_json(layout.evaluation_json, result)
         step(n_frames, n_frames)
         info.update(ground_truth=result["ground_truth"],
-                    parts=[p for p in ("template", "registration", "labels") if result[p]])
+                    parts=[p for p in ("template", "registration", "labels", "deformation")
+                           if result[p]])
     return result
 
 
@@ -138,6 +146,18 @@ def _honesty_part(result: dict[str, Any], labels: np.ndarray, errors: np.ndarray
     result["labels"]["unknown_fraction"] = float((~labelled).mean()) if labelled.size else None
     result["registration"]["unsupported_moved"] = int(
         (labelled & ~has_data[1:] & (err > UNSUPPORTED_MM)).sum())
+
+
+def _deformation_part(layout: RunLayout, gt: GroundTruth, log: IngestedLog, config: Config,
+                      n_points: int) -> dict[str, Any]:
+    """Contact and indentation scores (core/deformation_scoring.py)."""
+    measured = read_deformation(layout, (log.n_frames, n_points)).series
+    poses = gt.tool_poses if gt.tool_poses is not None else log.tool_poses
+    view = camera_viewpoint(log.poses[0], log.usable[0], gt.vertices[0])
+    truth = true_deformation(gt.vertices, poses, view, config)
+    part = score_deformation(measured, truth.series, gt.indentation_m)
+    part["tool_poses"] = "ground truth" if gt.tool_poses is not None else "ingested"
+    return part
 
 
 def _labels_part(labels: np.ndarray, truth: np.ndarray) -> dict[str, Any]:

@@ -1,6 +1,6 @@
 """The stage registry: what each stage reads, writes and depends on, in pipeline order.
 
-ingest -> build-template -> register -> classify -> [evaluate] -> report
+ingest -> build-template -> register -> classify -> measure -> [evaluate] -> report
 
 `pipeline.py`, resumption and staleness read only from here. A stage's outputs depend on
 its own config keys and, through its inputs, on those of every stage before it
@@ -60,6 +60,8 @@ STAGES: tuple[StageSpec, ...] = (
               resumable=True, checks_upstream_config=True),
     StageSpec("classify", ("classify",), ("ingest", "build-template", "register"),
               ("classify_dir", "clouds_dir"), "labels", 5, "classify:pipeline_step"),
+    StageSpec("measure", ("deformation",), ("ingest", "build-template", "register"),
+              ("measure_dir", "deformation_csv"), "deformation_csv", 2, "measure:pipeline_step"),
     StageSpec("evaluate", ("labels",), ("ingest", "build-template"),
               ("evaluation_json", "evaluation_errors"), "evaluation_json", 5,
               "evaluate:pipeline_step", needs_ground_truth=True),

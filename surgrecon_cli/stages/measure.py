@@ -1,0 +1,89 @@
+"""Stage `measure`: tool-tissue contact and indentation measured from the reconstruction
+(issue 17; the definitions are in core/deformation.py and core/indentation.py).
+
+Reads the template, its observations (the frame-0 points' uncertainty), every registered
+frame (positions and σ) and the ingested tool and camera poses; the neighbourhoods are the
+classify stage's (same settings, rebuilt here). Writes atomically
+  RUN/metrics/deformation.csv   one row per frame (DEFORMATION_COLUMNS; force_n empty when
+                                the force model is off)
+  RUN/measure/deformation.npz   the per-frame series and the compensated field (T, N)
+  RUN/measure/summary.json      onset, release, deepest indentation, largest area, ...
+A point's σ here is that of its registered position and of its template position combined
+(the displacement from frame 0 carries both).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..config import Config
+from ..core.classify import Neighbourhoods, template_neighbourhoods
+from ..core.deformation import Rings, surface_normals, surrounding_rings
+from ..core.indentation import SERIES_KEYS, camera_viewpoint, measure_sequence, summarise
+from ..core.noise import covariance_sigma
+from ..io.artefacts import read_observations, read_registration, read_template, write_deformation
+from ..io.ingest_store import IngestedLog, load_ingested
+from ..io.metrics import finite_json, write_csv
+from ..io.run_layout import RunLayout
+from .common import stage_run
+from .registry import StageContext
+
+logger = logging.getLogger(__name__)
+
+STAGE = "measure"
+DEFORMATION_COLUMNS = ("frame", *SERIES_KEYS)
+
+
+def geometry(points: np.ndarray, log: IngestedLog,
+             config: Config) -> tuple[Neighbourhoods, Rings, np.ndarray]:
+    """The frame-0 geometry the measures need: neighbourhoods (classify's settings), rings
+    and normals (N, 3) of points (N, 3) m."""
+    c, d = config.classify, config.deformation
+    nb = template_neighbourhoods(points, c.neighbourhood_mm, c.min_neighbours, c.max_neighbours)
+    rings = surrounding_rings(points, d.ring_inner_mm, d.ring_outer_mm, d.ring_points)
+    view = camera_viewpoint(log.poses[0], log.usable[0], points)
+    return nb, rings, surface_normals(points, nb, view)
+
+
+def run_measure(run_dir: Path, config: Config,
+                on_step: Callable[[int, int], None] | None = None) -> dict[str, Any]:
+    """Measure contact and indentation in every frame of a registered run; returns the
+    summary. `on_step(done, total)` reports progress over the frames read."""
+    layout = RunLayout(run_dir)
+    step = on_step or (lambda _d, _t: None)
+    with stage_run(layout.root, STAGE, config) as info:
+        log = load_ingested(layout.ingest_dir)
+        template = read_template(layout).points
+        n, n_frames = len(template), log.n_frames
+        obs = read_observations(layout, n)
+        template_sigma = covariance_sigma(obs.covariance + obs.pose_covariance)
+        positions = np.repeat(template[None], n_frames, axis=0)
+        sigma = np.repeat(template_sigma[None], n_frames, axis=0)
+        for k in range(1, n_frames):
+            reg = read_registration(layout, k, n)
+            positions[k] = reg.registered
+            sigma[k] = np.hypot(reg.sigma.astype(float), template_sigma)
+            step(k, n_frames + 1)
+        nb, rings, normals = geometry(template, log, config)
+        measured = measure_sequence(template, positions, sigma, log.tool_poses, nb, rings,
+                                    normals, config.deformation, config.tool)
+        summary = finite_json(summarise(measured.series, config.deformation, config.tool))
+        write_deformation(layout, measured, summary)
+        write_csv(layout.deformation_csv, DEFORMATION_COLUMNS, measured.series.rows())
+        step(n_frames + 1, n_frames + 1)
+        info.update(onset_frame=summary["onset_frame"], release_frame=summary["release_frame"],
+                    max_indentation_mm=summary["max_indentation_mm"],
+                    max_area_mm2=summary["max_area_mm2"])
+        logger.debug("contact frames %s, deepest %s mm", summary["contact_frames"],
+                     summary["max_indentation_mm"])
+    return summary
+
+
+def pipeline_step(ctx: StageContext, progress: Callable[[float], None]) -> None:
+    """The stage within `surgrecon run`."""
+    run_measure(ctx.run_dir, ctx.config, on_step=lambda d, t: progress(d / t))
