@@ -21,8 +21,9 @@ def evaluate_cmd(run_dir: Path, gt_path: Path | None, config: Any, quiet: bool) 
 
     Template points are mapped to the nearest point of the true frame-0 surface and that
     material point is followed through the frames. Reports the template error, template
-    points on the tool, the registration error per frame and overall (mm), and per-class
-    precision / recall / F1 of the labels. Scores whatever stages are done. Writes
+    points on the tool, the registration error per frame and overall (mm), per-class
+    precision / recall / F1 of the labels and the contact and indentation measures (the same
+    definitions on the true surface). Scores whatever stages are done. Writes
     RUN/metrics/evaluation.json.
 
     \b
@@ -107,4 +108,15 @@ def format_evaluation(ev: dict[str, Any]) -> str:
         lines.append(f"  {'':<10}" + "".join(f"{c:>10}" for c in axes["cols"]))
         for name, row in zip(axes["rows"], o["confusion"], strict=True):
             lines.append(f"  {name:<10}" + "".join(f"{v:>10}" for v in row))
+    deformation = ev.get("deformation")
+    if deformation:
+        depth = deformation["indentation_error_mm"]["median"]
+        area = deformation["area_error_share"]["median"]
+        goals = ", ".join(f"{k} {'-' if v is None else ('met' if v else 'MISSED')}"
+                          for k, v in deformation["goals"].items())
+        lines.append(f"contact onset/release {deformation['onset_frame']}/"
+                     f"{deformation['release_frame']} (truth {deformation['true_onset_frame']}/"
+                     f"{deformation['true_release_frame']}); indentation error median "
+                     f"{'-' if depth is None else f'{depth:.2f}'} mm; area error median "
+                     f"{'-' if area is None else f'{area:.1%}'}; goals: {goals}")
     return "\n".join(lines)

@@ -8,6 +8,7 @@ from .cmd_config import config_cmd
 from .cmd_evaluate import evaluate_cmd
 from .cmd_info import info_cmd
 from .cmd_ingest import ingest_cmd
+from .cmd_measure import measure_cmd
 from .cmd_register import register_cmd
 from .cmd_register_pair import register_pair_cmd
 from .cmd_report import report_cmd
@@ -15,4 +16,4 @@ from .cmd_run import run_cmd
 from .cmd_simulate import simulate_cmd
 
 ALL = [build_template_cmd, classify_cmd, config_cmd, evaluate_cmd, info_cmd, ingest_cmd,
-       register_cmd, register_pair_cmd, report_cmd, run_cmd, simulate_cmd]
+       measure_cmd, register_cmd, register_pair_cmd, report_cmd, run_cmd, simulate_cmd]

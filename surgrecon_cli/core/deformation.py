@@ -321,19 +321,16 @@ def patch_triangles(points: np.ndarray, rows: np.ndarray,
 
 def share_above(values: np.ndarray, level: float) -> np.ndarray:
     """Share (F,) of each triangle where the linear interpolation of its corner values
-    (F, 3) reaches `level` (NaN corners count as below)."""
-    f = -np.sort(-np.nan_to_num(np.asarray(values, float), nan=-np.inf), axis=1)
+    (F, 3) (magnitudes, >= 0; NaN counts as 0) reaches `level` > 0."""
+    f = -np.sort(-np.nan_to_num(np.asarray(values, float), nan=0.0), axis=1)
     f1, f2, f3 = f[:, 0], f[:, 1], f[:, 2]
-    out = np.zeros(len(f))
     with np.errstate(invalid="ignore", divide="ignore"):
-        out = np.where(f3 >= level, 1.0, out)
-        two = (f2 >= level) & (f3 < level)  # all but the corner-3 tip
-        tip3 = (level - f3) ** 2 / ((f1 - f3) * (f2 - f3))
-        out = np.where(two, 1.0 - np.where(np.isfinite(f3), tip3, 0.0), out)
-        one = (f1 >= level) & (f2 < level)  # the corner-1 tip only
+        all_but_tip3 = 1.0 - (level - f3) ** 2 / ((f1 - f3) * (f2 - f3))
         tip1 = (f1 - level) ** 2 / ((f1 - f2) * (f1 - f3))
-        out = np.where(one, np.where(np.isfinite(f2) & np.isfinite(f3), tip1, 0.0), out)
-    return np.clip(out, 0.0, 1.0)
+    out = np.where(f3 >= level, 1.0, 0.0)
+    out = np.where((f2 >= level) & (f3 < level), all_but_tip3, out)
+    out = np.where((f1 >= level) & (f2 < level), tip1, out)
+    return np.clip(np.nan_to_num(out), 0.0, 1.0)
 
 
 def hertz_force(depth_m: np.ndarray | float, radius_m: float, youngs_pa: float,
