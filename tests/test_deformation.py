@@ -223,10 +223,13 @@ def test_share_above_and_patch_triangles():
     _, flat_area = patch_triangles(flat, np.arange(len(points)), 0.005)
     assert flat_area.sum() == pytest.approx(0.02**2, rel=0.06)  # jittered edges
     assert area.sum() >= flat_area.sum()  # the dome is curved
-    sparse = np.delete(np.arange(len(points)), np.flatnonzero(np.linalg.norm(
-        points[:, :2], axis=1) < 0.004))
-    _, holed = patch_triangles(points, sparse, 0.005)  # a hole 8 mm wide: not bridged
-    assert holed.sum() < area.sum() - 0.9 * np.pi * 0.004**2
+    wide = _grid(0.001, 0.015)
+    _, whole = patch_triangles(wide, np.arange(len(wide)), 0.005)
+    kept = np.flatnonzero(np.linalg.norm(wide[:, :2], axis=1) >= 0.006)
+    _, holed = patch_triangles(wide, kept, 0.005)  # a hole 12 mm wide (> 8 edges): not bridged
+    assert holed.sum() < whole.sum() - 0.6 * np.pi * 0.006**2  # chords at its rim stay
+    _, sparse = patch_triangles(wide, np.arange(0, len(wide), 9), 0.005)  # 3 mm spacing
+    assert sparse.sum() == pytest.approx(whole.sum(), rel=0.1)  # its wider triangles kept
 
 
 def test_scores_and_goals(sheet):

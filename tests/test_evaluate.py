@@ -68,6 +68,10 @@ def known_run(copy_run: Path, pipeline_log: Path):
             support_mm=np.zeros(n), pixels=np.full((n, 1, 2), np.nan), tracking_px=0.05,
             base=0, converged=True, failed=False, error="", seconds_target=0.1,
             seconds_register=0.2, new_points=0, contact_points=0))
+    run = RunFolder(copy_run)  # the contact measures were of the replaced template
+    data = run.read()
+    data["stages"].pop("measure")
+    run.write(data)
     labels = truth.copy()
     static2 = np.flatnonzero(truth[2] == STATIC)[:10]
     labels[2, static2] = DEFORMING

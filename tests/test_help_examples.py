@@ -33,6 +33,7 @@ STAGE_BEFORE = {  # the run-folder state a stage command starts from
     "build-template": "ingested",
     "register": "templated",
     "classify": "registered",
+    "measure": "registered",
     "report": "classified",
     "evaluate": "classified",
 }

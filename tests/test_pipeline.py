@@ -88,7 +88,8 @@ def test_config_changes_rerun_the_stages_they_affect(copy_run, pipeline_log):
     config = load_config(overrides=["classify.deform_mm=0.2"])
     result = run_pipeline(pipeline_log, copy_run, config)
     assert result.actions == {"ingest": "skipped", "build-template": "skipped",
-                              "register": "skipped", "classify": "ran", "evaluate": "ran",
+                              "register": "skipped", "classify": "ran", "measure": "ran",
+                              "evaluate": "ran",
                               "report": "ran"}
     assert _mtimes(copy_run, "registration/*.npz") == registered
     run = RunFolder(copy_run)
@@ -98,7 +99,8 @@ def test_config_changes_rerun_the_stages_they_affect(copy_run, pipeline_log):
     config = load_config(overrides=["classify.deform_mm=0.2", "registration.alpha=0.1"])
     result = run_pipeline(pipeline_log, copy_run, config)
     assert result.actions == {"ingest": "skipped", "build-template": "skipped",
-                              "register": "ran", "classify": "ran", "evaluate": "ran",
+                              "register": "ran", "classify": "ran", "measure": "ran",
+                              "evaluate": "ran",
                               "report": "ran"}
     again = _mtimes(copy_run, "registration/*.npz")
     assert again.keys() == registered.keys()

@@ -22,7 +22,7 @@ RUN_FOLDER_NAMES = ("run.json", "config.toml", "cameras.json", "frames.npz",
                     "template.ply", "observations.npz", "summary.json", "labels.npz",
                     "evaluation.json", "evaluation_errors.npz", "frames.csv", "report.html",
                     "ingest", "template", "registration", "classify", "clouds", "metrics",
-                    "images", "staged")
+                    "images", "staged", "measure", "deformation.npz", "deformation.csv")
 
 
 def _path_spellings(path: Path) -> list[str]:

@@ -18,8 +18,8 @@ class DeformationConfig:
     ring_outer_mm: float = _doc(25.0, "... and at most this far (mm)")
     ring_points: int = _doc(64, "ring members fitted per point (spread over the ring)")
     contact_sigmas: float = _doc(
-        3.0, "contact: the tool's clearance to the reconstructed surface is below this many "
-        "sigma of the surface points nearest the tool (1D sigma along the surface normal)")
+        2.5, "contact: the tool's clearance to the reconstructed surface is below this many "
+        "sigma of the frame's points (the median; 1D sigma along the surface normal)")
     contact_floor_mm: float = _doc(
         0.2, "... or below this (mm; also the ground truth's tolerance, which has no noise)")
     threshold_mm: float = _doc(
@@ -27,7 +27,7 @@ class DeformationConfig:
         "static tolerance) and is significant, connected to the contact point")
     max_edge_mm: float = _doc(
         10.0, "areas: the template is triangulated around the contact point; a triangle with "
-        "an edge longer than this spans a hole in the template and counts no area (mm)")
+        "an edge longer than this (and than 8 median edges) spans a hole and counts no area (mm)")
     significance: float = _doc(
         0.01, "false-alarm probability of the test 'the compensated displacement is more than "
         "the noise explains' (chi-square, 3 dof)")

@@ -23,7 +23,8 @@ the tool-tip pose (4, 4) and the template's neighbourhoods (core/classify.py).
   neighbourhoods to the most displaced point under the tip (and shown by the data: some of
   them beyond what σ_u explains, chi-square, 3 dof). Its area and volume are integrated over
   a Delaunay triangulation of the frame-0 points around it in their tangent plane (triangles
-  with an edge longer than max_edge_mm span a hole and are dropped): per triangle touching
+  with an edge longer than max_edge_mm and than HOLE_SPACINGS median edges span a hole in
+  the template and are dropped; a sparse template keeps its wider triangles): per triangle touching
   the region, the share where the linearly interpolated |u| reaches the threshold, and the
   mean inward depth of its corners.
 """
@@ -47,6 +48,7 @@ SCALE_FLOOR_M = 1e-4  # robust scale of the ring fit at least 0.1 mm (noiseless 
 IRLS_ITERATIONS = 6
 MIN_RING = 6  # ring members needed for a rigid fit worth the name
 BLEND = 3  # ring centres whose motions carry a point
+HOLE_SPACINGS = 8.0  # a gap this many typical edges wide is a hole, however long max_edge
 
 
 @dataclass(frozen=True)
@@ -247,22 +249,27 @@ def under_tip(positions: np.ndarray, tool_pose: np.ndarray, radius_m: float,
 
 def value_at_axis(tip: UnderTip, values: np.ndarray) -> float:
     """A quantity `values` (M,) of the points under the tip read at the axis: the weighted
-    fit c0 + c1 x + c2 y + c3 (x² + y²), c0; the weighted mean when the points are fewer than
-    6, lie to one side of the axis or do not determine the fit. NaN without points."""
+    fit c0 + c1 x + c2 y + c3 (x² + y²), c0, with 6 points or more around the axis; with
+    fewer, or all to one side, the radial fit c0 + c3 (x² + y²) when their distances to the
+    axis differ enough to tell the curvature; else the weighted mean. NaN without points."""
     v = np.asarray(values, float)
     ok = np.isfinite(v)
     if not ok.any():
         return float("nan")
     w, x, y, v = tip.weights[ok], tip.x[ok], tip.y[ok], v[ok]
+    r2 = x**2 + y**2
+    sw = np.sqrt(w)
     mean = float((w * v).sum() / w.sum())
-    spread = float(np.sqrt((w * (x**2 + y**2)).sum() / w.sum()))
+    spread = float(np.sqrt((w * r2).sum() / w.sum()))
     offset = float(np.hypot((w * x).sum(), (w * y).sum()) / w.sum())
-    if len(v) < 6 or offset > 0.5 * spread:
-        return mean
-    A = np.column_stack([np.ones_like(x), x, y, x**2 + y**2]) * np.sqrt(w)[:, None]
-    if np.linalg.cond(A) > 1e8:
-        return mean
-    return float(np.linalg.lstsq(A, v * np.sqrt(w), rcond=None)[0][0])
+    if len(v) >= 6 and offset <= 0.5 * spread:
+        A = np.column_stack([np.ones_like(x), x, y, r2])
+        if np.linalg.cond(A * sw[:, None]) < 1e8:
+            return float(np.linalg.lstsq(A * sw[:, None], v * sw, rcond=None)[0][0])
+    if len(v) >= 3 and np.sqrt(np.cov(r2, aweights=w)) >= 0.25 * spread**2:
+        A = np.column_stack([np.ones_like(r2), r2])
+        return float(np.linalg.lstsq(A * sw[:, None], v * sw, rcond=None)[0][0])
+    return mean
 
 
 def deformed_region(displacement: np.ndarray, sigma: np.ndarray | None, seed: int,
@@ -298,7 +305,8 @@ def patch_triangles(points: np.ndarray, rows: np.ndarray,
                     max_edge_m: float) -> tuple[np.ndarray, np.ndarray]:
     """A Delaunay triangulation of the points `rows` (M,) of points (N, 3) m in their
     tangent plane: triangles (F, 3) of point indices (into `points`) and their areas (F,) m²
-    in 3D; a triangle with an edge longer than `max_edge_m` spans a hole and is dropped.
+    in 3D; a triangle with an edge longer than `max_edge_m` and than HOLE_SPACINGS x the
+    median edge spans a hole and is dropped.
     Empty when the patch cannot be triangulated."""
     rows = np.asarray(rows, int)
     q = np.asarray(points, float)[rows]
@@ -312,7 +320,8 @@ def patch_triangles(points: np.ndarray, rows: np.ndarray,
     except QhullError:
         return none
     corners = q[tri]  # (F, 3, 3)
-    keep = np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=2).max(1) <= max_edge_m
+    edges = np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=2)
+    keep = edges.max(1) <= max(max_edge_m, HOLE_SPACINGS * float(np.median(edges)))
     tri, corners = tri[keep], corners[keep]
     area = 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0],
                                          corners[:, 2] - corners[:, 0]), axis=1)

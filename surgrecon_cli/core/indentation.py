@@ -4,8 +4,12 @@ core/deformation.py. Pure numpy, no I/O; metres in, the figures in mm, mm², mm�
 Per frame k (`measure_frame`):
 - contact: the tool's clearance (core/deformation.tool_clearance, min over the points) is at
   most the tolerance max(contact_floor_mm, contact_sigmas × σ/√3), σ the median 3D RMS of the
-  5 points nearest the tool (their 1D uncertainty along the normal); onset is the first frame
-  in contact, release the first frame out of contact after the last frame in contact;
+  frame's points (σ/√3 their 1D uncertainty along the normal). Not the σ of the points
+  nearest the tool: under a hovering tool they are hidden and extrapolated, their σ large,
+  and a tolerance from it would call a tool 1 mm away touching; in contact the registration
+  keeps the tissue out of the tool (core/frame_step.register_with_contact), so the hidden
+  surface is pushed to zero clearance whatever its σ. Onset is the first frame in contact,
+  release the first frame out of contact after the last frame in contact;
 - depth under the tip, along the tool axis: −u·a of the points under the tip, read at the
   axis; along the surface normal: −u·(R n), n the point's frame-0 normal turned by its ring's
   rotation. Computed in every frame (so breathing alone can be checked: it should stay within
@@ -41,7 +45,6 @@ from .deformation import (
     value_at_axis,
 )
 
-NEAREST = 5  # points nearest the tool whose σ sets the contact tolerance
 SERIES_KEYS = ("contact", "clearance_mm", "tolerance_mm", "indentation_mm",
                "indentation_normal_mm", "depth_under_tip_mm", "depth_sigma_mm",
                "penetration_mm", "area_mm2", "volume_mm3", "force_n", "contact_point")
@@ -164,16 +167,16 @@ def _contact(fig: dict[str, float], positions: np.ndarray, sigma: np.ndarray | N
     ok = np.flatnonzero(np.isfinite(clearance))
     if not len(ok):
         return
-    nearest = ok[np.argsort(clearance[ok])[:NEAREST]]
+    nearest = ok[np.argmin(clearance[ok])]
     tolerance = cfg.contact_floor_mm * 1e-3
     if sigma is not None:
-        s = np.asarray(sigma, float)[nearest]
+        s = np.asarray(sigma, float)
         s = s[np.isfinite(s)]
         if s.size:
             tolerance = max(tolerance, cfg.contact_sigmas * float(np.median(s)) / np.sqrt(3.0))
-    fig["clearance_mm"] = float(clearance[nearest[0]]) * 1e3
+    fig["clearance_mm"] = float(clearance[nearest]) * 1e3
     fig["tolerance_mm"] = tolerance * 1e3
-    fig["contact"] = float(clearance[nearest[0]] <= tolerance)
+    fig["contact"] = float(clearance[nearest] <= tolerance)
 
 
 def _dent(reference: np.ndarray, positions: np.ndarray, comp: CompensatedField, rings: Rings,
