@@ -13,14 +13,18 @@ from surgrecon_cli.config import Config, ConfigError, load_config
 from surgrecon_cli.core.classify import template_neighbourhoods
 from surgrecon_cli.core.deformation import (
     compensated_field,
-    hertz_force,
     patch_triangles,
     share_above,
     surface_normals,
     surrounding_rings,
 )
 from surgrecon_cli.core.deformation_scoring import score_deformation
-from surgrecon_cli.core.indentation import contact_events, measure_sequence, summarise
+from surgrecon_cli.core.indentation import (
+    contact_events,
+    hertz_force,
+    measure_sequence,
+    summarise,
+)
 
 CFG = Config()
 SIGMA_DENT = 0.006  # m, width of the synthetic dents

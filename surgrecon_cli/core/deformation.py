@@ -8,11 +8,14 @@ the tool-tip pose (4, 4) and the template's neighbourhoods (core/classify.py).
 
 - compensated displacement u_i = x_i − (R_i p_i + t_i), (R_i, t_i) the best rigid motion of
   the point's *ring*: template points between ring_inner_mm and ring_outer_mm from p_i at
-  frame 0. Breathing shifts the ring with the point and is removed; an indentation narrower
-  than the ring stays. The fit is robust (iteratively reweighted from the members' median
-  shift, Cauchy weights at twice the members' σ, 0.1 mm at least), so a ring crossing the edge
-  of a breathing region or the dent's tail follows its majority. σ_u² = σ_i² + σ̄²/n_eff
-  (σ̄² the members' mean variance, n_eff their effective number).
+  frame 0 (fitted at ring centres, a voxel subsample of the template, and blended over the
+  3 nearest: rings of neighbouring points are nearly the same). Breathing shifts the ring
+  with the point and is removed; an indentation narrower than the ring stays. The fit is robust (iteratively reweighted from the least-squares fit,
+  Cauchy weights, then Tukey's biweight, which gives members moving otherwise no weight at
+  all; scale 4 x the members' median σ, 0.2 mm at least), so a ring crossing the edge of a
+  breathing region or the dent's tail follows its majority (Cauchy weights alone let a ring
+  half over a breathing ramp turn by 4° where the still part it centres on did not turn).
+  σ_u² = σ_i² + σ̄²/n_eff (σ̄² the members' mean variance, n_eff their effective number).
 - clearance: the tool is a capsule (core/tool.py, shaft_radius_m around the axis from the
   rounded end's centre up the shaft); its clearance to the surface is min_i ‖x_i − axis‖ −
   radius (negative: tissue inside the tool model).
@@ -24,8 +27,8 @@ the tool-tip pose (4, 4) and the template's neighbourhoods (core/classify.py).
   them beyond what σ_u explains, chi-square, 3 dof). Its area and volume are integrated over
   a Delaunay triangulation of the frame-0 points around it in their tangent plane (triangles
   with an edge longer than max_edge_mm and than HOLE_SPACINGS median edges span a hole in
-  the template and are dropped; a sparse template keeps its wider triangles): per triangle touching
-  the region, the share where the linearly interpolated |u| reaches the threshold, and the
+  the template and are dropped; a sparse template keeps its wider triangles): per triangle
+  touching the region, the share where the linearly interpolated |u| reaches the threshold, and the
   mean inward depth of its corners.
 """
 
@@ -44,8 +47,9 @@ from .classify import Neighbourhoods
 from .geometry import nearest_rotation, point_to_segment_distance
 from .tool import shaft_segment
 
-SCALE_FLOOR_M = 1e-4  # robust scale of the ring fit at least 0.1 mm (noiseless truth)
-IRLS_ITERATIONS = 6
+SCALE_FLOOR_M = 2e-4  # robust scale of the ring fit at least 0.2 mm (noiseless truth)
+SCALE_SIGMAS = 4.0  # ... else this many times the members' median σ
+IRLS_ITERATIONS = 8
 MIN_RING = 6  # ring members needed for a rigid fit worth the name
 BLEND = 3  # ring centres whose motions carry a point
 HOLE_SPACINGS = 8.0  # a gap this many typical edges wide is a hole, however long max_edge
@@ -159,22 +163,22 @@ def compensated_field(reference: np.ndarray, moved: np.ndarray, rings: Rings,
     w = np.where(keep, 1.0 / (member_sigma**2 + SCALE_FLOOR_M**2), 0.0)
     used = keep.sum(1) >= MIN_RING
     scale = np.full(len(src), SCALE_FLOOR_M)
-    shift = np.zeros((len(src), 3))
-    if used.any():
-        if sigma is not None:
-            typical = np.nanmedian(np.where(keep, member_sigma, np.nan)[used], axis=1)
-            scale[used] = np.maximum(2.0 * typical, SCALE_FLOOR_M)
-        shift[used] = np.nanmedian(np.where(keep[used][..., None], dst[used] - src[used],
-                                            np.nan), axis=1)
+    if used.any() and sigma is not None:
+        typical = np.nanmedian(np.where(keep, member_sigma, np.nan)[used], axis=1)
+        scale[used] = np.maximum(SCALE_SIGMAS * typical, SCALE_FLOOR_M)
     dst = np.where(keep[..., None], dst, 0.0)
-    residual = np.where(keep[..., None], dst - src - shift[:, None, :], 0.0)
+    R, t = _fit_rigid(src, dst, np.where(used[:, None], w, 1.0))  # least squares to start
     weight = w
-    R, t = np.tile(np.eye(3), (len(src), 1, 1)), shift
-    for _ in range(IRLS_ITERATIONS):
-        weight = w / (1.0 + (residual**2).sum(-1) / scale[:, None] ** 2)
-        R, t = _fit_rigid(src, dst, np.where(used[:, None], weight, 1.0))
+    for it in range(IRLS_ITERATIONS):
         residual = np.where(keep[..., None], dst - np.matmul(src, R.transpose(0, 2, 1))
                             - t[:, None, :], 0.0)
+        r2 = (residual**2).sum(-1) / scale[:, None] ** 2
+        weight = w / (1.0 + r2)  # Cauchy first (from a start the outliers pulled) ...
+        if it >= IRLS_ITERATIONS // 2:  # ... then Tukey's biweight, which rejects them
+            hard = w * np.clip(1.0 - r2, 0.0, None) ** 2
+            enough = (hard > 0).sum(1) >= MIN_RING
+            weight = np.where(enough[:, None], hard, weight)
+        R, t = _fit_rigid(src, dst, np.where(used[:, None], weight, 1.0))
     # a point carried by its nearest centres' motions (NaN where none could be fitted)
     near, blend = rings.nearest, rings.weights
     carried = np.einsum("nbij,nj->nbi", R[near], reference) + t[near]
@@ -340,12 +344,3 @@ def share_above(values: np.ndarray, level: float) -> np.ndarray:
     out = np.where((f2 >= level) & (f3 < level), all_but_tip3, out)
     out = np.where((f1 >= level) & (f2 < level), tip1, out)
     return np.clip(np.nan_to_num(out), 0.0, 1.0)
-
-
-def hertz_force(depth_m: np.ndarray | float, radius_m: float, youngs_pa: float,
-                poisson: float) -> np.ndarray:
-    """Hertzian contact force (...,) N of a rigid sphere of `radius_m` pressed `depth_m`
-    (...,) m into an elastic half-space (Young's modulus Pa, Poisson's ratio):
-    F = 4/3 E/(1 − ν²) √R δ^{3/2} (δ ≤ 0: no force). A model output, valid for δ ≪ R."""
-    depth = np.clip(np.asarray(depth_m, float), 0.0, None)
-    return 4.0 / 3.0 * youngs_pa / (1.0 - poisson**2) * np.sqrt(radius_m) * depth**1.5

@@ -19,7 +19,7 @@ Per frame k (`measure_frame`):
   rigid motion (the positions x − u), along the axis: the robot's view of the indentation;
 - deformed area (mm²) of the deformed region seeded at the most displaced point under the
   tip, and indented volume (mm³) Σ area_i max(0, −u_i·R_i n_i) over it; 0 without contact;
-- force proxy (N): Hertz (core/deformation.hertz_force) of the indentation with the shaft
+- force proxy (N): Hertz (`hertz_force`) of the indentation with the shaft
   radius, only when youngs_modulus_kpa > 0 (NaN otherwise): a model output, not a measurement.
 """
 
@@ -37,7 +37,6 @@ from .deformation import (
     Rings,
     compensated_field,
     deformed_region,
-    hertz_force,
     patch_triangles,
     share_above,
     tool_clearance,
@@ -232,6 +231,15 @@ def measure_sequence(reference: np.ndarray, positions: np.ndarray, sigma: np.nda
         bool if key == "deformed" else np.float32) for key in
         ("inward_mm", "magnitude_mm", "sigma_mm", "deformed")})
     return Deformation(series, stacked)
+
+
+def hertz_force(depth_m: np.ndarray | float, radius_m: float, youngs_pa: float,
+                poisson: float) -> np.ndarray:
+    """Hertzian contact force (...,) N of a rigid sphere of `radius_m` pressed `depth_m`
+    (...,) m into an elastic half-space (Young's modulus Pa, Poisson's ratio):
+    F = 4/3 E/(1 − ν²) √R δ^{3/2} (δ ≤ 0: no force). A model output, valid for δ ≪ R."""
+    depth = np.clip(np.asarray(depth_m, float), 0.0, None)
+    return 4.0 / 3.0 * youngs_pa / (1.0 - poisson**2) * np.sqrt(radius_m) * depth**1.5
 
 
 def camera_viewpoint(camera_poses: np.ndarray, usable: np.ndarray,

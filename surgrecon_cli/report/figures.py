@@ -73,7 +73,7 @@ def figure_tasks(data: RunData, metrics: Metrics, views: list[CloudView],
             plots.per_frame_boxes, frames_later, [m.residual_mm[k] for k in later],
             "data residual", "mm")))
     if data.deformation is not None:
-        tasks.extend(_deformation_tasks(data, config))
+        tasks.extend(deformation_tasks(data, config))
     seconds = stage_seconds(data.run)
     if seconds:
         per_frame = {}
@@ -86,7 +86,7 @@ def figure_tasks(data: RunData, metrics: Metrics, views: list[CloudView],
     return tasks
 
 
-def _deformation_tasks(data: RunData, config: Config) -> list[Task]:
+def deformation_tasks(data: RunData, config: Config) -> list[Task]:
     """Indentation, area (and force) over time; the displacement map of the deepest frame."""
     assert data.deformation is not None and data.template is not None
     series, field = data.deformation.series, data.deformation.field
