@@ -10,11 +10,12 @@ the tool-tip pose (4, 4) and the template's neighbourhoods (core/classify.py).
   the point's *ring*: template points between ring_inner_mm and ring_outer_mm from p_i at
   frame 0 (fitted at ring centres, a voxel subsample of the template, and blended over the
   3 nearest: rings of neighbouring points are nearly the same). Breathing shifts the ring
-  with the point and is removed; an indentation narrower than the ring stays. The fit is robust (iteratively reweighted from the least-squares fit,
-  Cauchy weights, then Tukey's biweight, which gives members moving otherwise no weight at
-  all; scale 4 x the members' median σ, 0.2 mm at least), so a ring crossing the edge of a
-  breathing region or the dent's tail follows its majority (Cauchy weights alone let a ring
-  half over a breathing ramp turn by 4° where the still part it centres on did not turn).
+  with the point and is removed; an indentation narrower than the ring stays. The fit is
+  robust (iteratively reweighted from the least-squares fit, Cauchy weights, then Tukey's
+  biweight, which gives members moving otherwise no weight at all; scale 4 x the members'
+  median σ, 0.2 mm at least), so a ring crossing the edge of a breathing region or the dent's
+  tail follows its majority (Cauchy weights alone let a ring half over a breathing ramp turn
+  by 4° where the still part it centres on did not turn).
   σ_u² = σ_i² + σ̄²/n_eff (σ̄² the members' mean variance, n_eff their effective number).
 - clearance: the tool is a capsule (core/tool.py, shaft_radius_m around the axis from the
   rounded end's centre up the shaft); its clearance to the surface is min_i ‖x_i − axis‖ −
