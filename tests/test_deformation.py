@@ -11,14 +11,9 @@ import pytest
 
 from surgrecon_cli.config import Config, ConfigError, load_config
 from surgrecon_cli.core.classify import template_neighbourhoods
-from surgrecon_cli.core.deformation import (
-    compensated_field,
-    patch_triangles,
-    share_above,
-    surface_normals,
-    surrounding_rings,
-)
+from surgrecon_cli.core.deformation import compensated_field, surface_normals, surrounding_rings
 from surgrecon_cli.core.deformation_scoring import score_deformation
+from surgrecon_cli.core.dent import patch_triangles, share_above
 from surgrecon_cli.core.indentation import (
     contact_events,
     hertz_force,

@@ -31,7 +31,7 @@ from .common import common_options, executor_options, progress
 @executor_options
 def run_cmd(logs: tuple[Path, ...], run_dir: Path, gt_path: Path | None, allow_truncated: bool,
             force: bool, config: Any, quiet: bool) -> None:
-    """Run every stage on LOG: ingest, build-template, register, classify, report
+    """Run every stage on LOG: ingest, build-template, register, classify, measure, report
     (and evaluate when ground truth is available).
 
     Resumable: rerunning on the same RUN skips finished stages (and registered frames); a

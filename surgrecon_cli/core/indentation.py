@@ -2,7 +2,7 @@
 core/deformation.py. Pure numpy, no I/O; metres in, the figures in mm, mm², mm³ and N.
 
 Per frame k (`measure_frame`):
-- contact: the tool's clearance (core/deformation.tool_clearance, min over the points) is at
+- contact: the tool's clearance (core/dent.tool_clearance, min over the points) is at
   most the tolerance max(contact_floor_mm, contact_sigmas × σ/√3), σ the median 3D RMS of the
   frame's points (σ/√3 their 1D uncertainty along the normal). Not the σ of the points
   nearest the tool: under a hovering tool they are hidden and extrapolated, their σ large,
@@ -32,10 +32,8 @@ import numpy as np
 
 from ..config import DeformationConfig, ToolConfig
 from .classify import Neighbourhoods
-from .deformation import (
-    CompensatedField,
-    Rings,
-    compensated_field,
+from .deformation import CompensatedField, Rings, compensated_field
+from .dent import (
     deformed_region,
     patch_triangles,
     share_above,

@@ -69,7 +69,7 @@ def displacement_map(xy_mm: np.ndarray, inward_mm: np.ndarray, deformed: np.ndar
                      tip_mm: np.ndarray | None, axis: np.ndarray | None, title: str) -> bytes:
     """Top view (x-y, mm) of the template points coloured by their compensated
     displacement into the tissue (mm), the deformed region ringed, the tool tip and the
-    direction of its shaft drawn."""
+    direction of its shaft drawn (grey: the shaft's top view, 15 mm of it)."""
     xy = np.asarray(xy_mm, float)
     value = np.asarray(inward_mm, float)
     ok = np.isfinite(value) & np.isfinite(xy).all(1)
@@ -93,7 +93,7 @@ def displacement_map(xy_mm: np.ndarray, inward_mm: np.ndarray, deformed: np.ndar
                 ax.annotate("", xy=(tip_mm[0] + 15 * axis[0], tip_mm[1] + 15 * axis[1]),
                             xytext=(tip_mm[0], tip_mm[1]),
                             arrowprops={"arrowstyle": "-", "color": "#555555", "lw": 3,
-                                        "alpha": 0.6})
+                                        "alpha": 0.7}, zorder=4)
         ax.set_aspect("equal", adjustable="datalim")
         ax.set_xlabel("x (mm)")
         ax.set_ylabel("y (mm)")

@@ -47,7 +47,10 @@ def contact_section(data: RunData, config: Config, pngs: Mapping[str, bytes]) ->
                           "each template point at its frame-0 position (top view) coloured "
                           "by its compensated displacement into the tissue; ringed: the "
                           f"deformed region (at least {d.threshold_mm:g} mm, connected to "
-                          "the contact point)."))
+                          "the contact point); the star: the tool tip, grey: its shaft. "
+                          "Breathing that moves a region rigidly leaves no colour; where "
+                          "its edge shears the tissue (no rigid motion fits there), it "
+                          "shows."))
     sec.add(rh.paragraph(
         f"Contact: the tool (a capsule of the shaft radius) comes within the tolerance of the "
         f"registered surface: {d.contact_sigmas:g}σ of the surface points nearest it, at least "
