@@ -20,7 +20,9 @@ depth at the tip, frames in contact, median error <= 0.3 mm or <= 10 % of the tr
 deformed area within 20 % (median relative error); out of contact (breathing alone) no
 contact and the depth under the tip within 2 sigma; overhead of the measures <= 5 % of the
 run (the measure stage and the report's two deformation figures against the sum of the
-stages' wall times). A goal holds for a set when it holds on every run of it.
+stages' wall times, evaluate left out: a real run has no ground truth; the stages' times
+are those recorded last, so a busy machine makes them noisy). A goal holds for a set when
+it holds on every run of it.
 """
 
 from __future__ import annotations
@@ -89,10 +91,10 @@ def run_one(name: str, variant: str, seed: int | None, args: argparse.Namespace,
     call([exe, "measure", str(run), "-q", *sets], log_file)
     call([exe, "evaluate", str(run), "--ground-truth", str(gt), "-q", *sets], log_file)
     evaluation = json.loads((run / "metrics" / "evaluation.json").read_text())
-    seconds = json.loads((run / "run.json").read_text()).get("pipeline", {}).get("seconds", {})
-    measure_s = json.loads((run / "run.json").read_text())["stages"]["measure"]["seconds"]
-    total = sum(v for k, v in seconds.items() if k != "measure") + measure_s
-    overhead = (measure_s + figure_seconds(run)) / total if total else None
+    stages = json.loads((run / "run.json").read_text())["stages"]
+    seconds = {k: float(v.get("seconds") or 0.0) for k, v in stages.items() if k != "evaluate"}
+    total = sum(seconds.values())  # a run without ground truth: no evaluate
+    overhead = (seconds["measure"] + figure_seconds(run)) / total if total else None
     return {"name": name, "variant": variant, "seed": seed, "score": evaluation["deformation"],
             "overhead": overhead}
 

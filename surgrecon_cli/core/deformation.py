@@ -34,7 +34,7 @@ from .geometry import nearest_rotation
 
 SCALE_FLOOR_M = 2e-4  # robust scale of the ring fit at least 0.2 mm (noiseless truth)
 SCALE_SIGMAS = 4.0  # ... else this many times the members' median σ
-IRLS_ITERATIONS = 8
+IRLS_ITERATIONS = 5
 MIN_RING = 6  # ring members needed for a rigid fit worth the name
 BLEND = 3  # ring centres whose motions carry a point
 

@@ -5,8 +5,9 @@ from __future__ import annotations
 
 import numpy as np
 from matplotlib import rc_context
+from matplotlib.figure import Figure
 
-from .plots import STYLE, label_frame_axes, new_figure, to_png
+from .plots import STYLE, label_frame_axes, to_png
 
 CONTACT_SHADE = "#f6e3e5"
 
@@ -30,7 +31,10 @@ def deformation_over_time(frames: np.ndarray, contact: np.ndarray, depth_mm: np.
     frames = np.asarray(frames)
     panels = 3 if force_n is not None else 2
     with rc_context(STYLE):
-        fig = new_figure(4.0 * panels + 1.0, 3.0)
+        # fixed margins, not the constrained layout: it draws every figure twice
+        fig = Figure(figsize=(4.0 * panels + 1.0, 3.0))
+        fig.subplots_adjust(left=0.07 if panels == 2 else 0.05, right=0.98, bottom=0.16,
+                            top=0.9, wspace=0.28)
         axes = fig.subplots(1, panels)
         ax = axes[0]
         _shade_contact(ax, frames, contact)
@@ -69,12 +73,13 @@ def displacement_map(xy_mm: np.ndarray, inward_mm: np.ndarray, deformed: np.ndar
                      tip_mm: np.ndarray | None, axis: np.ndarray | None, title: str) -> bytes:
     """Top view (x-y, mm) of the template points coloured by their compensated
     displacement into the tissue (mm), the deformed region ringed, the tool tip and the
-    direction of its shaft drawn (grey: the shaft's top view, 15 mm of it)."""
+    direction of its shaft drawn (grey: the top view of 40 mm of it)."""
     xy = np.asarray(xy_mm, float)
     value = np.asarray(inward_mm, float)
     ok = np.isfinite(value) & np.isfinite(xy).all(1)
     with rc_context({**STYLE, "axes.grid": False}):
-        fig = new_figure(6.2, 4.8)
+        fig = Figure(figsize=(6.2, 4.8))
+        fig.subplots_adjust(left=0.12, right=0.97, bottom=0.1, top=0.93)
         ax = fig.add_subplot()
         if ok.any():
             top = max(float(np.nanpercentile(np.abs(value[ok]), 99.5)), 0.5)
@@ -90,10 +95,9 @@ def displacement_map(xy_mm: np.ndarray, inward_mm: np.ndarray, deformed: np.ndar
             ax.scatter([tip_mm[0]], [tip_mm[1]], marker="*", s=120, color="#F2A541",
                        edgecolor="black", zorder=5, label="tool tip")
             if axis is not None and np.isfinite(axis).all():
-                ax.annotate("", xy=(tip_mm[0] + 15 * axis[0], tip_mm[1] + 15 * axis[1]),
-                            xytext=(tip_mm[0], tip_mm[1]),
-                            arrowprops={"arrowstyle": "-", "color": "#555555", "lw": 3,
-                                        "alpha": 0.7}, zorder=4)
+                ax.plot([tip_mm[0], tip_mm[0] + 40 * axis[0]],
+                        [tip_mm[1], tip_mm[1] + 40 * axis[1]], color="#555555", lw=3,
+                        alpha=0.8, solid_capstyle="round", zorder=4, label="tool shaft")
         ax.set_aspect("equal", adjustable="datalim")
         ax.set_xlabel("x (mm)")
         ax.set_ylabel("y (mm)")
