@@ -100,6 +100,14 @@ def _explicit(ctx: click.Context, name: str) -> bool:
     "cameras in the tracker's frame; the tool in the robot's base frame. The `--set` "
     "keys to ingest it with are printed.",
 )
+@click.option(
+    "--video",
+    type=click.Choice(["h264", "h265"]),
+    default=None,
+    help="Write the camera images as foxglove.CompressedVideo of this codec instead of JPEG "
+    "(with --encoding foxglove-protobuf or foxglove-json; needs PyAV: "
+    'pip install "surgrecon[video]").',
+)
 @click.option("--separated", is_flag=True, help="Place the last camera where it shares no view.")
 @common_options
 @click.pass_context
@@ -109,6 +117,7 @@ def simulate_cmd(
     variant: str,
     encoding: str,
     poses: str,
+    video: str | None,
     config,
     quiet: bool,
     **options,
@@ -137,6 +146,9 @@ def simulate_cmd(
         cfg = variant_config(variant, **overrides)
     except ValueError as exc:
         raise click.UsageError(str(exc)) from exc
+    if video and not encoding.startswith("foxglove"):
+        raise click.UsageError(f"--video writes foxglove.CompressedVideo: use --encoding "
+                               f"foxglove-protobuf or foxglove-json, not {encoding}")
     start = time.perf_counter()
     with progress(quiet)(total=cfg.frames, desc="rendering frames", unit="frame") as bar:
         result = simulate(
@@ -146,11 +158,13 @@ def simulate_cmd(
             convention=poses,
             labels=config.labels,
             on_frame=lambda _: bar.update(1),
+            video=video,
         )
     fractions = ", ".join(f"{k} {v:.1%}" for k, v in result.class_fractions.items())
     click.echo(
         f"wrote {result.log_path} ({result.n_messages} messages, {result.n_frames} frames, "
-        f"{cfg.cameras} cameras, variant {variant}, {encoding}) in "
+        f"{cfg.cameras} cameras, variant {variant}, {encoding}"
+        f"{f', {video} video' if video else ''}) in "
         f"{time.perf_counter() - start:.1f} s"
     )
     click.echo(

@@ -27,6 +27,7 @@ from .log_writer import write_log
 from .render import Renderer, tool_mesh
 from .scene import Motion, SimConfig, make_tissue, vertex_normals
 from .texture import make_texture
+from .video import VideoEncoder
 
 T0_NS = 1_700_000_000_000_000_000  # fixed epoch so that logs are bit-for-bit reproducible
 WORLD = "world"
@@ -95,8 +96,9 @@ def _ns(t: float) -> int:
 class LogBuilder:
     """Builds the time-ordered message stream of one simulated recording."""
 
-    def __init__(self, cfg: SimConfig):
+    def __init__(self, cfg: SimConfig, video: str | None = None):
         self.cfg = cfg
+        self.video = video  # None: JPEG images; "h264"/"h265": CompressedVideo (sim/video.py)
         self.mesh = make_tissue(cfg)
         self.motion = Motion(cfg, self.mesh)
         rng = np.random.default_rng(cfg.seed)
@@ -159,6 +161,8 @@ class LogBuilder:
     def _image_messages(self, on_frame: Callable[[int], None] | None) -> Iterator[Message]:
         cfg, motion, mesh = self.cfg, self.motion, self.mesh
         renderer = Renderer(self.texture, cfg.image_noise, self.render_rng)
+        encoders = [VideoEncoder(self.video, cfg.width, cfg.height, cfg.frame_rate)
+                    for _ in range(cfg.cameras)] if self.video else None
         for frame, t in enumerate(self.frame_times):
             vertices = motion.tissue_vertices(t)
             normals = vertex_normals(vertices, mesh.faces)
@@ -177,16 +181,21 @@ class LogBuilder:
                     mesh.material_xy,
                     tool,
                 )
-                ok, jpeg = cv2.imencode(
-                    ".jpg",
-                    cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR),
-                    [cv2.IMWRITE_JPEG_QUALITY, cfg.jpeg_quality],
-                )
-                if not ok:  # pragma: no cover - OpenCV cannot fail on a valid uint8 image
-                    raise RuntimeError("JPEG encoding failed")
                 model = self.models[cam]
                 log_ns = _ns(stamp) + 3_000_000
                 frame_id = f"endoscope_{cam}_optical"
+                if encoders is not None:
+                    image = ImageRecord(_ns(stamp), frame_id, self.video,
+                                        encoders[cam].encode(rgb))
+                else:
+                    ok, jpeg = cv2.imencode(
+                        ".jpg",
+                        cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR),
+                        [cv2.IMWRITE_JPEG_QUALITY, cfg.jpeg_quality],
+                    )
+                    if not ok:  # pragma: no cover - OpenCV cannot fail on a valid uint8 image
+                        raise RuntimeError("JPEG encoding failed")
+                    image = ImageRecord(_ns(stamp), frame_id, "jpeg", jpeg.tobytes())
                 batch.append(
                     (
                         f"/endoscope_{cam}/calibration",
@@ -196,13 +205,7 @@ class LogBuilder:
                         ),
                     )
                 )
-                batch.append(
-                    (
-                        f"/endoscope_{cam}/color/compressed",
-                        log_ns,
-                        ImageRecord(_ns(stamp), frame_id, "jpeg", jpeg.tobytes()),
-                    )
-                )
+                batch.append((f"/endoscope_{cam}/color/compressed", log_ns, image))
             batch.sort(key=lambda m: (m[1], m[0]))
             yield from batch
             if on_frame is not None:
@@ -233,11 +236,16 @@ def simulate(
     convention: str = "topics",
     labels: LabelsConfig | None = None,
     on_frame: Callable[[int], None] | None = None,
+    video: str | None = None,
 ) -> SimResult:
     """Render the log to `out` and its ground truth to `NAME.gt.npz` (both atomically), its
-    poses in `convention` (sim/conventions.py)."""
+    poses in `convention` (sim/conventions.py); `video` "h264"/"h265" writes the images as
+    foxglove.CompressedVideo (Foxglove encodings only) instead of JPEG."""
     labels = labels or LabelsConfig()
-    builder = LogBuilder(cfg)
+    if video and not encoding.startswith("foxglove"):
+        raise ValueError(f"video images are foxglove.CompressedVideo; encoding {encoding!r} "
+                         "is not a Foxglove one (foxglove-protobuf, foxglove-json)")
+    builder = LogBuilder(cfg, video)
     stream = builder.messages(on_frame)
     rewrite = CONVENTIONS[convention].rewrite
     if rewrite is not None:

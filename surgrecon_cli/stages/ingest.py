@@ -90,6 +90,7 @@ def ingest(
         collector = StreamCollector(staging)
         for item in reader:
             collector.add(item)
+        collector.finish()
         reader.check_roles()
         log, report = _assemble(collector, reader, config, staging, allow_truncated)
         save_ingested(log)
