@@ -42,6 +42,8 @@ def import_av(topic: str, fmt: str) -> Any:
     """The `av` module, or a one-line InputError naming the topic and the install command."""
     try:
         import av
+        import av.error
+        import av.video.reformatter
     except ImportError:
         raise InputError(f"{topic}: foxglove.CompressedVideo ({fmt}) needs PyAV, which is not "
                          f"installed; {INSTALL_HINT}") from None
@@ -68,6 +70,16 @@ def is_keyframe(data: bytes, fmt: str) -> bool:
     return any(16 <= t <= 23 for t in types)
 
 
+def _interpolation(av: Any) -> Any:
+    """swscale flags for 4:2:0 -> RGB: chroma interpolated at full resolution with exact
+    rounding (its default fast path is ~1.2 grey levels dark); None (the default) with a
+    PyAV too old to pass flags."""
+    flags = av.video.reformatter.Interpolation
+    if not all(hasattr(flags, n) for n in ("ACCURATE_RND", "FULL_CHR_H_INT")):
+        return None
+    return flags.BILINEAR | flags.ACCURATE_RND | flags.FULL_CHR_H_INT
+
+
 class VideoDecoder:
     """Decodes one topic's CompressedVideo messages, in log order; see the module docstring.
 
@@ -85,6 +97,7 @@ class VideoDecoder:
         self.format = fmt
         self.context = self.av.CodecContext.create(CODECS[fmt], "r")
         self.context.thread_count = 1  # frame threads would delay output; one is plenty
+        self.interpolation = _interpolation(self.av)
         self.pending: OrderedDict[int, int] = OrderedDict()  # packet index -> stamp
         self.sent = 0
         self.skipped: list[int] = []  # stamps of messages before the first keyframe
@@ -96,6 +109,9 @@ class VideoDecoder:
             raise InputError(f"{self.topic}: video at stamp {_fmt_stamp(record.stamp_ns)} is "
                              f"{record.format!r}, the topic started as {self.format!r}")
         data = bytes(record.data)
+        if not data:  # (an empty packet would tell FFmpeg that the stream ends)
+            raise InputError(f"{self.topic}: video message at stamp "
+                             f"{_fmt_stamp(record.stamp_ns)} is empty")
         if not self.started:
             if not is_keyframe(data, self.format):
                 self.skipped.append(record.stamp_ns)
@@ -137,9 +153,10 @@ class VideoDecoder:
                  else "video at the end of the log")
         try:
             frames = self.context.decode(packet)
-        except self.av.FFmpegError as exc:
+        except self.av.error.FFmpegError as exc:
+            why = getattr(exc, "strerror", None) or " ".join(str(exc).split())
             raise InputError(f"{self.topic}: {where} does not decode ({self.format}: "
-                             f"{' '.join(str(exc).split())})") from exc
+                             f"{why})") from exc
         out = []
         for frame in frames:
             index = frame.pts if frame.pts is not None else next(iter(self.pending), -1)
@@ -164,7 +181,8 @@ class VideoDecoder:
             raise InputError(f"{self.topic}: video frames are {width}x{height} px, more than the "
                              f"{MAX_IMAGE_PIXELS / 1e6:.0f} Mpx limit")
         # YUV -> BGR with the stream's own matrix and range (BT.601 when it names none).
-        bgr = np.ascontiguousarray(frame.to_ndarray(format="bgr24"))
+        bgr = np.ascontiguousarray(frame.to_ndarray(format="bgr24",
+                                                    interpolation=self.interpolation))
         ok, png = cv2.imencode(".png", bgr)
         if not ok:  # pragma: no cover - OpenCV cannot fail on a valid uint8 image
             raise InputError(f"{self.topic}: a decoded video frame could not be stored as PNG")

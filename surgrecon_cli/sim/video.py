@@ -2,9 +2,13 @@
 
 One `VideoEncoder` per camera (PyAV: libx264 / libx265), following Foxglove's rules: Annex B,
 one access unit per message, parameter sets repeated in every keyframe, no B-frames. High
-quality (CRF 18, 4:2:0, BT.601 limited range tagged in the stream), a keyframe every
-`keyframe_interval` frames, no lookahead (zerolatency: each frame comes out as it goes in),
-one thread (deterministic bytes for a given input).
+quality: CRF 12, 4:2:0 (what Foxglove's player and most cameras use), BT.601 limited range
+tagged in the stream; a keyframe every `keyframe_interval` frames; no lookahead
+(zerolatency: each frame comes out as it goes in); one thread (deterministic bytes).
+
+CRF 12 rather than the usual 18: on the default 640x480 scene, frame-0 SIFT matches between
+views are within 2 % of the JPEG (quality 92) log's at CRF 12, 15 % fewer at CRF 18 (the
+rendered sensor noise costs H.264 bits that JPEG spends per block).
 """
 
 from __future__ import annotations
@@ -17,6 +21,7 @@ import numpy as np
 from ..errors import InputError
 from ..io.video import INSTALL_HINT
 
+CRF = 12
 ENCODERS = {"h264": "libx264", "h265": "libx265"}
 """`--video` codec -> FFmpeg encoder."""
 _PARAMS = {
@@ -40,7 +45,7 @@ class VideoEncoder:
     """`encode(rgb)` -> the Annex B bytes of that one frame (H, W, 3) uint8."""
 
     def __init__(self, codec: str, width: int, height: int, frame_rate: float,
-                 keyframe_interval: int = 5, crf: int = 18) -> None:
+                 keyframe_interval: int = 5, crf: int = CRF) -> None:
         if codec not in ENCODERS:
             raise ValueError(f"unknown video codec {codec!r} (known: {', '.join(ENCODERS)})")
         if width % 2 or height % 2:
