@@ -30,10 +30,12 @@ run: $(STAMP)
 
 test: $(STAMP)
 	$(BIN)/ruff check .
+	$(BIN)/python -m mypy
 	$(BIN)/python -m pytest -q
 
 lint: $(STAMP)
 	$(BIN)/ruff check .
+	$(BIN)/python -m mypy
 
 # Regenerates the shipped sample bit-for-bit (same seed, same encoder).
 sample: $(STAMP)
@@ -44,4 +46,4 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/registration.py
 
 clean:
-	rm -rf $(VENV) runs .pytest_cache .ruff_cache
+	rm -rf $(VENV) runs .pytest_cache .ruff_cache .mypy_cache

@@ -42,7 +42,8 @@ import numpy as np
 from surgrecon_cli.core.geometry import matrix_to_quat
 from surgrecon_cli.io.records import CameraInfoRecord, ImageRecord, JointStateRecord, PoseRecord
 from surgrecon_cli.sim.log_writer import write_log
-from surgrecon_cli.sim.scene import Motion, SimConfig
+from surgrecon_cli.sim.motion import Motion
+from surgrecon_cli.sim.scene import SimConfig
 from surgrecon_cli.sim.simulate import JOINTS, T0_NS, WORLD, LogBuilder
 
 Message = tuple[str, int, object]

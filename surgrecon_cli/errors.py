@@ -1,8 +1,15 @@
-"""One exception family. The CLI turns any `SurgReconError` into one line and exit code 2."""
+"""One exception family. The CLI turns any `SurgReconError` into one line (and its
+`details`, one item per indented line after it) and exit code 2."""
 
 
 class SurgReconError(Exception):
-    """Base of every error surgrecon raises on purpose (bad input, bad config, ...)."""
+    """Base of every error surgrecon raises on purpose (bad input, bad config, ...).
+    `details`: items a person reads as a list (e.g. the topics of a log), printed one per
+    line below the message."""
+
+    def __init__(self, message: str = "", details: tuple[str, ...] = ()) -> None:
+        super().__init__(message)
+        self.details = tuple(details)
 
 
 class ConfigError(SurgReconError):

@@ -34,6 +34,7 @@ from .executors import Executor, make_executor
 from .io.artefacts import read_json
 from .io.atomic import remove_leftovers, write_text
 from .io.ground_truth import gt_path_beside
+from .io.log_input import resolve_log
 from .io.run_folder import RunFolder, config_value, file_sha256, plain
 from .io.run_layout import RunLayout
 from .stages import registry
@@ -45,7 +46,8 @@ STAGES = registry.NAMES
 Progress = Callable[[str, float], None]
 # Modules of the task functions, imported by parallel workers as they start.
 TASK_MODULES = ("surgrecon_cli.core.template", "surgrecon_cli.stages.register",
-                "surgrecon_cli.stages.classify", "surgrecon_cli.io.plots")
+                "surgrecon_cli.stages.classify", "surgrecon_cli.io.plots",
+                "surgrecon_cli.io.plots_evaluation")
 
 
 def open_executor(config: Config) -> closing[Executor]:
@@ -162,8 +164,7 @@ def run_pipeline(log: Path, run_dir: Path, config: Config, ground_truth: Path | 
             return run_pipeline(log, run_dir, config, ground_truth, allow_truncated,
                                 on_progress, on_stage, own, force)
     log, run_dir = Path(log), Path(run_dir)
-    if not log.is_file():
-        raise InputError(f"{log}: no such file")
+    log_input = resolve_log(log)
     gt = find_ground_truth(log, ground_truth)
     wanted = tuple(s.name for s in registry.STAGES if not s.needs_ground_truth or gt)
     result = PipelineResult(run_dir=run_dir, ground_truth=gt)
@@ -174,7 +175,7 @@ def run_pipeline(log: Path, run_dir: Path, config: Config, ground_truth: Path | 
         if remove_leftovers(run_dir):
             logger.info("%s: removed the temporary files of an interrupted run", run_dir)
         recorded = run.input_hash
-        if recorded and recorded != file_sha256(log):
+        if recorded and recorded != log_input.sha256():
             made_from = run.read().get("input", {}).get("path", "another log")
             if not force:
                 raise RunFolderError(
@@ -244,7 +245,7 @@ def _record_seconds(run: RunFolder, stage: str, seconds: float) -> None:
 
 def run_folders_for(logs: list[Path], runs_root: Path) -> list[Path]:
     """One run folder per log under `runs_root`, named after the log's file name without
-    `.mcap`; InputError when two logs would share a folder."""
+    `.mcap` (a bag folder: its name); InputError when two logs would share a folder."""
     names = [Path(log).name.removesuffix(".mcap") for log in logs]
     folders = [Path(runs_root) / (n if n not in ("", ".", "..") else Path(log).name)
                for n, log in zip(names, logs, strict=True)]

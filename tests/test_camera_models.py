@@ -11,14 +11,16 @@ import pytest
 
 from surgrecon_cli.core.cameras import (
     CameraModel,
-    distort_normalized,
-    distortion_jacobian,
     pixel_rays,
     project,
     projection_jacobian,
-    undistort_normalized,
     undistort_pixels,
     view_distortion_jacobians,
+)
+from surgrecon_cli.core.distortion import (
+    distort_normalized,
+    distortion_jacobian,
+    undistort_normalized,
 )
 from surgrecon_cli.core.geometry import invert_pose, make_pose
 from surgrecon_cli.core.noise import covariance_sigma, point_covariances, projection_jacobians

@@ -38,7 +38,7 @@ def test_user_file_and_set_overrides(tmp_path):
         ("registration.nope=1", "registration.nope: unknown key"),
         ("nosection.key=1", "nosection: unknown config section"),
         ("registration.k_neighbors=2.5", "registration.k_neighbors: expected an integer"),
-        ("tool.shaft_radius=-1", "tool.shaft_radius: must be > 0"),
+        ("tool.shaft_radius_m=-1", "tool.shaft_radius_m: must be > 0"),
         ("ingest.time_source=wall", "ingest.time_source"),
         ("topics.image=/no/placeholder", "topics.image: needs a {camera} placeholder"),
         ("registration", "expected section.key=value"),
@@ -56,3 +56,9 @@ def test_bad_file(tmp_path):
         load_config(path)
     with pytest.raises(ConfigError, match="not found"):
         load_config(tmp_path / "missing.toml")
+
+
+def test_keys_renamed_with_their_unit_are_still_read():
+    config = load_config(overrides=["tool.shaft_radius=0.005", "target.occlusion_depth=0.01"])
+    assert config.tool.shaft_radius_m == 0.005 and config.target.occlusion_depth_m == 0.01
+    assert load_config(overrides=["tool.margin=0.002"]).tool.margin_m == 0.002

@@ -25,6 +25,7 @@ import signal
 import subprocess
 import sys
 import time
+import tomllib
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -32,7 +33,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-import tomllib
 
 from surgrecon_cli.cli.main import main
 from surgrecon_cli.io.ply import read_ply

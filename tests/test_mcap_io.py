@@ -14,6 +14,7 @@ from mcap.reader import make_reader
 from surgrecon_cli.config import IngestConfig, TopicsConfig
 from surgrecon_cli.errors import InputError, TopicError
 from surgrecon_cli.io.mcap import DECODERS, LogReader
+from surgrecon_cli.io.mcap.transforms import read_transforms
 from surgrecon_cli.io.records import CameraInfoRecord, ImageRecord, JointStateRecord, PoseRecord
 from surgrecon_cli.sim.log_writer import ENCODINGS, write_log
 
@@ -76,13 +77,20 @@ def test_round_trip_every_record_type(tmp_path: Path, encoding: str):
     reader = LogReader(path, TOPICS)
     items = list(reader)
     reader.check_roles()
+    # Transforms (/tf) go to the TF tree, not through the role stream.
     assert [(i.role, i.camera, i.topic) for i in items] == [
         ("camera_info", "1", "/cam_1/info"), ("image", "1", "/cam_1/image"),
-        ("image", "2", "/cam_2/image"), ("camera_pose", "1", "/tf"), ("tool_pose", "", "/tool"),
+        ("image", "2", "/cam_2/image"), ("tool_pose", "", "/tool"),
         ("joint_states", "", "/joints"),
     ]
     expected = [r for _, _, r in written]
-    for item, want in zip(items, [expected[i] for i in (0, 1, 2, 3, 5, 6)], strict=True):
+    tf = read_transforms(path).samples  # every transform, whatever its frames
+    assert list(zip(tf.parent, tf.child, strict=True)) == [
+        (r.frame_id, r.child_frame_id) for r in expected[3:5]]
+    for k, want_tf in enumerate(expected[3:5]):
+        np.testing.assert_array_equal(tf.translations[k], want_tf.position)
+        np.testing.assert_array_equal(tf.quats[k], want_tf.orientation)
+    for item, want in zip(items, [expected[i] for i in (0, 1, 2, 5, 6)], strict=True):
         got = item.record
         assert type(got) is type(want) and got.stamp_ns == want.stamp_ns
         if isinstance(want, CameraInfoRecord):
@@ -173,7 +181,7 @@ def test_missing_role_lists_existing_topics(tmp_path: Path):
         list(LogReader(path, TOPICS))  # found from the summary, before streaming
     msg = str(exc.value)
     assert "topics.camera_pose = '/tf'" in msg and "topics.tool_pose = '/tool'" in msg
-    assert "/cam_1/info (sensor_msgs/CameraInfo (ros1))" in msg
+    assert "/cam_1/info  sensor_msgs/CameraInfo (ros1)" in exc.value.details
 
 
 def _summary_start(data: bytes) -> int:
@@ -223,8 +231,12 @@ def test_json_frame_transform_generic_joint_states_and_ros1_tf(tmp_path: Path):
         w.add_message(ch_js, 11, json.dumps({"name": ["a"], "position": [0.5]}).encode(), 11)
         w.finish()
     items = list(LogReader(path, TOPICS, require_roles=False))
-    assert [(i.role, i.camera) for i in items] == [("camera_pose", "5"), ("joint_states", "")]
-    pose, joints = items[0].record, items[1].record
-    assert pose.stamp_ns == 3_000_000_004 and joints.stamp_ns == 11
-    np.testing.assert_array_equal(pose.orientation, [0, 0, 1, 0])
+    assert [(i.role, i.camera) for i in items] == [("joint_states", "")]
+    joints = items[0].record
+    assert joints.stamp_ns == 11
     assert joints.names == ("a",) and joints.positions.tolist() == [0.5]
+    tf = read_transforms(path).samples  # the transform goes to the TF tree
+    assert (list(tf.parent), list(tf.child)) == (["world"], ["cam_5_optical"])
+    assert tf.stamps_ns.tolist() == [3_000_000_004]
+    np.testing.assert_array_equal(tf.quats[0], [0, 0, 1, 0])
+    np.testing.assert_array_equal(tf.translations[0], [1, 2, 3])

@@ -40,7 +40,36 @@ def test_fresh_run_writes_every_stage(pipeline_run):
         for name, dtype in SPEC_TYPES.items():
             assert cloud[name].dtype == np.dtype(dtype), (path, name)
         np.testing.assert_array_equal(cloud["label"], labels[k][cloud["point_id"]])
-    assert result.evaluation["labels"]["overall"]["macro_f1"] > 0.4
+    _labels_beat_trivial_classifiers(result.evaluation["labels"]["overall"])
+
+
+def _constant_macro_f1(support: dict[str, int], label: str) -> float:
+    """Macro-F1 of a classifier that gives every point `label`: F1 = 2p / (1 + p) for that
+    class (precision p = its share of the points, recall 1), 0 for the others."""
+    share = support[label] / sum(support.values())
+    return 2 * share / (1 + share) / len(support)
+
+
+def _labels_beat_trivial_classifiers(overall: dict) -> None:
+    """Labels of frames 1.. against the simulator's truth.
+
+    On this 6-frame log 84 % of the point-frames are truly static (1577 of 1880; 207
+    shifting, 96 deforming), so labelling everything static already scores macro-F1 0.30
+    (static F1 0.91) and a perfect static/moving split that never says deforming 0.60. The
+    pipeline measured 0.62 (static P 0.93 R 1.00, shifting F1 0.55, deforming P 0.88 R 0.22);
+    bound 0.55: 0.25 above every constant labelling, 0.07 below the measured value.
+    """
+    per_class = overall["per_class"]
+    support = {name: per_class[name]["support"] for name in ("static", "shifting", "deforming")}
+    assert all(n > 0 for n in support.values())
+    trivial = max(_constant_macro_f1(support, label) for label in support)
+    assert trivial < 0.35
+    assert overall["macro_f1"] >= 0.55 >= trivial + 0.2
+    # moving points are not called static (everything static: precision = share = 0.84) ...
+    assert per_class["static"]["precision"] >= 0.88
+    assert per_class["static"]["recall"] >= 0.95
+    # ... and a good part of the moving ones are told apart as shifting
+    assert per_class["shifting"]["f1"] >= 0.4
 
 
 def test_rerun_skips_everything(copy_run, pipeline_log, capsys):

@@ -13,7 +13,8 @@ from surgrecon_cli.core.labels import (
     radius_neighbourhoods,
     true_labels,
 )
-from surgrecon_cli.sim.scene import Motion, SimConfig, make_tissue
+from surgrecon_cli.sim.motion import Motion
+from surgrecon_cli.sim.scene import SimConfig, make_tissue
 from surgrecon_cli.sim.simulate import simulate
 
 SMALL = SimConfig(cameras=2, frames=3, width=96, height=72, seed=11)

@@ -84,7 +84,7 @@ def test_status_bookkeeping(tracked):
 
 
 def test_photometric_check_rejects_a_drifted_track():
-    from surgrecon_cli.core.target import patch_ncc
+    from surgrecon_cli.core.tracking import patch_ncc
 
     rng = np.random.default_rng(0)
     image = (rng.random((80, 80)) * 255).astype(np.uint8)

@@ -106,7 +106,7 @@ def test_template_accuracy_and_tool_removal(scene):
     assert stats["median_mm"] <= 0.3
     assert stats["p95_mm"] <= 1.0
     a, b = shaft_segment(tool_pose, cfg.tool)
-    assert (point_to_segment_distance(result.points, a, b) < cfg.tool.shaft_radius).sum() == 0
+    assert (point_to_segment_distance(result.points, a, b) < cfg.tool.shaft_radius_m).sum() == 0
     assert result.plan.groups == [list(range(4))]
     assert (result.n_views >= 2).all()
     # Colours are observed colours of tissue: reddish.
@@ -178,7 +178,7 @@ def test_tissue_inside_the_tool_is_pushed_onto_its_surface():
     inside, pushed = push_out_of_tool(points, tip_down, cfg)
     np.testing.assert_array_equal(inside, [True, False, False, False, True])
     np.testing.assert_allclose(pushed[0], [0, 0, 0], atol=2e-6)  # onto the tip
-    r = cfg.shaft_radius
+    r = cfg.shaft_radius_m
     np.testing.assert_allclose(pushed[4], [0, 1e-3, r - np.sqrt(r**2 - 1e-6)], atol=2e-6)
     np.testing.assert_array_equal(pushed[~inside], points[~inside])
     assert not push_out_of_tool(pushed, tip_down, cfg)[0].any()

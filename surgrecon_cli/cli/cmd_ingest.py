@@ -11,7 +11,7 @@ from .common import common_options, progress
 
 
 @click.command("ingest")
-@click.argument("log", type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.argument("log", type=click.Path(exists=True, path_type=Path))
 @click.option(
     "-o",
     "--output",
@@ -42,10 +42,12 @@ def ingest_cmd(
       surgrecon ingest sample_data/sample.mcap -o runs/sample
       surgrecon ingest my_raven.mcap -o runs/raven --config raven.toml --allow-truncated
     """
+    from ..io.log_input import resolve_log
     from ..io.run_layout import RunLayout
     from ..stages.ingest import ingest
 
-    with progress(quiet)(total=log.stat().st_size, unit="B", unit_scale=True, desc="ingest") as bar:
+    size = resolve_log(log).size
+    with progress(quiet)(total=size, unit="B", unit_scale=True, desc="ingest") as bar:
         result = ingest(
             log, run_dir, config, allow_truncated=allow_truncated, force=force, on_bytes=bar.update
         )

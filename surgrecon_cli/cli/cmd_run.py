@@ -14,7 +14,7 @@ from .common import common_options, executor_options, progress
 
 @click.command("run")
 @click.argument("logs", nargs=-1, required=True,
-                type=click.Path(exists=True, dir_okay=False, path_type=Path))
+                type=click.Path(exists=True, path_type=Path))
 @click.option("-o", "--output", "run_dir", required=True,
               type=click.Path(file_okay=False, path_type=Path),
               help="Run folder (created, or resumed if it exists); with several logs, the "

@@ -58,6 +58,8 @@ def main(argv: list[str] | None = None) -> int:
         if STATE["debug"]:
             raise
         click.echo(f"error: {_one_line(exc)}", err=True)
+        for item in exc.details:
+            click.echo(f"  {_one_line(Exception(item))}", err=True)
         return 2
     except KeyboardInterrupt:
         click.echo("interrupted", err=True)

@@ -4,14 +4,24 @@ defaults, each value checked against its field's type (ints are accepted for flo
 from __future__ import annotations
 
 import dataclasses
+import logging
+import tomllib
 import typing
 from pathlib import Path
 from typing import Any
 
-import tomllib
-
 from ..errors import ConfigError
 from .schema import Config, _require
+
+logger = logging.getLogger(__name__)
+# Keys renamed so that each name carries its unit; the old names are still read.
+RENAMED = {
+    "tool.shaft_radius": "shaft_radius_m",
+    "tool.shaft_length": "shaft_length_m",
+    "tool.margin": "margin_m",
+    "template.working_distance": "working_distance_m",
+    "target.occlusion_depth": "occlusion_depth_m",
+}
 
 
 def _coerce(value: Any, annotation: Any, key: str) -> Any:
@@ -63,6 +73,10 @@ def from_dict(data: dict[str, Any], base: Config | None = None) -> Config:
         updates = {}
         for key, value in values.items():
             full = f"{name}.{key}"
+            if full in RENAMED:
+                logger.warning("config key %s is now %s.%s (same unit); please rename it",
+                               full, name, RENAMED[full])
+                key, full = RENAMED[full], f"{name}.{RENAMED[full]}"
             _require(key in hints, full, f"unknown key (known: {', '.join(hints)})")
             updates[key] = _coerce(value, hints[key], full)
         sections[name] = dataclasses.replace(current, **updates)

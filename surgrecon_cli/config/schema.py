@@ -75,25 +75,25 @@ class IngestConfig:
 class ToolConfig:
     """Tool model: a shaft cylinder from the tip along the tool frame's +z axis."""
 
-    shaft_radius: float = _doc(0.004, "shaft radius (m)")
-    shaft_length: float = _doc(0.15, "shaft length from the tip (m)")
+    shaft_radius_m: float = _doc(0.004, "shaft radius (m)")
+    shaft_length_m: float = _doc(0.15, "shaft length from the tip (m)")
     base_to_world: tuple[float, ...] = _doc(
         (), "robot base pose in the world: [x y z qx qy qz qw] (m); empty = tool pose is in world"
     )
     mask_margin_px: float = _doc(6.0, "tool mask dilation in the images (px)")
-    margin: float = _doc(
+    margin_m: float = _doc(
         0.0015, "3D points closer than radius + margin to the shaft axis are dropped (m)"
     )
 
     def __post_init__(self) -> None:
-        _require(self.shaft_radius > 0, "tool.shaft_radius", "must be > 0")
-        _require(self.shaft_length > 0, "tool.shaft_length", "must be > 0")
+        _require(self.shaft_radius_m > 0, "tool.shaft_radius_m", "must be > 0")
+        _require(self.shaft_length_m > 0, "tool.shaft_length_m", "must be > 0")
         _require(
             len(self.base_to_world) in (0, 7),
             "tool.base_to_world",
             "must be empty or [x, y, z, qx, qy, qz, qw]",
         )
-        _require(self.mask_margin_px >= 0 and self.margin >= 0, "tool.margin", "must be >= 0")
+        _require(self.mask_margin_px >= 0 and self.margin_m >= 0, "tool.margin_m", "must be >= 0")
 
 
 @dataclass(frozen=True)
@@ -122,7 +122,7 @@ class TemplateConfig:
     depth_range: tuple[float, ...] = _doc(
         (0.4, 2.5), "matches must triangulate within [near, far] x the camera's working depth"
     )
-    working_distance: float = _doc(
+    working_distance_m: float = _doc(
         0.05, "scene depth (m) assumed for a camera whose optical axis meets no other's"
     )
 
@@ -138,7 +138,7 @@ class TemplateConfig:
             "template.depth_range",
             "must be [near, far] with 0 < near < far",
         )
-        _require(self.working_distance > 0, "template.working_distance", "must be > 0")
+        _require(self.working_distance_m > 0, "template.working_distance_m", "must be > 0")
 
 
 @dataclass(frozen=True)
@@ -154,7 +154,7 @@ class TargetConfig:
     min_ncc: float = _doc(
         0.5, "smallest normalised cross-correlation of a tracked patch with the one it left "
         "(photometric check against gross drift; median 0.96 on the sample; -1 = off)")
-    occlusion_depth: float = _doc(0.002, "depth tolerance of the visibility test (m)")
+    occlusion_depth_m: float = _doc(0.002, "depth tolerance of the visibility test (m)")
     new_points_every: int = _doc(
         0, "triangulate new features into G (no id) every N frames (0 = off; ~3 s a frame)"
     )

@@ -1,5 +1,6 @@
-"""Scoring a run against ground truth (SPEC section 6), per part: template, registration,
-labels. Pure numpy on top of core/scoring.py; the stage (stages/evaluate.py) does the I/O.
+"""Scoring a run against the simulator's ground truth (io/ground_truth.py), per part:
+template, registration, labels. Pure numpy on top of core/scoring.py; the stage
+(stages/evaluate.py) does the I/O.
 
 Template points are mapped once onto the true frame-0 surface (`map_to_surface`); that
 material point is followed through the frames (`SurfaceMapping.follow`) and its nearest true
@@ -19,13 +20,13 @@ CLINICAL_MM = 1.0  # the spec's clinical accuracy requirement
 
 
 def on_tool(points: np.ndarray, tool_pose: np.ndarray, cfg: ToolConfig) -> np.ndarray | None:
-    """(N,) bool: points (N, 3) m closer to the shaft axis (tip + shaft_length along the tool
+    """(N,) bool: points (N, 3) m closer to the shaft axis (tip + shaft_length_m along the tool
     frame's +z) than the shaft radius; None when the tool pose (4, 4) is unknown (NaN)."""
     pose = np.asarray(tool_pose, float)
     if not np.isfinite(pose).all():
         return None
     start, end = shaft_segment(pose, cfg)
-    return point_to_segment_distance(points, start, end) < cfg.shaft_radius
+    return point_to_segment_distance(points, start, end) < cfg.shaft_radius_m
 
 
 def error_summary(errors_m: np.ndarray) -> dict[str, float]:

@@ -60,7 +60,7 @@ def detect_features(
     """
     gray = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
     mask = None if exclude is None else (~exclude).astype(np.uint8) * 255
-    sift = cv2.SIFT_create(nfeatures=max_features, contrastThreshold=contrast_threshold)
+    sift = cv2.SIFT.create(nfeatures=max_features, contrastThreshold=contrast_threshold)
     keypoints, descriptors = sift.detectAndCompute(gray, mask)
     if not keypoints:
         return no_features()

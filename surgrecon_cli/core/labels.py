@@ -1,4 +1,4 @@
-"""Point classes and the spec's ground-truth label rule (SPEC section 6).
+"""Point classes and the ground-truth label rule the simulator's truth follows.
 
 With frame 0 as reference, a point is `static` if it moved less than `static_mm`;
 otherwise `deforming` if its neighbourhood (points within `neighbourhood_mm` at frame 0)

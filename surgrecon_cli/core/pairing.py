@@ -129,7 +129,7 @@ def plan_pairs(weights: np.ndarray) -> PairPlan:
     n_groups, member = connected_components(w > 0, directed=False)
     groups = [np.flatnonzero(member == g).tolist() for g in range(n_groups)]
     groups.sort(key=lambda g: (-len(g), g[0]))
-    sequences = []
+    sequences: list[list[tuple[int, int]]] = []
     for group in groups:
         if len(group) < 2:
             sequences.append([])

@@ -1,4 +1,4 @@
-"""Scoring against the simulator's ground truth (SPEC section 6).
+"""Scoring against the simulator's ground truth (io/ground_truth.py).
 
 Each template point is mapped to the nearest point of the true surface at frame 0
 (triangle + barycentric coordinates); that material point is followed through the frames

@@ -1,9 +1,10 @@
 """Time synchronisation of a multi-camera log: frames from image stamps, poses at image times.
 
 Pure numpy. A *frame* is the set of images (at most one per camera) whose stamps lie within
-the sync tolerance of each other (SPEC section 3). Tracker and robot streams are interpolated
-(linear position, slerp rotation, `geometry.interpolate_poses`) to image/frame stamps and never
-extrapolated: a query outside a stream or inside a gap longer than the limit is invalid.
+the sync tolerance of each other (`ingest.sync_tolerance_ms`). Tracker and robot streams
+are interpolated (linear position, slerp rotation, `geometry.interpolate_poses`) to
+image/frame stamps and never extrapolated: a query outside a stream or inside a gap longer
+than the limit is invalid.
 Stamps are int64 nanoseconds.
 """
 

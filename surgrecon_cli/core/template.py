@@ -117,7 +117,7 @@ def build_template(
     features = [next(detected) if usable[c] else no_features() for c in range(len(images))]
     step("features")
     prediction = predict_pairs(
-        models, np.where(usable[:, None, None], poses, np.eye(4)), usable, cfg.working_distance
+        models, np.where(usable[:, None, None], poses, np.eye(4)), usable, cfg.working_distance_m
     )
     focal = [m.K[0, 0] for m in models]
     pairs = candidate_pairs(prediction, cfg.min_view_overlap)

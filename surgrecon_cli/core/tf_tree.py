@@ -57,8 +57,8 @@ def make_samples(
     parent: Sequence[str] | np.ndarray,
     child: Sequence[str] | np.ndarray,
     stamps_ns: Sequence[int] | np.ndarray,
-    translations: Sequence[Sequence[float]] | np.ndarray,
-    quats: Sequence[Sequence[float]] | np.ndarray,
+    translations: Sequence[Sequence[float] | np.ndarray] | np.ndarray,
+    quats: Sequence[Sequence[float] | np.ndarray] | np.ndarray,
     static: bool | Sequence[bool] | np.ndarray = False,
 ) -> TransformSamples:
     """`TransformSamples` from array-likes of N samples (shapes checked); `static` may be one

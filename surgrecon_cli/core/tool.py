@@ -1,7 +1,7 @@
 """Surgical tool removal from robot kinematics (Su et al. 2019, section II.C).
 
-The tool is modelled as a capsule: a shaft cylinder of `shaft_radius` from the tip along
-the tool frame's +z axis for `shaft_length`, with a rounded tip. A pixel is masked when its
+The tool is modelled as a capsule: a shaft cylinder of `shaft_radius_m` from the tip along
+the tool frame's +z axis for `shaft_length_m`, with a rounded tip. A pixel is masked when its
 viewing ray passes within radius + margin of the shaft axis (margin given in px, turned
 into metres at the ray's depth); a 3D point is dropped when it lies closer than
 radius + margin to the axis.
@@ -20,9 +20,9 @@ from .geometry import point_to_segment_distance
 def shaft_segment(tool_pose: np.ndarray, cfg: ToolConfig) -> tuple[np.ndarray, np.ndarray]:
     """Ends (3,) of the capsule's axis in the world, from the tool-tip pose (4, 4): from the
     centre of the rounded end (one radius up the shaft, so the surface touches the tip) to
-    `shaft_length` from the tip."""
+    `shaft_length_m` from the tip."""
     tip, axis = tool_pose[:3, 3], tool_pose[:3, 2]
-    return tip + axis * cfg.shaft_radius, tip + axis * max(cfg.shaft_length, cfg.shaft_radius)
+    return tip + axis * cfg.shaft_radius_m, tip + axis * max(cfg.shaft_length_m, cfg.shaft_radius_m)
 
 
 def push_out_of_tool(points: np.ndarray, tool_pose: np.ndarray, cfg: ToolConfig
@@ -38,8 +38,8 @@ def push_out_of_tool(points: np.ndarray, tool_pose: np.ndarray, cfg: ToolConfig
     rel = pushed - a
     along = rel @ axis
     radial2 = (rel**2).sum(1) - along**2
-    inside = (radial2 < cfg.shaft_radius**2) & (along <= np.linalg.norm(b - a))
-    surface = -np.sqrt(np.maximum(cfg.shaft_radius**2 - radial2, 0.0))  # rounded end, below a
+    inside = (radial2 < cfg.shaft_radius_m**2) & (along <= np.linalg.norm(b - a))
+    surface = -np.sqrt(np.maximum(cfg.shaft_radius_m**2 - radial2, 0.0))  # rounded end, below a
     inside &= along > surface
     pushed[inside] -= ((along - surface)[inside] + 1e-6)[:, None] * axis  # 1 µm clear
     return inside, pushed
@@ -79,7 +79,7 @@ def tool_pixel_mask(
     origin, dirs = pixel_rays(pixels, camera, cam_to_world)
     dist, s = ray_segment_distance(origin, dirs, a, b)
     margin = cfg.mask_margin_px * s / camera.K[0, 0]
-    return dist <= cfg.shaft_radius + margin
+    return dist <= cfg.shaft_radius_m + margin
 
 
 def tool_image_mask(camera: CameraModel, cam_to_world: np.ndarray, tool_pose: np.ndarray,
@@ -106,4 +106,4 @@ def points_near_tool(points: np.ndarray, tool_pose: np.ndarray, cfg: ToolConfig)
     if not np.isfinite(tool_pose).all() or len(points) == 0:
         return np.zeros(len(points), bool)
     a, b = shaft_segment(tool_pose, cfg)
-    return point_to_segment_distance(points, a, b) <= cfg.shaft_radius + cfg.margin
+    return point_to_segment_distance(points, a, b) <= cfg.shaft_radius_m + cfg.margin_m

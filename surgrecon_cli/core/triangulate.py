@@ -130,7 +130,8 @@ def triangulate(
     error = np.linalg.norm(residual, axis=1)
     error[~np.isfinite(error)] = np.inf
     n_views = np.bincount(obs.point, minlength=n_points)
-    mean_err = np.bincount(obs.point, weights=np.minimum(error, 1e6), minlength=n_points)
+    mean_err: np.ndarray = np.bincount(obs.point, weights=np.minimum(error, 1e6),
+                                       minlength=n_points)
     mean_err = mean_err / np.maximum(n_views, 1)
     max_err = np.zeros(n_points)
     np.maximum.at(max_err, obs.point, error)

@@ -275,3 +275,23 @@ def write_frame_cloud(layout: RunLayout, frame: int, positions: np.ndarray, rgb:
 
 def write_template_summary(layout: RunLayout, summary: dict[str, Any]) -> None:
     write_json(layout.template_summary, summary)
+
+
+def read_template_summary(layout: RunLayout) -> dict[str, Any] | None:
+    """The template's counts and pair plan; None if build-template wrote none."""
+    path = layout.template_summary
+    return read_json(path, "build-template") if path.is_file() else None
+
+
+# ---------------------------------------------------------------------------- evaluation
+def read_evaluation(layout: RunLayout) -> dict[str, Any] | None:
+    """The scores against ground truth; None if the run was not evaluated."""
+    path = layout.evaluation_json
+    return read_json(path, "evaluate") if path.is_file() else None
+
+
+def read_evaluation_errors(layout: RunLayout) -> dict[str, np.ndarray] | None:
+    """The per-point errors behind the scores (template_error_mm (N,), on_tool (N,) bool,
+    registration_error_mm (T, N), true_labels (T, N)); None if not written."""
+    path = layout.evaluation_errors
+    return _load_npz(path, "evaluate", "evaluation errors") if path.is_file() else None

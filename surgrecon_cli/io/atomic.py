@@ -62,10 +62,11 @@ def write_json(path: Path | str, obj: Any) -> None:
     write_text(path, json.dumps(obj, indent=2, sort_keys=False, default=_json_default) + "\n")
 
 
-def write_npz(path: Path | str, **arrays: np.ndarray) -> None:
+def write_npz(path: Path | str, **arrays: np.ndarray | np.generic) -> None:
     """np.savez (uncompressed) atomically; loads back with allow_pickle=False."""
+    kwds: dict[str, Any] = arrays  # numpy's stub: `**` could also fill savez's allow_pickle
     with atomic_open(path, "wb") as f:
-        np.savez(f, **arrays)
+        np.savez(f, **kwds)
 
 
 def _json_default(obj: Any) -> Any:

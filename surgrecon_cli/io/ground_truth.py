@@ -1,4 +1,5 @@
-"""The simulator's ground truth file `NAME.gt.npz` (SPEC section 6), read and validated."""
+"""The simulator's ground truth file `NAME.gt.npz` read and validated:
+faces (F, 3), vertices (T, V, 3) m, labels (T, V) by core/labels.true_labels, stamps_ns (T,)."""
 
 from __future__ import annotations
 

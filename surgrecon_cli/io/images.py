@@ -19,6 +19,7 @@ import tempfile
 import threading
 from collections.abc import Iterator
 from dataclasses import dataclass
+from typing import Literal
 
 import cv2
 import numpy as np
@@ -128,7 +129,7 @@ def _raw(record: ImageRecord) -> StoredImage:
         raise ValueError(f"raw {record.format} image {width}x{height} (step {step}) needs "
                          f"{step * height} bytes, has {len(record.data)}")
     buf = np.frombuffer(record.data, np.uint8, count=step * height).reshape(height, step)[:, :row]
-    order = ">" if record.big_endian else "<"
+    order: Literal[">", "<"] = ">" if record.big_endian else "<"
     img = np.ascontiguousarray(buf).view(np.dtype(dtype).newbyteorder(order))
     img = img.astype(dtype).reshape(height, width, channels)
     if channels == 1:

@@ -9,18 +9,21 @@ from __future__ import annotations
 
 import io
 from collections.abc import Sequence
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from matplotlib import rc_context
-from matplotlib.colors import LinearSegmentedColormap
 from matplotlib.figure import Figure
-from matplotlib.ticker import FuncFormatter, MaxNLocator
+from matplotlib.ticker import MaxNLocator
+
+if TYPE_CHECKING:
+    from matplotlib.typing import RcKeyType
 
 CLASS_COLOURS = {"static": "#4C78A8", "shifting": "#F2A541", "deforming": "#D1495B",
                  "unknown": "#BAB0AC"}
 STATUS_COLOURS = {"intra": "#4C78A8", "inter": "#59A14F", "outlier": "#D1495B",
                   "unobserved": "#BAB0AC"}
-_STYLE = {
+STYLE: dict[RcKeyType, Any] = {
     "font.size": 9, "axes.titlesize": 10, "axes.titleweight": "bold", "axes.labelsize": 9,
     "axes.spines.top": False, "axes.spines.right": False, "axes.grid": True,
     "grid.color": "#e6e6e6", "grid.linewidth": 0.6, "axes.edgecolor": "#888888",
@@ -29,21 +32,21 @@ _STYLE = {
 }
 
 
-def _png(fig: Figure) -> bytes:
+def to_png(fig: Figure) -> bytes:
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=110)
     return buf.getvalue()
 
 
-def _figure(width: float, height: float) -> Figure:
+def new_figure(width: float, height: float) -> Figure:
     return Figure(figsize=(width, height), layout="constrained")
 
 
 def stacked_counts(frames: np.ndarray, counts: dict[str, np.ndarray], colours: dict[str, str],
                    title: str, ylabel: str = "points") -> bytes:
     """Stacked areas of per-frame counts {name: (T,)} (e.g. points per class)."""
-    with rc_context(_STYLE):
-        fig = _figure(7.5, 2.8)
+    with rc_context(STYLE):
+        fig = new_figure(7.5, 2.8)
         ax = fig.add_subplot()
         names = [n for n in counts if np.asarray(counts[n]).sum() > 0] or list(counts)
         values = [np.asarray(counts[n], float) for n in names]
@@ -51,22 +54,22 @@ def stacked_counts(frames: np.ndarray, counts: dict[str, np.ndarray], colours: d
             ax.stackplot(frames, values, labels=names, colors=[colours[n] for n in names],
                          alpha=0.9, linewidth=0)
         else:
-            bottom = 0.0
+            bottom: float | np.ndarray = 0.0
             for name, v in zip(names, values, strict=True):
                 ax.bar(frames, v, bottom=bottom, color=colours[name], label=name, width=0.6)
                 bottom += v
         ax.set_xlim(frames.min() - 0.5 if len(frames) == 1 else frames.min(),
                     frames.max() + 0.5 if len(frames) == 1 else frames.max())
-        _label_frame_axes(ax, frames, ylabel, title, legend=True)
-        return _png(fig)
+        label_frame_axes(ax, frames, ylabel, title, legend=True)
+        return to_png(fig)
 
 
 def per_frame_boxes(frames: np.ndarray, values: Sequence[np.ndarray], title: str, ylabel: str,
                     lines: dict[str, float] | None = None, log: bool = False) -> bytes:
     """Box plots (whiskers 5–95 %) of one distribution per frame, with labelled horizontal
     reference lines {label: y}."""
-    with rc_context(_STYLE):
-        fig = _figure(7.5, 2.8)
+    with rc_context(STYLE):
+        fig = new_figure(7.5, 2.8)
         ax = fig.add_subplot()
         data = [np.asarray(v, float)[np.isfinite(v)] for v in values]
         keep = [i for i, d in enumerate(data) if d.size]
@@ -83,8 +86,8 @@ def per_frame_boxes(frames: np.ndarray, values: Sequence[np.ndarray], title: str
             ax.legend(loc="upper left", bbox_to_anchor=(1.0, 1.0))
         if log:
             ax.set_yscale("symlog", linthresh=0.1)
-        _label_frame_axes(ax, frames, ylabel, title)
-        return _png(fig)
+        label_frame_axes(ax, frames, ylabel, title)
+        return to_png(fig)
 
 
 def histogram(values: np.ndarray, title: str, xlabel: str, lines: dict[str, float] | None = None,
@@ -93,16 +96,17 @@ def histogram(values: np.ndarray, title: str, xlabel: str, lines: dict[str, floa
     """Histogram of finite values (optionally split into overlaid groups {name: mask})."""
     v = np.asarray(values, float)
     finite = np.isfinite(v)
-    with rc_context(_STYLE):
-        fig = _figure(5.2, 2.8)
+    with rc_context(STYLE):
+        fig = new_figure(5.2, 2.8)
         ax = fig.add_subplot()
         top = clip if clip is not None else (np.percentile(v[finite], 99.5) if finite.any() else 1)
         edges = np.linspace(0, max(float(top), 1e-6), 50)
         groups = by or {"all": np.ones(len(v), bool)}
         for name, mask in groups.items():
             sel = v[finite & np.asarray(mask, bool)]
-            if sel.size:
-                ax.hist(np.minimum(sel, edges[-1]), bins=edges, histtype="stepfilled", alpha=0.55,
+            if sel.size:  # `bins` takes an array; matplotlib's stub omits arrays
+                ax.hist(np.minimum(sel, edges[-1]), bins=edges,  # type: ignore[arg-type]
+                        histtype="stepfilled", alpha=0.55,
                         color=(colours or {}).get(name, "#4C78A8"), label=f"{name} ({sel.size})")
         for label, x in (lines or {}).items():
             ax.axvline(x, color="#333333", linestyle="--", linewidth=1, label=label)
@@ -111,14 +115,14 @@ def histogram(values: np.ndarray, title: str, xlabel: str, lines: dict[str, floa
         ax.set_title(title, loc="left")
         if by or lines:
             ax.legend()
-        return _png(fig)
+        return to_png(fig)
 
 
 def timing(stage_seconds: dict[str, float], frames: np.ndarray,
            per_frame: dict[str, np.ndarray]) -> bytes:
     """Wall time per stage (bars) and per frame (stacked bars of {part: (T,)} seconds)."""
-    with rc_context(_STYLE):
-        fig = _figure(9.0, 2.8)
+    with rc_context(STYLE):
+        fig = new_figure(9.0, 2.8)
         left, right = fig.subplots(1, 2, width_ratios=[1, 1.6])
         names = list(stage_seconds)
         secs = [stage_seconds[n] for n in names]
@@ -140,8 +144,8 @@ def timing(stage_seconds: dict[str, float], frames: np.ndarray,
         right.set_title("registration time per frame", loc="left")
         if per_frame:
             right.legend(loc="upper left", bbox_to_anchor=(1.0, 1.0))
-        _thin_ticks(right, frames)
-        return _png(fig)
+        thin_ticks(right, frames)
+        return to_png(fig)
 
 
 def camera_layout(points: np.ndarray, centres: np.ndarray, axes: np.ndarray,
@@ -150,8 +154,8 @@ def camera_layout(points: np.ndarray, centres: np.ndarray, axes: np.ndarray,
     """Top view (x-y, mm) of the template, the cameras (centres (C, 3) m, viewing
     directions (C, 3)) and the pair sequence of each camera group (edges numbered in
     matching order)."""
-    with rc_context(_STYLE):
-        fig = _figure(5.5, 4.6)
+    with rc_context(STYLE):
+        fig = new_figure(5.5, 4.6)
         ax = fig.add_subplot()
         if len(points):
             ax.scatter(points[:, 0] * 1e3, points[:, 1] * 1e3, s=1.5, color="#c9c9c9",
@@ -184,7 +188,7 @@ def camera_layout(points: np.ndarray, centres: np.ndarray, axes: np.ndarray,
         ax.set_xlabel("x (mm)")
         ax.set_ylabel("y (mm)")
         ax.set_title("cameras at frame 0 and pair sequence (top view)", loc="left")
-        return _png(fig)
+        return to_png(fig)
 
 
 def labelled_views(title: str, image: np.ndarray | None, uv: np.ndarray | None,
@@ -193,8 +197,8 @@ def labelled_views(title: str, image: np.ndarray | None, uv: np.ndarray | None,
     visible) and as a 3D view of xyz (N, 3) m, coloured by class."""
     colours = np.array([CLASS_COLOURS.get(class_names.get(int(c), "unknown"), "#BAB0AC")
                         for c in labels]) if len(labels) else np.zeros(0, str)
-    with rc_context({**_STYLE, "axes.grid": False}):
-        fig = _figure(10.5, 4.2)
+    with rc_context({**STYLE, "axes.grid": False}):
+        fig = new_figure(10.5, 4.2)
         if image is not None and uv is not None:
             ax_img = fig.add_subplot(1, 2, 1)
             ax_img.imshow(image, interpolation="bilinear")
@@ -230,101 +234,10 @@ def labelled_views(title: str, image: np.ndarray | None, uv: np.ndarray | None,
                    for n in ("static", "shifting", "deforming", "unknown")]
         ax3.legend(handles=handles, loc="upper right", bbox_to_anchor=(1.05, 1.0))
         fig.suptitle(title, x=0.01, ha="left", fontsize=10, fontweight="bold")
-        return _png(fig)
+        return to_png(fig)
 
 
-def error_over_time(frames: np.ndarray, median: np.ndarray, p95: np.ndarray, maximum: np.ndarray,
-                    limit_mm: float = 1.0) -> bytes:
-    """Registration error per frame: median, 95th percentile (band) and max, mm."""
-    with rc_context(_STYLE):
-        fig = _figure(7.5, 2.8)
-        ax = fig.add_subplot()
-        ax.fill_between(frames, median, p95, color="#dbe6f1", label="median–p95")
-        ax.plot(frames, median, color="#1f3b5a", marker="o", markersize=3, label="median")
-        ax.plot(frames, p95, color="#4C78A8", marker="o", markersize=3, label="p95")
-        ax.plot(frames, maximum, color="#D1495B", linestyle=":", marker=".", label="max")
-        ax.axhline(limit_mm, color="#333333", linestyle="--", linewidth=1,
-                   label=f"{limit_mm:g} mm (clinical)")
-        ax.set_yscale("log")
-        finite = np.concatenate([median, p95, maximum])
-        finite = finite[np.isfinite(finite) & (finite > 0)]
-        low = max(float(finite.min()) / 1.5, 1e-3) if finite.size else 1e-2
-        ax.set_ylim(min(low, limit_mm / 2), max(float(finite.max()) * 1.5 if finite.size else 1,
-                                                limit_mm * 2))
-        ax.yaxis.set_major_formatter(FuncFormatter(lambda y, _p: f"{y:g}"))
-        _label_frame_axes(ax, frames, "error (mm, log scale)",
-                          "registration error vs. followed material point", legend=True)
-        return _png(fig)
-
-
-def error_histograms(frames: np.ndarray, errors_mm: Sequence[np.ndarray],
-                     limit_mm: float = 1.0) -> bytes:
-    """Per-frame registration error distributions as stacked ridge lines (mm)."""
-    finite = [np.asarray(e, float)[np.isfinite(e)] for e in errors_mm]
-    everything = np.concatenate(finite) if finite else np.zeros(0)
-    top = max(float(np.percentile(everything, 99)) if everything.size else 1.0, limit_mm * 1.5)
-    edges = np.linspace(0, top, 60)
-    centres = (edges[1:] + edges[:-1]) / 2
-    cmap = LinearSegmentedColormap.from_list("ridge", ["#9ecae1", "#08306b"])
-    with rc_context({**_STYLE, "axes.grid": False}):
-        fig = _figure(7.5, min(1.2 + 0.32 * len(frames), 8.0))
-        ax = fig.add_subplot()
-        for i, e in enumerate(finite):
-            if not e.size:
-                continue
-            h = np.histogram(np.minimum(e, top), bins=edges)[0].astype(float)
-            h = h / max(h.max(), 1) * 1.6
-            base = -i
-            colour = cmap(i / max(len(frames) - 1, 1))
-            ax.fill_between(centres, base, base + h, color=colour, alpha=0.75, linewidth=0)
-            ax.plot(centres, base + h, color="white", linewidth=0.6)
-        ax.axvline(limit_mm, color="#D1495B", linestyle="--", linewidth=1)
-        ax.set_yticks([-i for i in range(len(frames))], [str(f) for f in frames], fontsize=7)
-        if len(frames) > 25:
-            for j, label in enumerate(ax.get_yticklabels()):
-                label.set_visible(j % max(len(frames) // 20, 1) == 0)
-        ax.set_ylabel("frame")
-        ax.set_xlabel(f"registration error (mm; > {top:.1f} in the last bin)")
-        ax.set_title("registration error per frame", loc="left")
-        ax.spines["left"].set_visible(False)
-        return _png(fig)
-
-
-def confusion(matrix: np.ndarray, rows: Sequence[str], cols: Sequence[str]) -> bytes:
-    """Confusion matrix (rows truth, cols predicted): colour = row-normalised share,
-    text = count and share."""
-    m = np.asarray(matrix, float)
-    share = m / np.maximum(m.sum(1, keepdims=True), 1)
-    with rc_context({**_STYLE, "axes.grid": False}):
-        fig = _figure(4.6, 3.4)
-        ax = fig.add_subplot()
-        ax.imshow(share, cmap="Blues", vmin=0, vmax=1)
-        for i in range(m.shape[0]):
-            for j in range(m.shape[1]):
-                ax.text(j, i, f"{int(m[i, j])}\n{share[i, j]:.0%}", ha="center", va="center",
-                        fontsize=8, color="white" if share[i, j] > 0.55 else "#222222")
-        ax.set_xticks(range(len(cols)), cols, rotation=20)
-        ax.set_yticks(range(len(rows)), rows)
-        ax.set_xlabel("predicted")
-        ax.set_ylabel("truth")
-        ax.set_title("labels, frames 1..", loc="left")
-        return _png(fig)
-
-
-def f1_over_time(frames: np.ndarray, per_class: dict[str, np.ndarray], macro: np.ndarray) -> bytes:
-    """Per-class F1 and macro-F1 per frame."""
-    with rc_context(_STYLE):
-        fig = _figure(7.5, 2.6)
-        ax = fig.add_subplot()
-        for name, values in per_class.items():
-            ax.plot(frames, values, color=CLASS_COLOURS[name], marker="o", markersize=3, label=name)
-        ax.plot(frames, macro, color="#222222", linewidth=2, label="macro-F1")
-        ax.set_ylim(-0.02, 1.02)
-        _label_frame_axes(ax, frames, "F1", "label F1 per frame", legend=True)
-        return _png(fig)
-
-
-def _label_frame_axes(ax, frames: np.ndarray, ylabel: str, title: str,
+def label_frame_axes(ax, frames: np.ndarray, ylabel: str, title: str,
                       legend: bool = False) -> None:
     """Frame on x, `ylabel` on y, a left title, the legend outside on the right."""
     ax.set_xlabel("frame")
@@ -332,10 +245,10 @@ def _label_frame_axes(ax, frames: np.ndarray, ylabel: str, title: str,
     ax.set_title(title, loc="left")
     if legend:
         ax.legend(loc="upper left", bbox_to_anchor=(1.0, 1.0))
-    _thin_ticks(ax, frames)
+    thin_ticks(ax, frames)
 
 
-def _thin_ticks(ax, frames: np.ndarray) -> None:
+def thin_ticks(ax, frames: np.ndarray) -> None:
     frames = np.asarray(frames)
     if len(frames) == 0:
         return
@@ -347,17 +260,17 @@ def quality_over_time(frames: np.ndarray, fractions: dict[str, np.ndarray],
                       sigma_mm: np.ndarray, residual_ratio: np.ndarray) -> bytes:
     """Quality panel: shares of points per frame (left) and median σ / residual ratio
     (right)."""
-    fig = _figure(9.0, 3.2)
+    fig = new_figure(9.0, 3.2)
     left, right = fig.subplots(1, 2)
     for name, values in fractions.items():
         left.plot(frames, values * 100, marker="o", ms=3, label=name)
     left.set_ylim(0, 100)
-    _label_frame_axes(left, frames, "% of template points", "what the data support")
+    label_frame_axes(left, frames, "% of template points", "what the data support")
     left.legend(fontsize=8)
     right.plot(frames, sigma_mm, marker="o", ms=3, color="tab:blue", label="median σ (mm)")
     right.plot(frames, residual_ratio, marker="s", ms=3, color="tab:red",
                label="residual / σ_target")
     right.axhline(1.0, color="grey", lw=0.8, ls=":")
-    _label_frame_axes(right, frames, "mm  /  ratio", "uncertainty and fit")
+    label_frame_axes(right, frames, "mm  /  ratio", "uncertainty and fit")
     right.legend(fontsize=8)
-    return _png(fig)
+    return to_png(fig)

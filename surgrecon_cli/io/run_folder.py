@@ -20,6 +20,7 @@ from .. import __version__
 from ..config import Config, to_dict, to_toml
 from ..errors import RunFolderError
 from .atomic import write_json, write_text
+from .log_input import resolve_log
 from .run_layout import RunLayout
 
 STATUSES = ("running", "done", "failed")
@@ -112,7 +113,7 @@ class RunFolder:
         self.write({
             "surgrecon": __version__,
             "input": {"path": str(Path(input_path).resolve()), "sha256": None,
-                      "bytes": Path(input_path).stat().st_size},
+                      "bytes": resolve_log(input_path).size},
             "config": plain(to_dict(config)),
             "versions": package_versions(),
             "stages": {},
@@ -161,7 +162,7 @@ class RunFolder:
     def check_input(self, input_path: Path) -> None:
         """RunFolderError if `input_path` is not the log this run was made from."""
         recorded = self.input_hash
-        if recorded and file_sha256(Path(input_path)) != recorded:
+        if recorded and resolve_log(input_path).sha256() != recorded:
             raise RunFolderError(f"{self.path} was made from another log than {input_path} "
                                  "(SHA-256 differs); use a new run folder")
 

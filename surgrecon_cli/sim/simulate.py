@@ -2,8 +2,9 @@
 
 Streams: per camera JPEG images at `frame_rate` (each camera with its own small clock
 offset and jitter) and CameraInfo; per camera tracker poses at `tracker_rate` with noise;
-robot tool-tip pose and joint states at `robot_rate`. Ground truth (`NAME.gt.npz`, SPEC
-section 6) holds the true surface at every frame and its labels by the spec's rule.
+robot tool-tip pose and joint states at `robot_rate`. Ground truth (`NAME.gt.npz`,
+io/ground_truth.py) holds the true surface at every frame and its labels by the rule of
+core/labels.py.
 """
 
 from __future__ import annotations
@@ -24,8 +25,9 @@ from ..io.atomic import write_npz
 from ..io.records import CameraInfoRecord, ImageRecord, JointStateRecord, PoseRecord
 from .conventions import CONVENTIONS
 from .log_writer import write_log
+from .motion import Motion
 from .render import Renderer, tool_mesh
-from .scene import Motion, SimConfig, make_tissue, vertex_normals
+from .scene import SimConfig, make_tissue, vertex_normals
 from .texture import make_texture
 from .video import VideoEncoder
 

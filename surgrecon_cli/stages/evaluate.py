@@ -101,7 +101,7 @@ def _template_part(distance_m: np.ndarray, tool_mask: np.ndarray | None,
     else:
         part["on_tool"] = {"count": int(tool_mask.sum()),
                            "fraction": float(tool_mask.mean()) if len(tool_mask) else 0.0,
-                           "shaft_radius_mm": config.tool.shaft_radius * 1e3}
+                           "shaft_radius_mm": config.tool.shaft_radius_m * 1e3}
         part["error_off_tool"] = distance_stats_mm(distance_m[~tool_mask])
     return part
 

@@ -35,6 +35,7 @@ from ..core.sync import (
 )
 from ..errors import InputError, RunFolderError, SurgReconError
 from ..io.ingest_store import IngestedLog, save_ingested
+from ..io.log_input import resolve_log
 from ..io.mcap import LogReader
 from ..io.run_folder import RunFolder
 from ..io.run_layout import INGEST_STAGING_PREFIX, TEMPORARY_SUFFIX, RunLayout
@@ -75,8 +76,6 @@ def ingest(
     Raises InputError / TopicError on a bad log, RunFolderError if `run_dir` is not usable.
     """
     log_path, run_dir = Path(log_path), Path(run_dir)
-    if not log_path.is_file():
-        raise InputError(f"{log_path}: no such file")
     reader = LogReader(log_path, config.topics, config.ingest.time_source, allow_truncated,
                        on_bytes)
     reader.check_magic()
@@ -117,7 +116,7 @@ def ingest(
 
 def pipeline_step(ctx: StageContext, progress: Callable[[float], None]) -> None:
     """The stage within `surgrecon run`: progress by bytes read from the log."""
-    size = max(ctx.log.stat().st_size, 1)
+    size = max(resolve_log(ctx.log).size, 1)
     read = [0]
 
     def on_bytes(n: int) -> None:

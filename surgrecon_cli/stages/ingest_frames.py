@@ -16,7 +16,7 @@ import numpy as np
 
 from ..config import Config
 from ..core.sync import PoseStream
-from ..core.tf_tree import TfTree, build_tf_tree
+from ..core.tf_tree import TfTree, build_tf_tree, concat_samples
 from ..core.world_poses import chain_stream, stream_to_world
 from ..errors import InputError
 from ..io.mcap import LogReader
@@ -76,8 +76,10 @@ def world_poses(ids: Sequence[str], cams: Sequence[CameraStreams], tool: Poses,
 
 def _tree(reader: LogReader, config: Config, allow_truncated: bool) -> TfTree | None:
     """The log's TF tree (None when it has no transform channel)."""
-    log = read_transforms(reader.path, config.ingest.time_source, allow_truncated)
-    return build_tf_tree(log.samples) if len(log.samples) else None
+    samples = concat_samples([
+        read_transforms(path, config.ingest.time_source, allow_truncated).samples
+        for path in reader.input.files])
+    return build_tf_tree(samples) if len(samples) else None
 
 
 def _chain(tree: TfTree | None, world: str, frame: str, span_ns: tuple[int, int],

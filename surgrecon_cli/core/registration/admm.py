@@ -3,7 +3,7 @@
     E(X) = sum_i w_i rho_d(D_i X - G_i) + alpha sum_e c_e rho_s(B_e X) + beta sum_n |A_n - R_n|_F^2
 
 rho = |.|_2 of the 3-vector residual (unsquared: the heavy-tailed, group-sparse l1-type
-penalty of Yang et al. 2015 / RPTS, eq. (E) of METHOD.md) or |.|_2^2 (Gaussian, for
+penalty of Yang et al. 2015 / RPTS, as in Su et al. 2019 section II.D) or |.|_2^2 (Gaussian, for
 comparison). Splits C = DX - G and Z = BX with scaled multipliers U1, U2:
 
     X <- (mu1 D'D + mu2 B'B + 2 beta L'L + eps I)^-1 [mu1 D'(G + C - U1) + mu2 B'(Z - U2)

@@ -1,7 +1,7 @@
 """Transform nodes, their neighbour graph and the sparse operators D and B of the energy.
 
 Unknowns: one affine X_n (4x3, acting on the row vector [u 1]) per *node*. With one node per
-point this is exactly the per-point model of Su et al. 2019 (METHOD.md). Larger clouds are
+point this is exactly the per-point model of Su et al. 2019 (section II.D). Larger clouds are
 solved on a subsampled deformation graph (Yang et al. 2015 and its follow-up RPTS both
 register with a deformation graph, coarse to fine); each point's transform is then the
 convex blend of its nearest nodes' transforms, so every point still owns one affine.

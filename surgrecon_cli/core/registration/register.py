@@ -1,6 +1,7 @@
 """`register`: sparse non-rigid registration of a source cloud P to a target cloud G.
 
-Su et al. 2019 (section II.D, reconstructed in METHOD.md) after Yang et al. 2015 and RPTS:
+Su et al. 2019 (section II.D: per-point affines, heavy-tailed data and smoothness
+penalties, ADMM) after Yang et al. 2015 and RPTS:
 robust rigid pre-alignment, then outer steps that (1) re-estimate correspondences (known ids,
 else gated nearest neighbours in position + colour), (2) reweight the l1 data term, (3) run
 ADMM on the energy of `admm.py` with the smoothness weight annealed from stiff to flexible.
@@ -189,7 +190,7 @@ def register(
                               gate=gate)
     else:
         R, t = np.eye(3), np.zeros(3)
-    X = np.zeros((n_nodes, 4, 3))
+    X: np.ndarray = np.zeros((n_nodes, 4, 3))
     X[:, :3, :] = R.T
     X[:, 3, :] = nodes_q @ R.T + t
     X = X.reshape(-1, 3)

@@ -12,7 +12,8 @@ from __future__ import annotations
 
 import dataclasses
 import io
-from typing import IO
+from collections.abc import Callable
+from typing import IO, Any, Protocol, cast
 
 import zstandard
 from mcap.exceptions import McapError, UnsupportedCompressionError
@@ -27,6 +28,16 @@ except ImportError:  # optional, like in `mcap`
 MAX_CHUNK_BYTES = 1 << 29
 """Largest uncompressed chunk read (512 MiB); recorders write chunks of a few MiB."""
 _FOOTER_AND_MAGIC = 9 + 20 + 8
+
+
+class Readable(Protocol):
+    def read(self, n: int = -1, /) -> bytes: ...
+
+
+def as_stream(f: Readable) -> IO[bytes]:
+    """`f` typed as the `IO[bytes]` that mcap's StreamReader is annotated to take: it only ever
+    calls `read(n)` on its input (through ReadDataStream), which is all `f` needs to have."""
+    return cast("IO[bytes]", f)
 
 
 class BoundedFile:
@@ -89,13 +100,14 @@ def read_summary(f: BoundedFile) -> tuple[dict[int, Schema], dict[int, Channel]]
     if f.size < 2 * _FOOTER_AND_MAGIC:
         return None
     f.seek(-_FOOTER_AND_MAGIC, io.SEEK_END)
-    footer = next(StreamReader(f, skip_magic=True, record_size_limit=f.size).records)
+    footer = next(StreamReader(as_stream(f), skip_magic=True, record_size_limit=f.size).records)
     if not isinstance(footer, Footer) or not 0 < footer.summary_start < f.size:
         return None
     f.seek(footer.summary_start)
     schemas: dict[int, Schema] = {}
     channels: dict[int, Channel] = {}
-    reader = StreamReader(f, skip_magic=True, emit_chunks=True, record_size_limit=f.size)
+    reader = StreamReader(as_stream(f), skip_magic=True, emit_chunks=True,
+                          record_size_limit=f.size)
     for record in reader.records:
         if isinstance(record, Schema):
             schemas[record.id] = record
@@ -106,3 +118,26 @@ def read_summary(f: BoundedFile) -> tuple[dict[int, Schema], dict[int, Channel]]
         elif isinstance(record, Chunk):
             return None  # not a summary section
     return None
+
+
+class TrackedFile:
+    """File wrapper: SHA-256 and position of everything read, progress callback."""
+
+    def __init__(self, raw: IO[bytes] | BoundedFile,
+                 on_bytes: Callable[[int], None] | None, sha: Any) -> None:
+        self.raw = raw
+        self.on_bytes = on_bytes
+        self.sha = sha  # one hash over the log's files in order
+        self.pos = 0
+
+    def read(self, n: int = -1) -> bytes:
+        data = self.raw.read(n)
+        self.sha.update(data)
+        self.pos += len(data)
+        if self.on_bytes is not None and data:
+            self.on_bytes(len(data))
+        return data
+
+    def drain(self) -> None:
+        while self.read(1 << 20):
+            pass

@@ -16,7 +16,7 @@ import numpy as np
 from mcap.records import Schema
 from mcap_protobuf.decoder import DecoderFactory
 
-from ...core.cameras import distortion_model_name
+from ...core.distortion import distortion_model_name
 from ..records import CameraInfoRecord, ImageRecord, JointStateRecord, PoseRecord, Record
 from ..video import CODECS as VIDEO_FORMATS
 from .base import stamp_ns

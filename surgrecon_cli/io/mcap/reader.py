@@ -1,5 +1,7 @@
 """Stream an MCAP log once, in file order, as role-tagged records, with bounded memory.
 
+A log is one file or a folder of split files (io/log_input.py), read one after the other.
+
 Reads top-level records sequentially (`mcap.stream_reader.StreamReader`, chunk CRCs checked),
 so it works on files without a summary or footer (recorder crashed). Damage (truncation,
 bad CRC, bad compression, bad record length) raises `InputError` naming the file, the byte
@@ -15,7 +17,7 @@ import struct
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import IO, Any
+from typing import Any
 
 import zstandard
 from mcap.exceptions import EndOfFile, InvalidMagic, McapError, RecordLengthLimitExceeded
@@ -24,9 +26,10 @@ from mcap.stream_reader import CRCValidationError, StreamReader
 
 from ...config import TopicsConfig
 from ...errors import InputError, TopicError
+from ..log_input import resolve_log
 from ..records import Record
 from .base import SchemaDecoder
-from .bounded import BoundedFile, chunk_records, read_summary
+from .bounded import BoundedFile, TrackedFile, as_stream, chunk_records, read_summary
 from .registry import DESERIALIZERS, find_decoder, supported
 from .topics import ROLE_KINDS, TopicRoles
 
@@ -59,29 +62,6 @@ class _ChannelInfo:
     deserialize: Callable[[bytes], Any] | None = None
 
 
-class _TrackedFile:
-    """File wrapper: SHA-256 and position of everything read, progress callback."""
-
-    def __init__(self, raw: IO[bytes] | BoundedFile,
-                 on_bytes: Callable[[int], None] | None) -> None:
-        self.raw = raw
-        self.on_bytes = on_bytes
-        self.sha = hashlib.sha256()
-        self.pos = 0
-
-    def read(self, n: int = -1) -> bytes:
-        data = self.raw.read(n)
-        self.sha.update(data)
-        self.pos += len(data)
-        if self.on_bytes is not None and data:
-            self.on_bytes(len(data))
-        return data
-
-    def drain(self) -> None:
-        while self.read(1 << 20):
-            pass
-
-
 class LogReader:
     """Iterate a log's records in the roles of `topics`; see the module docstring.
 
@@ -95,13 +75,16 @@ class LogReader:
                  allow_truncated: bool = False,
                  on_bytes: Callable[[int], None] | None = None,
                  require_roles: bool = True) -> None:
-        self.path = Path(path)
+        self.input = resolve_log(path)
+        self.path = self.input.path
+        self.file = self.input.files[0]  # the file being read (named in damage messages)
         self.roles = TopicRoles(topics)
         self.use_log_time = time_source == "log_time"
         self.allow_truncated = allow_truncated
         self.on_bytes = on_bytes
         self.require_roles = require_roles
-        self.size = self.path.stat().st_size
+        self.size = self.input.size
+        self._offset = 0  # bytes of the files before the current one
         self.sha256 = ""
         self.valid_bytes = 0
         self.damage: str | None = None
@@ -146,33 +129,36 @@ class LogReader:
         if self.damage:
             return InputError(f"{self.path}: no complete frame before the damage "
                               f"({self.damage}); nothing read for {wanted}")
-        listed = [f"{t} ({s})" for t, s in sorted(channels.items())]
-        more = f", ... ({len(listed) - _MAX_LISTED} more)" if len(listed) > _MAX_LISTED else ""
+        listed = [f"{t}  {s}" for t, s in sorted(channels.items())]
+        if len(listed) > _MAX_LISTED:
+            listed = [*listed[:_MAX_LISTED], f"... ({len(listed) - _MAX_LISTED} more)"]
         return TopicError(
-            f"{self.path}: no topic for {wanted}; topics in the log: "
-            f"{', '.join(listed[:_MAX_LISTED]) or 'none'}{more}; set [topics] in a --config file "
-            "(`surgrecon info LOG --write-config FILE` writes one; a robot role the log does "
-            "not record, tool_pose or joint_states, is set to \"\")")
+            f"{self.path}: no topic for {wanted}; set [topics] in a --config file "
+            f"(`surgrecon info {self.path} --write-config FILE` writes one; a robot role the "
+            "log does not record, tool_pose or joint_states, is set to \"\"); topics in the "
+            f"log{':' if listed else ': none'}", details=tuple(listed))
 
     def _early_check(self) -> None:
-        """Check roles from the summary section, when the file has an intact one."""
-        try:
-            with open(self.path, "rb") as f:
-                f.seek(-len(MCAP_MAGIC), 2)
-                if f.read() != MCAP_MAGIC:
-                    return
-                summary = read_summary(BoundedFile(f, self.size))
-        except (*_STREAM_ERRORS, OSError):
-            return
-        if summary is None or not summary[1]:
-            return
-        channels, found = {}, set()
-        for ch in summary[1].values():
-            schema = summary[0].get(ch.schema_id)
-            name = schema.name if schema else ""
-            channels[ch.topic] = f"{name} ({ch.message_encoding})"
-            info = self._classify(ch.topic, name, ch.message_encoding)
-            found.update(role for role, _ in info.roles)
+        """Check roles from the summary sections, when every file has an intact one."""
+        channels: dict[str, str] = {}
+        found: set[str] = set()
+        for path in self.input.files:
+            try:
+                with open(path, "rb") as f:
+                    f.seek(-len(MCAP_MAGIC), 2)
+                    if f.read() != MCAP_MAGIC:
+                        return
+                    summary = read_summary(BoundedFile(f, path.stat().st_size))
+            except (*_STREAM_ERRORS, OSError):
+                return
+            if summary is None or not summary[1]:
+                return
+            for ch in summary[1].values():
+                schema = summary[0].get(ch.schema_id)
+                name = schema.name if schema else ""
+                channels[ch.topic] = f"{name} ({ch.message_encoding})"
+                info = self._classify(ch.topic, name, ch.message_encoding)
+                found.update(role for role, _ in info.roles)
         missing = [r for r in self.roles.required if r not in found]
         if missing and self.require_roles:
             raise self._missing_roles_error(missing, channels)
@@ -185,25 +171,33 @@ class LogReader:
 
     # -- streaming -----------------------------------------------------------------------
     def check_magic(self) -> None:
-        """InputError unless the file starts with the MCAP magic bytes."""
-        with open(self.path, "rb") as f:
-            head = f.read(len(MCAP_MAGIC))
-        if head != MCAP_MAGIC:
-            raise InputError(f"{self.path}: not an MCAP file (it does not start with the "
-                             "MCAP magic bytes); pass a .mcap log")
+        """InputError unless every file starts with the MCAP magic bytes."""
+        for path in self.input.files:
+            with open(path, "rb") as f:
+                head = f.read(len(MCAP_MAGIC))
+            if head != MCAP_MAGIC:
+                raise InputError(f"{path}: not an MCAP file (it does not start with the "
+                                 "MCAP magic bytes); pass a .mcap log or a bag folder")
 
     def __iter__(self) -> Iterator[LogItem]:
         self.check_magic()
         self._early_check()
-        with open(self.path, "rb") as raw:
-            tracked = _TrackedFile(BoundedFile(raw, self.size), self.on_bytes)
-            yield from self._stream(tracked)
-            tracked.drain()  # the hash covers the whole file, damaged part included
-            self.sha256 = tracked.sha.hexdigest()
+        sha = hashlib.sha256()
+        for path in self.input.files:
+            self.file = path
+            self._deserializers = {}  # schema ids are per file; decoders cache by id
+            size = path.stat().st_size
+            with open(path, "rb") as raw:
+                tracked = TrackedFile(BoundedFile(raw, size), self.on_bytes, sha)
+                if self.damage is None:  # after damage, nothing later is used
+                    yield from self._stream(tracked, size)
+                tracked.drain()  # the hash covers the whole log, damaged part included
+            self._offset += size
+        self.sha256 = sha.hexdigest()
 
-    def _stream(self, tracked: _TrackedFile) -> Iterator[LogItem]:
-        stream = StreamReader(tracked, validate_crcs=True, emit_chunks=True,
-                              record_size_limit=self.size)
+    def _stream(self, tracked: TrackedFile, size: int) -> Iterator[LogItem]:
+        stream = StreamReader(as_stream(tracked), validate_crcs=True, emit_chunks=True,
+                              record_size_limit=size)
         records = _expand_chunks(stream.records)
         schemas: dict[int, Schema] = {}
         channels: dict[int, _ChannelInfo] = {}
@@ -216,7 +210,7 @@ class LogReader:
             except _STREAM_ERRORS as exc:
                 self._on_damage(exc, data_complete)
                 return
-            self.valid_bytes = tracked.pos
+            self.valid_bytes = self._offset + tracked.pos
             if isinstance(record, Schema):
                 schemas[record.id] = record
             elif isinstance(record, Channel):
@@ -232,7 +226,7 @@ class LogReader:
             elif isinstance(record, DataEnd):
                 data_complete = True
             elif isinstance(record, Footer):
-                self.valid_bytes = self.size
+                self.valid_bytes = self._offset + size
                 break
 
     def _open_channel(self, channel: Channel, schemas: dict[int, Schema]) -> _ChannelInfo:
@@ -309,14 +303,16 @@ class LogReader:
             reason = f"a record is malformed (corrupt data: {_one_line(exc)})"
         if data_complete:
             logger.warning("%s: %s after the data section; all messages were read",
-                           self.path, reason)
+                           self.file, reason)
             return
         t = self.last_log_time_ns
         when = f"log time {t / 1e9:.6f} s" if t is not None else "before any message"
-        self.damage = (f"{reason}; valid data ends at byte {self.valid_bytes} of {self.size} "
-                       f"({when})")
+        where = (f"byte {self.valid_bytes - self._offset} of {self.file.name} (byte "
+                 f"{self.valid_bytes} of {self.size} over the bag's files)"
+                 if len(self.input.files) > 1 else f"byte {self.valid_bytes} of {self.size}")
+        self.damage = f"{reason}; valid data ends at {where} ({when})"
         if not self.allow_truncated:
-            raise InputError(f"{self.path}: {self.damage}; re-copy or repair the log, or pass "
+            raise InputError(f"{self.file}: {self.damage}; re-copy or repair the log, or pass "
                              "--allow-truncated to use the data before the damage") from exc
 
 

@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 from mcap.records import Schema
 
-from ...core.cameras import distortion_model_name
+from ...core.distortion import distortion_model_name
 from ..records import CameraInfoRecord, ImageRecord, JointStateRecord, PoseRecord, Record
 
 
@@ -53,7 +53,7 @@ def raw_image(msg: Any, ros: RosFlavor) -> list[Record]:
 
 def camera_info(msg: Any, ros: RosFlavor) -> list[Record]:
     """CameraInfo as recorded (full-resolution K and size, binning, ROI); the distortion
-    model name is checked and canonical (`core.cameras.distortion_model_name`: an unknown
+    model name is checked and canonical (`core.distortion.distortion_model_name`: an unknown
     model with non-zero coefficients raises, naming it)."""
     K = np.asarray(getattr(msg, ros.k), dtype=float)
     D = np.asarray(getattr(msg, ros.d), dtype=float)

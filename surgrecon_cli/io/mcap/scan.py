@@ -34,7 +34,7 @@ from mcap.records import (
 from mcap.stream_reader import StreamReader
 
 from ...errors import InputError
-from .bounded import BoundedFile, chunk_records
+from .bounded import BoundedFile, as_stream, chunk_records
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 _FOOTER_AND_MAGIC = 9 + 20 + 8
@@ -124,7 +124,8 @@ def scan_mcap(path: Path, select: Select, on_message: OnMessage) -> LogScan:
 # -- indexed ---------------------------------------------------------------------------------
 def _header(f: BoundedFile) -> Header:
     try:
-        record = next(StreamReader(f, skip_magic=True, record_size_limit=f.size).records)
+        record = next(StreamReader(as_stream(f), skip_magic=True,
+                                   record_size_limit=f.size).records)
     except (*_ERRORS, StopIteration):
         return Header("", "")
     return record if isinstance(record, Header) else Header("", "")
@@ -135,7 +136,7 @@ def _read_summary(f: BoundedFile, size: int) -> _Summary | None:
     if size < len(MCAP_MAGIC) * 2 + _FOOTER_AND_MAGIC:
         return None
     f.seek(-_FOOTER_AND_MAGIC, io.SEEK_END)
-    tail = StreamReader(f, skip_magic=True, record_size_limit=size).records
+    tail = StreamReader(as_stream(f), skip_magic=True, record_size_limit=size).records
     footer = next(tail)
     if not isinstance(footer, Footer) or not 0 < footer.summary_start < size:
         return None
@@ -143,7 +144,7 @@ def _read_summary(f: BoundedFile, size: int) -> _Summary | None:
         return None
     f.seek(footer.summary_start)
     summary = _Summary()
-    for record in StreamReader(f, skip_magic=True, emit_chunks=True,
+    for record in StreamReader(as_stream(f), skip_magic=True, emit_chunks=True,
                                record_size_limit=size).records:
         if isinstance(record, Schema):
             summary.schemas[record.id] = record
@@ -266,7 +267,7 @@ def _scan_indexed(
 
 def _chunk_at(f: BoundedFile, ci: ChunkIndex) -> list:
     f.seek(ci.chunk_start_offset)
-    record = next(StreamReader(f, skip_magic=True, emit_chunks=True,
+    record = next(StreamReader(as_stream(f), skip_magic=True, emit_chunks=True,
                                record_size_limit=f.size).records)
     if not isinstance(record, Chunk):
         raise McapError(f"no chunk at byte {ci.chunk_start_offset}")
@@ -284,7 +285,8 @@ def _scan_stream(path: Path, f: BoundedFile, header: Header, select: Select,
     last: dict[int, int] = {}
     damage = None
     valid = 0
-    reader = StreamReader(f, validate_crcs=True, emit_chunks=True, record_size_limit=f.size)
+    reader = StreamReader(as_stream(f), validate_crcs=True, emit_chunks=True,
+                          record_size_limit=f.size)
     records = _expand(reader.records)
     while True:
         try:

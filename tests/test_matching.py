@@ -1,0 +1,223 @@
+"""Pose-guided feature matching (core/matching.py) on synthetic features with known
+correspondences: two tracked cameras see the same 3D points, each point carries one random
+descriptor in both images (plus noise), so the right matches are known exactly; distractors
+test the ratio test, the epipolar and depth gates and the mutual check.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from surgrecon_cli.core.features import Features
+from surgrecon_cli.core.geometry import invert_pose
+from surgrecon_cli.core.matching import (
+    build_tracks,
+    epipolar_candidates,
+    essential_matrix,
+    match_pair,
+    ray_depths,
+)
+
+FOCAL = 500.0  # px
+RATIO, EPI_PX, DEPTHS = 0.8, 2.0, (0.01, 0.2)
+
+
+def look_at(centre, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """Camera-to-world pose (optical frame: z forward, y down) at `centre` facing `target`."""
+    centre, target = np.asarray(centre, float), np.asarray(target, float)
+    z = target - centre
+    z /= np.linalg.norm(z)
+    x = np.cross(z, up)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    T = np.eye(4)
+    T[:3, :3] = np.column_stack([x, y, z])
+    T[:3, 3] = centre
+    return T
+
+
+def normalised(points: np.ndarray, pose: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Normalised image coordinates (N, 2) and depths (N,) of world points in a camera."""
+    T = invert_pose(pose)
+    pc = points @ T[:3, :3].T + T[:3, 3]
+    return pc[:, :2] / pc[:, 2:], pc[:, 2]
+
+
+def features(xy: np.ndarray, desc: np.ndarray) -> Features:
+    rgb = np.zeros((len(xy), 3), np.uint8)
+    return Features(xy * FOCAL + 320.0, xy, desc.astype(np.float32), rgb)
+
+
+@pytest.fixture(scope="module")
+def scene():
+    """Two cameras 30 mm apart, 60 mm from a patch of 60 points (depths 45..75 mm)."""
+    rng = np.random.default_rng(11)
+    pose_i = look_at([-0.015, 0.0, 0.06], [0.0, 0.0, 0.0], up=(0.0, 1.0, 0.0))
+    pose_j = look_at([0.015, 0.0, 0.06], [0.0, 0.0, 0.0], up=(0.0, 1.0, 0.0))
+    points = np.column_stack([rng.uniform(-0.01, 0.01, 60), rng.uniform(-0.01, 0.01, 60),
+                              rng.uniform(-0.015, 0.015, 60)])
+    desc = rng.uniform(0.0, 1.0, (60, 128))
+    xi, zi = normalised(points, pose_i)
+    xj, _ = normalised(points, pose_j)
+    perm = rng.permutation(60)  # image j lists the points in another order
+    fi = features(xi, desc + rng.normal(0, 0.01, desc.shape))
+    fj = features(xj[perm], desc[perm] + rng.normal(0, 0.01, desc.shape))
+    truth = {(int(p), j) for j, p in enumerate(perm)}  # (feature in i, feature in j)
+    return dict(pose_i=pose_i, pose_j=pose_j, points=points, desc=desc, xi=xi, xj=xj, zi=zi,
+                perm=perm, fi=fi, fj=fj, truth=truth, rng=rng)
+
+
+def run(fi: Features, fj: Features, s: dict, depth_range=DEPTHS) -> set[tuple[int, int]]:
+    m = match_pair(fi, fj, s["pose_i"], s["pose_j"], FOCAL, FOCAL, RATIO, EPI_PX, depth_range)
+    return {(int(a), int(b)) for a, b in m}
+
+
+def with_extra(f: Features, xy: np.ndarray, desc: np.ndarray) -> Features:
+    return features(np.vstack([f.normalized, xy]), np.vstack([f.descriptors, desc]))
+
+
+def symmetric_epipolar_px(E, xi, xj):
+    """Brute force (Ni, Nj): mean of the two point-to-epipolar-line distances in pixels."""
+    hi = np.column_stack([xi, np.ones(len(xi))])
+    hj = np.column_stack([xj, np.ones(len(xj))])
+    lines_j = hi @ E.T  # lines in j of the points of i
+    lines_i = hj @ E  # lines in i of the points of j
+    alg = np.abs(hj @ lines_j.T).T  # |x_j' E x_i|, (Ni, Nj)
+    d_j = FOCAL * alg / np.linalg.norm(lines_j[:, :2], axis=1)[:, None]
+    d_i = FOCAL * alg / np.linalg.norm(lines_i[:, :2], axis=1)[None, :]
+    return 0.5 * (d_i + d_j)
+
+
+# ---- geometry -----------------------------------------------------------------------------
+
+
+def test_essential_matrix_and_ray_depths_from_the_poses(scene):
+    s = scene
+    E = essential_matrix(s["pose_i"], s["pose_j"])
+    hi = np.column_stack([s["xi"], np.ones(60)])
+    hj = np.column_stack([s["xj"], np.ones(60)])
+    np.testing.assert_allclose(np.einsum("ni,ij,nj->n", hj, E, hi), 0.0, atol=1e-12)
+    # a point shifted off its epipolar line violates it
+    assert np.abs(np.einsum("ni,ij,nj->n", hj + np.array([0.0, 0.01, 0.0]), E, hi)).min() > 1e-5
+    np.testing.assert_allclose(ray_depths(s["xi"], s["xj"], s["pose_i"], s["pose_j"]), s["zi"],
+                               rtol=1e-9)
+
+
+def test_epipolar_candidates_are_exactly_the_pairs_within_tolerance(scene):
+    """Every pair within the tolerance is found (the float32 screen never misses one) and
+    nothing farther is returned, on many unrelated points."""
+    s = scene
+    rng = np.random.default_rng(12)
+    xi = rng.uniform(-0.3, 0.3, (300, 2))
+    xj = rng.uniform(-0.3, 0.3, (400, 2))
+    E = essential_matrix(s["pose_i"], s["pose_j"])
+    for tol in (0.5, 2.0, 10.0):
+        ia, jb = epipolar_candidates(E, xi, xj, FOCAL, FOCAL, tol)
+        d = symmetric_epipolar_px(E, xi, xj)
+        expected = set(zip(*np.nonzero(d <= tol), strict=True))
+        got = set(zip(ia.tolist(), jb.tolist(), strict=True))
+        assert got == {(int(a), int(b)) for a, b in expected}
+        assert len(got) > 50  # the test means something at every tolerance
+
+
+# ---- matching -----------------------------------------------------------------------------
+
+
+def test_recovers_the_known_correspondences(scene):
+    assert run(scene["fi"], scene["fj"], scene) == scene["truth"]
+
+
+@pytest.mark.parametrize("on_the_line", [True, False])
+def test_ratio_test_drops_an_ambiguous_feature(scene, on_the_line):
+    """A second feature in image j with (almost) the same descriptor as point 0's makes point
+    0 ambiguous: it is dropped, whether the look-alike lies on point 0's epipolar segment
+    (another depth along the ray) or anywhere else in the image."""
+    s = scene
+    if on_the_line:  # the same ray of camera i, 10 mm farther: on the epipolar segment
+        ray = s["points"][0] - s["pose_i"][:3, 3]
+        xy, _ = normalised(s["points"][:1] + 0.01 * ray / np.linalg.norm(ray), s["pose_j"])
+    else:
+        xy = np.array([[0.25, -0.2]])
+    look_alike = s["desc"][:1] + s["rng"].normal(0, 0.01, (1, 128))
+    got = run(s["fi"], with_extra(s["fj"], xy, look_alike), s)
+    j0 = int(np.flatnonzero(s["perm"] == 0)[0])
+    assert got == s["truth"] - {(0, j0)}
+
+
+def test_a_clearly_different_distractor_changes_nothing(scene):
+    s = scene
+    xy, _ = normalised(s["points"][:1] + np.array([0.0, 0.0, 0.004]), s["pose_j"])
+    other = s["rng"].uniform(0.0, 1.0, (1, 128))
+    assert run(s["fi"], with_extra(s["fj"], xy, other), s) == s["truth"]
+
+
+def test_epipolar_gate_rejects_a_feature_off_its_line(scene):
+    """Point 5 seen 10 px off its epipolar line in image j (a wrong pose, a moving point):
+    not matched, and not matched to anything else either."""
+    s = scene
+    j5 = int(np.flatnonzero(s["perm"] == 5)[0])
+    E = essential_matrix(s["pose_i"], s["pose_j"])
+    line = E @ np.append(s["xi"][5], 1.0)
+    normal = line[:2] / np.linalg.norm(line[:2])  # perpendicular to the epipolar line in j
+    xy = s["fj"].normalized.copy()
+    xy[j5] += 10.0 / FOCAL * normal
+    got = run(s["fi"], features(xy, s["fj"].descriptors), s)
+    assert got == s["truth"] - {(5, j5)}
+
+
+def test_depth_gate_keeps_only_matches_triangulating_inside_the_range(scene):
+    s = scene
+    near = (0.0, 0.06)  # the points are 45..75 mm from camera i
+    got = run(s["fi"], s["fj"], s, depth_range=near)
+    inside = {(i, j) for i, j in s["truth"] if s["zi"][i] <= near[1]}
+    assert 0 < len(inside) < len(s["truth"])
+    assert got == inside
+
+
+def test_only_mutual_best_matches_are_kept(scene):
+    """A second feature in image i on point 3's epipolar segment with a noisier copy of its
+    descriptor passes its own ratio test (its best is point 3's feature in j, clearly), but
+    that feature's best in i is the original: only the original is matched."""
+    s = scene
+    ray = s["points"][3] - s["pose_j"][:3, 3]
+    xy, _ = normalised(s["points"][3:4] + 0.008 * ray / np.linalg.norm(ray), s["pose_i"])
+    copy = s["desc"][3:4] + s["rng"].normal(0, 0.05, (1, 128))
+    got = run(with_extra(s["fi"], xy, copy), s["fj"], s)
+    assert got == s["truth"]  # nothing for the copy (index 60)
+
+
+def test_too_few_features_give_no_matches(scene):
+    s = scene
+    one = features(s["xi"][:1], s["desc"][:1])
+    assert match_pair(one, s["fj"], s["pose_i"], s["pose_j"], FOCAL, FOCAL, RATIO, EPI_PX,
+                      DEPTHS).shape == (0, 2)
+
+
+# ---- tracks -------------------------------------------------------------------------------
+
+
+def test_tracks_chain_pairs_and_earlier_pairs_win_conflicts():
+    """Three cameras with 3, 3, 4 features. Pairs (0,1) and (1,2) chain features into two
+    tracks; the later pair (0,2) would put camera 0's feature 1 into the track that already
+    holds camera 0's feature 0 (through camera 2's feature 0): refused."""
+    matches = {
+        (0, 1): np.array([[0, 0], [1, 1]]),
+        (1, 2): np.array([[0, 0], [1, 2]]),
+        (0, 2): np.array([[1, 0], [2, 3]]),  # first conflicts; second makes a new 2-track
+    }
+    ids, n = build_tracks([3, 3, 4], [(0, 1), (1, 2), (0, 2)], matches)
+    assert n == 3
+    a, b, c = ids[0][0], ids[0][1], ids[0][2]
+    assert len({a, b, c}) == 3 and min(a, b, c) >= 0
+    np.testing.assert_array_equal(ids[1], [a, b, -1])
+    np.testing.assert_array_equal(ids[2], [a, -1, b, c])
+    # Another order: (0,2) first wins. Then (1,2) adds camera 1's feature 0 to the track of
+    # (c0 f1, c2 f0) and starts (c1 f1, c2 f2); both (0,1) matches now conflict: c0 f0 is left
+    # without a track.
+    ids, n = build_tracks([3, 3, 4], [(0, 2), (1, 2), (0, 1)], matches)
+    assert n == 3
+    assert ids[0][1] == ids[2][0] == ids[1][0] >= 0
+    assert ids[1][1] == ids[2][2] >= 0 and ids[0][2] == ids[2][3] >= 0
+    assert len({ids[0][1], ids[1][1], ids[0][2]}) == 3
+    assert ids[0][0] == -1
