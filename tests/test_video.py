@@ -9,8 +9,10 @@ import importlib.util
 import json
 import logging
 import sys
+from fractions import Fraction
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 import synth_log
@@ -24,7 +26,7 @@ from surgrecon_cli.io.ingest_store import load_ingested
 from surgrecon_cli.io.mcap import LogReader
 from surgrecon_cli.io.mcap.foxglove import JsonDeserializer, compressed_video
 from surgrecon_cli.io.records import ImageRecord
-from surgrecon_cli.io.video import VideoDecoder, is_keyframe
+from surgrecon_cli.io.video import REORDER_LIMIT, VideoDecoder, is_keyframe
 from surgrecon_cli.sim import simulate as sim_module
 from surgrecon_cli.sim.log_writer import write_log
 from surgrecon_cli.sim.scene import SimConfig
@@ -85,6 +87,12 @@ def mean_abs(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.abs(a.astype(int) - b.astype(int)).mean())
 
 
+def decoded(stored) -> np.ndarray:
+    """RGB of a StoredImage."""
+    return cv2.cvtColor(cv2.imdecode(np.frombuffer(stored.data, np.uint8), cv2.IMREAD_COLOR),
+                        cv2.COLOR_BGR2RGB)
+
+
 # ---- decoding ---------------------------------------------------------------------------
 
 @needs_av
@@ -137,11 +145,8 @@ def test_decoder_delay_keeps_every_frame_with_its_message():
     out += decoder.flush()
     assert returned[:2] == [0, 0]  # the delay happened ...
     assert [s for s, _ in out] == [r.stamp_ns for r in records]  # ... and nothing moved
-    import cv2
     for k, (_, stored) in enumerate(out):
-        rgb = cv2.cvtColor(cv2.imdecode(np.frombuffer(stored.data, np.uint8), 1),
-                           cv2.COLOR_BGR2RGB)
-        assert int(np.argmin([mean_abs(rgb, f) for f in frames])) == k
+        assert int(np.argmin([mean_abs(decoded(stored), f) for f in frames])) == k
 
 
 @needs_av
@@ -186,30 +191,60 @@ class _DropOne:
 @needs_av
 @pytest.mark.parametrize("where", ["middle", "last"])
 def test_a_message_without_a_frame_is_an_error_naming_topic_and_stamp(where: str):
-    frames = [frame_rgb(0, k) for k in range(8)]
-    packets = encode_stream(frames)
-    stamps = [synth_log.T0 + k * synth_log.MS for k in range(8)]
-    bad = 6 if where == "middle" else 7
-    # damaged data: an access unit delimiter and nothing else
-    decoder = VideoDecoder(TOPIC, "h264")
-    with pytest.raises(InputError) as err:
+    n = REORDER_LIMIT + 8
+    packets = encode_stream([frame_rgb(0, k) for k in range(n)])
+    stamps = [synth_log.T0 + k * synth_log.MS for k in range(n)]
+    bad = 6 if where == "middle" else n - 1
+
+    def feed(decoder: VideoDecoder, damage: bool) -> None:
         for k, (stamp, data) in enumerate(zip(stamps, packets, strict=True)):
-            decoder.decode(ImageRecord(stamp, "cam", "h264",
-                                       b"\x00\x00\x00\x01\x09\xf0" if k == bad else data))
+            if damage and k == bad:
+                data = b"\x00\x00\x00\x01\x09\xf0"  # an access unit delimiter, no picture
+            decoder.decode(ImageRecord(stamp, "cam", "h264", data))
         decoder.flush()
+
+    when = f"stamp 1700000000.0{bad:02d}000000 s"
+    with pytest.raises(InputError) as err:  # damaged data: FFmpeg refuses it
+        feed(VideoDecoder(TOPIC, "h264"), damage=True)
     message = str(err.value)
-    assert "\n" not in message and TOPIC in message
-    assert f"stamp 1700000000.00{bad}000000 s does not decode" in message
-    # data that decodes to nothing: the next frame (or the end of the log) tells
+    assert "\n" not in message and TOPIC in message and f"{when} does not decode" in message
+    # a packet that decodes to nothing: found REORDER_LIMIT frames later, or at the end
     decoder = VideoDecoder(TOPIC, "h264")
     decoder.context = _DropOne(decoder.context, bad)
     with pytest.raises(InputError) as err:
-        for stamp, data in zip(stamps, packets, strict=True):
-            decoder.decode(ImageRecord(stamp, "cam", "h264", data))
-        decoder.flush()
+        feed(decoder, damage=False)
     message = str(err.value)
-    assert "\n" not in message and TOPIC in message
-    assert f"stamp 1700000000.00{bad}000000 s gives no frame" in message
+    assert "\n" not in message and TOPIC in message and f"{when} gives no frame" in message
+    assert ("at the end of the log" in message) == (where == "last")
+
+
+@needs_av
+def test_b_frames_still_give_every_message_its_own_frame():
+    """Outside Foxglove's rules (no B-frames), but common in recordings: messages in decode
+    order, each with its picture's stamp; the decoder reorders, the tags keep them apart."""
+    import av
+
+    frames = [frame_rgb(0, k) for k in range(10)]
+    ctx = av.CodecContext.create("libx264", "w")
+    ctx.width, ctx.height, ctx.pix_fmt = 64, 48, "yuv420p"
+    ctx.time_base = Fraction(1, 10)
+    ctx.options = {"crf": "12", "x264-params": "keyint=5:bframes=2:b-adapt=0:threads=1"}
+    packets = []
+    for k, rgb in enumerate(frames):
+        frame = av.VideoFrame.from_ndarray(rgb, format="rgb24")
+        frame.pts = k
+        packets += ctx.encode(frame)
+    packets += ctx.encode(None)
+    assert [p.pts for p in packets] != sorted(p.pts for p in packets)  # B-frames
+    decoder = VideoDecoder(TOPIC, "h264")
+    out = []
+    for p in packets:
+        out += decoder.decode(ImageRecord(synth_log.T0 + p.pts, "cam", "h264", bytes(p)))
+    out += decoder.flush()
+    assert sorted(s - synth_log.T0 for s, _ in out) == list(range(10))
+    for stamp, stored in out:
+        errors = [mean_abs(decoded(stored), f) for f in frames]
+        assert int(np.argmin(errors)) == stamp - synth_log.T0
 
 
 @needs_av

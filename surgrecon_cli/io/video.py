@@ -7,11 +7,12 @@ an optional dependency imported only when a video topic is met: `pip install
 "surgrecon[video]"`.
 
 Frame-exact: every packet is tagged with its message's index on the topic and every decoded
-frame is matched back by that tag, so a decoder that holds frames back (delay) still gives
-each message its own image and stamp; `flush` drains the decoder at the end of the log. A
-message after the first keyframe that yields no frame (or a damaged one) is an error naming
-the topic and stamp; messages before the first keyframe cannot be decoded and are skipped,
-with one warning per topic.
+frame is matched back by that tag, so a decoder that holds frames back (delay) or reorders
+them (B-frames, outside Foxglove's rules) still gives each message its own image and stamp;
+`flush` drains the decoder at the end of the log. A message after the first keyframe that
+yields no frame (or a damaged one) is an error naming the topic and stamp, raised once the
+decoder is `REORDER_LIMIT` frames past it or at the end; messages before the first keyframe
+cannot be decoded and are skipped, with one warning per topic.
 """
 
 from __future__ import annotations
@@ -32,6 +33,9 @@ logger = logging.getLogger(__name__)
 CODECS = {"h264": "h264", "h265": "hevc"}
 """CompressedVideo `format` -> FFmpeg decoder name."""
 INSTALL_HINT = 'pip install "surgrecon[video]"'
+REORDER_LIMIT = 16
+"""Frames a decoder may hold back and reorder (H.264/H.265: at most the 16 of the decoded
+picture buffer); a message this far behind the frames coming out has lost its frame."""
 
 
 def _fmt_stamp(stamp_ns: int) -> str:
@@ -102,7 +106,6 @@ class VideoDecoder:
         self.sent = 0
         self.skipped: list[int] = []  # stamps of messages before the first keyframe
         self.started = False
-        self.decoded = 0
 
     def decode(self, record: ImageRecord) -> list[tuple[int, StoredImage]]:
         if str(record.format).lower() != self.format:
@@ -163,7 +166,7 @@ class VideoDecoder:
             if index not in self.pending:
                 raise InputError(f"{self.topic}: {where}: the decoder returned a frame that "
                                  "belongs to no message")
-            missed = next((k for k in self.pending if k < index), None)
+            missed = next((k for k in self.pending if k < index - REORDER_LIMIT), None)
             if missed is not None:
                 raise InputError(f"{self.topic}: video message at stamp "
                                  f"{_fmt_stamp(self.pending[missed])} gives no frame")
@@ -172,7 +175,6 @@ class VideoDecoder:
                 raise InputError(f"{self.topic}: video message at stamp {_fmt_stamp(stamp)} "
                                  "decodes to a damaged frame (missing or corrupt data)")
             out.append((stamp, self._stored(frame)))
-            self.decoded += 1
         return out
 
     def _stored(self, frame: Any) -> StoredImage:
