@@ -9,6 +9,7 @@ import click
 from click.core import ParameterSource
 
 from ..sim.conventions import CONVENTIONS
+from ..sim.scene import LENSES
 from ..sim.variants import VARIANTS
 from .common import common_options
 
@@ -27,6 +28,7 @@ _FIELDS = {
     "sweep_deg": ("sweep_deg", 1),
     "tracker_noise_mm": ("tracker_noise_pos", 1000),
     "tracker_noise_deg": ("tracker_noise_deg", 1),
+    "lens": ("lens", 1),
 }
 
 _VARIANT_HELP = "\n".join(f"  {v.name:<12} {v.description}" for v in VARIANTS.values())
@@ -89,6 +91,8 @@ def _explicit(ctx: click.Context, name: str) -> bool:
     type=click.FloatRange(0),
     help="Tracker rotation noise (RMS angle of the error).",
 )
+@click.option("--lens", type=click.Choice(LENSES), default="plumb_bob", show_default=True,
+              help="Lens distortion model of every camera (as in CameraInfo).")
 @click.option("--encoding", type=click.Choice(ENCODINGS), default="ros2", show_default=True)
 @click.option(
     "--poses",

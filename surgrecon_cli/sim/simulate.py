@@ -49,7 +49,10 @@ class SimResult:
 
 
 def camera_models(cfg: SimConfig, rng: np.random.Generator) -> list[CameraModel]:
-    """Endoscope-like intrinsics: ~70 deg horizontal field of view, mild barrel distortion."""
+    """Endoscope-like intrinsics: ~70 deg horizontal field of view, mild barrel distortion,
+    in the lens model `cfg.lens` (the same random draws for every model: plumb_bob's
+    k1 k2 p1 p2; rational_polynomial adds a denominator k4 = -k1 / 2; equidistant keeps
+    k1 k2 scaled to the fisheye model's smaller coefficients)."""
     models = []
     for _ in range(cfg.cameras):
         f = cfg.width / (2 * np.tan(np.radians(35))) * rng.uniform(0.97, 1.03)
@@ -69,7 +72,11 @@ def camera_models(cfg: SimConfig, rng: np.random.Generator) -> list[CameraModel]
                 0.0,
             ]
         )
-        models.append(CameraModel(K, dist, cfg.width, cfg.height))
+        if cfg.lens == "rational_polynomial":
+            dist = np.array([*dist, -dist[0] / 2, 0.0, 0.0])
+        elif cfg.lens == "equidistant":
+            dist = np.array([dist[0] / 4, dist[1] / 4, 0.0, 0.0])
+        models.append(CameraModel(K, dist, cfg.width, cfg.height, model=cfg.lens))
     return models
 
 
@@ -203,7 +210,8 @@ class LogBuilder:
                         f"/endoscope_{cam}/calibration",
                         log_ns,
                         CameraInfoRecord(
-                            _ns(stamp), frame_id, model.width, model.height, model.K, model.dist
+                            _ns(stamp), frame_id, model.width, model.height, model.K, model.dist,
+                            model.model,
                         ),
                     )
                 )
