@@ -28,10 +28,11 @@ def export_cmd(run_dir: Path, mcap_path: Path | None, tum_dir: Path | None, forc
     point_id, label, residual m, sigma m, displacement_mm), the targets
     (/surgrecon/target), camera and tool transforms (/surgrecon/tf), the tool's capsule and
     the camera frusta (/surgrecon/scene), the metrics of metrics/frames.csv
-    (/surgrecon/metrics, JSON), and per camera the recorded image, its calibration and the
-    cloud's points projected onto it (/cameras/CC/image, calibration, annotations); the
-    template once (/surgrecon/template). OUT.layout.json beside it is a Foxglove layout
-    (3D view, image, plots): in Foxglove open the file, then Layouts > Import from file.
+    (/surgrecon/frame_metrics, JSON), and per camera the recorded image, its calibration
+    and the cloud's points projected onto it (/cameras/CC/image, calibration,
+    annotations); the template once (/surgrecon/template_cloud). OUT.layout.json beside it
+    is a Foxglove layout (3D view, image, plots): in Foxglove open the file, then Layouts >
+    Import from file.
 
     --tum: `t tx ty tz qx qy qz qw` files (t in seconds) of the synchronised poses in
     ingest/frames.npz, as evo reads them (`evo_traj tum DIR/*.tum`).

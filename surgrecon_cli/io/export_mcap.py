@@ -3,22 +3,24 @@
 Every message is stamped (log time, publish time and its own timestamp) with the frame's
 time in the source log (RUN/ingest/frames.npz `stamps_ns`). Per frame k:
 
-  /surgrecon/cloud         foxglove.PointCloud   the labelled cloud RUN/clouds/k.ply in
-                           world: x y z (float32 m, the PLY's values), red green blue alpha
-                           (uint8, by class), point_id (int32), label (uint8), residual (float32
-                           m, NaN = no target), sigma (float32 m), displacement_mm (float32),
-                           and status / views (frames >= 1) or n_views / reprojection_px (0)
-  /surgrecon/target        foxglove.PointCloud   the measured targets (frame 0: the template)
-  /surgrecon/tf            foxglove.FrameTransforms  world -> camera_CC, world -> tool
-  /surgrecon/scene         foxglove.SceneUpdate  camera frusta, the tool's capsule
-  /surgrecon/metrics       JSON                  the frame's row of RUN/metrics/frames.csv
-  /cameras/CC/image        foxglove.CompressedImage  the image as recorded (JPEG / PNG)
-  /cameras/CC/calibration  foxglove.CameraCalibration
-  /cameras/CC/annotations  foxglove.ImageAnnotations  the cloud's points projected, by class
+  /surgrecon/cloud          foxglove.PointCloud  the labelled cloud RUN/clouds/k.ply in the
+                            world: x y z (float32 m, the PLY's values), red green blue alpha
+                            (uint8, by class), point_id (int32), label (uint8), residual
+                            (float32 m, NaN = no target), sigma (float32 m), displacement_mm
+                            (float32), then status / views (frames >= 1) or n_views /
+                            reprojection_px (frame 0)
+  /surgrecon/target         foxglove.PointCloud  the measured targets (frame 0: the template)
+  /surgrecon/tf             foxglove.FrameTransforms  world -> camera_CC, world -> tool
+  /surgrecon/scene          foxglove.SceneUpdate  camera frusta, the tool's capsule
+  /surgrecon/frame_metrics  JSON  the frame's row of RUN/metrics/frames.csv
+  /cameras/CC/image         foxglove.CompressedImage  the image as recorded (JPEG / PNG)
+  /cameras/CC/calibration   foxglove.CameraCalibration
+  /cameras/CC/annotations   foxglove.ImageAnnotations  the cloud's points projected, by class
 
-and once, at frame 0: /surgrecon/template (foxglove.PointCloud, the template in its colours).
-CC is the camera's index in the sorted id list; the metadata record `surgrecon` maps
-indices to ids. The shipped Foxglove layout is written beside the file (OUT.layout.json).
+and once, at frame 0, /surgrecon/template_cloud (foxglove.PointCloud: the template in its
+colours). CC is the camera's index in the sorted id list; the metadata record `surgrecon`
+maps indices to ids. The shipped Foxglove layout is written beside the file
+(OUT.layout.json).
 """
 
 from __future__ import annotations
@@ -56,10 +58,10 @@ from .run_layout import RunLayout
 
 TOPIC_CLOUD = "/surgrecon/cloud"
 TOPIC_TARGET = "/surgrecon/target"
-TOPIC_TEMPLATE = "/surgrecon/template"
+TOPIC_TEMPLATE = "/surgrecon/template_cloud"
 TOPIC_TF = "/surgrecon/tf"
 TOPIC_SCENE = "/surgrecon/scene"
-TOPIC_METRICS = "/surgrecon/metrics"
+TOPIC_METRICS = "/surgrecon/frame_metrics"
 LAYOUT_RESOURCE = "foxglove_layout.json"
 _TARGET_RGBA = (255, 190, 0, 255)
 
@@ -179,7 +181,8 @@ def _write_frame(out: McapOut, layout: RunLayout, log: IngestedLog, config: Conf
         uv = np.zeros((0, 2))
         labels = np.zeros(0, np.uint8)
         if posed[c]:
-            uv, labels = projected_labels(points, cloud["label"], poses[c], model)
+            uv, labels = projected_labels(points, cloud["label"], poses[c], model, tool,
+                                          config.tool)
         out.protobuf(camera_topic(c, "annotations"), image_annotations(stamp, uv, labels),
                      stamp)
     out.json(TOPIC_METRICS, "surgrecon.FrameMetrics", _METRICS_SCHEMA, metrics, stamp)
@@ -204,11 +207,12 @@ def _target_columns(layout: RunLayout, k: int, n: int) -> list[tuple[str, str, n
 
 
 # The per-frame metrics: any of frames.csv's columns (numbers or booleans); Foxglove's plot
-# panel charts /surgrecon/metrics.<column>.
+# panel charts /surgrecon/frame_metrics.<column>.
 _METRICS_SCHEMA: dict[str, Any] = {
     "title": "surgrecon.FrameMetrics",
-    "description": "One frame's row of RUN/metrics/frames.csv (lengths in mm where the name "
-                   "ends in _mm); cells without a value are left out",
+    "description": "One frame's row of the run's per-frame metrics table (frames.csv; "
+                   "lengths in mm where the name ends in _mm); cells without a value are "
+                   "left out",
     "type": "object",
     "properties": {"frame": {"type": "integer"}, "time_s": {"type": "number"}},
     "additionalProperties": {"type": ["number", "boolean", "string"]},

@@ -24,8 +24,10 @@ from foxglove_schemas_protobuf.SceneEntityDeletion_pb2 import SceneEntityDeletio
 from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
 from foxglove_schemas_protobuf.SpherePrimitive_pb2 import SpherePrimitive
 
+from ..config import ToolConfig
 from ..core.cameras import CameraModel, in_image, project
 from ..core.labels import CLASS_NAMES, DEFORMING, SHIFTING, STATIC, UNKNOWN
+from ..core.tool import ray_segment_distance, shaft_segment
 from .foxglove_pack import color, points_annotation, pose, quaternion, timestamp, vector3
 
 WORLD_FRAME = "world"
@@ -135,13 +137,27 @@ def compressed_image(stamp: int, index: int, data: bytes, extension: str) -> Com
 
 
 def projected_labels(points: np.ndarray, labels: np.ndarray, cam_to_world: np.ndarray,
-                     model: CameraModel) -> tuple[np.ndarray, np.ndarray]:
+                     model: CameraModel, tool_pose: np.ndarray | None = None,
+                     tool: ToolConfig | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Pixels (M, 2) and labels (M,) of the points (N, 3) m in front of the camera that
-    project into its image."""
-    finite = np.isfinite(points).all(1)
-    uv, z = project(points[finite], cam_to_world, model)
-    keep = (z > 0) & np.isfinite(uv).all(1) & in_image(uv, model)
-    return uv[keep], np.asarray(labels)[finite][keep]
+    project into its image and, given the tool's pose and model, are not behind the tool
+    (the ray from the camera passes the shaft axis closer than its radius before the
+    point)."""
+    points = np.asarray(points, float)
+    keep = np.isfinite(points).all(1)
+    uv, z = project(points, cam_to_world, model)
+    with np.errstate(invalid="ignore"):
+        keep &= (z > 0) & np.isfinite(uv).all(1) & in_image(uv, model)
+    if tool is not None and tool_pose is not None and np.isfinite(tool_pose).all() \
+            and keep.any():
+        origin = cam_to_world[:3, 3]
+        rays = points[keep] - origin
+        depth = np.linalg.norm(rays, axis=1)
+        a, b = shaft_segment(tool_pose, tool)
+        dist, along = ray_segment_distance(origin, rays / depth[:, None], a, b)
+        hidden = (dist < tool.shaft_radius_m) & (along < depth)
+        keep[np.flatnonzero(keep)[hidden]] = False
+    return uv[keep], np.asarray(labels)[keep]
 
 
 def image_annotations(stamp: int, uv: np.ndarray, labels: np.ndarray,
