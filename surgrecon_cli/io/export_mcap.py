@@ -96,8 +96,9 @@ def export_mcap(run_dir: Path, out_path: Path,
     start = time.perf_counter()
     layout = RunLayout(run_dir)
     run = RunFolder(run_dir)
+    recorded = run.read()
     run.require_done("classify")
-    config = from_dict(run.read().get("config") or {}, Config())
+    config = from_dict(recorded.get("config") or {}, Config())
     log = load_ingested(layout.ingest_dir)
     template = read_template(layout)
     n, n_frames = len(template.points), log.n_frames
@@ -109,7 +110,7 @@ def export_mcap(run_dir: Path, out_path: Path,
         out = McapOut(stream)
         out.metadata("surgrecon", {
             "version": __version__, "run": str(layout.root.resolve()),
-            "source_log": str(run.read().get("input", {}).get("path", "")),
+            "source_log": str(recorded.get("input", {}).get("path", "")),
             **{f"camera_{c:02d}": cam for c, cam in enumerate(log.cameras)}})
         stamp0 = int(log.stamps_ns[0])
         out.protobuf(TOPIC_TEMPLATE, point_cloud(stamp0, WORLD_FRAME, [
