@@ -267,3 +267,14 @@ def test_export_errors_are_one_line(exported, tmp_path, capsys):
     assert len(err) == 3 and all(line.startswith("error: ") for line in err)
     assert "--force" in err[1] and "run.json" in err[2]
     assert not (tmp_path / "x.mcap").exists()
+
+
+def test_run_export_mcap_writes_it_into_the_run(pipeline_log, copy_run, capsys):
+    assert main(["run", str(pipeline_log), "-o", str(copy_run), "--export", "mcap", "-q"]) == 0
+    path = RunLayout(copy_run).export_mcap
+    assert f"mcap: {path}" in capsys.readouterr().out
+    assert RunLayout.foxglove_layout_beside(path).is_file()
+    with open(path, "rb") as f:
+        summary = make_reader(f).get_summary()
+    assert summary is not None and summary.statistics is not None
+    assert summary.statistics.message_count > 0

@@ -2,7 +2,8 @@
 keys in which they differ.
 
 Figures come from RUN/metrics/summary.json (written by report), RUN/metrics/evaluation.json
-(evaluate) and the stage timings in RUN/run.json; a figure a run does not have is shown as
+(evaluate) and the stage timings in RUN/run.json (a stage's own `seconds`, else the
+pipeline's); a figure a run does not have is shown as
 "-". The config is the one recorded in run.json (RUN/config.toml if run.json has none);
 keys are compared as dotted `section.key` names.
 """
@@ -98,7 +99,8 @@ def load_run(path: Path, label: str | None = None) -> RunFigures:
     if layout.evaluation_json.is_file():
         sources["evaluation"] = read_json(layout.evaluation_json, "evaluate")
     stages = data.get("stages", {})
-    seconds = {name: stages.get(name, {}).get("seconds") for name in _STAGES}
+    piped = data.get("pipeline", {}).get("seconds", {})  # the stages that time themselves
+    seconds = {name: stages.get(name, {}).get("seconds", piped.get(name)) for name in _STAGES}
     done = [s for s in seconds.values() if isinstance(s, int | float)]
     seconds["total"] = sum(done) if done else None
     sources["seconds"] = seconds

@@ -16,6 +16,7 @@
   RUN/metrics/frames.csv         one row per frame
   RUN/metrics/summary.json       the run at a glance
   RUN/report.html                the report
+  RUN/export.mcap                the Foxglove export (`run --export mcap`; layout beside it)
 
 Exports, outside the run folder (`surgrecon export`):
   OUT.mcap, OUT.layout.json      the Foxglove export and its layout beside it
@@ -164,6 +165,11 @@ class RunLayout:
     @staticmethod
     def tum_tool(out_dir: Path) -> Path:
         return Path(out_dir) / "tool.tum"
+
+    @property
+    def export_mcap(self) -> Path:
+        """Where `surgrecon run --export mcap` writes the run's MCAP export."""
+        return self.root / "export.mcap"
 
     def relative(self, path: Path) -> str:
         """`path` relative to the run folder, with forward slashes (for the report)."""
