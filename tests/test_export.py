@@ -92,7 +92,11 @@ def test_every_message_is_its_foxglove_type(messages):
             assert message_encoding == "json"
             obj, spec = json.loads(data), json.loads(schema)
             assert spec["type"] == "object" and isinstance(obj["frame"], int)
-            assert all(isinstance(v, int | float | bool | str) for v in obj.values())
+            kinds = {"number": (int, float), "boolean": (bool,), "string": (str,)}
+            for key, value in obj.items():  # every value declared, of its declared type
+                declared = spec["properties"][key]["type"]
+                assert isinstance(value, kinds[declared]), key
+                assert declared != "number" or not isinstance(value, bool), key
             continue
         assert (encoding, message_encoding) == ("protobuf", "protobuf"), topic
         cls = types[schema_name]
@@ -278,3 +282,20 @@ def test_run_export_mcap_writes_it_into_the_run(pipeline_log, copy_run, capsys):
         summary = make_reader(f).get_summary()
     assert summary is not None and summary.statistics is not None
     assert summary.statistics.message_count > 0
+
+
+def test_metrics_without_a_report_are_the_class_counts(copy_run, tmp_path):
+    layout = RunLayout(copy_run)
+    layout.frames_csv.unlink()
+    out = tmp_path / "bare.mcap"
+    assert main(["export", str(copy_run), "--mcap", str(out), "-q"]) == 0
+    with open(out, "rb") as f:
+        rows = [json.loads(m.data) for _, _, m in
+                make_reader(f).iter_messages(topics=["/surgrecon/frame_metrics"])]
+    log = load_ingested(layout.ingest_dir)
+    labels = read_labels(layout, (log.n_frames, len(read_ply(layout.template_ply)["x"])))
+    assert [r["frame"] for r in rows] == list(range(log.n_frames))
+    for k, row in enumerate(rows):
+        assert row["static"] + row["shifting"] + row["deforming"] + row["unknown"] == \
+            labels.labels.shape[1]
+        assert row["deforming"] == int((labels.labels[k] == 2).sum())

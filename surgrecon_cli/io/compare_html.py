@@ -11,6 +11,7 @@ from collections.abc import Sequence
 
 import numpy as np
 from matplotlib import rc_context
+from matplotlib.ticker import MaxNLocator
 
 from . import report_html as rh
 from .compare import RunFigures, config_differences, figure_rows, format_value
@@ -46,6 +47,7 @@ def overlaid(runs: Sequence[RunFigures], column: str, title: str, ylabel: str) -
                 ax.plot(frames, values, marker="o", markersize=3, linewidth=1.4,
                         color=_PALETTE[i % len(_PALETTE)], label=label)
         ax.set_xlabel("frame")
+        ax.xaxis.set_major_locator(MaxNLocator(integer=True))
         ax.set_ylabel(ylabel)
         ax.set_title(title, loc="left")
         ax.legend(loc="upper left", bbox_to_anchor=(1.0, 1.0))

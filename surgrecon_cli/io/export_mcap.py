@@ -105,6 +105,7 @@ def export_mcap(run_dir: Path, out_path: Path,
     labels = read_labels(layout, (n_frames, n))
     displacement = labels.displacement_mm
     metrics = _frame_metrics(layout, log, labels.labels)
+    schema = metrics_schema(metrics)
     out_path = Path(out_path)
     with atomic_open(out_path, "wb") as stream:
         out = McapOut(stream)
@@ -119,8 +120,7 @@ def export_mcap(run_dir: Path, out_path: Path,
             ("sigma", "<f4", template.sigma),
             ("reprojection_px", "<f4", template.reprojection_px)]), stamp0)
         for k in range(n_frames):
-            _write_frame(out, layout, log, config, k, n, displacement[k],
-                         metrics[k] if k < len(metrics) else {"frame": k})
+            _write_frame(out, layout, log, config, k, n, displacement[k], (metrics[k], schema))
             if on_frame:
                 on_frame(k + 1, n_frames)
         out.finish()
@@ -143,7 +143,9 @@ def _rgba(rgb: np.ndarray) -> list[tuple[str, str, np.ndarray]]:
 
 
 def _write_frame(out: McapOut, layout: RunLayout, log: IngestedLog, config: Config, k: int,
-                 n: int, displacement_mm: np.ndarray, metrics: dict[str, Any]) -> None:
+                 n: int, displacement_mm: np.ndarray,
+                 metrics: tuple[dict[str, Any], dict[str, Any]]) -> None:
+    """All messages of frame k; metrics: the frame's metrics and their JSON Schema."""
     stamp = int(log.stamps_ns[k])
     cloud = read_frame_cloud(layout, k)
     ids = cloud["point_id"].astype(np.int64)
@@ -186,7 +188,7 @@ def _write_frame(out: McapOut, layout: RunLayout, log: IngestedLog, config: Conf
                                           config.tool)
         out.protobuf(camera_topic(c, "annotations"), image_annotations(stamp, uv, labels),
                      stamp)
-    out.json(TOPIC_METRICS, "surgrecon.FrameMetrics", _METRICS_SCHEMA, metrics, stamp)
+    out.json(TOPIC_METRICS, "surgrecon.FrameMetrics", metrics[1], metrics[0], stamp)
 
 
 def _target_columns(layout: RunLayout, k: int, n: int) -> list[tuple[str, str, np.ndarray]]:
@@ -207,17 +209,26 @@ def _target_columns(layout: RunLayout, k: int, n: int) -> list[tuple[str, str, n
             ("views", "u1", views), ("target_sigma", "<f4", sigma)]
 
 
-# The per-frame metrics: any of frames.csv's columns (numbers or booleans); Foxglove's plot
-# panel charts /surgrecon/frame_metrics.<column>.
-_METRICS_SCHEMA: dict[str, Any] = {
-    "title": "surgrecon.FrameMetrics",
-    "description": "One frame's row of the run's per-frame metrics table (frames.csv; "
-                   "lengths in mm where the name ends in _mm); cells without a value are "
-                   "left out",
-    "type": "object",
-    "properties": {"frame": {"type": "integer"}, "time_s": {"type": "number"}},
-    "additionalProperties": {"type": ["number", "boolean", "string"]},
-}
+def metrics_schema(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """The JSON Schema of the metrics messages: every column any row has, typed by its
+    values (number, boolean or string), so that Foxglove's plot panel offers
+    /surgrecon/frame_metrics.<column>."""
+    kinds: dict[str, set[str]] = {}
+    for row in rows:
+        for key, value in row.items():
+            kind = ("boolean" if isinstance(value, bool) else
+                    "number" if isinstance(value, int | float) else "string")
+            kinds.setdefault(key, set()).add(kind)
+    return {
+        "title": "surgrecon.FrameMetrics",
+        "description": "One frame's row of the run's per-frame metrics table (frames.csv; "
+                       "lengths in mm where the name ends in _mm); cells without a value are "
+                       "left out",
+        "type": "object",
+        "properties": {key: {"type": sorted(k)[0] if len(k) == 1 else sorted(k)}
+                       for key, k in kinds.items()},
+        "required": ["frame"],
+    }
 
 
 def _frame_metrics(layout: RunLayout, log: IngestedLog,
