@@ -37,6 +37,7 @@ import numpy as np
 from .. import __version__
 from ..config import Config, from_dict
 from ..core.labels import CLASS_NAMES, INTRA, UNKNOWN
+from ..errors import RunFolderError
 from .artefacts import read_frame_cloud, read_labels, read_registration, read_template
 from .atomic import atomic_open, write_text
 from .foxglove_pack import point_cloud
@@ -177,9 +178,13 @@ def _write_frame(out: McapOut, layout: RunLayout, log: IngestedLog, config: Conf
         if not rel:
             continue
         image = log.root / rel
+        try:
+            data = image.read_bytes()
+        except OSError as exc:
+            raise RunFolderError(f"{image}: cannot read ({exc.strerror or exc}); re-run "
+                                 "ingest") from exc
         out.protobuf(camera_topic(c, "image"),
-                     compressed_image(stamp, c, image.read_bytes(), image.suffix.lstrip(".")),
-                     stamp)
+                     compressed_image(stamp, c, data, image.suffix.lstrip(".")), stamp)
         out.protobuf(camera_topic(c, "calibration"), camera_calibration(stamp, c, model), stamp)
         uv = np.zeros((0, 2))
         labels = np.zeros(0, np.uint8)
