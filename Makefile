@@ -25,8 +25,9 @@ $(STAMP): pyproject.toml $(VENV)/.syslibs
 install: $(STAMP)
 
 run: $(STAMP)
-	$(BIN)/surgrecon run $(SAMPLE) -o $(RUN_DIR)
+	$(BIN)/surgrecon run $(SAMPLE) -o $(RUN_DIR) --export mcap
 	@echo "report: $(abspath $(RUN_DIR))/report.html"
+	@echo "Foxglove: open $(abspath $(RUN_DIR))/export.mcap, import $(abspath $(RUN_DIR))/export.layout.json"
 
 test: $(STAMP)
 	$(BIN)/ruff check .
