@@ -11,12 +11,11 @@ keys are compared as dotted `section.key` names.
 from __future__ import annotations
 
 import math
+import tomllib
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
-
-import tomllib
 
 from ..errors import RunFolderError
 from .artefacts import read_json

@@ -15,7 +15,7 @@ from matplotlib.ticker import MaxNLocator
 
 from . import report_html as rh
 from .compare import RunFigures, config_differences, figure_rows, format_value
-from .plots import _STYLE, _figure, _png
+from .plots import STYLE, new_figure, to_png
 
 # (frames.csv column, title, y label)
 PER_FRAME: tuple[tuple[str, str, str], ...] = (
@@ -39,8 +39,8 @@ def overlaid(runs: Sequence[RunFigures], column: str, title: str, ylabel: str) -
         series.append((run.label, frames, values))
     if not any(len(v) for _, _, v in series):
         return None
-    with rc_context(_STYLE):
-        fig = _figure(7.5, 2.6)
+    with rc_context(STYLE):
+        fig = new_figure(7.5, 2.6)
         ax = fig.add_subplot()
         for i, (label, frames, values) in enumerate(series):
             if len(values):
@@ -51,7 +51,7 @@ def overlaid(runs: Sequence[RunFigures], column: str, title: str, ylabel: str) -
         ax.set_ylabel(ylabel)
         ax.set_title(title, loc="left")
         ax.legend(loc="upper left", bbox_to_anchor=(1.0, 1.0))
-        return _png(fig)
+        return to_png(fig)
 
 
 def comparison_html(runs: Sequence[RunFigures]) -> str:
