@@ -181,6 +181,9 @@ def _prepare(argv: list[str], world: dict[str, Path], scheduler) -> list[str]:
             positional.append(token)
             if token.endswith(".mcap") and name != "simulate" and not Path(token).exists():
                 _copy_log(world, Path(token))
+            if token.endswith("/") and name in ("info", "ingest", "run") \
+                    and not Path(token).exists():  # a bag folder: the log split in one file
+                _copy_log(world, Path(token) / "part_0.mcap")
             if token.endswith(".ply") and name == "register-pair" and not Path(token).exists():
                 shutil.copy(next(plys), token)
         if option and value.endswith(".gt.npz") and not Path(value).exists():
