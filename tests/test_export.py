@@ -299,3 +299,25 @@ def test_metrics_without_a_report_are_the_class_counts(copy_run, tmp_path):
         assert row["static"] + row["shifting"] + row["deforming"] + row["unknown"] == \
             labels.labels.shape[1]
         assert row["deforming"] == int((labels.labels[k] == 2).sum())
+
+
+def test_tum_of_the_recorded_streams_interpolate_to_the_ingested_poses(exported):
+    """camera_CC_tracker.tum / tool_robot.tum hold the streams as recorded (in the world):
+    interpolated to the image stamps as ingest does, they give its poses."""
+    from surgrecon_cli.core.sync import PoseStream, poses_at
+
+    log = load_ingested(RunLayout(exported[0]).ingest_dir)
+    tum = exported[2]
+    gap = 10**9
+    for c in range(len(log.cameras)):
+        table = read_tum_like_evo(RunLayout.tum_tracker(tum, c))
+        assert len(table) > log.n_frames  # the tracker runs faster than the cameras
+        lines = [ln for ln in RunLayout.tum_tracker(tum, c).read_text().splitlines()
+                 if not ln.startswith("#")]
+        stamps = np.array([int(ln.split()[0].replace(".", "")) for ln in lines])
+        stream = PoseStream(stamps, table[:, 1:4], table[:, 4:])
+        usable = log.usable[:, c]
+        poses, valid = poses_at(stream, log.image_stamps_ns[usable, c], gap)
+        assert valid.all()
+        np.testing.assert_allclose(poses, log.poses[usable, c], rtol=0, atol=1e-9)
+    assert len(read_tum_like_evo(RunLayout.tum_robot(tum))) > log.n_frames

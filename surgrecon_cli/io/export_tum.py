@@ -16,9 +16,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..core.geometry import matrix_to_quat
+from ..core.geometry import make_pose, matrix_to_quat
 from .atomic import write_text
-from .ingest_store import load_ingested
+from .ingest_store import load_ingested, load_pose_streams
 from .run_layout import RunLayout
 
 
@@ -73,4 +73,21 @@ def export_tum(run_dir: Path, out_dir: Path) -> list[Trajectory]:
     count = write_tum(path, log.stamps_ns, log.tool_poses, [
         "tool tip in the world (shaft along +z), at the frames' stamps", source])
     written.append(Trajectory(path, "tool", count))
+    raw = load_pose_streams(layout.ingest_dir)
+    recorded = f"from {layout.root.resolve()} (ingest/streams.npz), written by surgrecon export"
+    for c, camera in enumerate(log.cameras):
+        stream = raw.get(f"camera_{c:02d}")
+        if stream is not None:
+            path = RunLayout.tum_tracker(out_dir, c)
+            count = write_tum(path, stream.stamps_ns, make_pose(stream.positions, stream.quats),
+                              [f"camera {camera!r} (index {c}): its pose stream as recorded "
+                               "(tracker stamps), in the world frame", recorded])
+            written.append(Trajectory(path, f"camera {camera} (tracker)", count))
+    if "tool" in raw and len(raw["tool"].stamps_ns):
+        stream = raw["tool"]
+        path = RunLayout.tum_robot(out_dir)
+        count = write_tum(path, stream.stamps_ns, make_pose(stream.positions, stream.quats),
+                          ["tool tip as the robot reported it (robot stamps), in the world",
+                           recorded])
+        written.append(Trajectory(path, "tool (robot)", count))
     return written

@@ -166,6 +166,20 @@ class RunLayout:
     def tum_tool(out_dir: Path) -> Path:
         return Path(out_dir) / "tool.tum"
 
+    @staticmethod
+    def tum_tracker(out_dir: Path, camera_index: int) -> Path:
+        """A camera's pose stream as recorded (not synchronised to its images)."""
+        return Path(out_dir) / f"camera_{camera_index:02d}_tracker.tum"
+
+    @staticmethod
+    def tum_robot(out_dir: Path) -> Path:
+        return Path(out_dir) / "tool_robot.tum"
+
+    @staticmethod
+    def ingest_streams(ingest_dir: Path) -> Path:
+        """The pose streams as recorded, in the world frame (ingest/streams.npz)."""
+        return Path(ingest_dir) / "streams.npz"
+
     @property
     def export_mcap(self) -> Path:
         """Where `surgrecon run --export mcap` writes the run's MCAP export."""
