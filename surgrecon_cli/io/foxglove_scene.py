@@ -26,17 +26,17 @@ from foxglove_schemas_protobuf.SpherePrimitive_pb2 import SpherePrimitive
 
 from ..config import ToolConfig
 from ..core.cameras import CameraModel, in_image, project
-from ..core.labels import CLASS_NAMES, DEFORMING, SHIFTING, STATIC, UNKNOWN
+from ..core.labels import CLASS_NAMES, UNKNOWN
 from ..core.tool import ray_segment_distance, shaft_segment
 from .foxglove_pack import color, points_annotation, pose, quaternion, timestamp, vector3
+from .palette import CLASS_COLOURS, rgba255
 
 WORLD_FRAME = "world"
 TOOL_FRAME = "tool"
 
-# Class colours (RGBA 0-255): static grey, shifting blue, deforming red, unknown dark.
-CLASS_RGBA = {STATIC: (175, 175, 175, 255), SHIFTING: (40, 110, 235, 255),
-              DEFORMING: (225, 40, 40, 255), UNKNOWN: (45, 45, 45, 255)}
 CLASS_LABELS = {**CLASS_NAMES, UNKNOWN: "unknown"}
+# Class colours (RGBA 0-255), those of the report's figures (io/palette.py).
+CLASS_RGBA = {code: rgba255(CLASS_COLOURS[name]) for code, name in CLASS_LABELS.items()}
 ANNOTATION_STEP_PX = 1 / 16
 _TOOL_RGBA = (0.75, 0.78, 0.82, 0.6)
 _FRUSTUM_RGBA = (1.0, 0.8, 0.1, 1.0)
