@@ -18,7 +18,7 @@ from surgrecon_cli.sim.simulate import simulate
 
 def _run(root: Path, lens: str) -> tuple[dict, set[str]]:
     log = root / f"{lens}.mcap"
-    simulate(log, SimConfig(cameras=6, frames=3, width=320, height=240, lens=lens))
+    simulate(log, SimConfig(cameras=6, frames=2, width=320, height=240, lens=lens))
     run = root / lens
     assert main(["run", str(log), "-o", str(run), "-q"]) == 0
     models = {m.model for m in load_ingested(run / "ingest").models}
