@@ -25,13 +25,14 @@ $(STAMP): pyproject.toml $(VENV)/.syslibs
 install: $(STAMP)
 
 run: $(STAMP)
-	$(BIN)/surgrecon run $(SAMPLE) -o $(RUN_DIR)
+	$(BIN)/surgrecon run $(SAMPLE) -o $(RUN_DIR) --export mcap
 	@echo "report: $(abspath $(RUN_DIR))/report.html"
+	@echo "Foxglove: open $(abspath $(RUN_DIR))/export.mcap, import $(abspath $(RUN_DIR))/export.layout.json"
 
 test: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/python -m mypy
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n 2 --dist loadfile
 
 lint: $(STAMP)
 	$(BIN)/ruff check .

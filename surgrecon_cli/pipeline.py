@@ -243,11 +243,22 @@ def _record_seconds(run: RunFolder, stage: str, seconds: float) -> None:
     run.write(data)
 
 
-def run_folders_for(logs: list[Path], runs_root: Path) -> list[Path]:
+def tagged(run_dir: Path, tag: str) -> Path:
+    """`run_dir/tag` for a sweep's labelled run (`tag` one plain folder name), or `run_dir`
+    without a tag; InputError for a tag that is not a plain name."""
+    if not tag:
+        return Path(run_dir)
+    if tag in (".", "..") or "/" in tag or "\\" in tag or not tag.isprintable():
+        raise InputError(f"--tag {tag!r}: use a plain folder name (letters, digits, - _ .)")
+    return Path(run_dir) / tag
+
+
+def run_folders_for(logs: list[Path], runs_root: Path, tag: str = "") -> list[Path]:
     """One run folder per log under `runs_root`, named after the log's file name without
-    `.mcap` (a bag folder: its name); InputError when two logs would share a folder."""
+    `.mcap` (a bag folder: its name), and `tag` below it if given; InputError when two logs
+    would share a folder."""
     names = [Path(log).name.removesuffix(".mcap") for log in logs]
-    folders = [Path(runs_root) / (n if n not in ("", ".", "..") else Path(log).name)
+    folders = [tagged(Path(runs_root) / (n if n not in ("", ".", "..") else Path(log).name), tag)
                for n, log in zip(names, logs, strict=True)]
     seen: dict[Path, Path] = {}
     for log, folder in zip(logs, folders, strict=True):
@@ -261,7 +272,7 @@ def run_folders_for(logs: list[Path], runs_root: Path) -> list[Path]:
 def run_many(logs: list[Path], runs_root: Path, config: Config,
              allow_truncated: bool = False, executor: Executor | None = None,
              on_progress: Callable[[Path, str, float], None] | None = None,
-             force: bool = False) -> list[PipelineResult | SurgReconError]:
+             force: bool = False, tag: str = "") -> list[PipelineResult | SurgReconError]:
     """`run_pipeline` for each log into RUNS/NAME/, every log's frames on one executor.
 
     Logs run concurrently (one driver thread each, as many as the executor has workers),
@@ -271,8 +282,9 @@ def run_many(logs: list[Path], runs_root: Path, config: Config,
     """
     if executor is None:
         with open_executor(config) as own:
-            return run_many(logs, runs_root, config, allow_truncated, own, on_progress, force)
-    folders = run_folders_for(logs, runs_root)
+            return run_many(logs, runs_root, config, allow_truncated, own, on_progress, force,
+                            tag)
+    folders = run_folders_for(logs, runs_root, tag)
     Path(runs_root).mkdir(parents=True, exist_ok=True)
 
     def one(log: Path, folder: Path) -> PipelineResult | SurgReconError:

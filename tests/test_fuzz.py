@@ -313,7 +313,9 @@ def judge(case: Case, result: dict, baseline: dict[str, Path]) -> str:
         return f"exit {rc}, expected {case.expect}: {lines[-1][:300] if lines else ''}"
     errors = [ln for ln in lines if ln.startswith("error:")]
     if rc == 2:
-        if len(errors) != 1 or lines[-1] != errors[0]:
+        # The error is the last line but for its details (a list, one indented item each).
+        tail = lines[lines.index(errors[0]) + 1:] if len(errors) == 1 else []
+        if len(errors) != 1 or not all(ln.startswith("  ") for ln in tail):
             return f"exit 2 without exactly one final 'error:' line: {lines[-3:]}"
         if result["native_stderr"].strip():
             return f"native stderr output: {result['native_stderr'].strip()[:200]}"

@@ -36,7 +36,9 @@ STAGE_BEFORE = {  # the run-folder state a stage command starts from
     "measure": "registered",
     "report": "classified",
     "evaluate": "classified",
+    "export": "finished",
 }
+RUN_READERS = {"compare"}  # commands whose every positional argument is a finished run
 VIEWERS = {"xdg-open", "open"}  # programs an example may chain after `&&`: a file to view
 SMALL_SIMULATION = ["--frames", "2", "--width", "160", "--height", "120"]
 
@@ -107,7 +109,7 @@ def world(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     assert main(["ingest", str(log), "-o", str(states["ingested"]), "-q"]) == 0
     previous = states["ingested"]
     for state, command in [("templated", "build-template"), ("registered", "register"),
-                           ("classified", "classify")]:
+                           ("classified", "classify"), ("finished", "report")]:
         states[state] = root / state
         shutil.copytree(previous, states[state])
         assert main([command, str(states[state]), "-q"]) == 0
@@ -173,15 +175,23 @@ def _prepare(argv: list[str], world: dict[str, Path], scheduler) -> list[str]:
                 pattern_dir = Path(token).parent
                 if not pattern_dir.exists():
                     for stem in ("a", "b"):
-                        _copy_log(world, pattern_dir / f"{stem}.mcap")
+                        if name in RUN_READERS:
+                            shutil.copytree(world["finished"], pattern_dir / stem)
+                        else:
+                            _copy_log(world, pattern_dir / f"{stem}.mcap")
                 matches = sorted(glob.glob(token))
                 assert matches, f"{token}: the glob matches nothing"
                 positional += matches
                 out += matches
                 continue
             positional.append(token)
+            if name in RUN_READERS and not Path(token).exists():
+                shutil.copytree(world["finished"], token)
             if token.endswith(".mcap") and name != "simulate" and not Path(token).exists():
                 _copy_log(world, Path(token))
+            if token.endswith("/") and name in ("info", "ingest", "run") \
+                    and not Path(token).exists():  # a bag folder: the log split in one file
+                _copy_log(world, Path(token) / "part_0.mcap")
             if token.endswith(".ply") and name == "register-pair" and not Path(token).exists():
                 shutil.copy(next(plys), token)
         if option and value.endswith(".gt.npz") and not Path(value).exists():

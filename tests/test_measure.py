@@ -9,6 +9,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from surgrecon_cli.cli.main import main
 from surgrecon_cli.config import Config
@@ -92,3 +93,38 @@ def test_ground_truth_without_tool_poses_is_still_scored(copy_run, pipeline_log,
     assert part["tool_poses"] == "ingested"
     assert part["definition_vs_commanded_max_mm"] is None
     assert part["onset_error_frames"] <= 1
+
+
+def test_the_mcap_export_carries_the_measures(pipeline_run, tmp_path):
+    """`surgrecon export --mcap`: the per-frame measures on a JSON channel, the compensated
+    displacement and the deformed region as point fields of the cloud."""
+    from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
+    from mcap.reader import make_reader
+
+    from surgrecon_cli.io.artefacts import read_deformation
+    from surgrecon_cli.io.foxglove_pack import unpack_points
+
+    run_dir = pipeline_run[0]
+    out = tmp_path / "run.mcap"
+    assert main(["export", str(run_dir), "--mcap", str(out), "-q"]) == 0
+    rows, clouds = [], []
+    with out.open("rb") as f:
+        for _, channel, message in make_reader(f).iter_messages(
+                topics=["/surgrecon/deformation", "/surgrecon/cloud"]):
+            if channel.topic == "/surgrecon/deformation":
+                rows.append(json.loads(message.data))
+            else:
+                clouds.append(unpack_points(PointCloud.FromString(message.data)))
+    _, csv_rows = _rows(RunLayout(run_dir).deformation_csv)
+    assert [r["frame"] for r in rows] == list(range(len(csv_rows)))
+    for row, cells in zip(rows, csv_rows, strict=True):
+        assert "force_n" not in row  # the model is off: no value, left out
+        assert row["contact"] == int(cells["contact"])
+        assert row["indentation_mm"] == pytest.approx(float(cells["indentation_mm"]), rel=1e-5)
+    n = len(clouds[0]["point_id"])
+    measured = read_deformation(RunLayout(run_dir), (len(rows), n))
+    for k, cloud in enumerate(clouds):
+        ids = cloud["point_id"]
+        np.testing.assert_array_equal(cloud["inward_mm"], measured.field.inward_mm[k][ids])
+        np.testing.assert_array_equal(cloud["deformed"], measured.field.deformed[k][ids])
+    assert any(cloud["deformed"].any() for cloud in clouds)

@@ -62,10 +62,14 @@ def toml_string(value: str) -> str:
 
 
 def assert_one_line_error(capsys) -> str:
+    """The one error line (returned with its details, the indented lines after it, one
+    item each): a name with line breaks never breaks a line."""
     err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
-    assert err and err[-1].startswith("error: ") and "Traceback" not in "\n".join(err)
-    assert sum(ln.startswith("error:") for ln in err) == 1
-    return err[-1]
+    starts = [k for k, ln in enumerate(err) if ln.startswith("error:")]
+    assert len(starts) == 1 and "Traceback" not in "\n".join(err), err
+    details = err[starts[0] + 1:]
+    assert all(ln.startswith("  ") and not ln[2:].startswith(" ") for ln in details), err
+    return " | ".join(err[starts[0]:])
 
 
 def _weird_log(path: Path, ids: tuple[str, str], encoding: str, outside: Path,

@@ -82,3 +82,20 @@ def test_a_run_folder_of_another_log_is_refused_unless_forced(tmp_path: Path, ca
     err = capsys.readouterr().err
     assert "--force" in err and "a.mcap" in err
     assert (run / "ingest" / "frames.npz").stat().st_mtime_ns == stamp  # nothing lost
+
+
+def test_tagged_runs_of_one_log_sit_side_by_side(tmp_path: Path):
+    from surgrecon_cli.errors import InputError
+    from surgrecon_cli.pipeline import run_folders_for, tagged
+
+    assert tagged(tmp_path, "") == tmp_path and tagged(tmp_path, "a0.2") == tmp_path / "a0.2"
+    logs = [tmp_path / "x.mcap", tmp_path / "bag"]
+    assert run_folders_for(logs, tmp_path / "runs", "strict") == [
+        tmp_path / "runs" / "x" / "strict", tmp_path / "runs" / "bag" / "strict"]
+    for bad in ("..", "a/b", "a\\b", "a\nb"):
+        try:
+            tagged(tmp_path, bad)
+        except InputError as exc:
+            assert "--tag" in str(exc)
+        else:
+            raise AssertionError(f"tag {bad!r} accepted")

@@ -7,6 +7,7 @@ small margin on macro-F1 for floating-point differences between machines.
 from __future__ import annotations
 
 import json
+import time
 from pathlib import Path
 
 import numpy as np
@@ -69,3 +70,12 @@ def test_scores_meet_the_goals(sample_run):
     # labelled points, and no point without data far off is labelled.
     assert 0.85 <= ev["labels"]["calibration_2sigma"] <= 0.99
     assert ev["registration"]["unsupported_moved"] == 0
+
+
+def test_sample_export_is_fast_and_small(sample_run, tmp_path):
+    """The issue's goal for the Foxglove export of the sample: <= 5 s, <= 1.5 x the log."""
+    out = tmp_path / "sample.mcap"
+    start = time.perf_counter()
+    assert main(["export", str(sample_run), "--mcap", str(out), "-q"]) == 0
+    assert time.perf_counter() - start <= 5.0
+    assert out.stat().st_size <= 1.5 * SAMPLE.stat().st_size

@@ -27,10 +27,16 @@ from .common import common_options, executor_options, progress
 @click.option("--force", is_flag=True,
               help="Replace a run folder that holds the run of another log (refused "
                    "without it).")
+@click.option("--tag", default="", metavar="LABEL",
+              help="Write to RUN/LABEL (with several logs RUNS/NAME/LABEL), so that runs of "
+                   "one log with other settings sit side by side (`surgrecon compare`).")
+@click.option("--export", "exports", type=click.Choice(["mcap"]), multiple=True,
+              help="At the end, also write RUN/export.mcap for Foxglove (as `surgrecon "
+                   "export RUN --mcap`), with RUN/export.layout.json beside it.")
 @common_options
 @executor_options
 def run_cmd(logs: tuple[Path, ...], run_dir: Path, gt_path: Path | None, allow_truncated: bool,
-            force: bool, config: Any, quiet: bool) -> None:
+            force: bool, tag: str, exports: tuple[str, ...], config: Any, quiet: bool) -> None:
     """Run every stage on LOG: ingest, build-template, register, classify, measure, report
     (and evaluate when ground truth is available).
 
@@ -49,20 +55,27 @@ def run_cmd(logs: tuple[Path, ...], run_dir: Path, gt_path: Path | None, allow_t
     Example:
       surgrecon run sample_data/sample.mcap -o runs/sample
       surgrecon run sample_data/sample.mcap -o runs/sample --set classify.significance=0.001
+      surgrecon run sample_data/sample.mcap -o runs/sample --export mcap
+      surgrecon run sample_data/sample.mcap -o runs/sample --tag strict \\
+          --set classify.significance=0.001
       surgrecon run logs/*.mcap -o runs/ --executor processes --workers 2
       surgrecon run logs/*.mcap -o runs/ --scheduler tcp://10.0.0.5:8786
     """
-    from ..pipeline import open_executor
+    from ..pipeline import open_executor, tagged
 
     if len(logs) > 1 and gt_path is not None:
         raise InputError("--ground-truth goes with one log; with several, each log's "
                          "NAME.gt.npz beside it is used")
     with open_executor(config) as executor:
         if len(logs) == 1:
+            run_dir = tagged(run_dir, tag)
             _run_one(logs[0], run_dir, gt_path, allow_truncated, force, config, quiet,
                      executor)
+            if "mcap" in exports:
+                _export_mcap([run_dir])
         else:
-            _run_many(list(logs), run_dir, allow_truncated, force, config, quiet, executor)
+            _run_many(list(logs), run_dir, allow_truncated, force, config, quiet, executor,
+                      exports, tag)
 
 
 def _run_one(log: Path, run_dir: Path, gt_path: Path | None, allow_truncated: bool,
@@ -88,8 +101,20 @@ def _run_one(log: Path, run_dir: Path, gt_path: Path | None, allow_truncated: bo
     click.echo(f"report: {result.report}")
 
 
+def _export_mcap(run_dirs: list[Path]) -> None:
+    """`--export mcap`: RUN/export.mcap of every finished run."""
+    from ..io.export_mcap import export_mcap
+    from ..io.run_layout import RunLayout
+
+    for run_dir in run_dirs:
+        result = export_mcap(run_dir, RunLayout(run_dir).export_mcap)
+        click.echo(f"mcap: {result.path} ({result.bytes / 1e6:.1f} MB; Foxglove layout "
+                   f"{result.layout})")
+
+
 def _run_many(logs: list[Path], runs_root: Path, allow_truncated: bool, force: bool,
-              config: Any, quiet: bool, executor: Any) -> None:
+              config: Any, quiet: bool, executor: Any, exports: tuple[str, ...],
+              tag: str) -> None:
     import threading
 
     from ..pipeline import run_many
@@ -104,7 +129,7 @@ def _run_many(logs: list[Path], runs_root: Path, allow_truncated: bool, force: b
                 bar.update(max(round(sum(fractions.values()) * 100, 1) - bar.n, 0))
 
         results = run_many(logs, runs_root, config, allow_truncated=allow_truncated,
-                           executor=executor, on_progress=on_progress, force=force)
+                           executor=executor, on_progress=on_progress, force=force, tag=tag)
     failed = 0
     for log, result in zip(logs, results, strict=True):
         if isinstance(result, Exception):
@@ -116,6 +141,8 @@ def _run_many(logs: list[Path], runs_root: Path, allow_truncated: bool, force: b
         if overall:
             summary = f"  macro-F1 {overall['macro_f1']:.3f}"
         click.echo(f"{log}: report {result.report}{summary}")
+    if "mcap" in exports:
+        _export_mcap([r.run_dir for r in results if not isinstance(r, Exception)])
     if failed:
         raise InputError(f"{failed} of {len(logs)} logs failed (see above); the others are "
                          f"complete under {runs_root}")

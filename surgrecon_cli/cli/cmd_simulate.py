@@ -9,6 +9,7 @@ import click
 from click.core import ParameterSource
 
 from ..sim.conventions import CONVENTIONS
+from ..sim.scene import LENSES
 from ..sim.variants import VARIANTS
 from .common import common_options
 
@@ -27,6 +28,7 @@ _FIELDS = {
     "sweep_deg": ("sweep_deg", 1),
     "tracker_noise_mm": ("tracker_noise_pos", 1000),
     "tracker_noise_deg": ("tracker_noise_deg", 1),
+    "lens": ("lens", 1),
 }
 
 _VARIANT_HELP = "\n".join(f"  {v.name:<12} {v.description}" for v in VARIANTS.values())
@@ -89,6 +91,8 @@ def _explicit(ctx: click.Context, name: str) -> bool:
     type=click.FloatRange(0),
     help="Tracker rotation noise (RMS angle of the error).",
 )
+@click.option("--lens", type=click.Choice(LENSES), default="plumb_bob", show_default=True,
+              help="Lens distortion model of every camera (as in CameraInfo).")
 @click.option("--encoding", type=click.Choice(ENCODINGS), default="ros2", show_default=True)
 @click.option(
     "--poses",
@@ -100,6 +104,14 @@ def _explicit(ctx: click.Context, name: str) -> bool:
     "cameras in the tracker's frame; the tool in the robot's base frame. The `--set` "
     "keys to ingest it with are printed.",
 )
+@click.option(
+    "--video",
+    type=click.Choice(["h264", "h265"]),
+    default=None,
+    help="Write the camera images as foxglove.CompressedVideo of this codec instead of JPEG "
+    "(with --encoding foxglove-protobuf or foxglove-json; needs PyAV: "
+    'pip install "surgrecon[video]").',
+)
 @click.option("--separated", is_flag=True, help="Place the last camera where it shares no view.")
 @common_options
 @click.pass_context
@@ -109,6 +121,7 @@ def simulate_cmd(
     variant: str,
     encoding: str,
     poses: str,
+    video: str | None,
     config,
     quiet: bool,
     **options,
@@ -137,6 +150,9 @@ def simulate_cmd(
         cfg = variant_config(variant, **overrides)
     except ValueError as exc:
         raise click.UsageError(str(exc)) from exc
+    if video and not encoding.startswith("foxglove"):
+        raise click.UsageError(f"--video writes foxglove.CompressedVideo: use --encoding "
+                               f"foxglove-protobuf or foxglove-json, not {encoding}")
     start = time.perf_counter()
     with progress(quiet)(total=cfg.frames, desc="rendering frames", unit="frame") as bar:
         result = simulate(
@@ -146,11 +162,13 @@ def simulate_cmd(
             convention=poses,
             labels=config.labels,
             on_frame=lambda _: bar.update(1),
+            video=video,
         )
     fractions = ", ".join(f"{k} {v:.1%}" for k, v in result.class_fractions.items())
     click.echo(
         f"wrote {result.log_path} ({result.n_messages} messages, {result.n_frames} frames, "
-        f"{cfg.cameras} cameras, variant {variant}, {encoding}) in "
+        f"{cfg.cameras} cameras, variant {variant}, {encoding}"
+        f"{f', {video} video' if video else ''}) in "
         f"{time.perf_counter() - start:.1f} s"
     )
     click.echo(

@@ -82,3 +82,17 @@ def executor_options(func: Callable[..., Any]) -> Callable[..., Any]:
         return func(*args, config=config, **kwargs)
 
     return wrapper
+
+
+def quiet_options(func: Callable[..., Any]) -> Callable[..., Any]:
+    """Add --debug and --quiet (for commands that read a run's own config, not a new one)."""
+
+    @click.option("--debug", is_flag=True, expose_value=False, is_eager=True, callback=_set_debug,
+                  help="Show tracebacks and debug logging.")
+    @click.option("--quiet", "-q", is_flag=True, help="No progress bars, warnings only.")
+    @functools.wraps(func)
+    def wrapper(*args: Any, quiet: bool, **kwargs: Any) -> Any:
+        setup_logging(quiet)
+        return func(*args, quiet=quiet, **kwargs)
+
+    return wrapper

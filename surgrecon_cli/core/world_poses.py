@@ -38,6 +38,12 @@ def chain_stream(tree: TfTree, world_frame: str, frame: str, span_ns: tuple[int,
     return _stream(name, stamps, tree.lookup(world_frame, frame, stamps, max_gap_ns))
 
 
+def transformed(stream: PoseStream, pose: np.ndarray, name: str) -> PoseStream:
+    """The stream `name` left-multiplied by a fixed pose (4, 4), e.g. the robot's base in
+    the world (`tool.base_to_world`)."""
+    return _stream(name, stream.stamps_ns, pose @ make_pose(stream.positions, stream.quats))
+
+
 def stream_to_world(stream: PoseStream, name: str, frame: str, tree: TfTree | None,
                     world_frame: str, max_gap_ns: int, what: str) -> PoseStream:
     """A pose stream `name` (its topic) given in `frame`, in `world_frame`: unchanged when

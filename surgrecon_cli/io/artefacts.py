@@ -300,6 +300,18 @@ def write_frame_cloud(layout: RunLayout, frame: int, positions: np.ndarray, rgb:
                     residual=np.asarray(residual, np.float32), extra=extra)
 
 
+def read_frame_cloud(layout: RunLayout, frame: int) -> dict[str, np.ndarray]:
+    """One frame's labelled cloud as written by `write_frame_cloud`: {property: (M,)} in
+    point_id order, M <= N (points without a finite position are not in the file)."""
+    path = layout.cloud(frame)
+    if not path.is_file():
+        raise RunFolderError(f"{path}: missing; run `surgrecon classify {layout.root}` first")
+    cloud = read_ply(path)
+    if "point_id" not in cloud or "label" not in cloud:
+        raise RunFolderError(f"{path}: no point_id or label property; re-run classify")
+    return cloud
+
+
 def write_template_summary(layout: RunLayout, summary: dict[str, Any]) -> None:
     write_json(layout.template_summary, summary)
 

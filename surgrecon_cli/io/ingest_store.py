@@ -15,6 +15,7 @@ import cv2
 import numpy as np
 
 from ..core.cameras import CameraModel
+from ..core.sync import PoseStream
 from ..errors import InputError, RunFolderError
 from .atomic import write_json, write_npz
 from .run_layout import RunLayout
@@ -70,6 +71,31 @@ class IngestedLog:
         if bgr is None:
             raise InputError(f"{path}: stored image does not decode; re-run ingest")
         return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+
+
+def save_pose_streams(root: Path, cameras: list[PoseStream], tool: PoseStream) -> None:
+    """The pose streams as recorded (in the world frame, before interpolation to image
+    stamps): per camera index CC `camera_CC_{stamps_ns,positions,quats}` and `tool_*`, for
+    trajectory export (stamps ns, positions m, quaternions x y z w)."""
+    arrays = {}
+    for name, stream in [*((f"camera_{c:02d}", s) for c, s in enumerate(cameras)),
+                         ("tool", tool)]:
+        arrays[f"{name}_stamps_ns"] = stream.stamps_ns.astype(np.int64)
+        arrays[f"{name}_positions"] = stream.positions.astype(np.float64)
+        arrays[f"{name}_quats"] = stream.quats.astype(np.float64)
+    write_npz(RunLayout.ingest_streams(root), **arrays)
+
+
+def load_pose_streams(root: Path) -> dict[str, PoseStream]:
+    """{"camera_CC" | "tool": stream} as saved by `save_pose_streams` ({} for a run ingested
+    before streams were kept)."""
+    path = RunLayout.ingest_streams(root)
+    if not path.is_file():
+        return {}
+    with np.load(path, allow_pickle=False) as z:
+        names = sorted({k.rsplit("_", 2)[0] for k in z.files if k.endswith("_stamps_ns")})
+        return {n: PoseStream(z[f"{n}_stamps_ns"], z[f"{n}_positions"], z[f"{n}_quats"])
+                for n in names}
 
 
 def save_ingested(log: IngestedLog) -> None:

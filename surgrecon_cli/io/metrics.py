@@ -50,3 +50,22 @@ def _cell(value: Any) -> str:
     if isinstance(value, float | np.floating):
         return "" if not math.isfinite(float(value)) else f"{float(value):.6g}"
     return str(value)
+
+
+def read_csv(path: Path) -> list[dict[str, Any]]:
+    """Rows of a table written by `write_csv`, typed back: integers, floats, True/False as
+    bool, empty cells left out (they were NaN or None)."""
+    with open(path, encoding="utf-8", newline="") as f:
+        return [{k: _typed(v) for k, v in row.items() if v not in ("", None)}
+                for row in csv.DictReader(f)]
+
+
+def _typed(text: str) -> Any:
+    if text in ("True", "False"):
+        return text == "True"
+    for cast in (int, float):
+        try:
+            return cast(text)
+        except ValueError:
+            continue
+    return text

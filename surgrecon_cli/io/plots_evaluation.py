@@ -10,7 +10,8 @@ from matplotlib import rc_context
 from matplotlib.colors import LinearSegmentedColormap
 from matplotlib.ticker import FuncFormatter
 
-from .plots import CLASS_COLOURS, STYLE, label_frame_axes, new_figure, to_png
+from .palette import CLASS_COLOURS
+from .plots import STYLE, label_frame_axes, new_figure, to_png
 
 
 def error_over_time(frames: np.ndarray, median: np.ndarray, p95: np.ndarray, maximum: np.ndarray,

@@ -19,8 +19,14 @@
   RUN/metrics/frames.csv         one row per frame
   RUN/metrics/summary.json       the run at a glance
   RUN/report.html                the report
+  RUN/export.mcap                the Foxglove export (`run --export mcap`; layout beside it)
 
-Camera ids never become paths: image folders use the camera's index in the sorted id list.
+Exports, outside the run folder (`surgrecon export`):
+  OUT.mcap, OUT.layout.json      the Foxglove export and its layout beside it
+  DIR/camera_CC.tum, DIR/tool.tum  trajectories in TUM format
+
+Camera ids never become paths: image folders and trajectory files use the camera's index in
+the sorted id list.
 """
 
 from __future__ import annotations
@@ -165,6 +171,39 @@ class RunLayout:
     @property
     def report_html(self) -> Path:
         return self.root / "report.html"
+
+    # exports (anywhere, not in the run folder)
+    @staticmethod
+    def foxglove_layout_beside(mcap_path: Path) -> Path:
+        """The Foxglove layout written beside an exported OUT.mcap (OUT.layout.json)."""
+        return Path(mcap_path).with_suffix(".layout.json")
+
+    @staticmethod
+    def tum_camera(out_dir: Path, camera_index: int) -> Path:
+        return Path(out_dir) / f"camera_{camera_index:02d}.tum"
+
+    @staticmethod
+    def tum_tool(out_dir: Path) -> Path:
+        return Path(out_dir) / "tool.tum"
+
+    @staticmethod
+    def tum_tracker(out_dir: Path, camera_index: int) -> Path:
+        """A camera's pose stream as recorded (not synchronised to its images)."""
+        return Path(out_dir) / f"camera_{camera_index:02d}_tracker.tum"
+
+    @staticmethod
+    def tum_robot(out_dir: Path) -> Path:
+        return Path(out_dir) / "tool_robot.tum"
+
+    @staticmethod
+    def ingest_streams(ingest_dir: Path) -> Path:
+        """The pose streams as recorded, in the world frame (ingest/streams.npz)."""
+        return Path(ingest_dir) / "streams.npz"
+
+    @property
+    def export_mcap(self) -> Path:
+        """Where `surgrecon run --export mcap` writes the run's MCAP export."""
+        return self.root / "export.mcap"
 
     def relative(self, path: Path) -> str:
         """`path` relative to the run folder, with forward slashes (for the report)."""

@@ -16,6 +16,7 @@ from ..config import Config
 from ..core.labels import CLASS_NAMES, UNKNOWN
 from ..executors import Executor, Task
 from ..io import plots, plots_deformation, plots_evaluation
+from ..io.palette import CLASS_COLOURS, STATUS_COLOURS
 from .gather import CloudView, RunData
 from .metrics import CLASS_COLUMNS, STATUS_COLUMNS, Metrics, stage_seconds
 
@@ -55,12 +56,12 @@ def figure_tasks(data: RunData, metrics: Metrics, views: list[CloudView],
     if data.labels is not None:
         counts = {n: _col(rows, n) for n in CLASS_COLUMNS}
         tasks.append(Task("class-counts", partial(
-            plots.stacked_counts, np.arange(log.n_frames), counts, plots.CLASS_COLOURS,
+            plots.stacked_counts, np.arange(log.n_frames), counts, CLASS_COLOURS,
             "points per class")))
     if m is not None and log.n_frames > 1:
         counts = {n: _col(rows, n, later) for n in STATUS_COLUMNS}
         tasks.append(Task("status-counts", partial(
-            plots.stacked_counts, frames_later, counts, plots.STATUS_COLOURS,
+            plots.stacked_counts, frames_later, counts, STATUS_COLOURS,
             "reprojection-error check")))
     tasks.extend(Task(cloud_key(v.frame), _cloud_view(v)) for v in views)
     if m is not None and log.n_frames > 1:

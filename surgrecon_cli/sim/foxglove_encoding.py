@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
 from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
+from foxglove_schemas_protobuf.CompressedVideo_pb2 import CompressedVideo
 from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
 from foxglove_schemas_protobuf.JointStates_pb2 import JointStates
 from foxglove_schemas_protobuf.PoseInFrame_pb2 import PoseInFrame
@@ -27,7 +28,7 @@ from ..io.records import CameraInfoRecord, ImageRecord, JointStateRecord, PoseRe
 PROTO_CLASSES: dict[str, Any] = {
     cls.DESCRIPTOR.full_name: cls
     for cls in (CompressedImage, RawImage, CameraCalibration, PoseInFrame, FrameTransforms,
-                JointStates)
+                JointStates, CompressedVideo)
 }
 JSON_JOINT_STATES = "surgrecon.JointStates"
 
@@ -36,6 +37,11 @@ def foxglove_message(record: Record, json_mode: bool) -> tuple[str, dict[str, An
     """(schema name, message dict) of a record; the timestamp is a (sec, nsec) tuple."""
     ts = divmod(int(record.stamp_ns), 1_000_000_000)
     if isinstance(record, ImageRecord):
+        if record.format in ("h264", "h265"):
+            return "foxglove.CompressedVideo", {
+                "timestamp": ts, "frame_id": record.frame_id, "data": record.data,
+                "format": record.format,
+            }
         if record.format in ("jpeg", "png"):
             return "foxglove.CompressedImage", {
                 "timestamp": ts, "frame_id": record.frame_id, "data": record.data,

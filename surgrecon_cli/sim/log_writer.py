@@ -3,6 +3,7 @@
 record          ROS (ros2: pkg/msg/Type; ros1: pkg/Type)      Foxglove (protobuf or json)
 image jpeg/png  sensor_msgs/CompressedImage                   foxglove.CompressedImage
 image raw       sensor_msgs/Image                             foxglove.RawImage
+image h264/h265 (not in ROS encodings)                        foxglove.CompressedVideo
 camera info     sensor_msgs/CameraInfo (ROS 1: D K R P)       foxglove.CameraCalibration
 pose            geometry_msgs/PoseStamped                     foxglove.PoseInFrame
 pose + child    tf2_msgs/TFMessage                            foxglove.FrameTransforms

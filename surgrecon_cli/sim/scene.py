@@ -28,6 +28,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+LENSES = ("plumb_bob", "rational_polynomial", "equidistant")
+
 
 @dataclass(frozen=True)
 class SimConfig:
@@ -73,8 +75,12 @@ class SimConfig:
     rigid_tool_hover: float = 0.025  # tool tip height above the contact point, at least (m)
     # Sweeping cameras: pan angle reached at the last frame (deg); 0 = off.
     sweep_deg: float = 0.0
+    # Lens model of every camera: plumb_bob, rational_polynomial or equidistant (fisheye).
+    lens: str = "plumb_bob"
 
     def __post_init__(self) -> None:
+        if self.lens not in LENSES:
+            raise ValueError(f"lens must be one of {', '.join(LENSES)}, got {self.lens!r}")
         if self.stereo_baseline < 0 or self.sweep_deg < 0:
             raise ValueError("stereo_baseline and sweep_deg must be >= 0")
         if self.stereo_baseline > 0 and self.cameras < 2:

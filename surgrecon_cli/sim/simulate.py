@@ -29,6 +29,7 @@ from .motion import Motion
 from .render import Renderer, tool_mesh
 from .scene import SimConfig, make_tissue, vertex_normals
 from .texture import make_texture
+from .video import VideoEncoder
 
 T0_NS = 1_700_000_000_000_000_000  # fixed epoch so that logs are bit-for-bit reproducible
 WORLD = "world"
@@ -48,7 +49,10 @@ class SimResult:
 
 
 def camera_models(cfg: SimConfig, rng: np.random.Generator) -> list[CameraModel]:
-    """Endoscope-like intrinsics: ~70 deg horizontal field of view, mild barrel distortion."""
+    """Endoscope-like intrinsics: ~70 deg horizontal field of view, mild barrel distortion,
+    in the lens model `cfg.lens` (the same random draws for every model: plumb_bob's
+    k1 k2 p1 p2; rational_polynomial adds a denominator k4 = -k1 / 2; equidistant keeps
+    k1 k2 scaled to the fisheye model's smaller coefficients)."""
     models = []
     for _ in range(cfg.cameras):
         f = cfg.width / (2 * np.tan(np.radians(35))) * rng.uniform(0.97, 1.03)
@@ -68,7 +72,11 @@ def camera_models(cfg: SimConfig, rng: np.random.Generator) -> list[CameraModel]
                 0.0,
             ]
         )
-        models.append(CameraModel(K, dist, cfg.width, cfg.height))
+        if cfg.lens == "rational_polynomial":
+            dist = np.array([*dist, -dist[0] / 2, 0.0, 0.0])
+        elif cfg.lens == "equidistant":
+            dist = np.array([dist[0] / 4, dist[1] / 4, 0.0, 0.0])
+        models.append(CameraModel(K, dist, cfg.width, cfg.height, model=cfg.lens))
     return models
 
 
@@ -97,8 +105,9 @@ def _ns(t: float) -> int:
 class LogBuilder:
     """Builds the time-ordered message stream of one simulated recording."""
 
-    def __init__(self, cfg: SimConfig):
+    def __init__(self, cfg: SimConfig, video: str | None = None):
         self.cfg = cfg
+        self.video = video  # None: JPEG images; "h264"/"h265": CompressedVideo (sim/video.py)
         self.mesh = make_tissue(cfg)
         self.motion = Motion(cfg, self.mesh)
         rng = np.random.default_rng(cfg.seed)
@@ -161,6 +170,8 @@ class LogBuilder:
     def _image_messages(self, on_frame: Callable[[int], None] | None) -> Iterator[Message]:
         cfg, motion, mesh = self.cfg, self.motion, self.mesh
         renderer = Renderer(self.texture, cfg.image_noise, self.render_rng)
+        encoders = [VideoEncoder(self.video, cfg.width, cfg.height, cfg.frame_rate)
+                    for _ in range(cfg.cameras)] if self.video else None
         for frame, t in enumerate(self.frame_times):
             vertices = motion.tissue_vertices(t)
             normals = vertex_normals(vertices, mesh.faces)
@@ -179,32 +190,32 @@ class LogBuilder:
                     mesh.material_xy,
                     tool,
                 )
-                ok, jpeg = cv2.imencode(
-                    ".jpg",
-                    cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR),
-                    [cv2.IMWRITE_JPEG_QUALITY, cfg.jpeg_quality],
-                )
-                if not ok:  # pragma: no cover - OpenCV cannot fail on a valid uint8 image
-                    raise RuntimeError("JPEG encoding failed")
                 model = self.models[cam]
                 log_ns = _ns(stamp) + 3_000_000
                 frame_id = f"endoscope_{cam}_optical"
+                if encoders is not None:
+                    image = ImageRecord(_ns(stamp), frame_id, self.video,
+                                        encoders[cam].encode(rgb))
+                else:
+                    ok, jpeg = cv2.imencode(
+                        ".jpg",
+                        cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR),
+                        [cv2.IMWRITE_JPEG_QUALITY, cfg.jpeg_quality],
+                    )
+                    if not ok:  # pragma: no cover - OpenCV cannot fail on a valid uint8 image
+                        raise RuntimeError("JPEG encoding failed")
+                    image = ImageRecord(_ns(stamp), frame_id, "jpeg", jpeg.tobytes())
                 batch.append(
                     (
                         f"/endoscope_{cam}/calibration",
                         log_ns,
                         CameraInfoRecord(
-                            _ns(stamp), frame_id, model.width, model.height, model.K, model.dist
+                            _ns(stamp), frame_id, model.width, model.height, model.K, model.dist,
+                            model.model,
                         ),
                     )
                 )
-                batch.append(
-                    (
-                        f"/endoscope_{cam}/color/compressed",
-                        log_ns,
-                        ImageRecord(_ns(stamp), frame_id, "jpeg", jpeg.tobytes()),
-                    )
-                )
+                batch.append((f"/endoscope_{cam}/color/compressed", log_ns, image))
             batch.sort(key=lambda m: (m[1], m[0]))
             yield from batch
             if on_frame is not None:
@@ -235,11 +246,16 @@ def simulate(
     convention: str = "topics",
     labels: LabelsConfig | None = None,
     on_frame: Callable[[int], None] | None = None,
+    video: str | None = None,
 ) -> SimResult:
     """Render the log to `out` and its ground truth to `NAME.gt.npz` (both atomically), its
-    poses in `convention` (sim/conventions.py)."""
+    poses in `convention` (sim/conventions.py); `video` "h264"/"h265" writes the images as
+    foxglove.CompressedVideo (Foxglove encodings only) instead of JPEG."""
     labels = labels or LabelsConfig()
-    builder = LogBuilder(cfg)
+    if video and not encoding.startswith("foxglove"):
+        raise ValueError(f"video images are foxglove.CompressedVideo; encoding {encoding!r} "
+                         "is not a Foxglove one (foxglove-protobuf, foxglove-json)")
+    builder = LogBuilder(cfg, video)
     stream = builder.messages(on_frame)
     rewrite = CONVENTIONS[convention].rewrite
     if rewrite is not None:

@@ -27,14 +27,13 @@ from ..core.noise import pose_jitter, shared_bodies
 from ..core.sync import (
     FrameGrouping,
     PoseStream,
-    base_to_world_pose,
     group_frames,
     interpolate_values,
     poses_at,
     rate_hz,
 )
 from ..errors import InputError, RunFolderError, SurgReconError
-from ..io.ingest_store import IngestedLog, save_ingested
+from ..io.ingest_store import IngestedLog, save_ingested, save_pose_streams
 from ..io.log_input import resolve_log
 from ..io.mcap import LogReader
 from ..io.run_folder import RunFolder
@@ -89,6 +88,7 @@ def ingest(
         collector = StreamCollector(staging)
         for item in reader:
             collector.add(item)
+        collector.finish()
         reader.check_roles()
         log, report = _assemble(collector, reader, config, staging, allow_truncated)
         save_ingested(log)
@@ -216,9 +216,6 @@ def _assemble(collector: StreamCollector, reader: LogReader, config: Config, sta
 
     robot = bool(config.topics.tool_pose)
     tool_poses, tool_valid = poses_at(tool, frame_stamps, gap_ns)
-    if robot and config.tool.base_to_world:
-        tool_poses = np.einsum("ij,tjk->tik", base_to_world_pose(config.tool.base_to_world),
-                               tool_poses)
     joint_stamps, joint_values = collector.joints()
     joint_positions = interpolate_values(joint_stamps, joint_values, frame_stamps, gap_ns)
 
@@ -241,6 +238,7 @@ def _assemble(collector: StreamCollector, reader: LogReader, config: Config, sta
     elif report["tool_pose_missing"]:
         logger.warning("tool pose unknown at %d of %d frames (gap > %g ms or outside the stream)",
                        report["tool_pose_missing"], T, config.ingest.pose_gap_ms)
+    save_pose_streams(staging, pose_streams, tool)
     log = IngestedLog(
         root=staging, cameras=ids, models=tuple(cam.model for cam in cams if cam.model),
         stamps_ns=frame_stamps, image_stamps_ns=image_stamps, poses=poses, usable=usable,

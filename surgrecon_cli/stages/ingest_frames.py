@@ -15,9 +15,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..config import Config
-from ..core.sync import PoseStream
+from ..core.sync import PoseStream, base_to_world_pose
 from ..core.tf_tree import TfTree, build_tf_tree, concat_samples
-from ..core.world_poses import chain_stream, stream_to_world
+from ..core.world_poses import chain_stream, stream_to_world, transformed
 from ..errors import InputError
 from ..io.mcap import LogReader
 from ..io.mcap.transforms import read_transforms
@@ -64,8 +64,9 @@ def world_poses(ids: Sequence[str], cams: Sequence[CameraStreams], tool: Poses,
         tool_stream = _chain(tree, world, topics.tool_frame, span_ns, gap_ns,
                              f"tool (topics.tool_frame = {topics.tool_frame!r})")
         sources["tool"] = _chain_text(tree, world, topics.tool_frame)
-    elif config.tool.base_to_world:  # the tip in the robot's base frame: ingest applies it
-        tool_stream = tool.validated()
+    elif config.tool.base_to_world:  # the tip in the robot's base frame
+        tool_stream = transformed(tool.validated(), base_to_world_pose(config.tool.base_to_world),
+                                  tool.name)
         sources["tool"] = f"{tool.name} through tool.base_to_world"
     else:
         tool_stream = stream_to_world(tool.validated(), tool.name, tool.frame, tree, world,

@@ -13,10 +13,12 @@ import numpy as np
 from ..core.cameras import CameraModel
 from ..core.sync import PoseStream, validate_pose_stream
 from ..errors import GeometryError, InputError
-from ..io.images import prepare_image
+from ..io.images import StoredImage, prepare_image
 from ..io.mcap import LogItem
 from ..io.records import CameraInfoRecord, ImageRecord, JointStateRecord, PoseRecord
 from ..io.run_layout import RunLayout
+from ..io.video import CODECS as VIDEO_CODECS
+from ..io.video import VideoDecoder
 
 logger = logging.getLogger(__name__)
 
@@ -85,6 +87,7 @@ class StreamCollector:
         self.joint_topic = ""
         self.joint_stamps = array("q")
         self.joint_values = array("d")
+        self.videos: dict[str, tuple[str, VideoDecoder]] = {}  # topic -> camera, decoder
 
     def _camera(self, camera: str) -> CameraStreams:
         if camera not in self.cameras:
@@ -116,18 +119,34 @@ class StreamCollector:
     def _image(self, item: LogItem, record: ImageRecord) -> None:
         cam = self._camera(item.camera)
         cam.image_topic = cam.image_topic or item.topic
+        if record.format in VIDEO_CODECS:  # one stateful decoder per topic (io/video.py)
+            if item.topic not in self.videos:
+                self.videos[item.topic] = (item.camera, VideoDecoder(item.topic, record.format))
+            for stamp, stored in self.videos[item.topic][1].decode(record):
+                self._store(item.camera, stamp, stored)
+            return
         try:
             stored = prepare_image(record)
         except ValueError as exc:
             raise InputError(f"{item.topic}: image at stamp {fmt_stamp(record.stamp_ns)} "
                              f"does not decode ({exc})") from exc
+        self._store(item.camera, record.stamp_ns, stored)
+
+    def finish(self) -> None:
+        """At the end of the log: the frames video decoders still hold."""
+        for camera, decoder in self.videos.values():
+            for stamp, stored in decoder.flush():
+                self._store(camera, stamp, stored)
+
+    def _store(self, camera: str, stamp_ns: int, stored: StoredImage) -> None:
+        cam = self.cameras[camera]
         if cam.model is not None:
-            self._check_size(item.camera, record.stamp_ns, stored.width, stored.height)
+            self._check_size(camera, stamp_ns, stored.width, stored.height)
         rel = RunLayout.staged_relpath(cam.index, len(cam.files), stored.ext)
         path = self.root / rel
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_bytes(stored.data)
-        cam.stamps.append(record.stamp_ns)
+        cam.stamps.append(stamp_ns)
         cam.sizes.extend((stored.width, stored.height))
         cam.files.append(rel)
 

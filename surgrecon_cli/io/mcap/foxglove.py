@@ -18,6 +18,7 @@ from mcap_protobuf.decoder import DecoderFactory
 
 from ...core.distortion import distortion_model_name
 from ..records import CameraInfoRecord, ImageRecord, JointStateRecord, PoseRecord, Record
+from ..video import CODECS as VIDEO_FORMATS
 from .base import stamp_ns
 
 
@@ -97,6 +98,15 @@ def _vec(v: Any, names: str, default: tuple[float, ...]) -> np.ndarray:
 def compressed_image(msg: Any) -> list[Record]:
     return [ImageRecord(_time(msg.timestamp), msg.frame_id or "", str(msg.format or "").lower(),
                         _bytes(msg.data))]
+
+
+def compressed_video(msg: Any) -> list[Record]:
+    """One frame of a video stream, still encoded: `io/video.py` decodes it, per topic."""
+    fmt = str(msg.format or "").lower()
+    if fmt not in VIDEO_FORMATS:
+        raise ValueError(f"CompressedVideo format {fmt!r} is not supported "
+                         f"(supported: {', '.join(VIDEO_FORMATS)})")
+    return [ImageRecord(_time(msg.timestamp), msg.frame_id or "", fmt, _bytes(msg.data))]
 
 
 def raw_image(msg: Any) -> list[Record]:

@@ -38,6 +38,7 @@ DECODERS: dict[tuple[str, str], SchemaDecoder] = {
     # Foxglove, protobuf
     ("protobuf", "foxglove.CompressedImage"): SchemaDecoder("image", foxglove.compressed_image),
     ("protobuf", "foxglove.RawImage"): SchemaDecoder("image", foxglove.raw_image),
+    ("protobuf", "foxglove.CompressedVideo"): SchemaDecoder("image", foxglove.compressed_video),
     ("protobuf", "foxglove.CameraCalibration"): SchemaDecoder(
         "camera_info", foxglove.camera_calibration
     ),
@@ -50,6 +51,7 @@ DECODERS: dict[tuple[str, str], SchemaDecoder] = {
     # Foxglove, JSON
     ("json", "foxglove.CompressedImage"): SchemaDecoder("image", foxglove.compressed_image),
     ("json", "foxglove.RawImage"): SchemaDecoder("image", foxglove.raw_image),
+    ("json", "foxglove.CompressedVideo"): SchemaDecoder("image", foxglove.compressed_video),
     ("json", "foxglove.CameraCalibration"): SchemaDecoder(
         "camera_info", foxglove.camera_calibration
     ),
