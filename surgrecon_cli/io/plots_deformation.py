@@ -32,25 +32,24 @@ def deformation_over_time(frames: np.ndarray, contact: np.ndarray, depth_mm: np.
     panels = 3 if force_n is not None else 2
     with rc_context(STYLE):
         # fixed margins, not the constrained layout: it draws every figure twice
-        fig = Figure(figsize=(4.0 * panels + 1.0, 3.0))
-        fig.subplots_adjust(left=0.07 if panels == 2 else 0.05, right=0.98, bottom=0.16,
-                            top=0.9, wspace=0.28)
+        fig = Figure(figsize=(4.2 * panels + 1.0, 3.4))
+        fig.subplots_adjust(left=0.07 if panels == 2 else 0.05, right=0.98, bottom=0.27,
+                            top=0.92, wspace=0.25)
         axes = fig.subplots(1, panels)
         ax = axes[0]
         _shade_contact(ax, frames, contact)
         lo, hi = depth_mm - 2 * depth_sigma_mm, depth_mm + 2 * depth_sigma_mm
         ax.fill_between(frames, lo, hi, color="#dbe6f1", label="±2σ", linewidth=0)
-        ax.plot(frames, depth_mm, color="#1f3b5a", marker="o", ms=3,
-                label="measured (compensated displacement)")
+        ax.plot(frames, depth_mm, color="#1f3b5a", marker="o", ms=3, label="measured")
         ax.plot(frames, penetration_mm, color="#D1495B", linestyle="--", marker=".",
-                label="tool tip below the frame-0 surface (kinematics)")
+                label="tip below frame-0 surface (kinematics)")
         if true_depth_mm is not None:
             ax.plot(frames, true_depth_mm, "kx", ms=5, label="truth")
         top = np.nanmax(np.concatenate([depth_mm, hi, [1.0]]))
         ax.set_ylim(min(-1.0, float(np.nanmin(np.concatenate([depth_mm, [0.0]])) - 0.5)),
                     float(top) * 1.15 + 0.2)
         label_frame_axes(ax, frames, "mm along the tool axis", "indentation at the tool tip")
-        ax.legend(loc="upper left", fontsize=7)
+        ax.legend(loc="upper left", bbox_to_anchor=(-0.02, -0.17), ncol=2, fontsize=7)
         ax = axes[1]
         _shade_contact(ax, frames, contact)
         ax.plot(frames, area_mm2, color="#59A14F", marker="o", ms=3, label="measured")
@@ -58,7 +57,7 @@ def deformation_over_time(frames: np.ndarray, contact: np.ndarray, depth_mm: np.
             ax.plot(frames, true_area_mm2, "kx", ms=5, label="truth")
         ax.set_ylim(bottom=0)
         label_frame_axes(ax, frames, "mm²", "deformed area")
-        ax.legend(loc="upper left", fontsize=7)
+        ax.legend(loc="upper left", bbox_to_anchor=(-0.02, -0.17), ncol=2, fontsize=7)
         if force_n is not None:
             ax = axes[2]
             _shade_contact(ax, frames, contact)
@@ -66,6 +65,9 @@ def deformation_over_time(frames: np.ndarray, contact: np.ndarray, depth_mm: np.
             ax.set_ylim(bottom=0)
             label_frame_axes(ax, frames, "N (model output)", "force proxy")
             ax.text(0.02, 0.97, force_label, transform=ax.transAxes, fontsize=7, va="top")
+        step = max(int(np.ceil(len(frames) / 10)), 1)  # narrow panels: at most ~10 ticks
+        for ax in axes:
+            ax.set_xticks(frames[::step])
         return to_png(fig)
 
 
