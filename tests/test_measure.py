@@ -31,8 +31,8 @@ def test_measures_of_the_simulated_run_match_its_truth(pipeline_run):
     """The 6-frame log: the tool hovers 12 mm above the tissue at frame 0, presses 1.2 mm at
     frame 1, 7 mm at frames 2-4, easing to 5.9 mm at frame 5. Measured (320 x 240 images, a
     sparse template of 376 points): contact from frame 1 to the end as in the truth;
-    indentation error median 0.05 mm, max 0.13 mm; deformed area error median 1.7 % (434-454
-    vs 396-437 mm² at 5.8-7 mm; none at the 1.2 mm onset frame, where the truth has 44 mm²:
+    indentation error median 0.04 mm, max 0.13 mm; deformed area error median 1.3 % (400-454
+    vs 395-435 mm² at 5.8-7 mm; none at the 1.2 mm onset frame, where the truth has 44 mm²:
     the dent barely reaches the 1 mm threshold). Bounds: the issue's goals."""
     run_dir, result = pipeline_run
     assert result.actions["measure"] == "ran"
