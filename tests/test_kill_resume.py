@@ -146,6 +146,7 @@ def _outputs(run: Path, n_frames: int) -> dict[str, list[Path]]:
         "register": reg,
         "classify": [run / "classify" / "labels.npz",
                      *(run / "clouds" / f"{k:06d}.ply" for k in range(n_frames))],
+        "measure": [run / "measure" / "deformation.npz", run / "metrics" / "deformation.csv"],
         "evaluate": [run / "metrics" / "evaluation.json",
                      run / "metrics" / "evaluation_errors.npz"],
         "report": [run / "report.html", run / "metrics" / "frames.csv",

@@ -28,7 +28,11 @@ def small_log(tmp_path_factory):
 
 def test_ground_truth_file_matches_the_spec(small_log):
     with np.load(small_log.gt_path, allow_pickle=False) as gt:
-        assert set(gt.files) == {"faces", "vertices", "labels", "stamps_ns"}
+        assert set(gt.files) == {"faces", "vertices", "labels", "stamps_ns", "tool_poses",
+                                 "indentation_m"}
+        assert gt["tool_poses"].shape == (SMALL.frames, 4, 4)
+        assert gt["indentation_m"].shape == (SMALL.frames,)
+        assert (gt["indentation_m"] >= 0).all()
         faces, vertices, labels, stamps = gt["faces"], gt["vertices"], gt["labels"], gt["stamps_ns"]
     assert faces.dtype == np.int32 and faces.shape[1] == 3
     assert vertices.dtype == np.float64 and vertices.shape[0] == SMALL.frames
