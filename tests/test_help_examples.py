@@ -170,6 +170,10 @@ def _prepare(argv: list[str], world: dict[str, Path], scheduler) -> list[str]:
             Path(value).write_text(text, encoding="utf-8")
         if option == "--landmarks" and not Path(value).exists():
             _write_landmarks(Path(value), world)
+        if option == "--pairs" and not Path(value).exists():
+            for ply in ("first.ply", "last.ply"):
+                shutil.copy(next(plys), Path(value).parent / ply)
+            Path(value).write_text("first.ply last.ply\n", encoding="utf-8")
         if option is None and not token.startswith("-"):
             if any(c in token for c in "*?["):
                 pattern_dir = Path(token).parent
@@ -194,6 +198,9 @@ def _prepare(argv: list[str], world: dict[str, Path], scheduler) -> list[str]:
                 _copy_log(world, Path(token) / "part_0.mcap")
             if token.endswith(".ply") and name == "register-pair" and not Path(token).exists():
                 shutil.copy(next(plys), token)
+            if token.endswith("/") and name == "register-pair" and not Path(token).exists():
+                Path(token).mkdir(parents=True)  # a folder of clouds: one, same name in both
+                shutil.copy(next(plys), Path(token) / "cloud.ply")
         if option and value.endswith(".gt.npz") and not Path(value).exists():
             Path(value).parent.mkdir(parents=True, exist_ok=True)
             shutil.copy(world["gt"], value)

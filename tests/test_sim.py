@@ -76,3 +76,11 @@ def test_label_rule_on_synthetic_motions():
     centre = np.linalg.norm(ref[:, :2], axis=1) < 0.002
     assert (labels[centre] == DEFORMING).all()
     assert (labels[np.linalg.norm(ref[:, :2], axis=1) > 0.015] == STATIC).all()
+
+
+def test_pose_convention_names_match_the_conventions():
+    """The CLI's light list of convention names is the simulator's table, in order."""
+    from surgrecon_cli.sim.conventions import CONVENTIONS
+    from surgrecon_cli.sim.names import POSE_CONVENTIONS
+
+    assert tuple(CONVENTIONS) == POSE_CONVENTIONS

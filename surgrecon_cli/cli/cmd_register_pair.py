@@ -1,4 +1,5 @@
-"""`surgrecon register-pair SRC.ply DST.ply -o OUT.ply`: non-rigid registration of two clouds."""
+"""`surgrecon register-pair`: non-rigid registration of two clouds, or of many pairs in one
+process (a list file, or two folders of same-named PLYs)."""
 
 from __future__ import annotations
 
@@ -12,71 +13,109 @@ from .common import common_options, progress
 
 log = logging.getLogger(__name__)
 
+SUMMARY_COLUMNS = ("source", "target", "output", "source_points", "target_points",
+                   "residual_median_mm", "residual_p95_mm", "outliers", "seconds", "error")
 
-def _read_indices_csv(path: Path) -> Any:
-    """(L, 2) int array from a CSV of `src_index,dst_index` rows (an optional header)."""
+
+def _register_one(job: Any, cfg: Any, *, use_ids: bool, landmarks: Path | None = None,
+                  weights: Path | None = None, bar: Any = None) -> tuple[Any, Any, dict[str, Any]]:
+    """Read, register and write one pair; returns (source cloud, result, summary row)."""
+    import time
+
     import numpy as np
 
     from ..errors import InputError
+    from ..io.pair_inputs import read_cloud, read_landmarks, read_weights
+    from ..io.ply import write_cloud_ply
+    from ..registration import register
 
-    try:
-        lines = path.read_text(encoding="utf-8").splitlines()
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"{path}: cannot read landmarks ({exc})") from exc
-    rows = []
-    for number, line in enumerate(lines, 1):
-        text = line.split("#", 1)[0].strip()
-        if not text:
-            continue
-        parts = [p.strip() for p in text.split(",")]
-        if len(parts) != 2 or not all(p.lstrip("-").isdigit() for p in parts):
-            if not rows and number == 1:  # a header line
+    src, dst = read_cloud(job.source), read_cloud(job.target)
+    lm = read_landmarks(landmarks, len(src.xyz), len(dst.xyz)) if landmarks else None
+    w = read_weights(weights, len(src.xyz)) if weights else None
+    target_ids = None
+    if use_ids:
+        if dst.point_id is None:
+            raise InputError(f"{job.target}: --use-ids needs a 'point_id' vertex property")
+        target_ids = np.where(dst.point_id < len(src.xyz), dst.point_id, -1).astype(np.int64)
+
+    def on_step(step: int, state: dict[str, Any]) -> None:
+        if bar is not None and "median_residual_mm" in state:
+            bar.set_postfix(median_mm=f"{state['median_residual_mm']:.3f}")
+
+    start = time.perf_counter()
+    result = register(src.xyz, dst.xyz, src.rgb, dst.rgb, cfg, target_ids=target_ids,
+                      weights=w, landmarks=lm, callback=on_step)
+    seconds = time.perf_counter() - start
+    ids = src.point_id if src.point_id is not None else np.arange(len(src.xyz))
+    write_cloud_ply(job.output, result.registered, rgb=src.rgb, point_id=ids,
+                    residual=result.residuals,
+                    extra={"correspondence": result.correspondences.astype(np.int32),
+                           "outlier": result.outliers.astype(np.uint8)})
+    res_mm = result.residuals[np.isfinite(result.residuals)] * 1e3
+    row = {"source": str(job.source), "target": str(job.target), "output": str(job.output),
+           "source_points": len(src.xyz), "target_points": len(dst.xyz),
+           "residual_median_mm": float(np.median(res_mm)) if res_mm.size else float("nan"),
+           "residual_p95_mm": float(np.percentile(res_mm, 95)) if res_mm.size else float("nan"),
+           "outliers": int(result.outliers.sum()), "seconds": seconds, "error": ""}
+    return src, result, row
+
+
+def _summary_line(row: dict[str, Any]) -> str:
+    return (f"registered {row['source_points']} points onto {row['target_points']}: residual "
+            f"median {row['residual_median_mm']:.3f} mm, p95 {row['residual_p95_mm']:.3f} mm, "
+            f"{row['outliers']} outliers, {row['seconds']:.2f} s -> {row['output']}")
+
+
+def _batch_jobs(source: Path | None, target: Path | None, pairs: Path | None,
+                output: Path) -> list[Any] | None:
+    """The batch's pairs, or None for a single pair (SOURCE and TARGET files)."""
+    from ..io.pair_inputs import pairs_from_folders, pairs_from_list
+
+    if pairs is not None:
+        if source is not None or target is not None:
+            raise click.UsageError("give either SOURCE TARGET or --pairs LIST, not both")
+        return pairs_from_list(pairs, output)
+    if source is None or target is None:
+        raise click.UsageError("give SOURCE and TARGET (files or folders), or --pairs LIST")
+    if source.is_dir() != target.is_dir():
+        raise click.UsageError("SOURCE and TARGET must both be files or both be folders")
+    return pairs_from_folders(source, target, output) if source.is_dir() else None
+
+
+def _run_batch(jobs: list[Any], output: Path, cfg: Any, use_ids: bool, quiet: bool) -> None:
+    """Register every pair in this process; a failing pair is recorded and the rest go on.
+    OUT/pairs.csv (written last, atomically) has one row per pair."""
+    from ..errors import InputError, SurgReconError
+    from ..io.metrics import write_csv
+
+    rows, failed = [], []
+    with progress(quiet)(jobs, desc="register-pair", unit="pair") as bar:
+        for job in bar:
+            try:
+                rows.append(_register_one(job, cfg, use_ids=use_ids, bar=bar)[2])
+            except SurgReconError as exc:
+                failed.append(f"{job.source} -> {job.target}: {exc}")
+                rows.append({"source": str(job.source), "target": str(job.target),
+                             "output": "", "error": str(exc)})
                 continue
-            raise InputError(f"{path}:{number}: expected 'src_index,dst_index', got {line!r}")
-        rows.append((int(parts[0]), int(parts[1])))
-    return np.array(rows, dtype=np.int64).reshape(-1, 2)
-
-
-def _read_weights(path: Path, n: int) -> Any:
-    import numpy as np
-
-    from ..errors import InputError
-
-    try:
-        values = np.loadtxt(path, dtype=float, ndmin=1, comments="#", delimiter=",")
-    except (OSError, ValueError) as exc:
-        raise InputError(f"{path}: cannot read weights ({exc})") from exc
-    if values.shape != (n,):
-        raise InputError(f"{path}: expected {n} weights (one per source point), got {values.size}")
-    bad = np.flatnonzero(~np.isfinite(values) | (values < 0))
-    if bad.size:
-        raise InputError(f"{path}: weight {bad[0] + 1} is {values[bad[0]]}; weights must be "
-                         "finite and >= 0")
-    return values
-
-
-def _cloud(path: Path) -> tuple[Any, Any, Any]:
-    """xyz (N, 3) float64, rgb (N, 3) uint8 or None, point_id (N,) or None, from a PLY."""
-    import numpy as np
-
-    from ..io.ply import read_ply
-
-    props = read_ply(path)
-    xyz = np.stack([props["x"], props["y"], props["z"]], axis=1).astype(float)
-    rgb = None
-    if {"red", "green", "blue"} <= props.keys():
-        rgb = np.stack([props["red"], props["green"], props["blue"]], axis=1)
-        if not np.issubdtype(rgb.dtype, np.integer):
-            rgb = np.clip(rgb, 0, 1) * 255
-        rgb = rgb.astype(np.uint8)
-    return xyz, rgb, props.get("point_id")
+            log.info("%s", _summary_line(rows[-1]))
+    write_csv(output / "pairs.csv", SUMMARY_COLUMNS, rows)
+    done = [r for r in rows if not r["error"]]
+    seconds = sum(r["seconds"] for r in done)
+    click.echo(f"registered {len(done)} of {len(jobs)} pairs in {seconds:.2f} s of registration "
+               f"-> {output} (summary {output / 'pairs.csv'})")
+    if failed:
+        raise InputError(f"{len(failed)} of {len(jobs)} pairs failed; the others are written",
+                         details=tuple(failed))
 
 
 @click.command("register-pair")
-@click.argument("source", type=click.Path(exists=True, dir_okay=False, path_type=Path))
-@click.argument("target", type=click.Path(exists=True, dir_okay=False, path_type=Path))
-@click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path), required=True,
-              help="Registered source cloud (PLY).")
+@click.argument("source", required=False, type=click.Path(exists=True, path_type=Path))
+@click.argument("target", required=False, type=click.Path(exists=True, path_type=Path))
+@click.option("-o", "--output", type=click.Path(path_type=Path), required=True,
+              help="Registered source cloud (PLY); a folder for a batch.")
+@click.option("--pairs", type=click.Path(exists=True, dir_okay=False, path_type=Path),
+              help="Batch: a text file of 'SOURCE TARGET [OUTPUT]' lines, paths relative to it.")
 @click.option("--apply", "apply_path", type=click.Path(exists=True, dir_okay=False,
               path_type=Path), help="Also move this cloud with the registration's transforms.")
 @click.option("--apply-out", type=click.Path(dir_okay=False, path_type=Path),
@@ -88,66 +127,46 @@ def _cloud(path: Path) -> tuple[Any, Any, Any]:
 @click.option("--use-ids", is_flag=True,
               help="Target 'point_id' values are source indices (known correspondences).")
 @common_options
-def register_pair_cmd(source: Path, target: Path, output: Path, apply_path: Path | None,
-                      apply_out: Path | None, landmarks: Path | None, weights: Path | None,
-                      use_ids: bool, config: Any, quiet: bool) -> None:
+def register_pair_cmd(source: Path | None, target: Path | None, output: Path,
+                      pairs: Path | None, apply_path: Path | None, apply_out: Path | None,
+                      landmarks: Path | None, weights: Path | None, use_ids: bool, config: Any,
+                      quiet: bool) -> None:
     """Register SOURCE non-rigidly onto TARGET (sparse l1 energy, ADMM; Su et al. 2019).
 
     Writes SOURCE moved onto TARGET with its colours, point_id, residual (m) and the extra
     properties `correspondence` (target index, -1 = none) and `outlier` (0/1).
 
+    Many pairs run in one process (imports and start-up paid once): SOURCE and TARGET
+    folders register every NAME.ply onto the same-named target into the folder -o, or
+    --pairs LIST names the pairs; OUT/pairs.csv sums them up, and a pair that fails is
+    recorded there while the others go on (exit 2 if any failed).
+
     \b
-    Example:
+    Examples:
       surgrecon register-pair frame0.ply frame7.ply -o frame0_on_7.ply \\
           --landmarks pairs.csv --set registration.alpha=0.1
+      surgrecon register-pair before/ after/ -o registered/
+      surgrecon register-pair --pairs pairs.txt -o registered/
     """
-    import time
-
-    import numpy as np
-
-    from ..errors import InputError
-    from ..io.ply import write_cloud_ply
-    from ..registration import apply_transforms, register
-
-    src, src_rgb, src_ids = _cloud(source)
-    dst, dst_rgb, dst_ids = _cloud(target)
-    lm = _read_indices_csv(landmarks) if landmarks else None
-    if lm is not None and lm.size and (lm.min() < 0 or lm[:, 0].max() >= len(src)
-                                       or lm[:, 1].max() >= len(dst)):
-        raise InputError(f"{landmarks}: indices must be in 0..{len(src) - 1} (source) and "
-                         f"0..{len(dst) - 1} (target)")
-    w = _read_weights(weights, len(src)) if weights else None
-    target_ids = None
-    if use_ids:
-        if dst_ids is None:
-            raise InputError(f"{target}: --use-ids needs a 'point_id' vertex property")
-        target_ids = np.where(dst_ids < len(src), dst_ids, -1).astype(np.int64)
+    jobs = _batch_jobs(source, target, pairs, output)
     cfg = config.registration
-    t0 = time.perf_counter()
-    with progress(quiet)(total=cfg.outer_iterations + 1, desc="register", unit="step") as bar:
+    if jobs is not None:
+        if landmarks or weights or apply_path:
+            raise click.UsageError("--landmarks, --weights and --apply take a single pair")
+        _run_batch(jobs, output, cfg, use_ids, quiet)
+        return
+    from ..io.pair_inputs import PairJob, read_cloud
+    from ..io.ply import write_cloud_ply
+    from ..registration import apply_transforms
 
-        def on_step(step: int, state: dict[str, Any]) -> None:
-            bar.update(1)
-            if "median_residual_mm" in state:
-                bar.set_postfix(median_mm=f"{state['median_residual_mm']:.3f}")
-
-        result = register(src, dst, src_rgb, dst_rgb, cfg, target_ids=target_ids,
-                          weights=w, landmarks=lm, callback=on_step)
-    seconds = time.perf_counter() - t0
-    ids = src_ids if src_ids is not None else np.arange(len(src))
-    write_cloud_ply(output, result.registered, rgb=src_rgb, point_id=ids,
-                    residual=result.residuals,
-                    extra={"correspondence": result.correspondences.astype(np.int32),
-                           "outlier": result.outliers.astype(np.uint8)})
+    assert source is not None and target is not None
+    with progress(quiet)(total=1, desc="register", unit="pair") as bar:
+        src, result, row = _register_one(PairJob(source, target, output), cfg, use_ids=use_ids,
+                                         landmarks=landmarks, weights=weights, bar=bar)
     if apply_path is not None:
-        other, other_rgb, other_ids = _cloud(apply_path)
-        moved = apply_transforms(result, src, other)
+        other = read_cloud(apply_path)
+        moved = apply_transforms(result, src.xyz, other.xyz)
         out = apply_out or output.parent / f"{apply_path.stem}.registered.ply"
-        write_cloud_ply(out, moved, rgb=other_rgb, point_id=other_ids)
-        log.info("moved %d points of %s -> %s", len(other), apply_path, out)
-    res_mm = result.residuals[np.isfinite(result.residuals)] * 1e3
-    med = float(np.median(res_mm)) if res_mm.size else float("nan")
-    p95 = float(np.percentile(res_mm, 95)) if res_mm.size else float("nan")
-    click.echo(f"registered {len(src)} points onto {len(dst)}: residual median {med:.3f} mm, "
-               f"p95 {p95:.3f} mm, {int(result.outliers.sum())} outliers, {seconds:.2f} s "
-               f"-> {output}")
+        write_cloud_ply(out, moved, rgb=other.rgb, point_id=other.point_id)
+        log.info("moved %d points of %s -> %s", len(other.xyz), apply_path, out)
+    click.echo(_summary_line(row))

@@ -8,8 +8,7 @@ from pathlib import Path
 import click
 from click.core import ParameterSource
 
-from ..sim.conventions import CONVENTIONS
-from ..sim.scene import LENSES
+from ..sim.names import LENSES, POSE_CONVENTIONS
 from ..sim.variants import VARIANTS
 from .common import common_options
 
@@ -96,7 +95,7 @@ def _explicit(ctx: click.Context, name: str) -> bool:
 @click.option("--encoding", type=click.Choice(ENCODINGS), default="ros2", show_default=True)
 @click.option(
     "--poses",
-    type=click.Choice(list(CONVENTIONS)),
+    type=click.Choice(POSE_CONVENTIONS),
     default="topics",
     show_default=True,
     help="How the log gives the camera and tool poses: PoseStamped per topic in world; "
@@ -174,6 +173,8 @@ def simulate_cmd(
     click.echo(
         f"ground truth {result.gt_path}; classes over frames 1..{cfg.frames - 1}: {fractions}"
     )
+    from ..sim.conventions import CONVENTIONS
+
     settings = CONVENTIONS[poses].settings
     if settings:
         click.echo("ingest it with: " + " ".join(f"--set '{s}'" for s in settings))

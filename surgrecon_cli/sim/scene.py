@@ -28,7 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-LENSES = ("plumb_bob", "rational_polynomial", "equidistant")
+from .names import LENSES
 
 
 @dataclass(frozen=True)
