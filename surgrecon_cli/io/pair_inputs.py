@@ -51,7 +51,7 @@ def read_landmarks(path: Path, n_source: int, n_target: int) -> np.ndarray:
         lines = path.read_text(encoding="utf-8").splitlines()
     except (OSError, UnicodeDecodeError) as exc:
         raise InputError(f"{path}: cannot read landmarks ({exc})") from exc
-    rows = []
+    rows: list[tuple[int, int]] = []
     for number, line in enumerate(lines, 1):
         text = line.split("#", 1)[0].strip()
         if not text:
@@ -126,7 +126,7 @@ def pairs_from_folders(source_dir: Path, target_dir: Path, out_dir: Path) -> lis
     missing = sorted(set(sources) - set(targets))
     if missing:
         raise InputError(f"{target_dir}: no target for {len(missing)} source cloud(s) of "
-                         f"{source_dir} (same file name expected)", details=missing)
+                         f"{source_dir} (same file name expected)", details=tuple(missing))
     return [PairJob(sources[name], targets[name], out_dir / name) for name in sources]
 
 
