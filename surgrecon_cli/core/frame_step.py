@@ -33,6 +33,7 @@ from .registration import RegistrationResult, register
 from .target import TargetCloud, build_target, new_target_points
 from .template import build_template
 from .tool import push_out_of_tool
+from .tracking import TrackingView
 
 
 @dataclass(frozen=True)
@@ -53,7 +54,8 @@ class FrameResult:
     """One registered frame: transforms (N, 3, 4) from the frame-0 template, registered
     (N, 3) m, sigma (N,) m (module docstring), residual (N,) m to the point's target (NaN
     without one), support_mm (N,) frame-0 distance to the nearest point with a target; the
-    target cloud; counts and timings."""
+    target cloud; counts (registrations: solves run, 2+ when the contact prediction
+    missed) and timings."""
 
     transforms: np.ndarray
     registered: np.ndarray
@@ -63,6 +65,7 @@ class FrameResult:
     target: TargetCloud
     new_points: int
     contact_points: int
+    registrations: int
     converged: bool
     seconds_target: float
     seconds_register: float
@@ -82,7 +85,7 @@ def unregistered(n_points: int, n_cams: int) -> FrameResult:
         transforms=np.full((n_points, 3, 4), np.nan), registered=nan3,
         sigma=np.full(n_points, np.inf), residual=np.full(n_points, np.nan),
         support_mm=np.full(n_points, np.inf), target=target, new_points=0, contact_points=0,
-        converged=False, seconds_target=0.0, seconds_register=0.0)
+        registrations=0, converged=False, seconds_target=0.0, seconds_register=0.0)
 
 
 def compose(outer: np.ndarray, inner: np.ndarray) -> np.ndarray:
@@ -109,23 +112,43 @@ def data_weights(target: TargetCloud, has_new: bool) -> np.ndarray:
     return weights
 
 
+def predicted_positions(source: np.ndarray, target_xyz: np.ndarray, target_ids: np.ndarray,
+                        k: int) -> np.ndarray:
+    """Where the registration will roughly put each source point (N, 3) m: moved by the
+    inverse-distance blend of the displacements (target - source) of its k nearest points
+    with a known target (target_ids >= 0; their own displacement for themselves). With no
+    such point: the source itself."""
+    known = target_ids >= 0
+    if not known.any():
+        return np.array(source, dtype=float)
+    anchors = target_ids[known]
+    shift = target_xyz[known] - source[anchors]
+    k = min(k, len(anchors))
+    d, j = cKDTree(source[anchors]).query(source, k=k)
+    d, j = d.reshape(len(source), k), j.reshape(len(source), k)
+    w = 1.0 / np.maximum(d, 1e-9)
+    return source + np.einsum("nk,nkj->nj", w / w.sum(1, keepdims=True), shift[j])
+
+
 def register_with_contact(source: np.ndarray, source_rgb: np.ndarray, target_xyz: np.ndarray,
                           target_rgb: np.ndarray, target_ids: np.ndarray, weights: np.ndarray,
                           tool_pose: np.ndarray, config: Config,
-                          passes: int = 2) -> tuple[RegistrationResult, int]:
-    """Register, then keep the tissue out of the tool (robot kinematics, Su et al. 2019
-    section II.C): points without data (unobserved: under the tool, hidden by it) that the
-    registration leaves inside the tool's capsule get a target on the capsule's surface,
-    pushed along the shaft, and the registration is run again (up to `passes` times).
-    Returns the result and the number of such contact points."""
-    result = register(source, target_xyz, source_rgb=source_rgb, target_rgb=target_rgb,
-                      config=config.registration, target_ids=target_ids, weights=weights)
+                          passes: int = 2) -> tuple[RegistrationResult, int, int]:
+    """Register with the tissue kept out of the tool (robot kinematics, Su et al. 2019
+    section II.C): points without data (unobserved: under the tool, hidden by it) that lie
+    inside the tool's capsule get a target on the capsule's surface, pushed along the shaft.
+    Which points those are is predicted before the solve (`predicted_positions`: moved with
+    their tracked neighbours), so that one registration carries the contact; only points the
+    result still leaves inside (a miss of the prediction) are added and the registration is
+    run again (up to `passes` more times). Returns the result, the number of contact points
+    and the number of registrations run."""
     contact = np.zeros(len(source), bool)
-    for _ in range(passes):
-        inside, pushed = push_out_of_tool(result.registered, tool_pose, config.tool)
-        new = inside & (weights == 0) & ~contact
-        if not new.any():
-            break
+    guess = predicted_positions(source, target_xyz, target_ids,
+                                config.registration.interp_neighbors)
+    inside, pushed = push_out_of_tool(guess, tool_pose, config.tool)
+    solves = 0
+    while True:
+        new = inside & (weights == 0)
         contact |= new
         fresh = np.flatnonzero(new)
         target_xyz = np.concatenate([target_xyz, pushed[fresh]])
@@ -134,7 +157,10 @@ def register_with_contact(source: np.ndarray, source_rgb: np.ndarray, target_xyz
         weights = np.where(new, 1.0, weights)
         result = register(source, target_xyz, source_rgb=source_rgb, target_rgb=target_rgb,
                           config=config.registration, target_ids=target_ids, weights=weights)
-    return result, int(contact.sum())
+        solves += 1
+        inside, pushed = push_out_of_tool(result.registered, tool_pose, config.tool)
+        if solves > passes or not (inside & (weights == 0)).any():
+            return result, int(contact.sum()), solves
 
 
 def registered_sigma(template: np.ndarray, template_sigma: np.ndarray, registered: np.ndarray,
@@ -165,34 +191,38 @@ def register_frame_step(
     template_rgb: np.ndarray,
     template_cov: np.ndarray,
     base: BaseState,
-    base_images: list[np.ndarray | None],
+    base_views: list[TrackingView | None],
     base_poses: np.ndarray,
-    images: list[np.ndarray | None],
+    views: list[TrackingView | None],
     poses: np.ndarray,
     models: list[CameraModel],
     tool_pose: np.ndarray,
     noise: NoiseModel,
     config: Config,
-    add_new_points: bool,
+    new_point_images: list[np.ndarray | None] | None = None,
     template_pose_cov: np.ndarray | None = None,
 ) -> FrameResult:
     """Target cloud and registration of one frame against its base.
 
     template (N, 3) m frame-0 points, rgb (N, 3) uint8, covariances (N, 3, 3) m² (of which
-    template_pose_cov from the cameras' pose errors); images
-    per camera (H, W, 3) uint8 or None; poses (C, 4, 4) camera-to-world, NaN where unusable;
-    tool_pose (4, 4) in the world (NaN = unknown). Raises GeometryError when the frame
-    cannot be registered (e.g. too few tracked points)."""
+    template_pose_cov from the cameras' pose errors); base_views / views: per camera the
+    base's and this frame's images prepared for tracking (core/tracking.tracking_view;
+    None where unusable); poses (C, 4, 4) camera-to-world, NaN where unusable; tool_pose
+    (4, 4) in the world (NaN = unknown); new_point_images: this frame's RGB images (H, W, 3)
+    uint8 when new features are to be triangulated into the target (None: not this frame).
+    Raises GeometryError when the frame cannot be registered (e.g. too few tracked
+    points)."""
     start = time.perf_counter()
-    target = build_target(template, template_cov, base.latest, base_images, images,
+    target = build_target(template, template_cov, base.latest, base_views, views,
                           base_poses, poses, base.pixels, models, tool_pose, noise,
                           config.target, config.tool, template_pose_cov)
     has_target = (target.status == INTRA) | (target.status == INTER)
     ids = np.flatnonzero(has_target)
     target_xyz, target_rgb = target.positions[ids], template_rgb[ids]
     n_new = 0
-    if add_new_points:
-        new_xyz, new_rgb = _new_points(images, poses, models, tool_pose, target_xyz, config)
+    if new_point_images is not None:
+        new_xyz, new_rgb = _new_points(new_point_images, poses, models, tool_pose, target_xyz,
+                                       config)
         n_new = len(new_xyz)
         target_xyz = np.concatenate([target_xyz, new_xyz])
         target_rgb = np.concatenate([target_rgb, new_rgb])
@@ -202,7 +232,7 @@ def register_frame_step(
                             f"({target.counts()}); need >= 3")
     seconds_target = time.perf_counter() - start
     start = time.perf_counter()
-    result, n_contact = register_with_contact(
+    result, n_contact, solves = register_with_contact(
         base.source, template_rgb, target_xyz, target_rgb, ids,
         data_weights(target, has_new=n_new > 0), tool_pose, config)
     seconds_register = time.perf_counter() - start
@@ -218,6 +248,7 @@ def register_frame_step(
         target=target,
         new_points=n_new,
         contact_points=n_contact,
+        registrations=solves,
         converged=bool(result.stats[-1].get("converged", False)),
         seconds_target=seconds_target,
         seconds_register=seconds_register,

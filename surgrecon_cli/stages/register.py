@@ -25,6 +25,7 @@ import numpy as np
 from ..config import Config
 from ..core.frame_step import BaseState, FrameResult, register_frame_step, unregistered
 from ..core.noise import noise_from_report
+from ..core.tracking import TrackingView, tracking_view
 from ..errors import GeometryError, RunFolderError
 from ..executors import Executor, Task
 from ..executors.serial import SerialExecutor
@@ -68,21 +69,21 @@ def _load_base(layout: RunLayout, frame: int, update_every: int, template: np.nd
 
 
 @functools.lru_cache(maxsize=2)
-def _cached_images(root: str, _stamp: tuple[int, ...],
-                   frame: int) -> tuple[np.ndarray | None, ...]:
-    images = tuple(load_ingested(Path(root)).frame_images(frame))
-    for image in images:
-        if image is not None:
-            image.flags.writeable = False  # shared by every frame tracked from this base
-    return images
+def _cached_views(root: str, _stamp: tuple[int, ...],
+                  frame: int) -> tuple[TrackingView | None, ...]:
+    log = load_ingested(Path(root))
+    return tuple(None if image is None else tracking_view(image)
+                 for image in log.frame_images(frame))
 
 
-def base_images(log: IngestedLog, frame: int) -> list[np.ndarray | None]:
-    """A base frame's images, decoded once per process (the frames of one base are
-    tracked from the same images; a worker often registers several of them)."""
+def frame_views(log: IngestedLog, frame: int) -> list[TrackingView | None]:
+    """A frame's images prepared for tracking (decoded, grey, noise level), built once per
+    process: the frames of one base are tracked from the same views, and a frame that is
+    itself a base (re-basing) is tracked into and then from; a worker often registers
+    them in turn. Two frames are kept (the base and the frame being registered)."""
     st = RunLayout.ingest_frames(log.root).stat()
-    return list(_cached_images(str(Path(log.root).absolute()),
-                               (st.st_ino, st.st_mtime_ns, st.st_size), frame))
+    return list(_cached_views(str(Path(log.root).absolute()),
+                              (st.st_ino, st.st_mtime_ns, st.st_size), frame))
 
 
 def register_frame(run_dir: Path, frame: int, config: Config) -> dict:
@@ -101,10 +102,12 @@ def register_frame(run_dir: Path, frame: int, config: Config) -> dict:
     try:
         result = register_frame_step(
             template.points, template.rgb, obs.total_covariance, base,
-            base_images(log, base.frame), log.usable_poses(base.frame),
-            log.frame_images(frame), log.usable_poses(frame), models, log.tool_poses[frame],
+            frame_views(log, base.frame), log.usable_poses(base.frame),
+            frame_views(log, frame), log.usable_poses(frame), models,
+            log.tool_poses[frame],
             noise_from_report(log.report, log.cameras, obs.pixel_noise_px), config,
-            add_new_points=bool(new_every and frame % new_every == 0),
+            new_point_images=(log.frame_images(frame) if new_every and frame % new_every == 0
+                              else None),
             template_pose_cov=obs.pose_covariance)
     except GeometryError as exc:
         write_registration(layout, frame, _artefact(unregistered(n, len(models)), base.frame,
@@ -113,6 +116,7 @@ def register_frame(run_dir: Path, frame: int, config: Config) -> dict:
     write_registration(layout, frame, _artefact(result, base.frame))
     return {"frame": frame, "base": base.frame, "seconds_target": result.seconds_target,
             "seconds_register": result.seconds_register, "converged": result.converged,
+            "registrations": result.registrations,
             "tracking_px": result.target.noise.tracking_px, **result.target.counts()}
 
 
