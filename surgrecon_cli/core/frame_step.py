@@ -19,7 +19,7 @@ Uncertainty of a registered position (σ, metres, RMS of the 3D error):
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -54,8 +54,7 @@ class FrameResult:
     """One registered frame: transforms (N, 3, 4) from the frame-0 template, registered
     (N, 3) m, sigma (N,) m (module docstring), residual (N,) m to the point's target (NaN
     without one), support_mm (N,) frame-0 distance to the nearest point with a target; the
-    target cloud; counts (registrations: solves run, 2+ when the contact prediction
-    missed) and timings."""
+    target cloud; counts and timings."""
 
     transforms: np.ndarray
     registered: np.ndarray
@@ -65,7 +64,6 @@ class FrameResult:
     target: TargetCloud
     new_points: int
     contact_points: int
-    registrations: int
     converged: bool
     seconds_target: float
     seconds_register: float
@@ -85,7 +83,7 @@ def unregistered(n_points: int, n_cams: int) -> FrameResult:
         transforms=np.full((n_points, 3, 4), np.nan), registered=nan3,
         sigma=np.full(n_points, np.inf), residual=np.full(n_points, np.nan),
         support_mm=np.full(n_points, np.inf), target=target, new_points=0, contact_points=0,
-        registrations=0, converged=False, seconds_target=0.0, seconds_register=0.0)
+        converged=False, seconds_target=0.0, seconds_register=0.0)
 
 
 def compose(outer: np.ndarray, inner: np.ndarray) -> np.ndarray:
@@ -132,35 +130,34 @@ def predicted_positions(source: np.ndarray, target_xyz: np.ndarray, target_ids: 
 
 def register_with_contact(source: np.ndarray, source_rgb: np.ndarray, target_xyz: np.ndarray,
                           target_rgb: np.ndarray, target_ids: np.ndarray, weights: np.ndarray,
-                          tool_pose: np.ndarray, config: Config,
-                          passes: int = 2) -> tuple[RegistrationResult, int, int]:
+                          tool_pose: np.ndarray, config: Config) -> tuple[RegistrationResult, int]:
     """Register with the tissue kept out of the tool (robot kinematics, Su et al. 2019
-    section II.C): points without data (unobserved: under the tool, hidden by it) that lie
-    inside the tool's capsule get a target on the capsule's surface, pushed along the shaft.
-    Which points those are is predicted before the solve (`predicted_positions`: moved with
-    their tracked neighbours), so that one registration carries the contact; only points the
-    result still leaves inside (a miss of the prediction) are added and the registration is
-    run again (up to `passes` more times). Returns the result, the number of contact points
-    and the number of registrations run."""
-    contact = np.zeros(len(source), bool)
+    section II.C), in one solve: points without data (weight 0: under the tool, hidden by
+    it) predicted inside the tool's capsule (`predicted_positions`: moved with their tracked
+    neighbours) get a target on the capsule's surface, pushed along the shaft, so that the
+    field around the tool follows the contact; after the solve, every point without data
+    still inside the capsule (the l1 fit leaves a contact target a little short of it, and
+    the prediction can miss a point) is moved onto the surface, its transform translated
+    by the same push. Returns the result and the number of points in contact."""
     guess = predicted_positions(source, target_xyz, target_ids,
                                 config.registration.interp_neighbors)
     inside, pushed = push_out_of_tool(guess, tool_pose, config.tool)
-    solves = 0
-    while True:
-        new = inside & (weights == 0)
-        contact |= new
-        fresh = np.flatnonzero(new)
-        target_xyz = np.concatenate([target_xyz, pushed[fresh]])
-        target_rgb = np.concatenate([target_rgb, source_rgb[fresh]])
-        target_ids = np.concatenate([target_ids, fresh])
-        weights = np.where(new, 1.0, weights)
-        result = register(source, target_xyz, source_rgb=source_rgb, target_rgb=target_rgb,
-                          config=config.registration, target_ids=target_ids, weights=weights)
-        solves += 1
-        inside, pushed = push_out_of_tool(result.registered, tool_pose, config.tool)
-        if solves > passes or not (inside & (weights == 0)).any():
-            return result, int(contact.sum()), solves
+    contact = np.flatnonzero(inside & (weights == 0))
+    result = register(source, np.concatenate([target_xyz, pushed[contact]]),
+                      source_rgb=source_rgb,
+                      target_rgb=np.concatenate([target_rgb, source_rgb[contact]]),
+                      config=config.registration,
+                      target_ids=np.concatenate([target_ids, contact]),
+                      weights=np.where(inside & (weights == 0), 1.0, weights))
+    inside, pushed = push_out_of_tool(result.registered, tool_pose, config.tool)
+    moved = inside & (weights == 0)
+    transforms = result.transforms.copy()
+    transforms[moved, :, 3] += pushed[moved] - result.registered[moved]
+    registered = np.where(moved[:, None], pushed, result.registered)
+    in_contact = moved.copy()
+    in_contact[contact] = True
+    return (replace(result, transforms=transforms, registered=registered),
+            int(in_contact.sum()))
 
 
 def registered_sigma(template: np.ndarray, template_sigma: np.ndarray, registered: np.ndarray,
@@ -232,7 +229,7 @@ def register_frame_step(
                             f"({target.counts()}); need >= 3")
     seconds_target = time.perf_counter() - start
     start = time.perf_counter()
-    result, n_contact, solves = register_with_contact(
+    result, n_contact = register_with_contact(
         base.source, template_rgb, target_xyz, target_rgb, ids,
         data_weights(target, has_new=n_new > 0), tool_pose, config)
     seconds_register = time.perf_counter() - start
@@ -248,7 +245,6 @@ def register_frame_step(
         target=target,
         new_points=n_new,
         contact_points=n_contact,
-        registrations=solves,
         converged=bool(result.stats[-1].get("converged", False)),
         seconds_target=seconds_target,
         seconds_register=seconds_register,

@@ -116,7 +116,6 @@ def register_frame(run_dir: Path, frame: int, config: Config) -> dict:
     write_registration(layout, frame, _artefact(result, base.frame))
     return {"frame": frame, "base": base.frame, "seconds_target": result.seconds_target,
             "seconds_register": result.seconds_register, "converged": result.converged,
-            "registrations": result.registrations,
             "tracking_px": result.target.noise.tracking_px, **result.target.counts()}
 
 
