@@ -45,7 +45,7 @@ from .noise import (
     projection_jacobians,
 )
 from .tool import points_near_tool, tool_pixel_mask
-from .tracking import TrackingView, track_adaptive
+from .tracking import TrackingView, expected_motion_px, track_adaptive
 from .triangulate import Observations, triangulate
 
 
@@ -93,13 +93,6 @@ def visible_points(
     np.minimum.at(zbuf, cell[ok], z[ok])
     ok[ok] &= z[ok] <= zbuf[cell[ok]] + occlusion_depth_m
     return uv, ok
-
-
-def expected_motion_px(moved: np.ndarray) -> float:
-    """The motion (px) KLT should expect between a guess and the truth, from the distances
-    (K,) px of the tracks found so far in this frame: twice their 95th percentile (NaN
-    when there are none: unknown)."""
-    return float(2.0 * np.percentile(moved, 95)) if len(moved) else float("nan")
 
 
 def gate_chi2(significance: float, dof: int = 2) -> float:
@@ -271,7 +264,7 @@ def build_target(
         visible &= np.isfinite(start).all(1) & in_image(start, models[c], 8.0)
         idx = np.flatnonzero(visible)
         # The pyramid's depth follows the motion measured in the cameras tracked before
-        # (unknown for the first: full depth), with a full-depth retry (`track_adaptive`).
+        # (for the first, on a sample of its points), with a full-depth retry.
         tracked, ok, distance = track_adaptive(prev, cur, start[idx], guess[idx], cfg,
                                                expected_motion_px(moved))
         moved = np.concatenate([moved, distance[ok]])

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import functools
 import logging
+from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
@@ -68,22 +69,24 @@ def _load_base(layout: RunLayout, frame: int, update_every: int, template: np.nd
     return BaseState(0, np.tile(np.eye(3, 4), (n, 1, 1)), template, template, pixels0)
 
 
-@functools.lru_cache(maxsize=2)
-def _cached_views(root: str, _stamp: tuple[int, ...],
-                  frame: int) -> tuple[TrackingView | None, ...]:
-    log = load_ingested(Path(root))
-    return tuple(None if image is None else tracking_view(image)
-                 for image in log.frame_images(frame))
+_VIEWS: OrderedDict[tuple, tuple[TrackingView | None, ...]] = OrderedDict()
+VIEW_FRAMES = 2  # frames whose views a process keeps: the base and the frame registered
 
 
 def frame_views(log: IngestedLog, frame: int) -> list[TrackingView | None]:
     """A frame's images prepared for tracking (decoded, grey, noise level), built once per
     process: the frames of one base are tracked from the same views, and a frame that is
     itself a base (re-basing) is tracked into and then from; a worker often registers
-    them in turn. Two frames are kept (the base and the frame being registered)."""
+    them in turn. Keyed by the ingest's identity (path, inode, mtime, size) and frame."""
     st = RunLayout.ingest_frames(log.root).stat()
-    return list(_cached_views(str(Path(log.root).absolute()),
-                              (st.st_ino, st.st_mtime_ns, st.st_size), frame))
+    key = (str(Path(log.root).absolute()), st.st_ino, st.st_mtime_ns, st.st_size, frame)
+    if key not in _VIEWS:
+        _VIEWS[key] = tuple(None if image is None else tracking_view(image)
+                            for image in log.frame_images(frame))
+        while len(_VIEWS) > VIEW_FRAMES:
+            _VIEWS.popitem(last=False)
+    _VIEWS.move_to_end(key)
+    return list(_VIEWS[key])
 
 
 def register_frame(run_dir: Path, frame: int, config: Config) -> dict:
