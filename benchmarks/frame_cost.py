@@ -191,7 +191,11 @@ def main() -> None:
     for size in args.sizes:
         width, height = (int(v) for v in size.split("x"))
         for cameras in args.cameras:
-            run = prepare(args.workdir, width, height, cameras, args.frames, args.seed)
+            try:
+                run = prepare(args.workdir, width, height, cameras, args.frames, args.seed)
+            except subprocess.CalledProcessError as exc:  # e.g. no template: say so, go on
+                print(f"{size:>10} {cameras:>4} | not measured: {exc.cmd[1]} failed", flush=True)
+                continue
             m = measured(run, args.frames, config)
             t = tracking_floor(run, args.floor_levels, config.target.klt_window_px)
             r = registration_floor(run, args.frames - 1, config)
