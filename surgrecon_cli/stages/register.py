@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import functools
 import logging
+import threading
 from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import replace
@@ -70,6 +71,7 @@ def _load_base(layout: RunLayout, frame: int, update_every: int, template: np.nd
 
 
 _VIEWS: OrderedDict[tuple, tuple[TrackingView | None, ...]] = OrderedDict()
+_VIEWS_LOCK = threading.Lock()
 VIEW_FRAMES = 2  # frames whose views a process keeps: the base and the frame registered
 
 
@@ -80,13 +82,14 @@ def frame_views(log: IngestedLog, frame: int) -> list[TrackingView | None]:
     them in turn. Keyed by the ingest's identity (path, inode, mtime, size) and frame."""
     st = RunLayout.ingest_frames(log.root).stat()
     key = (str(Path(log.root).absolute()), st.st_ino, st.st_mtime_ns, st.st_size, frame)
-    if key not in _VIEWS:
-        _VIEWS[key] = tuple(None if image is None else tracking_view(image)
-                            for image in log.frame_images(frame))
-        while len(_VIEWS) > VIEW_FRAMES:
-            _VIEWS.popitem(last=False)
-    _VIEWS.move_to_end(key)
-    return list(_VIEWS[key])
+    with _VIEWS_LOCK:  # a Dask worker may run tasks on several threads
+        if key not in _VIEWS:
+            _VIEWS[key] = tuple(None if image is None else tracking_view(image)
+                                for image in log.frame_images(frame))
+            while len(_VIEWS) > VIEW_FRAMES:
+                _VIEWS.popitem(last=False)
+        _VIEWS.move_to_end(key)
+        return list(_VIEWS[key])
 
 
 def register_frame(run_dir: Path, frame: int, config: Config) -> dict:
