@@ -16,6 +16,7 @@ from __future__ import annotations
 import functools
 import logging
 import threading
+import time
 from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import replace
@@ -105,11 +106,13 @@ def register_frame(run_dir: Path, frame: int, config: Config) -> dict:
     base = _load_base(layout, base_frame(frame, every), every, template.points,
                       obs.pixels_by_camera(n, len(models)))
     new_every = config.target.new_points_every
+    start = time.perf_counter()
+    base_views, views = frame_views(log, base.frame), frame_views(log, frame)
+    seconds_views = time.perf_counter() - start  # counted with the target: its images
     try:
         result = register_frame_step(
             template.points, template.rgb, obs.total_covariance, base,
-            frame_views(log, base.frame), log.usable_poses(base.frame),
-            frame_views(log, frame), log.usable_poses(frame), models,
+            base_views, log.usable_poses(base.frame), views, log.usable_poses(frame), models,
             log.tool_poses[frame],
             noise_from_report(log.report, log.cameras, obs.pixel_noise_px), config,
             new_point_images=(log.frame_images(frame) if new_every and frame % new_every == 0
@@ -119,6 +122,7 @@ def register_frame(run_dir: Path, frame: int, config: Config) -> dict:
         write_registration(layout, frame, _artefact(unregistered(n, len(models)), base.frame,
                                                     str(exc)))
         return {"frame": frame, "failed": str(exc), "base": base.frame}
+    result = replace(result, seconds_target=result.seconds_target + seconds_views)
     write_registration(layout, frame, _artefact(result, base.frame))
     return {"frame": frame, "base": base.frame, "seconds_target": result.seconds_target,
             "seconds_register": result.seconds_register, "converged": result.converged,
