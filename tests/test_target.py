@@ -11,6 +11,7 @@ from surgrecon_cli.core.noise import NoiseModel
 from surgrecon_cli.core.scoring import map_to_surface
 from surgrecon_cli.core.target import INTER, INTRA, OUTLIER, UNOBSERVED, build_target
 from surgrecon_cli.core.template import build_template
+from surgrecon_cli.core.tracking import tracking_view
 from surgrecon_cli.sim.scene import SimConfig
 
 
@@ -36,8 +37,8 @@ def tracked():
         template.points,
         template.covariance,
         template.points,
-        scene.images[0],
-        scene.images[1],
+        [tracking_view(image) for image in scene.images[0]],
+        [tracking_view(image) for image in scene.images[1]],
         scene.poses[0],
         scene.poses[1],
         pixels,

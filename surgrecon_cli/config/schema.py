@@ -139,7 +139,9 @@ class TargetConfig:
         0.001, "reprojection-error check: a noise-only residual fails the chi-square gate with "
         "this probability (the gate is in units of the measured noise, not pixels)")
     klt_window_px: int = _doc(21, "KLT window size (px)")
-    klt_levels: int = _doc(3, "KLT pyramid levels")
+    klt_levels: int = _doc(
+        3, "deepest KLT pyramid (levels above the image); a frame uses the depth its "
+        "measured motion needs, retrying failed tracks at this depth")
     klt_fb_px: float = _doc(0.7, "largest forward-backward KLT disagreement (px)")
     min_ncc: float = _doc(
         0.5, "smallest normalised cross-correlation of a tracked patch with the one it left "

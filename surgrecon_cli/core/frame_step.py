@@ -19,7 +19,7 @@ Uncertainty of a registered position (σ, metres, RMS of the 3D error):
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -33,6 +33,7 @@ from .registration import RegistrationResult, register
 from .target import TargetCloud, build_target, new_target_points
 from .template import build_template
 from .tool import push_out_of_tool
+from .tracking import TrackingView
 
 
 @dataclass(frozen=True)
@@ -109,32 +110,54 @@ def data_weights(target: TargetCloud, has_new: bool) -> np.ndarray:
     return weights
 
 
+def predicted_positions(source: np.ndarray, target_xyz: np.ndarray, target_ids: np.ndarray,
+                        k: int) -> np.ndarray:
+    """Where the registration will roughly put each source point (N, 3) m: moved by the
+    inverse-distance blend of the displacements (target - source) of its k nearest points
+    with a known target (target_ids >= 0; their own displacement for themselves). With no
+    such point: the source itself."""
+    known = target_ids >= 0
+    if not known.any():
+        return np.array(source, dtype=float)
+    anchors = target_ids[known]
+    shift = target_xyz[known] - source[anchors]
+    k = min(k, len(anchors))
+    d, j = cKDTree(source[anchors]).query(source, k=k)
+    d, j = d.reshape(len(source), k), j.reshape(len(source), k)
+    w = 1.0 / np.maximum(d, 1e-9)
+    return source + np.einsum("nk,nkj->nj", w / w.sum(1, keepdims=True), shift[j])
+
+
 def register_with_contact(source: np.ndarray, source_rgb: np.ndarray, target_xyz: np.ndarray,
                           target_rgb: np.ndarray, target_ids: np.ndarray, weights: np.ndarray,
-                          tool_pose: np.ndarray, config: Config,
-                          passes: int = 2) -> tuple[RegistrationResult, int]:
-    """Register, then keep the tissue out of the tool (robot kinematics, Su et al. 2019
-    section II.C): points without data (unobserved: under the tool, hidden by it) that the
-    registration leaves inside the tool's capsule get a target on the capsule's surface,
-    pushed along the shaft, and the registration is run again (up to `passes` times).
-    Returns the result and the number of such contact points."""
-    result = register(source, target_xyz, source_rgb=source_rgb, target_rgb=target_rgb,
-                      config=config.registration, target_ids=target_ids, weights=weights)
-    contact = np.zeros(len(source), bool)
-    for _ in range(passes):
-        inside, pushed = push_out_of_tool(result.registered, tool_pose, config.tool)
-        new = inside & (weights == 0) & ~contact
-        if not new.any():
-            break
-        contact |= new
-        fresh = np.flatnonzero(new)
-        target_xyz = np.concatenate([target_xyz, pushed[fresh]])
-        target_rgb = np.concatenate([target_rgb, source_rgb[fresh]])
-        target_ids = np.concatenate([target_ids, fresh])
-        weights = np.where(new, 1.0, weights)
-        result = register(source, target_xyz, source_rgb=source_rgb, target_rgb=target_rgb,
-                          config=config.registration, target_ids=target_ids, weights=weights)
-    return result, int(contact.sum())
+                          tool_pose: np.ndarray, config: Config) -> tuple[RegistrationResult, int]:
+    """Register with the tissue kept out of the tool (robot kinematics, Su et al. 2019
+    section II.C), in one solve: points without data (weight 0: under the tool, hidden by
+    it) predicted inside the tool's capsule (`predicted_positions`: moved with their tracked
+    neighbours) get a target on the capsule's surface, pushed along the shaft, so that the
+    field around the tool follows the contact; after the solve, every point without data
+    still inside the capsule (the l1 fit leaves a contact target a little short of it, and
+    the prediction can miss a point) is moved onto the surface, its transform translated
+    by the same push. Returns the result and the number of points in contact."""
+    guess = predicted_positions(source, target_xyz, target_ids,
+                                config.registration.interp_neighbors)
+    inside, pushed = push_out_of_tool(guess, tool_pose, config.tool)
+    contact = np.flatnonzero(inside & (weights == 0))
+    result = register(source, np.concatenate([target_xyz, pushed[contact]]),
+                      source_rgb=source_rgb,
+                      target_rgb=np.concatenate([target_rgb, source_rgb[contact]]),
+                      config=config.registration,
+                      target_ids=np.concatenate([target_ids, contact]),
+                      weights=np.where(inside & (weights == 0), 1.0, weights))
+    inside, pushed = push_out_of_tool(result.registered, tool_pose, config.tool)
+    moved = inside & (weights == 0)
+    transforms = result.transforms.copy()
+    transforms[moved, :, 3] += pushed[moved] - result.registered[moved]
+    registered = np.where(moved[:, None], pushed, result.registered)
+    in_contact = moved.copy()
+    in_contact[contact] = True
+    return (replace(result, transforms=transforms, registered=registered),
+            int(in_contact.sum()))
 
 
 def registered_sigma(template: np.ndarray, template_sigma: np.ndarray, registered: np.ndarray,
@@ -165,34 +188,38 @@ def register_frame_step(
     template_rgb: np.ndarray,
     template_cov: np.ndarray,
     base: BaseState,
-    base_images: list[np.ndarray | None],
+    base_views: list[TrackingView | None],
     base_poses: np.ndarray,
-    images: list[np.ndarray | None],
+    views: list[TrackingView | None],
     poses: np.ndarray,
     models: list[CameraModel],
     tool_pose: np.ndarray,
     noise: NoiseModel,
     config: Config,
-    add_new_points: bool,
+    new_point_images: list[np.ndarray | None] | None = None,
     template_pose_cov: np.ndarray | None = None,
 ) -> FrameResult:
     """Target cloud and registration of one frame against its base.
 
     template (N, 3) m frame-0 points, rgb (N, 3) uint8, covariances (N, 3, 3) m² (of which
-    template_pose_cov from the cameras' pose errors); images
-    per camera (H, W, 3) uint8 or None; poses (C, 4, 4) camera-to-world, NaN where unusable;
-    tool_pose (4, 4) in the world (NaN = unknown). Raises GeometryError when the frame
-    cannot be registered (e.g. too few tracked points)."""
+    template_pose_cov from the cameras' pose errors); base_views / views: per camera the
+    base's and this frame's images prepared for tracking (core/tracking.tracking_view;
+    None where unusable); poses (C, 4, 4) camera-to-world, NaN where unusable; tool_pose
+    (4, 4) in the world (NaN = unknown); new_point_images: this frame's RGB images (H, W, 3)
+    uint8 when new features are to be triangulated into the target (None: not this frame).
+    Raises GeometryError when the frame cannot be registered (e.g. too few tracked
+    points)."""
     start = time.perf_counter()
-    target = build_target(template, template_cov, base.latest, base_images, images,
+    target = build_target(template, template_cov, base.latest, base_views, views,
                           base_poses, poses, base.pixels, models, tool_pose, noise,
                           config.target, config.tool, template_pose_cov)
     has_target = (target.status == INTRA) | (target.status == INTER)
     ids = np.flatnonzero(has_target)
     target_xyz, target_rgb = target.positions[ids], template_rgb[ids]
     n_new = 0
-    if add_new_points:
-        new_xyz, new_rgb = _new_points(images, poses, models, tool_pose, target_xyz, config)
+    if new_point_images is not None:
+        new_xyz, new_rgb = _new_points(new_point_images, poses, models, tool_pose, target_xyz,
+                                       config)
         n_new = len(new_xyz)
         target_xyz = np.concatenate([target_xyz, new_xyz])
         target_rgb = np.concatenate([target_rgb, new_rgb])

@@ -40,13 +40,12 @@ from .noise import (
     NoiseModel,
     body_pose_covariance,
     covariance_sigma,
-    image_noise_sigma,
     localisation_variance_px2,
     point_covariances,
     projection_jacobians,
 )
 from .tool import points_near_tool, tool_pixel_mask
-from .tracking import klt_track, tracking_image
+from .tracking import TrackingView, expected_motion_px, track_adaptive
 from .triangulate import Observations, triangulate
 
 
@@ -224,8 +223,8 @@ def build_target(
     template: np.ndarray,
     template_cov: np.ndarray,
     latest: np.ndarray,
-    prev_images: list[np.ndarray | None],
-    cur_images: list[np.ndarray | None],
+    prev_views: list[TrackingView | None],
+    cur_views: list[TrackingView | None],
     prev_poses: np.ndarray,
     cur_poses: np.ndarray,
     prev_pixels: np.ndarray,
@@ -241,8 +240,9 @@ def build_target(
     run's noise model and each tracked pixel's localisation variance (core/noise.py; its
     median is the frame's tracking_px).
 
-    prev_images/cur_images: per camera RGB (H, W, 3) uint8 or None, "prev" being the frame
-    tracked from (any earlier frame: the pipeline passes the template base); poses (C, 4, 4)
+    prev_views/cur_views: per camera the image prepared for tracking (core/tracking.
+    tracking_view) or None, "prev" being the frame tracked from (any earlier frame: the
+    pipeline passes the template base, whose views it builds once per process); poses (C, 4, 4)
     with NaN where unusable; prev_pixels (N, C, 2): where each point was found in that frame
     (NaN = not found; then its projection is tracked instead); latest (N, 3) m: positions
     at that frame.
@@ -251,9 +251,10 @@ def build_target(
     pixels = np.full((n, n_cams, 2), np.nan)
     found = np.zeros((n, n_cams), bool)
     localisation = np.full((n, n_cams), np.inf)
+    moved = np.zeros(0)  # distances of the tracks from their guesses so far (px)
     for c in range(n_cams):
-        cur_image, prev_image = cur_images[c], prev_images[c]
-        if cur_image is None or prev_image is None:
+        cur, prev = cur_views[c], prev_views[c]
+        if cur is None or prev is None:
             continue
         guess, visible = visible_points(latest, models[c], cur_poses[c], cfg.occlusion_depth_m)
         start = prev_pixels[:, c].copy()
@@ -262,14 +263,17 @@ def build_target(
             start[missing] = project(latest[missing], prev_poses[c], models[c])[0]
         visible &= np.isfinite(start).all(1) & in_image(start, models[c], 8.0)
         idx = np.flatnonzero(visible)
-        cur = tracking_image(cur_image)
-        tracked, ok = klt_track(tracking_image(prev_image), cur, start[idx], guess[idx], cfg)
+        # The pyramid's depth follows the motion measured in the cameras tracked before
+        # (for the first, on a sample of its points), with a full-depth retry.
+        tracked, ok, distance = track_adaptive(prev, cur, start[idx], guess[idx], cfg,
+                                               expected_motion_px(moved))
+        moved = np.concatenate([moved, distance[ok]])
         ok &= in_image(tracked, models[c], 2.0)
         ok &= ~tool_pixel_mask(tracked, models[c], cur_poses[c], tool_pose, tool_cfg)
         pixels[idx[ok], c] = tracked[ok]
         found[idx[ok], c] = True
         localisation[idx[ok], c] = localisation_variance_px2(
-            cur, tracked[ok], cfg.klt_window_px, image_noise_sigma(cur))
+            cur.grey, tracked[ok], cfg.klt_window_px, cur.noise_sigma)
     if found.any():
         noise = replace(noise, tracking_px=float(np.sqrt(np.median(localisation[found]))))
     status, positions, covariances, pose_part = reprojection_check(

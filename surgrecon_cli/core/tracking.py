@@ -4,14 +4,17 @@ forward-backward and photometrically (Su et al. 2019, section II.B: the target c
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 import cv2
 import numpy as np
 
 from ..config import TargetConfig
+from .noise import image_noise_sigma
 
 NCC_PATCH_PX = 9  # ours: side of the patch compared after tracking (px)
+PILOT_STRIDE = 8  # ours: an unknown motion is measured on every 8th point (~12 %)
 SHADING_SIGMA_PX = 6.0  # ours: shading scale removed before tracking (px), ~ half a KLT window
 
 
@@ -25,37 +28,104 @@ def tracking_image(image: np.ndarray) -> np.ndarray:
     return np.clip(2.0 * (grey - shading) + 128.0, 0, 255).astype(np.uint8)
 
 
+@dataclass(frozen=True)
+class TrackingView:
+    """One camera image prepared for tracking, built once and shared by every frame tracked
+    from or into it: grey (H, W) uint8 (`tracking_image`), its float32 copy (patches) and
+    the image's intensity noise σ_I (grey levels, core/noise.image_noise_sigma). (The KLT
+    pyramid itself cannot be kept: OpenCV's Python binding of calcOpticalFlowPyrLK takes
+    images only, not the output of buildOpticalFlowPyramid.)"""
+
+    grey: np.ndarray
+    grey_f32: np.ndarray
+    noise_sigma: float
+
+
+def tracking_view(image: np.ndarray) -> TrackingView:
+    """The `TrackingView` of an RGB image (H, W, 3) uint8."""
+    grey = tracking_image(image)
+    grey.flags.writeable = False  # shared by every frame tracked from this image
+    grey_f32 = grey.astype(np.float32)
+    grey_f32.flags.writeable = False
+    return TrackingView(grey, grey_f32, image_noise_sigma(grey))
+
+
+def klt_levels_for(motion_px: float, window_px: int, max_levels: int) -> int:
+    """Pyramid levels above the image that KLT needs to bridge `motion_px` px between its
+    initial guess and the truth: the Lucas-Kanade iteration at level l is trusted within a
+    quarter window there (ours: half the window's half-width, where the linearisation of a
+    textured patch still points the right way), i.e. (w / 4) 2^l px of the image; the
+    smallest such l, capped at `max_levels` (also for an unknown, non-finite motion)."""
+    if not np.isfinite(motion_px):
+        return max_levels
+    reach = window_px / 4.0
+    return int(min(max_levels, max(0, np.ceil(np.log2(max(motion_px, 1e-9) / reach)))))
+
+
 def klt_track(
-    prev_gray: np.ndarray,
-    cur_gray: np.ndarray,
+    prev: TrackingView,
+    cur: TrackingView,
     start: np.ndarray,
     guess: np.ndarray,
     cfg: TargetConfig,
+    levels: int | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Track pixels (M, 2) from prev to cur starting from `guess`; forward-backward and
-    photometrically checked (`patch_ncc` at least `cfg.min_ncc`). Returns tracked pixels
-    (M, 2) and ok (M,)."""
+    """Track pixels (M, 2) from prev to cur starting from `guess`, with `levels` pyramid
+    levels above the image (None: `cfg.klt_levels`); forward-backward and photometrically
+    checked (`patch_ncc` at least `cfg.min_ncc`).
+    Returns tracked pixels (M, 2) and ok (M,)."""
     if len(start) == 0:
         return np.zeros((0, 2)), np.zeros(0, bool)
     params: dict[str, Any] = dict(
         winSize=(cfg.klt_window_px, cfg.klt_window_px),
-        maxLevel=cfg.klt_levels,
+        maxLevel=cfg.klt_levels if levels is None else levels,
         criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01),
+        flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
     )
     p0 = start.astype(np.float32).reshape(-1, 1, 2)
     p1: np.ndarray = guess.astype(np.float32).reshape(-1, 1, 2).copy()
-    p1, st1, _ = cv2.calcOpticalFlowPyrLK(
-        prev_gray, cur_gray, p0, p1, flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **params
-    )
+    p1, st1, _ = cv2.calcOpticalFlowPyrLK(prev.grey, cur.grey, p0, p1, **params)
     back: np.ndarray = p0.copy()
-    back, st2, _ = cv2.calcOpticalFlowPyrLK(
-        cur_gray, prev_gray, p1, back, flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **params
-    )
+    back, st2, _ = cv2.calcOpticalFlowPyrLK(cur.grey, prev.grey, p1, back, **params)
     fb = np.linalg.norm((back - p0).reshape(-1, 2), axis=1)
     tracked = p1.reshape(-1, 2).astype(np.float64)
     ok = (st1.ravel() == 1) & (st2.ravel() == 1) & (fb <= cfg.klt_fb_px)
-    ok[ok] &= patch_ncc(prev_gray, start[ok], cur_gray, tracked[ok], NCC_PATCH_PX) >= cfg.min_ncc
+    ok[ok] &= patch_ncc(prev.grey_f32, start[ok], cur.grey_f32, tracked[ok],
+                        NCC_PATCH_PX) >= cfg.min_ncc
     return tracked, ok
+
+
+def expected_motion_px(moved: np.ndarray) -> float:
+    """The motion (px) KLT should expect between a guess and the truth, from the distances
+    (K,) px of tracks found so far in this frame: twice their 95th percentile (NaN when
+    there are none: unknown)."""
+    return float(2.0 * np.percentile(moved, 95)) if len(moved) else float("nan")
+
+
+def track_adaptive(prev: TrackingView, cur: TrackingView, start: np.ndarray,
+                   guess: np.ndarray, cfg: TargetConfig,
+                   motion_px: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`klt_track` with the pyramid depth chosen for an expected motion `motion_px` px
+    (`klt_levels_for`), and a safe fallback: the tracks that failed, or that moved from
+    their guess farther than the chosen depth reaches, are tracked again at the full depth.
+    An unknown motion (NaN) is measured first on every PILOT_STRIDE-th point, tracked at
+    the full depth (`expected_motion_px`). Returns tracked (M, 2), ok (M,) and each track's
+    distance from its guess (M,) px (NaN where not ok), the measured motion for the next
+    camera."""
+    full = cfg.klt_levels
+    if not np.isfinite(motion_px) and len(start) >= 2 * PILOT_STRIDE:
+        pilot = slice(None, None, PILOT_STRIDE)
+        sample, ok = klt_track(prev, cur, start[pilot], guess[pilot], cfg, full)
+        motion_px = expected_motion_px(np.linalg.norm(sample - guess[pilot], axis=1)[ok])
+    levels = klt_levels_for(motion_px, cfg.klt_window_px, full)
+    tracked, ok = klt_track(prev, cur, start, guess, cfg, levels)
+    reach = cfg.klt_window_px / 4.0 * 2.0**levels
+    moved = np.linalg.norm(tracked - guess, axis=1)
+    again = np.flatnonzero(~ok | (moved > reach)) if levels < full else np.zeros(0, int)
+    if len(again):
+        tracked[again], ok[again] = klt_track(prev, cur, start[again], guess[again], cfg, full)
+        moved[again] = np.linalg.norm(tracked[again] - guess[again], axis=1)
+    return tracked, ok, np.where(ok, moved, np.nan)
 
 
 def patch_ncc(image_a: np.ndarray, pixels_a: np.ndarray, image_b: np.ndarray,
@@ -74,7 +144,7 @@ def patch_ncc(image_a: np.ndarray, pixels_a: np.ndarray, image_b: np.ndarray,
         map_y = (px[:, 1, None, None] + offsets[None, :, None]).repeat(size, 2)
         flat_x = map_x.reshape(-1, size)
         flat_y = map_y.reshape(-1, size)
-        out = cv2.remap(image.astype(np.float32), flat_x, flat_y, cv2.INTER_LINEAR,
+        out = cv2.remap(np.asarray(image, np.float32), flat_x, flat_y, cv2.INTER_LINEAR,
                         borderMode=cv2.BORDER_REPLICATE)
         p = out.reshape(len(pixels), size * size).astype(np.float64)
         return p - p.mean(1, keepdims=True)

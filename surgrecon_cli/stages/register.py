@@ -15,6 +15,9 @@ from __future__ import annotations
 
 import functools
 import logging
+import threading
+import time
+from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
@@ -25,6 +28,7 @@ import numpy as np
 from ..config import Config
 from ..core.frame_step import BaseState, FrameResult, register_frame_step, unregistered
 from ..core.noise import noise_from_report
+from ..core.tracking import TrackingView, tracking_view
 from ..errors import GeometryError, RunFolderError
 from ..executors import Executor, Task
 from ..executors.serial import SerialExecutor
@@ -67,22 +71,26 @@ def _load_base(layout: RunLayout, frame: int, update_every: int, template: np.nd
     return BaseState(0, np.tile(np.eye(3, 4), (n, 1, 1)), template, template, pixels0)
 
 
-@functools.lru_cache(maxsize=2)
-def _cached_images(root: str, _stamp: tuple[int, ...],
-                   frame: int) -> tuple[np.ndarray | None, ...]:
-    images = tuple(load_ingested(Path(root)).frame_images(frame))
-    for image in images:
-        if image is not None:
-            image.flags.writeable = False  # shared by every frame tracked from this base
-    return images
+_VIEWS: OrderedDict[tuple, tuple[TrackingView | None, ...]] = OrderedDict()
+_VIEWS_LOCK = threading.Lock()
+VIEW_FRAMES = 2  # frames whose views a process keeps: the base and the frame registered
 
 
-def base_images(log: IngestedLog, frame: int) -> list[np.ndarray | None]:
-    """A base frame's images, decoded once per process (the frames of one base are
-    tracked from the same images; a worker often registers several of them)."""
+def frame_views(log: IngestedLog, frame: int) -> list[TrackingView | None]:
+    """A frame's images prepared for tracking (decoded, grey, noise level), built once per
+    process: the frames of one base are tracked from the same views, and a frame that is
+    itself a base (re-basing) is tracked into and then from; a worker often registers
+    them in turn. Keyed by the ingest's identity (path, inode, mtime, size) and frame."""
     st = RunLayout.ingest_frames(log.root).stat()
-    return list(_cached_images(str(Path(log.root).absolute()),
-                               (st.st_ino, st.st_mtime_ns, st.st_size), frame))
+    key = (str(Path(log.root).absolute()), st.st_ino, st.st_mtime_ns, st.st_size, frame)
+    with _VIEWS_LOCK:  # a Dask worker may run tasks on several threads
+        if key not in _VIEWS:
+            _VIEWS[key] = tuple(None if image is None else tracking_view(image)
+                                for image in log.frame_images(frame))
+            while len(_VIEWS) > VIEW_FRAMES:
+                _VIEWS.popitem(last=False)
+        _VIEWS.move_to_end(key)
+        return list(_VIEWS[key])
 
 
 def register_frame(run_dir: Path, frame: int, config: Config) -> dict:
@@ -98,18 +106,23 @@ def register_frame(run_dir: Path, frame: int, config: Config) -> dict:
     base = _load_base(layout, base_frame(frame, every), every, template.points,
                       obs.pixels_by_camera(n, len(models)))
     new_every = config.target.new_points_every
+    start = time.perf_counter()
+    base_views, views = frame_views(log, base.frame), frame_views(log, frame)
+    seconds_views = time.perf_counter() - start  # counted with the target: its images
     try:
         result = register_frame_step(
             template.points, template.rgb, obs.total_covariance, base,
-            base_images(log, base.frame), log.usable_poses(base.frame),
-            log.frame_images(frame), log.usable_poses(frame), models, log.tool_poses[frame],
+            base_views, log.usable_poses(base.frame), views, log.usable_poses(frame), models,
+            log.tool_poses[frame],
             noise_from_report(log.report, log.cameras, obs.pixel_noise_px), config,
-            add_new_points=bool(new_every and frame % new_every == 0),
+            new_point_images=(log.frame_images(frame) if new_every and frame % new_every == 0
+                              else None),
             template_pose_cov=obs.pose_covariance)
     except GeometryError as exc:
         write_registration(layout, frame, _artefact(unregistered(n, len(models)), base.frame,
                                                     str(exc)))
         return {"frame": frame, "failed": str(exc), "base": base.frame}
+    result = replace(result, seconds_target=result.seconds_target + seconds_views)
     write_registration(layout, frame, _artefact(result, base.frame))
     return {"frame": frame, "base": base.frame, "seconds_target": result.seconds_target,
             "seconds_register": result.seconds_register, "converged": result.converged,

@@ -1,0 +1,214 @@
+"""Per-frame cost of the register stage beside its floor on this machine (issue 15).
+
+    .venv/bin/python benchmarks/frame_cost.py [--sizes 640x512 1920x1080] [--cameras 2 4 6]
+        [--frames 6] [--seed 7] [--workdir /tmp/surgrecon-frame-cost]
+
+For every (size, cameras): `surgrecon simulate LOG --width W --height H --cameras C
+--frames F --seed S`, `surgrecon ingest` and `surgrecon build-template` (reused when they
+exist in WORKDIR), then, in this process, on one thread (BLAS and OpenCV, as a worker):
+
+- measured: `stages.register.register_frame` of frames 1..F-1 in order (the register
+  stage with 1 worker: the process caches warm as they are in a worker), per frame: total,
+  and its target part (tracking, reprojection check) and registration part as the frame
+  step reports them; "rest" = total - both (loading inputs, decoding, writing).
+- floor, the irreducible parts of one frame, timed on the same data: decoding the frame's
+  C JPEG images; one pyramid build per image (cv2.buildOpticalFlowPyramid with
+  derivatives, `--floor-levels` levels, default 1: the depth that tracks as well as 3,
+  measured in issue 15); KLT forward and backward of the template points each camera
+  saw, on prebuilt pyramids (calcOpticalFlowPyrLK on the images minus its own pyramid
+  builds: OpenCV's Python binding does not accept a prebuilt pyramid); and, for the
+  registration, one factorisation and one solve of the X-step system (graph and operators
+  of core/registration) plus, per ADMM iteration the registration needed (counted by a
+  `register` of the template to the frame's target), one solve and the mat-vecs with D,
+  Dᵀ, B, Bᵀ.
+
+Times are process CPU seconds (robust to other load on the machine; wall time is printed
+beside the total). Ratios = measured / floor, per part and in total; all figures are ours,
+measured in one run, on a machine that may be loaded: compare ratios of one run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import cv2
+import numpy as np
+from scipy.spatial import cKDTree
+
+from surgrecon_cli.config import Config
+from surgrecon_cli.core.registration import graph, register
+from surgrecon_cli.core.registration.admm import factorise
+from surgrecon_cli.core.tracking import tracking_image
+from surgrecon_cli.io.artefacts import read_observations, read_registration, read_template
+from surgrecon_cli.io.ingest_store import load_ingested
+from surgrecon_cli.io.run_layout import RunLayout
+
+SURGRECON = [str(Path(sys.executable).with_name("surgrecon"))]
+
+
+def cpu_seconds(fn: Callable[[], object], repeat: int = 3) -> float:
+    """Smallest process CPU time (s) of `repeat` calls of fn (the least disturbed one)."""
+    best = np.inf
+    for _ in range(repeat):
+        start = time.process_time()
+        fn()
+        best = min(best, time.process_time() - start)
+    return float(best)
+
+
+def prepare(workdir: Path, width: int, height: int, cameras: int, frames: int,
+            seed: int) -> Path:
+    """Simulated log, ingested, with its template: the run folder (reused if present)."""
+    name = f"w{width}h{height}c{cameras}f{frames}s{seed}"
+    log, run = workdir / f"{name}.mcap", workdir / name
+    if not log.is_file():
+        subprocess.run([*SURGRECON, "simulate", str(log), "--width", str(width), "--height",
+                        str(height), "--cameras", str(cameras), "--frames", str(frames),
+                        "--seed", str(seed), "-q"], check=True)
+    if not RunLayout(run).template_ply.is_file():
+        subprocess.run([*SURGRECON, "ingest", str(log), "-o", str(run), "--force", "-q"],
+                       check=True)
+        subprocess.run([*SURGRECON, "build-template", str(run), "-q"], check=True)
+    return run
+
+
+def measured(run: Path, frames: int, config: Config) -> dict[str, float]:
+    """Per-frame CPU seconds of the register stage (1 worker) and its parts; wall seconds."""
+    from surgrecon_cli.stages.register import register_frame
+
+    total = target = solve = 0.0
+    wall = time.perf_counter()
+    for k in range(1, frames):
+        start = time.process_time()
+        out = register_frame(run, k, config)
+        total += time.process_time() - start
+        if "failed" in out:
+            raise SystemExit(f"{run}: frame {k} failed: {out['failed']}")
+        target += out["seconds_target"]
+        solve += out["seconds_register"]
+    n = frames - 1
+    wall_total = (time.perf_counter() - wall) / n
+    # The frame step reports wall seconds; scale them to CPU with the run's CPU/wall ratio.
+    scale = (total / n) / wall_total
+    parts = {"target": target / n * scale, "registration": solve / n * scale}
+    return {"total": total / n, "wall": wall_total, **parts,
+            "rest": total / n - parts["target"] - parts["registration"]}
+
+
+def tracking_floor(run: Path, levels: int, window: int) -> dict[str, float]:
+    """Per-frame CPU seconds of decoding, pyramids and KLT (frames 0 -> 1)."""
+    layout = RunLayout(run)
+    log = load_ingested(layout.ingest_dir)
+    n = len(read_template(layout).points)
+    obs = read_observations(layout, n)
+    decode = pyramid = klt = 0.0
+    win = (window, window)
+    for c in range(len(log.cameras)):
+        decode += cpu_seconds(lambda c=c: log.load_image(1, c))
+        prev = tracking_image(log.load_image(0, c))
+        cur = tracking_image(log.load_image(1, c))
+        pts = obs.pixels[obs.camera == c].astype(np.float32).reshape(-1, 1, 2)
+        with_deriv = cpu_seconds(lambda cur=cur: cv2.buildOpticalFlowPyramid(
+            cur, win, levels, withDerivatives=True))
+        plain = cpu_seconds(lambda cur=cur: cv2.buildOpticalFlowPyramid(
+            cur, win, levels, withDerivatives=False))
+
+        def both(prev=prev, cur=cur, pts=pts) -> None:
+            params = dict(winSize=win, maxLevel=levels, flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+                          criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01))
+            fwd, _, _ = cv2.calcOpticalFlowPyrLK(prev, cur, pts, pts.copy(), **params)
+            cv2.calcOpticalFlowPyrLK(cur, prev, fwd, pts.copy(), **params)
+
+        pyramid += with_deriv
+        klt += max(cpu_seconds(both) - 2 * (with_deriv + plain), 0.0)
+    return {"decode": decode, "pyramid": pyramid, "klt": klt}
+
+
+def registration_floor(run: Path, frame: int, config: Config) -> dict[str, float]:
+    """CPU seconds of one factorisation + solve, and of the ADMM iterations' solves and
+    mat-vecs, for the registration of the template to `frame`'s target."""
+    layout = RunLayout(run)
+    template = read_template(layout)
+    src = template.points
+    reg = read_registration(layout, frame, len(src))
+    has = np.isfinite(reg.target).all(1)
+    cfg = config.registration
+    iterations = [0]
+
+    def count(_step: int, state: dict) -> None:
+        iterations[0] += int(state.get("admm_iterations", 0))
+
+    register(src, reg.target[has], template.rgb, template.rgb[has], cfg,
+             target_ids=np.flatnonzero(has), weights=has.astype(float), callback=count)
+    tree = cKDTree(src)
+    norm = graph.normalisation(src, tree, cfg.max_nodes if cfg.max_nodes > 0 else len(src))
+    q = norm.to_internal(src)
+    per_point = cfg.max_nodes == 0 or len(src) <= cfg.max_nodes
+    nodes = q if per_point else q[graph.sample_nodes(q, cfg.max_nodes)]
+    node_tree = cKDTree(nodes)
+    if per_point:
+        idx, w = np.arange(len(q))[:, None], np.ones((len(q), 1))
+    else:
+        idx, w = graph.interpolation(q, nodes, node_tree, cfg.interp_neighbors)
+    D = graph.data_operator(q, nodes, idx, w)[np.flatnonzero(has)]
+    ea, eb = graph.neighbour_edges(nodes, node_tree, cfg.k_neighbors)
+    B = graph.smoothness_operator(nodes, ea, eb)
+    L = graph.linear_selector(len(nodes))
+    mu2 = cfg.mu * len(src) / len(nodes)
+    factor = factorise(D, B, L, cfg.beta, cfg.mu, mu2)
+    X = np.random.default_rng(0).normal(size=(D.shape[1], 3))
+    Dt, Bt = D.T.tocsr(), B.T.tocsr()
+    setup = cpu_seconds(lambda: factorise(D, B, L, cfg.beta, cfg.mu, mu2).solve(X))
+    per_iteration = cpu_seconds(lambda: (factor.solve(X), Dt @ (D @ X), Bt @ (B @ X)))
+    return {"solve": setup, "admm": iterations[0] * per_iteration,
+            "iterations": float(iterations[0])}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--sizes", nargs="+", default=["640x512", "1920x1080"])
+    parser.add_argument("--cameras", nargs="+", type=int, default=[2, 4, 6])
+    parser.add_argument("--frames", type=int, default=6)
+    parser.add_argument("--seed", type=int, default=7)
+    parser.add_argument("--floor-levels", type=int, default=1)
+    parser.add_argument("--workdir", type=Path, default=Path("/tmp/surgrecon-frame-cost"))
+    args = parser.parse_args()
+    args.workdir.mkdir(parents=True, exist_ok=True)
+    config = Config()
+    cv2.setNumThreads(1)
+    from threadpoolctl import threadpool_limits
+
+    threadpool_limits(limits=1)
+    head = (f"{'size':>10} {'cams':>4} | {'wall s':>6} {'cpu s':>6} {'floor':>6} {'ratio':>5} | "
+            f"{'target':>6} {'floor':>6} {'ratio':>5} | {'regist':>6} {'floor':>6} {'ratio':>5}"
+            f" {'iters':>5} | {'rest':>5} | decode pyramid klt solve admm (floor, s)")
+    print(head)
+    for size in args.sizes:
+        width, height = (int(v) for v in size.split("x"))
+        for cameras in args.cameras:
+            try:
+                run = prepare(args.workdir, width, height, cameras, args.frames, args.seed)
+            except subprocess.CalledProcessError as exc:  # e.g. no template: say so, go on
+                print(f"{size:>10} {cameras:>4} | not measured: {exc.cmd[1]} failed", flush=True)
+                continue
+            m = measured(run, args.frames, config)
+            t = tracking_floor(run, args.floor_levels, config.target.klt_window_px)
+            r = registration_floor(run, args.frames - 1, config)
+            f_target = t["decode"] + t["pyramid"] + t["klt"]
+            f_reg = r["solve"] + r["admm"]
+            floor = f_target + f_reg
+            print(f"{size:>10} {cameras:>4} | {m['wall']:6.3f} {m['total']:6.3f} {floor:6.3f} "
+                  f"{m['total'] / floor:5.1f} | {m['target']:6.3f} {f_target:6.3f} "
+                  f"{m['target'] / f_target:5.1f} | {m['registration']:6.3f} {f_reg:6.3f} "
+                  f"{m['registration'] / f_reg:5.1f} {r['iterations']:5.0f} | "
+                  f"{m['rest']:5.3f} | {t['decode']:.3f} {t['pyramid']:.3f} {t['klt']:.3f} "
+                  f"{r['solve']:.3f} {r['admm']:.3f}", flush=True)
+
+
+if __name__ == "__main__":
+    main()

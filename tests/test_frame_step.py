@@ -1,0 +1,110 @@
+"""The frame step's cheap paths: KLT depth from the measured motion (with a full-depth
+retry) and the tool contact folded into one registration."""
+
+from __future__ import annotations
+
+import numpy as np
+from scenes import render_frames
+
+from surgrecon_cli.config import Config
+from surgrecon_cli.core.frame_step import register_with_contact
+from surgrecon_cli.core.registration import register
+from surgrecon_cli.core.tool import push_out_of_tool
+from surgrecon_cli.core.tracking import (
+    klt_levels_for,
+    klt_track,
+    track_adaptive,
+    tracking_view,
+)
+from surgrecon_cli.sim.scene import SimConfig
+
+
+def test_levels_follow_the_motion_and_window():
+    # A 21 px window reaches 21/4 px at level 0 and doubles per level.
+    assert klt_levels_for(0.5, 21, 3) == 0
+    assert klt_levels_for(5.0, 21, 3) == 0
+    assert klt_levels_for(8.0, 21, 3) == 1
+    assert klt_levels_for(20.0, 21, 3) == 2
+    assert klt_levels_for(500.0, 21, 3) == 3
+    assert klt_levels_for(float("nan"), 21, 3) == 3
+
+
+def _texture(shift_x: float, size: int = 200) -> np.ndarray:
+    """RGB image of smooth random blobs, moved right by shift_x px (exact: analytic)."""
+    rng = np.random.default_rng(3)
+    centres = rng.uniform(0, size, (120, 2))
+    widths = rng.uniform(3, 7, 120)
+    levels = rng.uniform(-1, 1, 120)
+    v, u = np.mgrid[0:size, 0:size].astype(float)
+    grey = np.zeros((size, size))
+    for (cx, cy), w, a in zip(centres, widths, levels, strict=True):
+        grey += a * np.exp(-((u - cx - shift_x) ** 2 + (v - cy) ** 2) / (2 * w * w))
+    grey = np.clip(128 + 60 * grey, 0, 255).astype(np.uint8)
+    return np.repeat(grey[:, :, None], 3, axis=2)
+
+
+def test_a_motion_beyond_the_chosen_depth_is_found_by_the_full_depth_retry():
+    # The true motion is 14 px; the expected motion says 1 px (depth 0 reaches ~5 px):
+    # the tracks fail or stray there and are tracked again at the full depth.
+    cfg = Config().target
+    prev, cur = tracking_view(_texture(0.0)), tracking_view(_texture(14.0))
+    g = np.arange(50.0, 150.0, 12.0)
+    start = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
+    tracked, ok, moved = track_adaptive(prev, cur, start, start.copy(), cfg, motion_px=1.0)
+    assert ok.mean() > 0.9
+    err = np.abs(tracked[ok] - (start[ok] + [14.0, 0.0]))
+    assert np.median(err) < 0.05
+    assert np.nanmedian(moved) > 13.0
+
+
+def test_the_chosen_depth_tracks_as_the_full_depth_on_a_simulated_frame_pair():
+    sim = SimConfig(cameras=1, frames=20, width=320, height=256, seed=5)
+    scene = render_frames(sim, [5, 6])
+    cfg = Config().target
+    prev, cur = tracking_view(scene.images[0][0]), tracking_view(scene.images[1][0])
+    rng = np.random.default_rng(0)
+    start = rng.uniform([30, 30], [290, 226], (300, 2))
+    full, ok_full = klt_track(prev, cur, start, start.copy(), cfg, cfg.klt_levels)
+    chosen, ok, _ = track_adaptive(prev, cur, start, start.copy(), cfg, motion_px=1.0)
+    both = ok & ok_full
+    assert both.sum() >= 0.95 * ok_full.sum()
+    # Within the tracker's own stopping tolerance (an update below 0.01 px ends it).
+    assert np.percentile(np.linalg.norm(chosen[both] - full[both], axis=1), 95) < 1e-2
+
+
+def test_contact_is_folded_into_one_registration_and_keeps_the_tissue_out_of_the_tool(
+        monkeypatch):
+    # A flat 18 mm patch; the tool (4 mm radius, rounded end) presses 2 mm into its centre,
+    # where the cameras see no tissue (weight 0); the rest is observed still. Tissue cannot
+    # be inside the tool: under it, it lies on the tool's rounded end.
+    import surgrecon_cli.core.frame_step as frame_step
+
+    solves = []
+    monkeypatch.setattr(frame_step, "register",
+                        lambda *a, **k: solves.append(1) or register(*a, **k))
+    config = Config()
+    g = np.arange(-9e-3, 9e-3 + 1e-9, 0.6e-3)
+    xy = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
+    source = np.c_[xy, np.zeros(len(xy))]
+    rgb = np.full((len(source), 3), 128, np.uint8)
+    seen = np.linalg.norm(xy, axis=1) > 6e-3
+    ids = np.flatnonzero(seen)
+    tool = np.eye(4)
+    tool[:3, 3] = [0.0, 0.0, -2e-3]  # tip 2 mm into the surface, shaft along +z
+    result, n_contact = register_with_contact(
+        source, rgb, source[ids], rgb[ids], ids, seen.astype(float), tool, config)
+    assert len(solves) == 1
+    r = np.linalg.norm(xy, axis=1)
+    # The rounded end (centre 2 mm above the surface) cuts the plane in a circle of radius
+    # sqrt(4² - 2²) mm: every point within it is in contact.
+    assert n_contact == (r < np.sqrt(12) * 1e-3).sum() > 80
+    _, pushed = push_out_of_tool(result.registered, tool, config.tool)
+    assert np.linalg.norm(pushed - result.registered, axis=1).max() < 2e-6
+    under = r < 3.3e-3
+    on_tool = 2e-3 - np.sqrt(4e-3**2 - r[under] ** 2)  # the rounded end's surface z (m)
+    assert np.abs(result.registered[under, 2] - on_tool).max() < 0.05e-3
+    moved = np.einsum("nij,nj->ni", result.transforms[:, :, :3], source) + result.transforms[
+        :, :, 3]
+    np.testing.assert_allclose(moved, result.registered, atol=1e-9)
+    still = np.linalg.norm(result.registered[seen] - source[seen], axis=1)
+    assert np.median(still) < 0.05e-3
