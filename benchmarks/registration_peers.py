@@ -130,9 +130,9 @@ def oriented_normals(points: np.ndarray, k: int = 12) -> tuple[np.ndarray, np.nd
 
 def umbrella_faces(points: np.ndarray, k: int = 12) -> np.ndarray:
     """A triangle mesh (F, 3) of a cloud sampled from a smooth surface: each point's
-    neighbours are projected on its tangent plane and Delaunay-triangulated; a triangle is
-    kept when at least two of its corners agree on it (or when it is the only cover of a
-    corner), wound along the propagated normals."""
+    neighbours are projected on its tangent plane and Delaunay-triangulated; triangles are
+    wound along the propagated normals and kept, most agreed-on first, while the mesh stays
+    edge-manifold."""
     normals, idx = oriented_normals(points, k)
     faces = []
     for i in range(len(points)):  # benchmark input preparation, not a hot path
@@ -143,13 +143,27 @@ def umbrella_faces(points: np.ndarray, k: int = 12) -> np.ndarray:
         faces.append(idx[i][tri[(tri == 0).any(1)]])
     all_faces = _orient(points, np.concatenate(faces), np.repeat(
         normals, [len(f) for f in faces], axis=0))
-    key, first, inv, count = np.unique(np.sort(all_faces, 1), axis=0, return_index=True,
-                                       return_inverse=True, return_counts=True)
-    keep = count >= 2
-    covered = np.zeros(len(points), bool)
-    covered[key[keep].ravel()] = True
-    lonely = ~covered[all_faces].all(1) & ~keep[inv.ravel()]
-    return np.concatenate([all_faces[first[keep]], all_faces[lonely]])
+    _, first, count = np.unique(np.sort(all_faces, 1), axis=0, return_index=True,
+                                return_counts=True)
+    order = np.argsort(-count, kind="stable")  # most agreed first
+    return manifold_subset(all_faces[first[order]])
+
+
+def manifold_subset(faces: np.ndarray) -> np.ndarray:
+    """Greedily keep faces (in the given order) whose directed edges are new and whose edges
+    have fewer than two faces, so that the mesh stays edge-manifold and consistently wound."""
+    directed: set[tuple[int, int]] = set()
+    uses: dict[tuple[int, int], int] = {}
+    kept = []
+    for f in faces.tolist():  # benchmark input preparation, not a hot path
+        edges = [(f[0], f[1]), (f[1], f[2]), (f[2], f[0])]
+        if any(e in directed or uses.get((min(e), max(e)), 0) >= 2 for e in edges):
+            continue
+        for e in edges:
+            directed.add(e)
+            uses[(min(e), max(e))] = uses.get((min(e), max(e)), 0) + 1
+        kept.append(f)
+    return np.asarray(kept, dtype=np.int64)
 
 
 def write_obj(path: Path, points_mm: np.ndarray, faces: np.ndarray | None) -> None:
