@@ -149,13 +149,14 @@ class TissueScene:
 
 
 def tissue_scene(seed: int) -> TissueScene:
-    """The tissue surface and motion of a seed: breathing up to 3 mm (mostly along the
-    dome's axis, 30-60 % of it sideways, so that colour matters), a 4-6 mm indentation."""
+    """The tissue surface and motion of a seed: breathing of 2-3 mm, about as much sideways
+    (sliding along the surface, which only colour can tell) as along the dome's axis, and a
+    4-6 mm indentation."""
     rng = np.random.default_rng(seed + 31)
     bumps = np.c_[rng.uniform(-18, 18, (5, 2)), rng.uniform(-1.0, 1.0, 5), rng.uniform(3, 7, 5)]
     edge_angle = rng.uniform(0, 2 * np.pi)
     edge_dir = np.array([np.cos(edge_angle), np.sin(edge_angle)])
-    side = rng.uniform(0.3, 0.6) * np.array([np.cos(edge_angle + rng.uniform(-1, 1)),
+    side = rng.uniform(0.8, 1.2) * np.array([np.cos(edge_angle + rng.uniform(-1, 1)),
                                              np.sin(edge_angle + rng.uniform(-1, 1)), 0.0])
     up = side + np.array([0, 0, 1.0])
     breath = rng.uniform(2.0, 3.0) * up / np.linalg.norm(up)
