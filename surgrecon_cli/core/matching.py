@@ -7,6 +7,8 @@ fundamental matrix is estimated): the Lowe ratio test is run among the candidate
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 
 from .features import Features
@@ -131,6 +133,8 @@ def ratio_mutual_matches(
     whichever is closer (a lone candidate would otherwise always pass). It must also be the
     nearest candidate of its b (mutual). Squared distances are computed in blocks of rows
     (`row_blocks`), never as one Na x Nb matrix; the column bests merge across blocks."""
+    rows_with, ia = np.unique(ia, return_inverse=True)  # a row without candidates never matches
+    da = da[rows_with]
     n_a, n_b = len(da), len(db)
     sq_a_all, sq_b = (da * da).sum(1), (db * db).sum(1)
     best_b = np.full(n_a, -1)
@@ -158,15 +162,14 @@ def ratio_mutual_matches(
         col_row[better] = a[col_c[better]] + rows.start
     rows_all = np.arange(n_a)
     keep = passes & (col_row[np.maximum(best_b, 0)] == rows_all)
-    return np.column_stack([rows_all[keep], best_b[keep]])
+    return np.column_stack([rows_with[keep], best_b[keep]])
 
 
 def build_tracks(
-    n_features: list[int],
-    sequence: list[tuple[int, int]],
-    pair_matches: dict[tuple[int, int], np.ndarray],
+    n_features: list[int], merges: Sequence[tuple[int, int, np.ndarray]]
 ) -> tuple[list[np.ndarray], int]:
-    """Chain pairwise matches into tracks, merging pairs in `sequence` order (union-find).
+    """Chain matches into tracks, merging in `merges` order (union-find); each merge is
+    (camera i, camera j, (M, 2) feature indices in i and j).
 
     A merge that would put two features of one image into one track is refused, so
     the earlier (better-conditioned, better-matched) pairs of the sequence win conflicts.
@@ -185,8 +188,8 @@ def build_tracks(
             a = parent[a]
         return a
 
-    for i, j in sequence:
-        for a, b in (pair_matches[(i, j)] + [offsets[i], offsets[j]]).tolist():
+    for i, j, matches in merges:
+        for a, b in (matches + offsets[[i, j]]).tolist():
             ra, rb = find(a), find(b)
             if ra != rb and not cameras_of[ra] & cameras_of[rb]:
                 parent[rb] = ra
