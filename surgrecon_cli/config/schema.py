@@ -109,8 +109,8 @@ class TemplateConfig:
         "camera geometry) of a template point (mm)")
     min_pair_matches: int = _doc(40, "verified matches for two cameras to be linked")
     match_all_pairs: bool = _doc(
-        False, "match every candidate camera pair, not only the sequence grown from the "
-        "template (the comparison; several times the matching cost)")
+        True, "match every candidate camera pair; false: only a spanning tree of pairs, each "
+        "camera also matched to the growing template by projection (fewer points, as accurate)")
     min_view_overlap: float = _doc(0.15, "predicted shared-view fraction to try matching a pair")
     depth_range: tuple[float, ...] = _doc(
         (0.4, 2.5), "matches must triangulate within [near, far] x the camera's working depth"
