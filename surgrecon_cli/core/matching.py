@@ -194,7 +194,9 @@ def build_tracks(
             if ra != rb and not cameras_of[ra] & cameras_of[rb]:
                 parent[rb] = ra
                 cameras_of[ra] |= cameras_of[rb]
-    roots = np.array([find(a) for a in range(total)], dtype=int)
+    roots = np.array(parent, dtype=int)
+    while not np.array_equal(roots[roots], roots):  # pointer jumping to every feature's root
+        roots = roots[roots]
     size = np.bincount(roots, minlength=total)
     tracked = size[roots] >= 2
     _, track = np.unique(roots[tracked], return_inverse=True)
