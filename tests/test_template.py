@@ -189,7 +189,7 @@ def test_tissue_inside_the_tool_is_pushed_onto_its_surface():
 def test_sequencing_matches_half_the_pairs_at_the_accuracy_of_all_pairs():
     """6 cameras: sequencing matches at most half the 15 pairs (a spanning tree, plus a
     replacement for a failed link) and its template is as close to the true surface as the
-    all-pairs template (median and p95 within 10 %), with a few hundred points."""
+    all-pairs template (median and p95 within 10 %), with over half its points."""
     scene = render_frames(SimConfig(cameras=6, frames=2, width=480, height=360, seed=3), [0])
     cfg = Config()
     results = {
@@ -204,6 +204,6 @@ def test_sequencing_matches_half_the_pairs_at_the_accuracy_of_all_pairs():
     every, sequenced = results[True].stats, results[False].stats
     assert every["pairs_matched"] == every["candidate_pairs"] == 15
     assert sequenced["pairs_matched"] <= 7 and sequenced["matched_to_template"] >= 5
-    assert sequenced["points"] >= 200
+    assert sequenced["points"] >= 0.5 * every["points"]
     for stat in ("median_mm", "p95_mm"):
         assert errors[False][stat] <= 1.1 * errors[True][stat]
