@@ -30,8 +30,10 @@ from .pairing import PairPlan, PairPrediction, plan_pairs
 from .triangulate import Observations, triangulate
 
 # ours: a track's projection misses its feature by its triangulation error (2-view depth
-# errors of ~1-2 px measured); 2x the epipolar tolerance, and 4x and 8x gave the same template
-GATE_EPIPOLAR = 2.0
+# errors of ~1-2 px measured at 640 px; 2x, 4x and 8x the epipolar tolerance gave the same
+# template) plus the pose errors of the cameras (the tracker's jitter projected, ∝ focal
+# length: 3 sigma of two views; at 1920 px a 4 px gate lost a third of the accuracy)
+GATE_EPIPOLAR, GATE_POSE_SIGMAS = 2.0, 3.0 * np.sqrt(2.0)
 
 Merge = tuple[int, int, np.ndarray]
 """(camera a, camera b, (M, 2) feature indices in a and b): matches to merge into tracks."""
@@ -151,12 +153,13 @@ def all_pairs(pairs: list[tuple[int, int]], match_pairs: MatchPairs, conditionin
 def sequenced(features: list[Features], poses: np.ndarray, models: list[CameraModel],
               pairs: list[tuple[int, int]], prediction: PairPrediction,
               match_pairs: MatchPairs, min_pair_matches: int, ratio: float, epipolar_px: float,
-              max_reprojection_px: float) -> MatchPlan:
+              pose_px: np.ndarray, max_reprojection_px: float) -> MatchPlan:
     """Only a spanning tree over the candidate `pairs` is matched (failed tree pairs
     replaced, re-planning with the verified pairs first); cameras join in the tree's order,
-    each first matched to the tracks so far (`match_to_tracks`, gate GATE_EPIPOLAR x
-    `epipolar_px`), then merged with its tree partner; a closing pass matches every camera
-    to the tracks made after it joined.
+    each first matched to the tracks so far (`match_to_tracks`; gate GATE_EPIPOLAR x
+    `epipolar_px` + GATE_POSE_SIGMAS x the camera's pose error pose_px (C,) px), then merged
+    with its tree partner; a closing pass matches every camera to the tracks made after it
+    joined.
 
     The tree maximises the predicted weight of a pair, shared view x conditioning (the
     matches expected; `plan_pairs` weighs verified pairs by matches x conditioning).
@@ -164,7 +167,7 @@ def sequenced(features: list[Features], poses: np.ndarray, models: list[CameraMo
     third of the points (measured, seeds 11, 21, 22): rejected."""
     predicted = prediction.overlap * prediction.conditioning
     conditioning, angle_deg = prediction.conditioning, prediction.angle_deg
-    gate_px = GATE_EPIPOLAR * epipolar_px
+    gate_px = GATE_EPIPOLAR * epipolar_px + GATE_POSE_SIGMAS * pose_px
     found: dict[tuple[int, int], np.ndarray] = {}
     candidate = np.zeros_like(predicted)
     for i, j in pairs:
@@ -184,7 +187,7 @@ def sequenced(features: list[Features], poses: np.ndarray, models: list[CameraMo
     guided = 0
     def to_tracks(camera: int) -> list[Merge]:
         return match_to_tracks(features, merges, poses, models, camera, angle_deg, ratio,
-                               gate_px, max_reprojection_px)
+                               float(gate_px[camera]), max_reprojection_px)
 
     for tree in trees:
         joined: list[int] = []

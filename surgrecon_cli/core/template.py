@@ -127,8 +127,10 @@ def build_template(
     if cfg.match_all_pairs:
         matched = all_pairs(pairs, match_pairs, prediction.conditioning, cfg.min_pair_matches)
     else:
+        pose_px = (np.zeros(len(models)) if noise is None else
+                   np.sqrt(noise.pose_variance_px2(prediction.depth, np.array(focal))))
         matched = sequenced(features, poses, models, pairs, prediction, match_pairs,
-                            cfg.min_pair_matches, cfg.ratio, cfg.epipolar_px,
+                            cfg.min_pair_matches, cfg.ratio, cfg.epipolar_px, pose_px,
                             cfg.max_reprojection_px)
     step("matches")
     plan = matched.plan
