@@ -110,7 +110,8 @@ class TemplateConfig:
     min_pair_matches: int = _doc(40, "verified matches for two cameras to be linked")
     match_all_pairs: bool = _doc(
         True, "match every candidate camera pair; false: only a spanning tree of pairs, each "
-        "camera also matched to the growing template by projection (fewer points, as accurate)")
+        "camera also matched to the growing template by projection (a third of the pairs, "
+        "about 2/3 of the points)")
     min_view_overlap: float = _doc(0.15, "predicted shared-view fraction to try matching a pair")
     depth_range: tuple[float, ...] = _doc(
         (0.4, 2.5), "matches must triangulate within [near, far] x the camera's working depth"
