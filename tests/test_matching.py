@@ -9,6 +9,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from surgrecon_cli.core import matching
 from surgrecon_cli.core.features import Features
 from surgrecon_cli.core.geometry import invert_pose
 from surgrecon_cli.core.matching import (
@@ -206,7 +207,7 @@ def test_tracks_chain_pairs_and_earlier_pairs_win_conflicts():
         (1, 2): np.array([[0, 0], [1, 2]]),
         (0, 2): np.array([[1, 0], [2, 3]]),  # first conflicts; second makes a new 2-track
     }
-    ids, n = build_tracks([3, 3, 4], [(0, 1), (1, 2), (0, 2)], matches)
+    ids, n = build_tracks([3, 3, 4], [(i, j, matches[(i, j)]) for i, j in [(0, 1), (1, 2), (0, 2)]])
     assert n == 3
     a, b, c = ids[0][0], ids[0][1], ids[0][2]
     assert len({a, b, c}) == 3 and min(a, b, c) >= 0
@@ -215,9 +216,57 @@ def test_tracks_chain_pairs_and_earlier_pairs_win_conflicts():
     # Another order: (0,2) first wins. Then (1,2) adds camera 1's feature 0 to the track of
     # (c0 f1, c2 f0) and starts (c1 f1, c2 f2); both (0,1) matches now conflict: c0 f0 is left
     # without a track.
-    ids, n = build_tracks([3, 3, 4], [(0, 2), (1, 2), (0, 1)], matches)
+    ids, n = build_tracks([3, 3, 4], [(i, j, matches[(i, j)]) for i, j in [(0, 2), (1, 2), (0, 1)]])
     assert n == 3
     assert ids[0][1] == ids[2][0] == ids[1][0] >= 0
     assert ids[1][1] == ids[2][2] >= 0 and ids[0][2] == ids[2][3] >= 0
     assert len({ids[0][1], ids[1][1], ids[0][2]}) == 3
     assert ids[0][0] == -1
+
+
+# ---- bounded memory -----------------------------------------------------------------------
+
+
+def dense_reference(fi: Features, fj: Features, s: dict, tol_px: float) -> set[tuple[int, int]]:
+    """The matching rule on whole Ni x Nj matrices (what the blocked search must equal):
+    candidates within the epipolar tolerance and depth range; a row's best candidate passes
+    the ratio test against the next best of all other features of j, candidate or not, and
+    must be its column's best candidate."""
+    E = essential_matrix(s["pose_i"], s["pose_j"])
+    epi = symmetric_epipolar_px(E, fi.normalized, fj.normalized)
+    ia, jb = np.nonzero(epi <= tol_px)
+    z = ray_depths(fi.normalized[ia], fj.normalized[jb], s["pose_i"], s["pose_j"])
+    cand = np.zeros(epi.shape, bool)
+    inside = (z >= DEPTHS[0]) & (z <= DEPTHS[1])
+    cand[ia[inside], jb[inside]] = True
+    d2 = ((fi.descriptors[:, None, :].astype(float) - fj.descriptors[None]) ** 2).sum(-1)
+    in_cand = np.where(cand, d2, np.inf)
+    found = set()
+    for a in np.flatnonzero(cand.any(1)):
+        b = int(np.argmin(in_cand[a]))
+        runner_up = np.delete(d2[a], b).min()
+        if d2[a, b] < RATIO**2 * runner_up and int(np.argmin(in_cand[:, b])) == a:
+            found.add((int(a), b))
+    return found
+
+
+def test_blocked_search_equals_the_dense_reference(scene, monkeypatch):
+    """300 x 400 features (60 true correspondences, look-alikes of them on and off their
+    epipolar segments, random distractors), a wide 15 px band so rows have many candidates;
+    blocks of 7 rows: the same matches as the dense rule."""
+    s = scene
+    rng = np.random.default_rng(21)
+    look_i = s["desc"][rng.integers(0, 60, 15)] + rng.normal(0, 0.012, (15, 128))
+    look_j = s["desc"][rng.integers(0, 60, 15)] + rng.normal(0, 0.012, (15, 128))
+    fi = with_extra(s["fi"], rng.uniform(-0.3, 0.3, (240, 2)),
+                    np.vstack([look_i, rng.uniform(0, 1, (225, 128))]))
+    fj = with_extra(s["fj"], rng.uniform(-0.3, 0.3, (340, 2)),
+                    np.vstack([look_j, rng.uniform(0, 1, (325, 128))]))
+    monkeypatch.setattr(matching, "BLOCK_CELLS", 7 * len(fj))
+    assert len(matching.row_blocks(len(fi), len(fj))) == 43
+    got = {(int(a), int(b)) for a, b in match_pair(fi, fj, s["pose_i"], s["pose_j"], FOCAL,
+                                                    FOCAL, RATIO, 15.0, DEPTHS)}
+    expected = dense_reference(fi, fj, s, 15.0)
+    assert got == expected
+    # non-trivial: most true pairs survive, some are lost to look-alikes
+    assert 30 <= len(got & s["truth"]) < 60

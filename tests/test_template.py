@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from scenes import render_frames
@@ -182,3 +184,26 @@ def test_tissue_inside_the_tool_is_pushed_onto_its_surface():
     np.testing.assert_allclose(pushed[4], [0, 1e-3, r - np.sqrt(r**2 - 1e-6)], atol=2e-6)
     np.testing.assert_array_equal(pushed[~inside], points[~inside])
     assert not push_out_of_tool(pushed, tip_down, cfg)[0].any()
+
+
+def test_sequencing_matches_half_the_pairs_at_the_accuracy_of_all_pairs():
+    """6 cameras: sequencing matches at most half the 15 pairs (a spanning tree, plus a
+    replacement for a failed link) and its template is as close to the true surface as the
+    all-pairs template (median and p95 within 10 %), with over half its points."""
+    scene = render_frames(SimConfig(cameras=6, frames=2, width=480, height=360, seed=3), [0])
+    cfg = Config()
+    results = {
+        all_pairs: build_template(scene.images[0], scene.models, scene.poses[0],
+                                  scene.tool_poses[0],
+                                  replace(cfg.template, match_all_pairs=all_pairs), cfg.tool)
+        for all_pairs in (True, False)
+    }
+    errors = {k: distance_stats_mm(map_to_surface(r.points, scene.vertices[0],
+                                                  scene.faces).distance)
+              for k, r in results.items()}
+    every, sequenced = results[True].stats, results[False].stats
+    assert every["pairs_matched"] == every["candidate_pairs"] == 15
+    assert sequenced["pairs_matched"] <= 7 and sequenced["matched_to_template"] >= 5
+    assert sequenced["points"] >= 0.5 * every["points"]
+    for stat in ("median_mm", "p95_mm"):
+        assert errors[False][stat] <= 1.1 * errors[True][stat]

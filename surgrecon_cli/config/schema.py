@@ -108,6 +108,10 @@ class TemplateConfig:
         2.5, "largest 3D position uncertainty (RMS, from the measured pixel noise and the "
         "camera geometry) of a template point (mm)")
     min_pair_matches: int = _doc(40, "verified matches for two cameras to be linked")
+    match_all_pairs: bool = _doc(
+        True, "match every candidate camera pair; false: only a spanning tree of pairs, each "
+        "camera also matched to the growing template by projection (a third of the pairs, "
+        "about 2/3 of the points)")
     min_view_overlap: float = _doc(0.15, "predicted shared-view fraction to try matching a pair")
     depth_range: tuple[float, ...] = _doc(
         (0.4, 2.5), "matches must triangulate within [near, far] x the camera's working depth"

@@ -7,10 +7,14 @@ fundamental matrix is estimated): the Lowe ratio test is run among the candidate
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 
 from .features import Features
 from .geometry import invert_pose
+
+BLOCK_CELLS = 1 << 22  # ours: float32 cells (16 MB) of one block of a matching matrix
 
 
 def essential_matrix(pose_i: np.ndarray, pose_j: np.ndarray) -> np.ndarray:
@@ -21,14 +25,22 @@ def essential_matrix(pose_i: np.ndarray, pose_j: np.ndarray) -> np.ndarray:
     return tx @ R
 
 
+def row_blocks(n_rows: int, n_cols: int) -> list[slice]:
+    """Slices of at most BLOCK_CELLS // n_cols rows: the blocks a (n_rows, n_cols) float32
+    matrix is computed in, so memory stays bounded (16 MB a block) at any feature count."""
+    step = max(1, BLOCK_CELLS // max(n_cols, 1))
+    return [slice(s, min(s + step, n_rows)) for s in range(0, n_rows, step)]
+
+
 def epipolar_candidates(
     E: np.ndarray, xi: np.ndarray, xj: np.ndarray, f_i: float, f_j: float, tol_px: float
 ) -> tuple[np.ndarray, np.ndarray]:
     """All pairs (ia, jb) of normalised points xi (Ni, 2), xj (Nj, 2) whose symmetric epipolar
-    distance is at most `tol_px` (focal lengths f convert normalised units to pixels).
+    distance is at most `tol_px` (focal lengths f convert normalised units to pixels); ia
+    ascending.
 
-    One dense float32 pass over the algebraic error x_j^T E x_i with a per-row bound that
-    never misses a pair, then the exact distance on the few survivors.
+    A float32 pass over the algebraic error x_j^T E x_i, in blocks of rows, with a per-row
+    bound that never misses a pair, then the exact distance on the few survivors.
     """
     hi = np.column_stack([xi, np.ones(len(xi))])
     hj = np.column_stack([xj, np.ones(len(xj))])
@@ -36,10 +48,19 @@ def epipolar_candidates(
     lines_i = hj @ E  # lines in image i of the points of j (Nj, 3)
     nj = np.linalg.norm(lines_j[:, :2], axis=1)
     ni = np.linalg.norm(lines_i[:, :2], axis=1)
-    alg = lines_j.astype(np.float32) @ hj.T.astype(np.float32)  # (Ni, Nj)
     # distance = 0.5 |alg| (f_j / nj[i] + f_i / ni[j]) >= 0.5 |alg| (f_j / nj[i] + f_i / max ni)
-    bound = tol_px / (0.5 * (f_j / nj + f_i / ni.max())) * 1.0001
-    ia, jb = np.nonzero(np.abs(alg) <= bound[:, None].astype(np.float32))
+    bound = (tol_px / (0.5 * (f_j / nj + f_i / ni.max(initial=0.0))) * 1.0001).astype(np.float32)
+    lines32, hj32 = lines_j.astype(np.float32), hj.T.astype(np.float32)
+    found = []
+    blocks = row_blocks(len(xi), len(xj))
+    size = (blocks[0].stop if blocks else 0, len(xj))
+    buffer, screen = np.empty(size, np.float32), np.empty(size, bool)
+    for rows in blocks:
+        alg = np.abs(lines32[rows] @ hj32, out=buffer[: rows.stop - rows.start])  # (block, Nj)
+        ia, jb = np.nonzero(np.less_equal(alg, bound[rows, None], out=screen[: len(alg)]))
+        found.append((ia + rows.start, jb))
+    ia = np.concatenate([f[0] for f in found]) if found else np.zeros(0, int)
+    jb = np.concatenate([f[1] for f in found]) if found else np.zeros(0, int)
     exact = 0.5 * np.abs((lines_j[ia] * hj[jb]).sum(1)) * (f_j / nj[ia] + f_i / ni[jb])
     keep = exact <= tol_px
     return ia[keep], jb[keep]
@@ -98,34 +119,57 @@ def match_pair(
     ia, jb = epipolar_candidates(E, fi.normalized, fj.normalized, f_i, f_j, epipolar_px)
     z = ray_depths(fi.normalized[ia], fj.normalized[jb], pose_i, pose_j)
     inside = (z >= depth_range[0]) & (z <= depth_range[1])
-    ia, jb = ia[inside], jb[inside]
-    di, dj = fi.descriptors, fj.descriptors
-    # Squared descriptor distances of all pairs in float32 (one BLAS product, Ni x Nj).
-    full = (di * di).sum(1)[:, None] + (dj * dj).sum(1)[None, :] - 2.0 * (di @ dj.T)
-    d2 = np.maximum(full[ia, jb], 0.0).astype(float)
-    best_c, best, second = _first_per_group(ia, d2, len(di))
-    # Ambiguity is judged against every other feature: the runner-up is the second best
-    # inside the epipolar segment or the best outside it, whichever is closer (a lone
-    # candidate in the segment would otherwise always pass the ratio test).
-    full[ia, jb] = np.inf
-    second = np.minimum(second, np.maximum(full.min(axis=1), 0.0))
-    has = best_c >= 0
-    best_j = np.where(has, jb[np.maximum(best_c, 0)], -1)
-    passes = has & (best < (ratio**2) * second)  # squared distances
-    col_best, _, _ = _first_per_group(jb, d2, len(dj))
-    rows = np.arange(len(di))
-    mutual = np.zeros(len(di), bool)
-    mutual[has] = ia[col_best[best_j[has]]] == rows[has]
-    keep = passes & mutual
-    return np.column_stack([rows[keep], best_j[keep]])
+    return ratio_mutual_matches(fi.descriptors, fj.descriptors, ia[inside], jb[inside], ratio)
+
+
+def ratio_mutual_matches(
+    da: np.ndarray, db: np.ndarray, ia: np.ndarray, jb: np.ndarray, ratio: float
+) -> np.ndarray:
+    """Indices (M, 2) of the mutual, ratio-tested matches between descriptors da (Na, 128)
+    and db (Nb, 128) float32 among the geometric candidate pairs (ia, jb) (ia ascending).
+
+    Row a's match is its nearest candidate; the Lowe ratio test judges it against every
+    other b: the runner-up is the second-best candidate or the best non-candidate,
+    whichever is closer (a lone candidate would otherwise always pass). It must also be the
+    nearest candidate of its b (mutual). Squared distances are computed in blocks of rows
+    (`row_blocks`), never as one Na x Nb matrix; the column bests merge across blocks."""
+    rows_with, ia = np.unique(ia, return_inverse=True)  # a row without candidates never matches
+    da = da[rows_with]
+    n_a, n_b = len(da), len(db)
+    sq_a_all, sq_b = (da * da).sum(1), (db * db).sum(1)
+    best_b = np.full(n_a, -1)
+    passes = np.zeros(n_a, bool)
+    col_d2 = np.full(n_b, np.inf)
+    col_row = np.full(n_b, -1)
+    bounds = np.searchsorted(ia, [(r.start, r.stop) for r in row_blocks(n_a, n_b)])
+    for (lo, hi), rows in zip(bounds, row_blocks(n_a, n_b), strict=True):
+        # |x|² + |y|² - 2 x.y; the row's |x|² is added only where a value is used.
+        part = da[rows] @ db.T
+        part *= -2.0
+        part += sq_b
+        sq_a = sq_a_all[rows].astype(float)
+        a, b = ia[lo:hi] - rows.start, jb[lo:hi]
+        d2 = np.maximum(part[a, b] + sq_a[a], 0.0)
+        best_c, best, second = _first_per_group(a, d2, len(sq_a))
+        part[a, b] = np.inf
+        second = np.minimum(second, np.maximum(part.min(axis=1) + sq_a, 0.0))
+        has = best_c >= 0
+        best_b[rows] = np.where(has, b[np.maximum(best_c, 0)], -1)
+        passes[rows] = has & (best < (ratio**2) * second)  # squared distances
+        col_c, col_best, _ = _first_per_group(b, d2, n_b)
+        better = col_best < col_d2  # strict: on a tie the earlier row stays, as in one pass
+        col_d2[better] = col_best[better]
+        col_row[better] = a[col_c[better]] + rows.start
+    rows_all = np.arange(n_a)
+    keep = passes & (col_row[np.maximum(best_b, 0)] == rows_all)
+    return np.column_stack([rows_with[keep], best_b[keep]])
 
 
 def build_tracks(
-    n_features: list[int],
-    sequence: list[tuple[int, int]],
-    pair_matches: dict[tuple[int, int], np.ndarray],
+    n_features: list[int], merges: Sequence[tuple[int, int, np.ndarray]]
 ) -> tuple[list[np.ndarray], int]:
-    """Chain pairwise matches into tracks, merging pairs in `sequence` order (union-find).
+    """Chain matches into tracks, merging in `merges` order (union-find); each merge is
+    (camera i, camera j, (M, 2) feature indices in i and j).
 
     A merge that would put two features of one image into one track is refused, so
     the earlier (better-conditioned, better-matched) pairs of the sequence win conflicts.
@@ -144,13 +188,15 @@ def build_tracks(
             a = parent[a]
         return a
 
-    for i, j in sequence:
-        for a, b in (pair_matches[(i, j)] + [offsets[i], offsets[j]]).tolist():
+    for i, j, matches in merges:
+        for a, b in (matches + offsets[[i, j]]).tolist():
             ra, rb = find(a), find(b)
             if ra != rb and not cameras_of[ra] & cameras_of[rb]:
                 parent[rb] = ra
                 cameras_of[ra] |= cameras_of[rb]
-    roots = np.array([find(a) for a in range(total)], dtype=int)
+    roots = np.array(parent, dtype=int)
+    while not np.array_equal(roots[roots], roots):  # pointer jumping to every feature's root
+        roots = roots[roots]
     size = np.bincount(roots, minlength=total)
     tracked = size[roots] >= 2
     _, track = np.unique(roots[tracked], return_inverse=True)

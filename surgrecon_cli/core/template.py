@@ -16,7 +16,7 @@ import numpy as np
 from ..config import TemplateConfig, ToolConfig
 from ..errors import GeometryError
 from .cameras import CameraModel, project, view_distortion_jacobians
-from .features import Features, detect_features, no_features
+from .features import detect_features, no_features
 from .matching import build_tracks, match_pair
 from .noise import (
     NoiseModel,
@@ -29,10 +29,14 @@ from .noise import (
     projection_jacobians,
 )
 from .outliers import surface_outliers
-from .pairing import PairPlan, PairPrediction, candidate_pairs, plan_pairs, predict_pairs
+from .pairing import PairPlan, PairPrediction, candidate_pairs, predict_pairs
+from .sequencing import all_pairs, sequenced, track_observations
 from .tool import points_near_tool, tool_image_mask
 from .triangulate import Observations, reprojection_residuals, triangulate
 
+# ours: the tool mask casts a ray every 4 px of a 640 px wide image, the same angular
+# spacing at any width (at 1920 px: every 12 px, 9x fewer rays; the mask is dilated by it)
+MASK_STEP_PX, MASK_STEP_WIDTH_PX = 4, 640
 LOCALISATION_WINDOW_PX = 21  # ours: the patch a feature is located by (the KLT window)
 
 # What `build_template` reports through `on_step`, in order (for progress bars).
@@ -73,17 +77,6 @@ class TemplateResult:
     stats: dict
 
 
-def _observations(features: list[Features], track_ids: list[np.ndarray]) -> Observations:
-    sel = [ids >= 0 for ids in track_ids]
-    return Observations(
-        point=np.concatenate([ids[s] for ids, s in zip(track_ids, sel, strict=True)]),
-        camera=np.concatenate([np.full(s.sum(), c) for c, s in enumerate(sel)]),
-        pixels=np.concatenate([f.pixels[s] for f, s in zip(features, sel, strict=True)]),
-        normalized=np.concatenate([f.normalized[s] for f, s in zip(features, sel, strict=True)]),
-        rgb=np.concatenate([f.rgb[s] for f, s in zip(features, sel, strict=True)]),
-    )
-
-
 def build_template(
     images: list[np.ndarray | None],
     models: list[CameraModel],
@@ -111,7 +104,9 @@ def build_template(
     if usable.sum() < 2:
         raise GeometryError(f"frame 0 has {int(usable.sum())} usable camera(s); need >= 2")
     detect = [(images[c], models[c], cfg.max_features, cfg.contrast_threshold,
-               tool_image_mask(models[c], poses[c], tool_pose, tool_cfg))
+               tool_image_mask(models[c], poses[c], tool_pose, tool_cfg,
+                               step=max(MASK_STEP_PX, round(MASK_STEP_PX * models[c].width
+                                                            / MASK_STEP_WIDTH_PX))))
               for c in np.flatnonzero(usable)]
     detected = iter(map_calls(detect_features, detect))
     features = [next(detected) if usable[c] else no_features() for c in range(len(images))]
@@ -121,23 +116,28 @@ def build_template(
     )
     focal = [m.K[0, 0] for m in models]
     pairs = candidate_pairs(prediction, cfg.min_view_overlap)
-    pair_matches = map_calls(match_pair, [
-        (features[i], features[j], poses[i], poses[j], focal[i], focal[j], cfg.ratio,
-         cfg.epipolar_px, (cfg.depth_range[0] * prediction.depth[i],
-                           cfg.depth_range[1] * prediction.depth[i]))
-        for i, j in pairs])
-    matches: dict[tuple[int, int], np.ndarray] = {}
-    weights = np.zeros((len(models), len(models)))
-    for (i, j), m in zip(pairs, pair_matches, strict=True):
-        if len(m) >= cfg.min_pair_matches:
-            matches[(i, j)] = m
-            weights[i, j] = weights[j, i] = len(m) * prediction.conditioning[i, j]
+
+    def match_pairs(todo: list[tuple[int, int]]) -> list[np.ndarray]:
+        return map_calls(match_pair, [
+            (features[i], features[j], poses[i], poses[j], focal[i], focal[j], cfg.ratio,
+             cfg.epipolar_px, (cfg.depth_range[0] * prediction.depth[i],
+                               cfg.depth_range[1] * prediction.depth[i]))
+            for i, j in todo])
+
+    if cfg.match_all_pairs:
+        matched = all_pairs(pairs, match_pairs, prediction.conditioning, cfg.min_pair_matches)
+    else:
+        pose_px = (np.zeros(len(models)) if noise is None else
+                   np.sqrt(noise.pose_variance_px2(prediction.depth, np.array(focal))))
+        matched = sequenced(features, poses, models, pairs, prediction, match_pairs,
+                            cfg.min_pair_matches, cfg.ratio, cfg.epipolar_px, pose_px,
+                            cfg.max_reprojection_px)
     step("matches")
-    plan = plan_pairs(weights)
-    track_ids, n_tracks = build_tracks([len(f) for f in features], plan.pairs, matches)
+    plan = matched.plan
+    track_ids, n_tracks = build_tracks([len(f) for f in features], matched.merges)
     if n_tracks == 0:
         raise GeometryError("no feature tracks across cameras at frame 0: do the cameras overlap?")
-    obs = _observations(features, track_ids)
+    obs = track_observations(features, track_ids).observations
     tri = triangulate(obs, poses, models, n_tracks)
     # Drop single bad observations and re-triangulate what still has >= 2 views.
     obs = obs.subset(tri.error_px <= cfg.max_reprojection_px)
@@ -173,8 +173,10 @@ def build_template(
     stats = {
         "features": [len(f) for f in features],
         "candidate_pairs": len(pairs),
-        "verified_pairs": len(matches),
-        "matches": {f"{i}-{j}": len(m) for (i, j), m in matches.items()},
+        "pairs_matched": matched.pairs_matched,
+        "matched_to_template": matched.guided,
+        "verified_pairs": len(matched.verified),
+        "matches": {f"{i}-{j}": len(m) for (i, j), m in matched.verified.items()},
         "tracks": n_tracks,
         "triangulated": n_points,
         "rejected_geometry": int((~good).sum() - imprecise.sum()),
