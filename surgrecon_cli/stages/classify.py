@@ -24,12 +24,11 @@ from ..config import Config
 from ..core.classify import (
     Evidence,
     FrameClasses,
-    HysteresisAhead,
     Neighbourhoods,
     classify_frame,
-    hysteresis_step,
     template_neighbourhoods,
 )
+from ..core.hysteresis import HysteresisAhead, hysteresis_step
 from ..core.labels import CLASS_NAMES, INTRA, STATIC, UNKNOWN
 from ..core.noise import covariance_sigma
 from ..executors import Executor, Task
@@ -43,7 +42,7 @@ from ..io.artefacts import (
 )
 from ..io.atomic import write_npz
 from ..io.ingest_store import load_ingested
-from ..io.rows import RowFile, write_npz_rows
+from ..io.rows import RowFile, npz_rows, write_npz_rows
 from ..io.run_layout import RunLayout
 from .common import stage_run
 from .registry import StageContext
@@ -165,7 +164,7 @@ def run_classify(run_dir: Path, config: Config,
 
     Frames are classified as independent tasks on `executor` (default: serial), each
     written to RUN/classify/frames/; the hysteresis then runs over time, streaming over
-    those files (a backward and a forward pass, `_write_labels`), and every frame's
+    those files (`write_labels_streaming`), and every frame's
     labelled cloud is written (tasks again, in blocks of frames). Memory is flat in the
     number of frames. `classified`: frames already classified with this config and the
     current registration (e.g. alongside register); only the others are computed.
@@ -188,8 +187,14 @@ def run_classify(run_dir: Path, config: Config,
         n = len(read_template(layout).points)
         todo = [k for k in range(1, n_frames) if k not in early]
         executor.run([classify_task(layout.root, config, k) for k in todo], advance)
-        counts, changed = _write_labels(layout, n_frames, n, config.classify.hysteresis_frames,
-                                        executor, advance)
+        counts, changed = write_labels_streaming(layout, n_frames, n,
+                                                 config.classify.hysteresis_frames)
+        with npz_rows(layout.labels, "labels") as labels:
+            for start in range(0, n_frames, _CLOUD_BLOCK):
+                executor.run([Task(str(k), write_labelled_cloud,
+                                   (layout.root.absolute(), k, labels.read(k)))
+                              for k in range(start, min(start + _CLOUD_BLOCK, n_frames))],
+                             advance)
         shutil.rmtree(layout.classified_dir, ignore_errors=True)
         info.update(frames=n_frames, points=n, counts_frames_1_on=counts,
                     classified_with_register=len(early), changed_by_hysteresis=changed)
@@ -198,13 +203,12 @@ def run_classify(run_dir: Path, config: Config,
     return result
 
 
-def _write_labels(layout: RunLayout, n_frames: int, n: int, hysteresis_frames: int,
-                  executor: Executor,
-                  advance: Callable[[str, object], None]) -> tuple[dict[str, int], int]:
+def write_labels_streaming(layout: RunLayout, n_frames: int, n: int,
+                           hysteresis_frames: int) -> tuple[dict[str, int], int]:
     """labels.npz from the per-frame files, one frame in memory at a time: the hysteresis'
     backward pass (whether each label persists), then its forward pass writing every
-    array's rows, then the labelled clouds in blocks of `_CLOUD_BLOCK` frames. Returns
-    the class counts of frames 1.. and how many labels the hysteresis changed."""
+    array's rows. Returns the class counts of frames 1.. and how many labels the
+    hysteresis changed."""
     scratch = {name: layout.classify_dir / f".labels.{name}.tmp"
                for name in ("persists", *_LABEL_DTYPES)}
     rows = {name: RowFile(scratch[name], (n_frames, n), dtype, create=True)
@@ -231,11 +235,6 @@ def _write_labels(layout: RunLayout, n_frames: int, n: int, hysteresis_frames: i
                     counts[name] += int(found[code])
                 changed += int((labels != raw).sum())
         write_npz_rows(layout.labels, {name: rows[name] for name in _LABEL_DTYPES})
-        for start in range(0, n_frames, _CLOUD_BLOCK):
-            block = range(start, min(start + _CLOUD_BLOCK, n_frames))
-            executor.run([Task(str(k), write_labelled_cloud, (layout.root.absolute(), k,
-                                                              rows["labels"].read(k)))
-                          for k in block], advance)
     finally:
         for name, path in scratch.items():
             rows[name].close()
