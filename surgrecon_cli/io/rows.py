@@ -109,12 +109,16 @@ def npz_rows(path: Path, name: str) -> RowFile:
     return RowFile(path, offset=start)
 
 
-def write_npz_rows(path: Path, members: dict[str, RowFile]) -> None:
+def write_npz_rows(path: Path, members: dict[str, RowFile | np.ndarray]) -> None:
     """Write an uncompressed .npz at `path` (atomically) whose arrays are the RowFiles'
-    contents, copied in 256 KiB blocks; np.load reads it as any np.savez file."""
+    contents, copied in 256 KiB blocks, or arrays in memory (small ones); np.load reads it
+    as any np.savez file."""
     with atomic_open(path, "wb") as out, zipfile.ZipFile(out, "w", zipfile.ZIP_STORED,
                                                         allowZip64=True) as z:
         for name, rows in members.items():
-            with open(rows.path, "rb") as src, z.open(f"{name}.npy", "w",
-                                                       force_zip64=True) as dst:
-                shutil.copyfileobj(src, dst, 1 << 18)
+            with z.open(f"{name}.npy", "w", force_zip64=True) as dst:
+                if isinstance(rows, RowFile):
+                    with open(rows.path, "rb") as src:
+                        shutil.copyfileobj(src, dst, 1 << 18)
+                else:
+                    np.lib.format.write_array(dst, np.asarray(rows), allow_pickle=False)
