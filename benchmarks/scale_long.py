@@ -6,8 +6,8 @@
    (old: run.json rewritten with the list of finished frames and fsynced; now: one line
    appended, run.json counts at most once a second), classify's label writing and the
    report's per-frame accumulation (time a frame; memory held per frame, by tracemalloc).
-   100k is extrapolated from the timed pieces: a piece's per-frame cost at 2,000 frames,
-   and fixed memory + 100k x the bytes it holds per frame.
+   Access and progress are timed at 100k frames too; memory at 100k is extrapolated:
+   the peak at 2,000 frames + the bytes held a frame (slope from 1,000 to 2,000) x 98k.
 2. Whole runs: `surgrecon run` (serial, 1 worker) on replayed logs (benchmarks/long_log.py:
    8 rendered frames replayed, small images) of 20 and `--long-frames` frames, in a child
    process: register / classify / report seconds per frame and the whole run's peak RSS.
@@ -180,19 +180,21 @@ def pieces_table(work: Path) -> None:
     for name, a, b, c, how in rows:
         print(f"{name:<46} {a:>9.3f} {b:>9.3f} {c:>9.3f}  {how}")
     mem = {}
+    slope_from = 1000  # both past report/frames.SAMPLED_FRAMES: the slope is what grows
     for name, fn in (("classify label writing", lambda t: classify_labels(work, t)),
                      ("report per-frame accumulation", report_accumulation)):
-        mem[name] = {t: fn(t) for t in LENGTHS}
-    print(f"\nmemory held and time a frame (tracemalloc peak; {POINTS} points); 100k "
-          "extrapolated: peak(20) + (100k - 20) x bytes a frame")
+        mem[name] = {t: fn(t) for t in (*LENGTHS, slope_from)}
+    print(f"\nmemory held and time a frame (tracemalloc peak; {POINTS} points); bytes a frame "
+          f"from {slope_from} to {LENGTHS[1]} frames; 100k extrapolated: "
+          f"peak({LENGTHS[1]}) + (100k - {LENGTHS[1]}) x bytes a frame")
     print(f"{'piece':<32} {'ms/frame 20':>11} {'ms/frame 2000':>13} {'peak MB 20':>10} "
           f"{'peak MB 2000':>12} {'bytes/frame':>11} {'peak MB 100k':>12}")
     for name, at in mem.items():
         a, b = at[LENGTHS[0]], at[LENGTHS[1]]
-        per = (b["peak"] - a["peak"]) / (LENGTHS[1] - LENGTHS[0])
+        per = (b["peak"] - at[slope_from]["peak"]) / (LENGTHS[1] - slope_from)
         print(f"{name:<32} {a['seconds'] * 1e3:>11.3f} {b['seconds'] * 1e3:>13.3f} "
               f"{a['peak'] / 1e6:>10.2f} {b['peak'] / 1e6:>12.2f} {per:>11.0f} "
-              f"{(a['peak'] + per * (EXTRAPOLATE - LENGTHS[0])) / 1e6:>12.1f}")
+              f"{(b['peak'] + per * (EXTRAPOLATE - LENGTHS[1])) / 1e6:>12.1f}")
 
 
 def measured_run(log: Path, run_dir: Path, extra: tuple[str, ...] = ()) -> dict:

@@ -1,6 +1,7 @@
 """Long logs (issue 15): the register progress record survives a kill mid-write, the
-hysteresis' streaming passes give the definition's labels, and classify's label writing
-holds one frame at a time (its peak allocation does not grow with the frames)."""
+hysteresis' streaming passes give the definition's labels, classify's label writing holds
+one frame at a time (its peak allocation does not grow with the frames), and the report
+keeps per-point values of a bounded number of frames."""
 
 from __future__ import annotations
 
@@ -11,10 +12,12 @@ import numpy as np
 
 from surgrecon_cli.core.hysteresis import apply_hysteresis
 from surgrecon_cli.core.labels import DEFORMING, SHIFTING, STATIC, UNKNOWN
+from surgrecon_cli.io.artefacts import FrameRegistration
 from surgrecon_cli.io.atomic import write_npz
 from surgrecon_cli.io.rows import npz_rows
 from surgrecon_cli.io.run_folder import FrameProgress
 from surgrecon_cli.io.run_layout import RunLayout
+from surgrecon_cli.report.frames import SAMPLED_FRAMES, FrameAccumulator
 from surgrecon_cli.stages.classify import write_labels_streaming
 
 
@@ -94,3 +97,44 @@ def test_label_writing_memory_is_flat_in_the_frames(tmp_path: Path):
     # (T, N) arrays would add 220 frames x 1000 points x 11 bytes = 2.4 MB; one frame's
     # rows are ~20 kB.
     assert peaks[300] < peaks[80] + 100_000, peaks
+
+
+def _registration(template: np.ndarray, rng: np.random.Generator) -> FrameRegistration:
+    n = len(template)
+    f32 = np.float32
+    return FrameRegistration(
+        transforms=np.tile(np.eye(3, 4, dtype=f32), (n, 1, 1)),
+        registered=(template + 1e-3 * rng.standard_normal((n, 3))).astype(f32),
+        target=template.astype(f32), status=np.zeros(n, np.uint8), views=np.full(n, 2, np.uint8),
+        residual=np.full(n, 1e-4, f32), sigma=np.full(n, 1e-4, f32),
+        target_sigma=np.full(n, 1e-4, f32), target_covariance=np.zeros((n, 3, 3), f32),
+        target_pose_covariance=np.zeros((n, 3, 3), f32), support_mm=np.ones(n, f32),
+        pixels=np.zeros((n, 2, 2), f32), tracking_px=0.1, base=0, converged=True, failed=False,
+        error="", seconds_target=0.1, seconds_register=0.1, new_points=0, contact_points=0)
+
+
+def test_report_holds_per_point_values_of_sampled_frames_only():
+    rng = np.random.default_rng(5)
+    template = rng.random((300, 3))
+    reg = _registration(template, rng)
+    labels = np.full(len(template), STATIC, np.uint8)
+    held = {}
+    for n_frames in (SAMPLED_FRAMES + 1, 3 * SAMPLED_FRAMES):
+        acc = FrameAccumulator(template, n_frames, classified=True)
+        for k in range(n_frames):
+            acc.add(k, reg if k else None, labels)
+        figures = acc.result()
+        assert len(figures.residual_sampled) == len(figures.sampled) == SAMPLED_FRAMES
+        assert figures.sampled[0] == 1 and figures.sampled[-1] == n_frames - 1
+        # every point is displaced by ~1.6 mm (1e-3 m noise per axis): per-frame stats agree
+        assert 1.0 < figures.displacement_mm[n_frames - 1, 0] < 2.2
+        assert figures.class_counts is not None
+        assert figures.class_counts[n_frames - 1, 0] == len(template)
+        held[n_frames] = sum(v.nbytes for v in vars(figures).values()
+                             if isinstance(v, np.ndarray))
+        held[n_frames] += sum(a.nbytes for a in figures.residual_sampled)
+        held[n_frames] += sum(a.nbytes for a in figures.displacement_sampled)
+    # per frame only counts and statistics: (S + 3 + 3 + 4 + 2 + 1) numbers, ~150 bytes;
+    # the per-point arrays (300 points x 16 bytes a frame before) stay those of 200 frames
+    grown = held[3 * SAMPLED_FRAMES] - held[SAMPLED_FRAMES + 1]
+    assert grown / (2 * SAMPLED_FRAMES - 1) < 200
