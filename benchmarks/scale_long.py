@@ -171,8 +171,10 @@ def pieces_table(work: Path) -> None:
                      "measured"))
         rows.append((f"{name}, now", *(at[t]["now"] * 1e3 for t in (*LENGTHS, EXTRAPOLATE)),
                      "measured"))
-        extra = "load_once" if "load_once" in at[LENGTHS[0]] else "run_json_counts"
-        rows.append((f"  ({extra.replace('_', ' ')}, once / at most 1 Hz)",
+        extra, what = (("load_once", "  (now: the one load a process)")
+                       if "load_once" in at[LENGTHS[0]]
+                       else ("run_json_counts", "  (now: run.json counts, at most 1 Hz)"))
+        rows.append((what,
                      *(at[t][extra] * 1e3 for t in (*LENGTHS, EXTRAPOLATE)), "measured"))
     print("\nper-frame cost of the pieces that used to grow with the log (ms a frame; "
           f"{POINTS} points, {CAMERAS} cameras)")
