@@ -185,20 +185,22 @@ class _Counter:
 
 def write_long_log(path: Path, minutes: float = 30.0, target_bytes: float = 2.1 * GB,
                    seed: int = 7, frame_rate: float | None = None, distinct_frames: int = 8,
-                   jpeg_quality: int = 92, cameras: int = 6) -> LongLogInfo:
+                   jpeg_quality: int = 92, cameras: int = 6, width: int = 640,
+                   height: int = 480) -> LongLogInfo:
     """Write a long ROS 2 log to `path` (atomically) and return what it holds.
 
     minutes: least log time; target_bytes: least (estimated) file size; the log ends when
     both are reached (0 drops a condition). frame_rate (Hz per camera): None = chosen so that
     both are reached together. distinct_frames: frames actually rendered, replayed in the
     order of `_schedule`.
-    Tracker 40 Hz, robot 100 Hz, 640x480 images, as in `surgrecon simulate`.
+    Tracker 40 Hz, robot 100 Hz, images width x height (default 640x480), as in
+    `surgrecon simulate`.
     """
     start = time.perf_counter()
     if not (minutes > 0 or target_bytes > 0):
         raise ValueError("give minutes > 0 or target_bytes > 0")
     base = SimConfig(cameras=cameras, frames=max(distinct_frames, 2), seed=seed,
-                     jpeg_quality=jpeg_quality)
+                     jpeg_quality=jpeg_quality, width=width, height=height)
     # Render at the final frame rate, so that the replayed frames' scene times match their
     # stamps; that rate depends on the image size, measured first on one rendered frame.
     stream_bytes = (cameras * base.tracker_rate + 2 * base.robot_rate) * _SMALL_BYTES  # per s

@@ -2,6 +2,7 @@
 workers with each executor.
 
     .venv/bin/python benchmarks/scale.py [--frames 60] [--repeat 3] [--long-gb 2.1] [--skip-long]
+    .venv/bin/python benchmarks/scale.py --only-long-logs [--long-frames 2000] [--drift-frames 500]
 
 1. Long log: `benchmarks/long_log.py` writes a >= 2 GB synthetic log (6 cameras; rendered
    images reused with new stamps), `surgrecon ingest` runs on it in a child process, and
@@ -13,6 +14,10 @@ workers with each executor.
    run of median wall time: wall time, frames per second, the register and classify stage
    times, speedups against serial and against the same executor on 1 worker (goal: >= 1.7x
    for 2 workers on 2 cores), and whether the clouds are byte-identical to serial's.
+3. Long logs (issue 15): per-frame cost and memory of the pieces that grew with the log at
+   20 / 2,000 / 100k frames, whole serial runs of 20 and --long-frames replayed frames
+   (per-frame stage time, peak RSS) and registration drift over --drift-frames simulated
+   frames (benchmarks/scale_long.py; --pieces-only: the timed pieces alone).
 Big files go to --workdir (default a temporary folder), deleted at the end.
 """
 
@@ -28,6 +33,7 @@ import time
 from pathlib import Path
 
 from long_log import measure_ingest, surgrecon_executable, write_long_log
+from scale_long import long_tables
 
 SURGRECON = surgrecon_executable()
 CONFIGS = (("serial", 1), ("processes", 1), ("processes", 2), ("dask", 1), ("dask", 2))
@@ -111,7 +117,18 @@ def main() -> None:
                         help="runs per executor; the table shows the median")
     parser.add_argument("--skip-long", action="store_true", help="skip the long-log ingest")
     parser.add_argument("--workdir", type=Path, help="where the logs and runs go")
+    parser.add_argument("--long-frames", type=int, default=2000,
+                        help="frames of the long replayed run (long logs)")
+    parser.add_argument("--drift-frames", type=int, default=500,
+                        help="frames of the simulated drift run (long logs)")
+    parser.add_argument("--only-long-logs", action="store_true",
+                        help="only the long-log tables (3.)")
+    parser.add_argument("--pieces-only", action="store_true",
+                        help="long logs: only the timed pieces, no whole runs")
     args = parser.parse_args()
+    if args.only_long_logs or args.pieces_only:
+        long_tables(args.workdir, args.long_frames, args.drift_frames, args.pieces_only)
+        return
     work = Path(tempfile.mkdtemp(prefix="surgrecon-scale-", dir=args.workdir))
     try:
         if not args.skip_long:

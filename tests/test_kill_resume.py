@@ -9,8 +9,8 @@ start-up) give each stage's duration. Each trial kills a fresh run at a random m
 one stage (a random offset into its duration after run.json shows it running, so that the
 kills cover every stage however fast the machine), or anywhere in the run's duration. Two
 trials kill after some frames are registered, then kill the resumed run as soon as its
-register stage rewrites its run.json entry (where a restarting stage used to forget its
-frames). Two lanes run trials in parallel, one per core.
+register stage rewrites its run.json entry or its progress record (where a restarting
+stage used to forget its frames). Two lanes run trials in parallel, one per core.
 """
 
 from __future__ import annotations
@@ -36,7 +36,8 @@ import pytest
 
 from surgrecon_cli.cli.main import main
 from surgrecon_cli.io.ply import read_ply
-from surgrecon_cli.io.run_folder import RunFolder
+from surgrecon_cli.io.run_folder import FrameProgress, RunFolder
+from surgrecon_cli.io.run_layout import RunLayout
 from surgrecon_cli.pipeline import STAGES
 
 SEED = 7
@@ -58,6 +59,11 @@ def run_to_end(log: Path, run: Path) -> tuple[float, str]:
     out, err = proc.communicate(timeout=90)
     assert proc.returncode == 0, err.decode()
     return time.perf_counter() - start, out.decode()
+
+
+def registered(run: Path) -> list[int]:
+    """The frames the register stage's progress record says are registered."""
+    return sorted(FrameProgress(RunLayout(run).register_progress).read())
 
 
 def stage_entry(run: Path, stage: str) -> dict | None:
@@ -100,10 +106,11 @@ def after_start_of(run: Path, stage: str, offset: float) -> Callable[[float], bo
 
 
 def when_register_changes(run: Path) -> Callable[[float], bool]:
-    """Kill as soon as the register entry of run.json differs from now (the resumed register
-    stage marks itself running, or records a frame)."""
-    before = stage_entry(run, "register")
-    return lambda _: stage_entry(run, "register") != before
+    """Kill as soon as the register entry of run.json or its progress record differs from
+    now (the resumed register stage rewrites its record, marks itself running, or records a
+    frame)."""
+    before = stage_entry(run, "register"), registered(run)
+    return lambda _: (stage_entry(run, "register"), registered(run)) != before
 
 
 # ----------------------------------------------------------------------------- checks
@@ -124,6 +131,8 @@ def _load(path: Path) -> None:
                 z[key]
     elif suffix == ".json":
         json.loads(path.read_text(encoding="utf-8"))
+    elif suffix == ".jsonl":  # append-only: a line cut by the kill is ignored when read
+        FrameProgress(path).read()
     elif suffix == ".toml":
         tomllib.loads(path.read_text(encoding="utf-8"))
     elif suffix == ".csv":
@@ -175,7 +184,7 @@ def check_consistent(run: Path, n_frames: int) -> tuple[str, list[int]]:
         with np.load(run / "ingest" / "frames.npz") as z:
             paths = [p for p in z["image_paths"].ravel() if p]
         assert all((run / "ingest" / p).is_file() for p in paths)
-    frames = sorted(stages.get("register", {}).get("frames_done", []))
+    frames = registered(run) if "register" in stages else []
     for k in frames:
         path = run / "registration" / f"{k:06d}.npz"
         assert path.is_file(), f"run.json says frame {k} registered, {path} is missing"
@@ -237,7 +246,7 @@ def _windows(ref: Path, total: float) -> dict[str, tuple[float, float]]:
 
 def after_frames(run: Path, n: int) -> Callable[[float], bool]:
     """Kill once run.json records `n` registered frames."""
-    return lambda _: len((stage_entry(run, "register") or {}).get("frames_done", [])) >= n
+    return lambda _: len(registered(run)) >= n
 
 
 def _schedule(windows: dict[str, tuple[float, float]], rng: random.Random, total: float,
@@ -332,7 +341,7 @@ def test_ctrl_c_keeps_registered_frames(pipeline_log: Path, tmp_path: Path, exec
     seen: list[int] = []
     deadline = time.perf_counter() + 120
     while proc.poll() is None and time.perf_counter() < deadline:
-        seen = (stage_entry(run, "register") or {}).get("frames_done", [])
+        seen = registered(run)
         if len(seen) >= 2:
             os.killpg(proc.pid, signal.SIGINT)
             break
@@ -343,7 +352,7 @@ def test_ctrl_c_keeps_registered_frames(pipeline_log: Path, tmp_path: Path, exec
     assert proc.returncode == 130, err.decode()
     entry = stage_entry(run, "register")
     assert entry["status"] == "failed" and "Ctrl-C" in entry["error"]
-    assert set(seen) <= set(entry["frames_done"])
+    assert set(seen) <= set(registered(run))
     out = subprocess.run([*SURGRECON, "run", str(pipeline_log), "-o", str(run)],
                          capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr

@@ -12,7 +12,8 @@ from surgrecon_cli.config import load_config
 from surgrecon_cli.core.labels import STATIC, UNKNOWN
 from surgrecon_cli.errors import RunFolderError
 from surgrecon_cli.io.ply import read_ply
-from surgrecon_cli.io.run_folder import RunFolder, file_sha256
+from surgrecon_cli.io.run_folder import FrameProgress, RunFolder, file_sha256
+from surgrecon_cli.io.run_layout import RunLayout
 from surgrecon_cli.pipeline import STAGES, run_pipeline
 
 SPEC_TYPES = {"x": "f4", "y": "f4", "z": "f4", "red": "u1", "green": "u1", "blue": "u1",
@@ -121,15 +122,18 @@ def test_killed_register_resumes_at_the_next_frame(copy_run, pipeline_log):
     kept = _mtimes(copy_run, "registration/*.npz")
     entry = data["stages"]["register"]
     data["stages"]["register"] = {"status": "running", "config": entry["config"],
-                                  "frames_done": list(range(1, n_frames - 2))}
+                                  "frames_done": n_frames - 3}
     run.write(data)
+    progress = FrameProgress(RunLayout(copy_run).register_progress)
+    progress.restart({k: "" for k in range(1, n_frames - 2)})
     result = run_pipeline(pipeline_log, copy_run, load_config())
     assert result.actions["register"] == "resumed"
     assert result.actions["ingest"] == result.actions["build-template"] == "skipped"
     assert result.actions["classify"] == result.actions["report"] == "ran"
     now = _mtimes(copy_run, "registration/*.npz")
     assert len(now) == n_frames - 1 and all(now[k] == v for k, v in kept.items())
-    assert run.stage("register")["frames_done"] == list(range(1, n_frames))
+    assert run.stage("register")["frames_done"] == n_frames - 1
+    assert sorted(progress.read()) == list(range(1, n_frames))
     for k, arrays in uninterrupted.items():  # resumed frames equal the uninterrupted ones
         with np.load(copy_run / "registration" / f"{k:06d}.npz") as z:
             for name, value in arrays.items():

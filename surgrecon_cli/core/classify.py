@@ -51,6 +51,7 @@ from scipy.stats import chi2
 
 from ..config import ClassifyConfig
 from ..errors import GeometryError
+from .hysteresis import apply_hysteresis
 from .labels import (
     DEFORMING,
     INTER,
@@ -281,36 +282,6 @@ def classify_frame(template: np.ndarray, registered: np.ndarray, nb: Neighbourho
     # A neighbourhood too small to measure (NaN) cannot show deformation: shifting.
     labels[rows] = np.where(deforming, DEFORMING, SHIFTING)
     return FrameClasses(labels=labels, displacement_mm=disp, deformation_mm=deformation)
-
-
-def apply_hysteresis(labels: np.ndarray, frames: int) -> np.ndarray:
-    """Labels (T, N) with every run shorter than `frames` frames replaced by the label before
-    it (frame 0 is the reference and never changes; a run that reaches the last frame is kept:
-    the future that would confirm it is not recorded). UNKNOWN entries stay unknown and do
-    not break runs. frames <= 1 returns a copy."""
-    out = np.array(labels, np.uint8, copy=True)
-    if frames <= 1 or out.shape[0] < 2:
-        return out
-    n_frames = out.shape[0]
-    current = out[0].copy()
-    for k in range(1, n_frames):
-        raw = labels[k]
-        change = (raw != current) & (raw != UNKNOWN)
-        if change.any():
-            # Accept a change only if it persists for `frames` known frames (or to the end).
-            stays = np.ones(len(current), bool)
-            seen = np.zeros(len(current), int)
-            for ahead in range(k, n_frames):
-                fut = labels[ahead]
-                counts = fut != UNKNOWN
-                stays &= ~counts | (fut == raw) | (seen >= frames)
-                seen += counts
-                if (seen >= frames).all():
-                    break
-            accept = change & stays
-            current[accept] = raw[accept]
-        out[k] = np.where(raw == UNKNOWN, UNKNOWN, current)
-    return out
 
 
 def classify_sequence(template: np.ndarray, registered: np.ndarray, cfg: ClassifyConfig,

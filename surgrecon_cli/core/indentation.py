@@ -46,6 +46,10 @@ SERIES_KEYS = ("contact", "clearance_mm", "tolerance_mm", "indentation_mm",
                "indentation_normal_mm", "depth_under_tip_mm", "depth_sigma_mm",
                "penetration_mm", "area_mm2", "volume_mm3", "force_n", "contact_point")
 
+# The field's arrays (T, N) as stored.
+FIELD_DTYPES = {"inward_mm": np.float32, "magnitude_mm": np.float32, "sigma_mm": np.float32,
+                "deformed": bool}
+
 
 @dataclass(frozen=True)
 class DeformationSeries:
@@ -221,14 +225,17 @@ def measure_sequence(reference: np.ndarray, positions: np.ndarray, sigma: np.nda
                                    tool_poses[k], nb, rings, normals, cfg, tool)
         figs.append(fig)
         fields_.append(field)
-    series = DeformationSeries(**{
+    stacked = DeformationField(**{key: np.stack([f[key] for f in fields_]).astype(
+        FIELD_DTYPES[key]) for key in FIELD_DTYPES})
+    return Deformation(series_of(figs), stacked)
+
+
+def series_of(figs: list[dict[str, float]]) -> DeformationSeries:
+    """The series (T,) of every frame's figures (`measure_frame`), frames in order."""
+    return DeformationSeries(**{
         key: np.array([f[key] for f in figs],
                       bool if key == "contact" else int if key == "contact_point" else float)
         for key in SERIES_KEYS})
-    stacked = DeformationField(**{key: np.stack([f[key] for f in fields_]).astype(
-        bool if key == "deformed" else np.float32) for key in
-        ("inward_mm", "magnitude_mm", "sigma_mm", "deformed")})
-    return Deformation(series, stacked)
 
 
 def hertz_force(depth_m: np.ndarray | float, radius_m: float, youngs_pa: float,

@@ -13,15 +13,15 @@ from .labels import DEFORMING, SHIFTING
 from .tool import tool_pixel_mask
 
 
-def pick_frames(labels: np.ndarray | None, n_frames: int) -> list[int]:
+def pick_frames(counts: dict[int, np.ndarray] | None, n_frames: int) -> list[int]:
     """Frames worth rendering, sorted: 0, the most deforming, the most shifting, the last
-    (labels (T, N) or None: only the first and the last)."""
+    (counts: points per frame (T,) of each label code, or None: only the first and the
+    last)."""
     picks = {0, n_frames - 1}
-    if labels is not None and n_frames > 1:
+    if counts is not None and n_frames > 1:
         for code in (DEFORMING, SHIFTING):
-            counts = (labels == code).sum(1)
-            if counts.max() > 0:
-                picks.add(int(np.argmax(counts)))
+            if code in counts and counts[code].max() > 0:
+                picks.add(int(np.argmax(counts[code])))
     return sorted(picks)[:4]
 
 

@@ -266,14 +266,6 @@ def read_labels(layout: RunLayout, shape: tuple[int, int]) -> FrameLabels:
 _FIELD = ("inward_mm", "magnitude_mm", "sigma_mm", "deformed")
 
 
-def write_deformation(layout: RunLayout, measured: Deformation, summary: dict[str, Any]) -> None:
-    """The measures (core/indentation.Deformation) and their summary, atomically."""
-    series, field = measured.series, measured.field
-    write_npz(layout.deformation, **{k: getattr(series, k) for k in SERIES_KEYS},
-              **{k: getattr(field, k) for k in _FIELD})
-    write_json(layout.deformation_summary, summary)
-
-
 def read_deformation(layout: RunLayout, shape: tuple[int, int]) -> Deformation:
     """The measures of a run of `shape` (T frames, N template points)."""
     path = layout.deformation

@@ -7,6 +7,7 @@ frames.npz the per-frame arrays (see `IngestedLog`); images/ every image as reco
 
 from __future__ import annotations
 
+import functools
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -125,14 +126,32 @@ def save_ingested(log: IngestedLog) -> None:
 
 
 def load_ingested(root: Path) -> IngestedLog:
-    """Load `RUN/ingest/`; raises RunFolderError if ingest has not completed."""
+    """Load `RUN/ingest/`; raises RunFolderError if ingest has not completed.
+
+    Loaded once per process and ingest folder (a worker registers many frames; reading
+    frames.npz again for each would cost O(T) per frame, ~0.3 s at 100k frames): the files
+    are replaced, never rewritten in place, so their device, inode, times and size identify
+    them. The arrays are read-only, shared by every caller of the process."""
     root = Path(root)
+    try:
+        stamp = tuple((st.st_dev, st.st_ino, st.st_mtime_ns, st.st_size) for st in (
+            RunLayout.ingest_cameras(root).stat(), RunLayout.ingest_frames(root).stat()))
+    except FileNotFoundError as exc:
+        raise RunFolderError(f"{root}: no ingested data; run `surgrecon ingest` first") from exc
+    return _load_ingested(str(root), stamp)
+
+
+@functools.lru_cache(maxsize=2)
+def _load_ingested(root_name: str, _stamp: tuple[tuple[int, ...], ...]) -> IngestedLog:
+    root = Path(root_name)
     try:
         meta = json.loads(RunLayout.ingest_cameras(root).read_text())
         with np.load(RunLayout.ingest_frames(root), allow_pickle=False) as z:
             arrays = {k: z[k] for k in z.files}
     except FileNotFoundError as exc:
         raise RunFolderError(f"{root}: no ingested data; run `surgrecon ingest` first") from exc
+    for array in arrays.values():
+        array.flags.writeable = False
     return IngestedLog(
         root=root,
         cameras=tuple(meta["cameras"]),

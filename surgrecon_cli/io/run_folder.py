@@ -183,3 +183,46 @@ class RunFolder:
                     raise RunFolderError(
                         f"{self.path} was made with {prefix}{name} = {old.get(name)!r}, now "
                         f"{new.get(name)!r}; use the run's config.toml or a new run folder")
+
+
+class FrameProgress:
+    """An append-only record of the frames a resumable stage finished, one JSON line each:
+    {"frame": k} or {"frame": k, "failed": why}. Recording a frame appends one short line
+    (constant cost, whatever the log's length); run.json keeps only counts. A line cut by a
+    kill is ignored when read (that frame is redone), and `restart` rewrites the record
+    atomically without it before new lines are appended."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = Path(path)
+
+    def read(self) -> dict[int, str]:
+        """{frame: "" or why it failed} of every complete line (later lines win)."""
+        try:
+            text = self.path.read_text(encoding="utf-8")
+        except FileNotFoundError:
+            return {}
+        out: dict[int, str] = {}
+        for line in text.split("\n")[:-1]:  # the part after the last newline is incomplete
+            try:
+                entry = json.loads(line)
+                out[int(entry["frame"])] = str(entry.get("failed", ""))
+            except (ValueError, KeyError, TypeError):
+                continue
+        return out
+
+    def restart(self, frames: dict[int, str]) -> None:
+        """Replace the record by `frames` ({frame: "" or why it failed}), atomically."""
+        write_text(self.path, "".join(self._line(k, frames[k]) for k in sorted(frames)))
+
+    def append(self, frame: int, failed: str = "") -> None:
+        """Record one finished frame (one write of one line, flushed to the OS: it survives
+        the process being killed)."""
+        with open(self.path, "a", encoding="utf-8") as f:
+            f.write(self._line(frame, failed))
+
+    @staticmethod
+    def _line(frame: int, failed: str) -> str:
+        entry: dict[str, Any] = {"frame": int(frame)}
+        if failed:
+            entry["failed"] = failed
+        return json.dumps(entry) + "\n"

@@ -9,7 +9,9 @@
   RUN/template/observations.npz  where each template point was seen, its covariance
   RUN/template/summary.json      template counts and pair plan
   RUN/registration/FFFFFF.npz    one registered frame k >= 1 (io/artefacts.FrameRegistration)
+  RUN/registration/progress.jsonl  the registered frames, one line each (io/run_folder.py)
   RUN/classify/labels.npz        labels (T, N) and the measures behind them
+  RUN/classify/frames/FFFFFF.npz one classified frame before hysteresis (deleted when done)
   RUN/clouds/FFFFFF.ply          every frame's labelled cloud (written once, by classify)
   RUN/measure/deformation.npz    tool-tissue contact and indentation per frame, the field
   RUN/measure/summary.json       contact onset / release, deepest indentation, ...
@@ -114,6 +116,11 @@ class RunLayout:
     def registration(self, frame: int) -> Path:
         return self.registration_dir / f"{frame:06d}.npz"
 
+    @property
+    def register_progress(self) -> Path:
+        """The register stage's append-only record of finished frames."""
+        return self.registration_dir / "progress.jsonl"
+
     # classification and clouds
     @property
     def classify_dir(self) -> Path:
@@ -122,6 +129,14 @@ class RunLayout:
     @property
     def labels(self) -> Path:
         return self.classify_dir / "labels.npz"
+
+    @property
+    def classified_dir(self) -> Path:
+        return self.classify_dir / "frames"
+
+    def classified(self, frame: int) -> Path:
+        """One frame's classification before hysteresis (classify's scratch file)."""
+        return self.classified_dir / f"{frame:06d}.npz"
 
     @property
     def clouds_dir(self) -> Path:

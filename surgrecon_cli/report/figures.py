@@ -35,7 +35,7 @@ def draw_figures(data: RunData, metrics: Metrics, views: list[CloudView], config
 def figure_tasks(data: RunData, metrics: Metrics, views: list[CloudView],
                  config: Config) -> list[Task]:
     """One task per figure the run's data allow, in page order."""
-    log, rows, m = data.log, metrics.rows, metrics.measures
+    log, rows, frames = data.log, metrics.rows, data.frames
     frames_later = np.arange(1, log.n_frames)
     later = range(1, log.n_frames)
     tasks: list[Task] = []
@@ -44,8 +44,8 @@ def figure_tasks(data: RunData, metrics: Metrics, views: list[CloudView],
         tasks.append(Task("camera-layout", partial(
             plots.camera_layout, data.template, log.poses[0, :, :3, 3], log.poses[0, :, :3, 2],
             log.cameras, pairs.get("groups", []), pairs.get("sequence", []))))
-    if m is not None and log.n_frames > 1:
-        q = m.quality
+    if frames is not None and log.n_frames > 1:
+        q = frames.quality
         series = {"observed": np.array([x.observed for x in q]),
                   "unknown": np.array([x.unknown for x in q]),
                   "outlier": np.array([x.outlier for x in q])}
@@ -53,44 +53,45 @@ def figure_tasks(data: RunData, metrics: Metrics, views: list[CloudView],
             plots.quality_over_time, frames_later, series,
             np.array([x.sigma_median_mm for x in q]),
             np.array([x.residual_over_sigma for x in q]))))
-    if data.labels is not None:
+    if data.class_counts is not None:
         counts = {n: _col(rows, n) for n in CLASS_COLUMNS}
         tasks.append(Task("class-counts", partial(
             plots.stacked_counts, np.arange(log.n_frames), counts, CLASS_COLOURS,
             "points per class")))
-    if m is not None and log.n_frames > 1:
+    if frames is not None and log.n_frames > 1:
         counts = {n: _col(rows, n, later) for n in STATUS_COLUMNS}
         tasks.append(Task("status-counts", partial(
             plots.stacked_counts, frames_later, counts, STATUS_COLOURS,
             "reprojection-error check")))
     tasks.extend(Task(cloud_key(v.frame), _cloud_view(v)) for v in views)
-    if m is not None and log.n_frames > 1:
+    if frames is not None and log.n_frames > 1:
         static_mm = config.classify.static_mm
         tasks.append(Task("displacement", partial(
-            plots.per_frame_boxes, frames_later, [m.displacement_mm[k] for k in later],
+            plots.per_frame_boxes, frames.sampled, frames.displacement_sampled,
             "displacement from frame 0", "mm",
             lines={f"static below {static_mm:g} mm": static_mm})))
         tasks.append(Task("residual", partial(
-            plots.per_frame_boxes, frames_later, [m.residual_mm[k] for k in later],
+            plots.per_frame_boxes, frames.sampled, frames.residual_sampled,
             "data residual", "mm")))
     if data.deformation is not None:
         tasks.extend(deformation_tasks(data, config))
     seconds = stage_seconds(data.run)
     if seconds:
         per_frame = {}
-        if data.registered is not None and log.n_frames > 1:
-            per_frame = {"target cloud": data.registered.seconds[1:, 0],
-                         "registration": data.registered.seconds[1:, 1]}
+        if frames is not None and log.n_frames > 1:
+            per_frame = {"target cloud": frames.seconds[1:, 0],
+                         "registration": frames.seconds[1:, 1]}
         tasks.append(Task("timing", partial(plots.timing, seconds, frames_later, per_frame)))
     if data.evaluation:
-        tasks.extend(_evaluation_tasks(data.evaluation, data.errors or {}, frames_later))
+        tasks.extend(_evaluation_tasks(data.evaluation, data.errors or {},
+                                       np.zeros(0, int) if frames is None else frames.sampled))
     return tasks
 
 
 def deformation_tasks(data: RunData, config: Config) -> list[Task]:
     """Indentation, area (and force) over time; the displacement map of the deepest frame."""
     assert data.deformation is not None and data.template is not None
-    series, field = data.deformation.series, data.deformation.field
+    series = data.deformation
     frames = np.arange(series.n_frames)
     scores = (data.evaluation or {}).get("deformation") or {}
     truth = {key: np.array([np.nan if r[f"true_{key}"] is None else r[f"true_{key}"]
@@ -107,11 +108,12 @@ def deformation_tasks(data: RunData, config: Config) -> list[Task]:
         series.penetration_mm, series.area_mm2, force, label,
         truth.get("indentation_mm"), truth.get("area_mm2")))]
     deepest = (data.deformation_summary or {}).get("deepest_frame")
-    if deepest is not None:
+    if deepest is not None and data.deepest_field is not None:
         pose = data.log.tool_poses[deepest]
+        inward_mm, deformed = data.deepest_field
         tasks.append(Task("deformation-map", partial(
             plots_deformation.displacement_map, data.template[:, :2] * 1e3,
-            field.inward_mm[deepest], field.deformed[deepest], pose[:2, 3] * 1e3, pose[:2, 2],
+            inward_mm, deformed, pose[:2, 3] * 1e3, pose[:2, 2],
             f"frame {deepest}: displacement, the rigid motion of each ring removed")))
     return tasks
 
@@ -133,8 +135,9 @@ def _cloud_view(view: CloudView) -> partial[bytes]:
 
 
 def _evaluation_tasks(ev: dict[str, Any], errors: dict[str, np.ndarray],
-                      frames_later: np.ndarray) -> list[Task]:
-    """Template error, registration error over time and per frame, confusion and F1."""
+                      sampled: np.ndarray) -> list[Task]:
+    """Template error, registration error over time and per sampled frame (errors hold
+    their rows), confusion and F1."""
     tasks = []
     if "template_error_mm" in errors:
         tool = errors.get("on_tool", np.zeros(len(errors["template_error_mm"]), bool)).astype(bool)
@@ -154,9 +157,8 @@ def _evaluation_tasks(ev: dict[str, Any], errors: dict[str, np.ndarray],
             plots_evaluation.error_over_time, np.array([r["frame"] for r in pf]), get("median_mm"),
             get("p95_mm"), get("max_mm"))))
         if "registration_error_mm" in errors:
-            err = errors["registration_error_mm"]
             tasks.append(Task("error-histograms", partial(
-                plots_evaluation.error_histograms, frames_later, [err[k] for k in frames_later])))
+                plots_evaluation.error_histograms, sampled, list(errors["registration_error_mm"]))))
     labels = ev.get("labels")
     if labels and labels.get("overall"):
         o = labels["overall"]

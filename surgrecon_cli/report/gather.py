@@ -1,12 +1,14 @@
 """Report layer 1: read a run folder into `RunData` (None where a stage is not done) and the
 images behind the labelled-cloud views.
 
-Every artefact is read through io/artefacts.py and io/ingest_store.py, whose paths come from
-io/run_layout.py; nothing is computed here beyond stacking the registered frames.
+Every artefact is read through io/artefacts.py, io/ingest_store.py and io/rows.py, whose
+paths come from io/run_layout.py; per-frame arrays are read one frame at a time and reduced
+at once (report/frames.py), so a long log's report does not hold all frames' points.
 """
 
 from __future__ import annotations
 
+import contextlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -14,65 +16,49 @@ from typing import Any
 import numpy as np
 
 from ..config import ToolConfig
-from ..core.indentation import Deformation
+from ..core.indentation import SERIES_KEYS, DeformationSeries
 from ..core.views import best_camera, pick_frames
 from ..errors import RunFolderError
 from ..io.artefacts import (
-    read_deformation,
     read_deformation_summary,
     read_evaluation,
-    read_evaluation_errors,
-    read_labels,
     read_registration,
     read_template,
     read_template_summary,
 )
 from ..io.ingest_store import IngestedLog, load_ingested
+from ..io.rows import npz_rows
 from ..io.run_folder import RunFolder
 from ..io.run_layout import RunLayout
-
-
-@dataclass(frozen=True)
-class RegisteredFrames:
-    """Every registered frame stacked, T frames x N template points; frame 0 is the template
-    (no target, not solved).
-
-    positions (T, N, 3) m; status (T, N) reprojection check; residual (T, N) m to the target,
-    meaningful where has_target (T, N); sigma and target_sigma (T, N) m; failed, converged
-    (T,) bool and errors (T,) how each solve went; tracking_px (T,) the frame's tracking
-    noise; seconds (T, 2) s building the target and registering (frame 0: NaN)."""
-
-    positions: np.ndarray
-    status: np.ndarray
-    residual: np.ndarray
-    has_target: np.ndarray
-    sigma: np.ndarray
-    target_sigma: np.ndarray
-    failed: np.ndarray
-    converged: np.ndarray
-    errors: tuple[str, ...]
-    tracking_px: np.ndarray
-    seconds: np.ndarray
+from .frames import CLASS_CODES, FrameAccumulator, FrameFigures
 
 
 @dataclass(frozen=True)
 class RunData:
     """What the report shows, as read from the run folder (None: that stage is not done).
 
-    run: run.json; log: the ingested frames; template (N, 3) m and its summary; registered
-    frames; labels (T, N); evaluation scores and the per-point errors behind them; the
-    contact and indentation measures and their summary."""
+    run: run.json; log: the ingested frames; template (N, 3) m and its summary; frames: the
+    registered (and classified) frames in numbers (report/frames.py); evaluation scores
+    and the per-point errors behind them (template_error_mm, on_tool (N,);
+    registration_error_mm (K, N) of the sampled frames `frames.sampled`); the contact and
+    indentation series, the deepest frame's displacement (inward_mm, deformed (N,)) and
+    their summary."""
 
     run: dict[str, Any]
     log: IngestedLog
     template: np.ndarray | None = None
     template_summary: dict[str, Any] | None = None
-    registered: RegisteredFrames | None = None
-    labels: np.ndarray | None = None
+    frames: FrameFigures | None = None
     evaluation: dict[str, Any] | None = None
     errors: dict[str, np.ndarray] | None = None
-    deformation: Deformation | None = None
+    deformation: DeformationSeries | None = None
+    deepest_field: tuple[np.ndarray, np.ndarray] | None = None
     deformation_summary: dict[str, Any] | None = None
+
+    @property
+    def class_counts(self) -> np.ndarray | None:
+        """Points per class (T, 4) (report/frames.CLASS_CODES order); None before classify."""
+        return None if self.frames is None else self.frames.class_counts
 
 
 @dataclass(frozen=True)
@@ -90,7 +76,8 @@ class CloudView:
 
 
 def gather(run_dir: Path) -> RunData:
-    """Read whatever the run folder's done stages wrote."""
+    """Read whatever the run folder's done stages wrote, one frame at a time: the memory
+    held grows with the frames only by their per-frame figures."""
     layout = RunLayout(run_dir)
     folder = RunFolder(layout.root)
     run, log = folder.read(), load_ingested(layout.ingest_dir)
@@ -98,57 +85,82 @@ def gather(run_dir: Path) -> RunData:
         return RunData(run, log)
     template = read_template(layout).points
     evaluation = read_evaluation(layout) if folder.is_done("evaluate") else None
-    measured = folder.is_done("measure")
-    shape = (log.n_frames, len(template))
+    frames = (_read_frames(layout, template, log.n_frames, folder.is_done("classify"))
+              if folder.is_done("register") else None)
+    summary = read_deformation_summary(layout) if folder.is_done("measure") else None
     return RunData(
-        run, log, template, read_template_summary(layout),
-        registered=(_read_registered(layout, template, log.n_frames)
-                    if folder.is_done("register") else None),
-        labels=(read_labels(layout, (log.n_frames, len(template))).labels
-                if folder.is_done("classify") else None),
-        evaluation=evaluation,
-        errors=None if evaluation is None else read_evaluation_errors(layout),
-        deformation=read_deformation(layout, shape) if measured else None,
-        deformation_summary=read_deformation_summary(layout) if measured else None)
+        run, log, template, read_template_summary(layout), frames, evaluation,
+        errors=(None if evaluation is None or frames is None
+                else _read_errors(layout, frames.sampled)),
+        deformation=None if summary is None else _read_series(layout, log.n_frames),
+        deepest_field=(None if summary is None or summary.get("deepest_frame") is None
+                       else _read_field(layout, int(summary["deepest_frame"]))),
+        deformation_summary=summary)
 
 
-def _read_registered(layout: RunLayout, template: np.ndarray, n_frames: int) -> RegisteredFrames:
-    """Frames 1.. of the registration, one file at a time, into (T, ...) arrays."""
+def _read_frames(layout: RunLayout, template: np.ndarray, n_frames: int,
+                 classified: bool) -> FrameFigures:
+    """Frames 0.. of the registration (and their labels), one file at a time."""
     n = len(template)
-    positions = np.full((n_frames, n, 3), np.nan)
-    positions[0] = template
-    status = np.zeros((n_frames, n), np.uint8)
-    residual, sigma, target_sigma = (np.full((n_frames, n), np.nan, np.float32)
-                                     for _ in range(3))
-    has_target = np.zeros((n_frames, n), bool)
-    failed, converged = np.zeros(n_frames, bool), np.ones(n_frames, bool)
-    errors = [""] * n_frames
-    tracking_px = np.full(n_frames, np.nan)
-    seconds = np.full((n_frames, 2), np.nan)
-    for k in range(1, n_frames):
-        reg = read_registration(layout, k, n)
-        positions[k], status[k], residual[k] = reg.registered, reg.status, reg.residual
-        has_target[k], sigma[k], target_sigma[k] = reg.has_target, reg.sigma, reg.target_sigma
-        failed[k], converged[k], errors[k] = reg.failed, reg.converged, reg.error
-        tracking_px[k] = reg.tracking_px
-        seconds[k] = [reg.seconds_target, reg.seconds_register]
-    return RegisteredFrames(positions, status, residual, has_target, sigma, target_sigma,
-                            failed, converged, tuple(errors), tracking_px, seconds)
+    acc = FrameAccumulator(template, n_frames, classified)
+    with contextlib.ExitStack() as stack:
+        labels = stack.enter_context(npz_rows(layout.labels, "labels")) if classified else None
+        for k in range(n_frames):
+            acc.add(k, read_registration(layout, k, n) if k else None,
+                    None if labels is None else labels.read(k))
+    return acc.result()
 
 
-def gather_views(data: RunData, tool: ToolConfig) -> list[CloudView]:
+def _read_errors(layout: RunLayout, sampled: np.ndarray) -> dict[str, np.ndarray] | None:
+    """The evaluation's per-point errors: the template's, and the registration's of the
+    sampled frames only."""
+    path = layout.evaluation_errors
+    if not path.is_file():
+        return None
+    with np.load(path, allow_pickle=False) as z:
+        out = {k: z[k] for k in ("template_error_mm", "on_tool") if k in z.files}
+        registered = "registration_error_mm" in z.files
+    if registered:
+        with npz_rows(path, "registration_error_mm") as rows:
+            out["registration_error_mm"] = np.array([rows.read(k) for k in sampled])
+    return out
+
+
+def _read_series(layout: RunLayout, n_frames: int) -> DeformationSeries:
+    """The contact and indentation series (T,) of the measure stage."""
+    with np.load(layout.deformation, allow_pickle=False) as z:
+        series = DeformationSeries(**{k: z[k] for k in SERIES_KEYS})
+    if len(series.contact) != n_frames:
+        raise RunFolderError(f"{layout.deformation}: {len(series.contact)} frames, the run has "
+                             f"{n_frames}; rerun `surgrecon measure`")
+    return series
+
+
+def _read_field(layout: RunLayout, frame: int) -> tuple[np.ndarray, np.ndarray]:
+    """One frame's compensated displacement into the tissue (N,) mm and deformed flags."""
+    with (npz_rows(layout.deformation, "inward_mm") as inward,
+          npz_rows(layout.deformation, "deformed") as deformed):
+        return inward.read(frame), deformed.read(frame)
+
+
+def gather_views(layout: RunLayout, data: RunData, tool: ToolConfig) -> list[CloudView]:
     """The frames worth rendering (core/views.pick_frames), each seen by the camera that
     shows most of its points (core/views.best_camera), with that camera's image."""
+    counts = data.class_counts
+    picks = pick_frames(None if counts is None else dict(zip(CLASS_CODES.values(), counts.T,
+                                                             strict=True)),
+                        data.log.n_frames)
     views = []
-    for k in pick_frames(data.labels, data.log.n_frames):
-        if data.registered is not None:
-            xyz = data.registered.positions[k]
-        elif k == 0 and data.template is not None:
-            xyz = data.template
-        else:
+    for k in picks:
+        if data.template is None or (k > 0 and data.frames is None):
             continue
-        views.append(_view(data.log, k, xyz, None if data.labels is None else data.labels[k],
-                           tool))
+        xyz = (read_registration(layout, k, len(data.template)).registered if k
+               else data.template)
+        labels = None
+        if counts is not None:
+            with npz_rows(layout.labels, "labels") as rows:
+                labels = rows.read(k)
+        views.append(_view(data.log, k, xyz, labels, tool))
     return views
 
 

@@ -1,8 +1,7 @@
 """Report layer 2: the run in numbers, from `RunData`. Pure; no I/O.
 
-`measure` gives the per-point figures of a registered run (`Measures`: residuals,
-displacements, per-frame quality, measured noise), one row per frame (FRAME_COLUMNS, for
-frames.csv) and the run summary (summary.json).
+`measure` gives, from the per-frame figures gathered (report/frames.py), one row per frame
+(FRAME_COLUMNS, for frames.csv), the run summary (summary.json) and the measured noise.
 """
 
 from __future__ import annotations
@@ -14,13 +13,13 @@ import numpy as np
 
 from .. import __version__
 from ..config import Config
-from ..core.labels import DEFORMING, SHIFTING, STATIC, STATUS_NAMES, UNKNOWN
-from ..core.quality import FrameQuality, frame_quality
+from ..core.labels import STATUS_NAMES
 from ..io.metrics import finite_json
-from .gather import RegisteredFrames, RunData
+from .frames import CLASS_CODES, STATUS_CODES, stats
+from .gather import RunData
 
-CLASS_COLUMNS = ("static", "shifting", "deforming", "unknown")
-STATUS_COLUMNS = tuple(STATUS_NAMES[k] for k in sorted(STATUS_NAMES))
+CLASS_COLUMNS = tuple(CLASS_CODES)
+STATUS_COLUMNS = tuple(STATUS_NAMES[k] for k in STATUS_CODES)
 FRAME_COLUMNS = (
     "frame", "time_s", "points", *CLASS_COLUMNS, *STATUS_COLUMNS,
     "residual_median_mm", "residual_p95_mm",
@@ -32,56 +31,27 @@ FRAME_COLUMNS = (
 )
 # The stages the report times, in pipeline order (the report itself is not one of them).
 TIMED_STAGES = ("ingest", "build-template", "register", "classify", "measure", "evaluate")
-_CODES = {"static": STATIC, "shifting": SHIFTING, "deforming": DEFORMING, "unknown": UNKNOWN}
-
-
-@dataclass(frozen=True)
-class Measures:
-    """Figures of a registered run, T frames x N points: residual_mm per frame (points with a
-    target; frame 0 empty), displacement_mm (T, N) from the template, quality of frames
-    1.., and the measured noise (`noise_figures`)."""
-
-    residual_mm: list[np.ndarray]
-    displacement_mm: np.ndarray
-    quality: list[FrameQuality]
-    noise: dict[str, Any]
 
 
 @dataclass(frozen=True)
 class Metrics:
     """rows: one dict per frame (FRAME_COLUMNS; None where a stage is not done); summary:
-    the run at a glance (strict JSON); measures: None before registration."""
+    the run at a glance (strict JSON); noise: the measured noise (`noise_figures`), None
+    before registration."""
 
     rows: list[dict[str, Any]]
     summary: dict[str, Any]
-    measures: Measures | None
+    noise: dict[str, Any] | None
 
 
 def measure(data: RunData, config: Config) -> Metrics:
     """Everything the report computes from the run."""
-    measures = None
-    if data.registered is not None and data.template is not None:
-        measures = registration_measures(data.registered, data.template, data.labels,
-                                         data.log.report, data.template_summary)
-    rows = frame_rows(data, measures)
-    return Metrics(rows, run_summary(data, measures, rows, config), measures)
-
-
-def registration_measures(reg: RegisteredFrames, template: np.ndarray,
-                          labels: np.ndarray | None, ingest_report: dict[str, Any],
-                          template_summary: dict[str, Any] | None) -> Measures:
-    """Residuals, displacements (mm), per-frame quality and noise of the registered frames;
-    labels (T, N) or None before classify."""
-    n_frames = len(reg.positions)
-    residual = [reg.residual[k][reg.has_target[k]].astype(float) * 1e3 for k in range(n_frames)]
-    quality = [
-        frame_quality(k, reg.status[k], None if labels is None else labels[k],
-                      reg.sigma[k].astype(float), reg.residual[k].astype(float),
-                      reg.target_sigma[k].astype(float), bool(reg.failed[k]),
-                      bool(reg.converged[k]), reg.errors[k])
-        for k in range(1, n_frames)]
-    return Measures(residual, np.linalg.norm(reg.positions - template, axis=2) * 1e3, quality,
-                    noise_figures(ingest_report, template_summary, reg.tracking_px[1:]))
+    noise = None
+    if data.frames is not None:
+        noise = noise_figures(data.log.report, data.template_summary,
+                              data.frames.tracking_px[1:])
+    rows = frame_rows(data)
+    return Metrics(rows, run_summary(data, noise, rows, config), noise)
 
 
 def noise_figures(ingest_report: dict[str, Any], template_summary: dict[str, Any] | None,
@@ -99,40 +69,30 @@ def noise_figures(ingest_report: dict[str, Any], template_summary: dict[str, Any
     }
 
 
-def stats(values: np.ndarray) -> tuple[float, float, float]:
-    """Median, 95th percentile and maximum of the finite values (NaN if none)."""
-    v = np.asarray(values, float)
-    v = v[np.isfinite(v)]
-    if not v.size:
-        return float("nan"), float("nan"), float("nan")
-    return float(np.median(v)), float(np.percentile(v, 95)), float(v.max())
-
-
-def frame_rows(data: RunData, measures: Measures | None) -> list[dict[str, Any]]:
+def frame_rows(data: RunData) -> list[dict[str, Any]]:
     """One dict per frame with the FRAME_COLUMNS (missing parts are None)."""
-    log = data.log
+    log, frames, counts = data.log, data.frames, data.class_counts
     t0 = log.stamps_ns[0] if log.n_frames else 0
     reg_eval = _per_frame(data.evaluation, "registration")
     label_eval = _per_frame(data.evaluation, "labels")
-    reg = data.registered
     rows = []
     for k in range(log.n_frames):
         row: dict[str, Any] = {"frame": k, "time_s": round(float(log.stamps_ns[k] - t0) / 1e9, 6)}
         if data.template is not None:
             row["points"] = len(data.template)
-        if data.labels is not None:
-            for name in CLASS_COLUMNS:
-                row[name] = int((data.labels[k] == _CODES[name]).sum())
-        if reg is not None and measures is not None and k > 0:
-            for code, name in STATUS_NAMES.items():
-                row[name] = int((reg.status[k] == code).sum())
-            row["residual_median_mm"], row["residual_p95_mm"], _ = stats(measures.residual_mm[k])
-            row["seconds_target"], row["seconds_register"] = (float(x) for x in reg.seconds[k])
-            row.update({key: value for key, value in measures.quality[k - 1].row().items()
+        if counts is not None:
+            row.update(zip(CLASS_COLUMNS, (int(c) for c in counts[k]), strict=True))
+        if frames is not None and k > 0:
+            row.update(zip(STATUS_COLUMNS, (int(c) for c in frames.status_counts[k]),
+                           strict=True))
+            row["residual_median_mm"], row["residual_p95_mm"] = (
+                float(x) for x in frames.residual_mm[k, :2])
+            row["seconds_target"], row["seconds_register"] = (float(x) for x in frames.seconds[k])
+            row.update({key: value for key, value in frames.quality[k - 1].row().items()
                         if key != "frame"})
-        if measures is not None:
+        if frames is not None:
             (row["displacement_median_mm"], row["displacement_p95_mm"],
-             row["displacement_max_mm"]) = stats(measures.displacement_mm[k])
+             row["displacement_max_mm"]) = (float(x) for x in frames.displacement_mm[k])
         if k in reg_eval:
             e = reg_eval[k]
             row["error_median_mm"], row["error_p95_mm"], row["error_max_mm"] = (
@@ -162,11 +122,13 @@ def stage_seconds(run: dict[str, Any]) -> dict[str, float]:
     return out
 
 
-def run_summary(data: RunData, measures: Measures | None, rows: list[dict[str, Any]],
+def run_summary(data: RunData, noise: dict[str, Any] | None, rows: list[dict[str, Any]],
                 config: Config) -> dict[str, Any]:
     """The run at a glance (summary.json): counts, timings, template, classes, registration,
-    evaluation, quality and the classify settings; NaN as None."""
-    run, log = data.run, data.log
+    evaluation, quality and the classify settings; NaN as None. The run's residual and
+    displacement median and p95 pool the sampled frames (all frames of a log of at most
+    report/frames.SAMPLED_FRAMES), their maxima every frame."""
+    run, log, frames = data.run, data.log, data.frames
     later = rows[1:]
     summary: dict[str, Any] = {
         "surgrecon": __version__,
@@ -180,19 +142,20 @@ def run_summary(data: RunData, measures: Measures | None, rows: list[dict[str, A
     if data.template_summary:
         summary["camera_pairs"] = data.template_summary.get("pairs", {})
         summary["template"] = data.template_summary.get("stats", {})
-    if data.labels is not None:
+    if data.class_counts is not None:
         counts = {name: int(sum(r[name] for r in later)) for name in CLASS_COLUMNS}
         total = max(sum(counts.values()), 1)
         summary["classes_frames_1_on"] = {
             "counts": counts, "fractions": {k: v / total for k, v in counts.items()}}
-    if data.registered is not None and measures is not None and log.n_frames > 1:
+    if frames is not None and log.n_frames > 1:
         summary["status_frames_1_on"] = {name: int(sum(r[name] for r in later))
                                          for name in STATUS_COLUMNS}
-        med, p95, mx = stats(np.concatenate(measures.residual_mm[1:]))
-        summary["residual_mm"] = {"median": med, "p95": p95, "max": mx}
-        med, p95, mx = stats(measures.displacement_mm[1:])
-        summary["displacement_mm"] = {"median": med, "p95": p95, "max": mx}
-        seconds = data.registered.seconds
+        for key, sample, largest in (
+                ("residual_mm", frames.residual_sampled, frames.residual_max_mm),
+                ("displacement_mm", frames.displacement_sampled, frames.displacement_max_mm)):
+            med, p95, _ = stats(np.concatenate(sample))
+            summary[key] = {"median": med, "p95": p95, "max": largest}
+        seconds = frames.seconds
         summary["seconds_per_frame"] = {"target_mean": float(np.nanmean(seconds[1:, 0])),
                                         "register_mean": float(np.nanmean(seconds[1:, 1]))}
     if data.evaluation:
@@ -210,12 +173,12 @@ def run_summary(data: RunData, measures: Measures | None, rows: list[dict[str, A
             summary.setdefault("evaluation", {})["deformation"] = {
                 k: scores[k] for k in ("onset_error_frames", "release_error_frames",
                                        "indentation_error_mm", "area_error_share", "goals")}
-    if measures is not None:
-        summary["noise"] = measures.noise
+    if frames is not None:
+        summary["noise"] = noise
         summary["quality"] = {
-            "per_frame": [q.row() for q in measures.quality],
-            "warnings": [w for q in measures.quality for w in q.warnings],
-            "untrustworthy_frames": [q.frame for q in measures.quality if q.warnings],
+            "per_frame": [q.row() for q in frames.quality],
+            "warnings": [w for q in frames.quality for w in q.warnings],
+            "untrustworthy_frames": [q.frame for q in frames.quality if q.warnings],
         }
     summary["classify"] = {"static_mm": config.classify.static_mm,
                            "significance": config.classify.significance,

@@ -19,8 +19,9 @@ from ..config import Config
 from ..io import report_html as rh
 from ..io.run_layout import DESCRIBED_FILES, RunLayout
 from .figures import cloud_key
+from .frames import FrameFigures
 from .gather import CloudView, RunData
-from .metrics import TIMED_STAGES, Measures, Metrics
+from .metrics import TIMED_STAGES, Metrics
 from .page_deformation import contact_section
 
 Figures = Mapping[str, bytes]
@@ -29,10 +30,10 @@ Figures = Mapping[str, bytes]
 def compose(layout: RunLayout, data: RunData, metrics: Metrics, views: list[CloudView],
             config: Config, pngs: Figures, created: datetime) -> str:
     """The report's HTML document; `created` (UTC) dates the footer."""
-    log, m = data.log, metrics.measures
+    log = data.log
     sections = [_overview(data, metrics), _cameras(data, pngs)]
-    if m is not None and log.n_frames > 1:
-        sections.append(_quality(data, m, pngs))
+    if data.frames is not None and metrics.noise is not None and log.n_frames > 1:
+        sections.append(_quality(data, data.frames, metrics.noise, pngs))
     sections += [_labels(config, pngs), _clouds(views, pngs), _registration(pngs),
                  contact_section(data, config, pngs), _timing(data.run, pngs)]
     if data.evaluation:
@@ -114,10 +115,10 @@ def _cameras(data: RunData, pngs: Figures) -> rh.Section:
     return sec
 
 
-def _quality(data: RunData, m: Measures, pngs: Figures) -> rh.Section:
+def _quality(data: RunData, frames: FrameFigures, noise: dict[str, Any],
+             pngs: Figures) -> rh.Section:
     """Per frame: what the data support (shares observed / unknown), the median σ and the
     residual against the noise, with the frames not to trust named in plain words."""
-    noise = m.noise
     jitter = [v for v in (noise.get("tracker_jitter_mm") or {}).values() if v is not None]
     jitter_deg = [v for v in (noise.get("tracker_jitter_deg") or {}).values() if v is not None]
     bodies = data.log.report.get("tracker_bodies", [])
@@ -138,7 +139,7 @@ def _quality(data: RunData, m: Measures, pngs: Figures) -> rh.Section:
                     "(too far from data) and rejected as outliers. Right: median uncertainty σ "
                     "of the labelled points, and the median registration residual in units of "
                     "the target's σ (about 1 when the fit is as good as the noise allows)."))
-    warnings = [w for q in m.quality for w in q.warnings]
+    warnings = [w for q in frames.quality for w in q.warnings]
     if warnings:
         sec.add(rh.paragraph("Frames not to trust: " + "; ".join(warnings) + "."))
     else:

@@ -19,7 +19,7 @@ def contact_section(data: RunData, config: Config, pngs: Mapping[str, bytes]) ->
     sec = rh.Section("contact", "Tool–tissue contact and indentation")
     if data.deformation is None:
         return sec
-    series, summary = data.deformation.series, data.deformation_summary or {}
+    series, summary = data.deformation, data.deformation_summary or {}
     d = config.deformation
     onset, release = summary.get("onset_frame"), summary.get("release_frame")
     items = [("contact", "none" if onset is None else

@@ -13,7 +13,8 @@ from __future__ import annotations
 
 import functools
 import logging
-from collections.abc import Callable
+import shutil
+from collections.abc import Callable, Collection
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -24,24 +25,24 @@ from ..core.classify import (
     Evidence,
     FrameClasses,
     Neighbourhoods,
-    apply_hysteresis,
     classify_frame,
     template_neighbourhoods,
 )
+from ..core.hysteresis import HysteresisAhead, hysteresis_step
 from ..core.labels import CLASS_NAMES, INTRA, STATIC, UNKNOWN
 from ..core.noise import covariance_sigma
 from ..executors import Executor, Task
 from ..executors.serial import SerialExecutor
 from ..io.artefacts import (
-    FrameLabels,
     FrameRegistration,
     read_observations,
     read_registration,
     read_template,
     write_frame_cloud,
-    write_labels,
 )
+from ..io.atomic import write_npz
 from ..io.ingest_store import load_ingested
+from ..io.rows import RowFile, npz_rows, write_npz_rows
 from ..io.run_layout import RunLayout
 from .common import stage_run
 from .registry import StageContext
@@ -49,6 +50,11 @@ from .registry import StageContext
 logger = logging.getLogger(__name__)
 
 STAGE = "classify"
+# The arrays of labels.npz (T, N), as io/artefacts.write_labels stores them.
+_LABEL_DTYPES = {"labels": np.uint8, "raw_labels": np.uint8, "displacement_mm": np.float32,
+                 "deformation_mm": np.float32, "status": np.uint8}
+# Labelled clouds written per executor call (their label rows are in memory meanwhile).
+_CLOUD_BLOCK = 64
 
 
 @dataclass(frozen=True)
@@ -92,19 +98,31 @@ def template_and_neighbourhoods(run_dir: Path, config: Config) -> TemplateInputs
                             cfg.neighbourhood_mm, cfg.min_neighbours, cfg.max_neighbours)
 
 
-def classify_one_frame(run_dir: Path, frame: int,
-                       config: Config) -> tuple[FrameClasses, np.ndarray]:
-    """Labels of one frame k >= 1 from its registration (a task), and its reprojection
-    check status (N,) uint8."""
+def classify_one_frame(run_dir: Path, frame: int, config: Config) -> int:
+    """Labels of one frame k >= 1 from its registration (a task), written with the measures
+    behind them and its reprojection check status to RUN/classify/frames/k.npz (before
+    hysteresis, which needs every frame: `run_classify` reads them back one at a time).
+    Returns the frame: the stage's memory holds no frame's per-point arrays."""
     template, nb, template_noise = template_and_neighbourhoods(run_dir, config)
-    reg = read_registration(RunLayout(run_dir), frame, len(template))
+    layout = RunLayout(run_dir)
+    reg = read_registration(layout, frame, len(template))
     cfg = config.classify
     transforms = reg.transforms.astype(float) if cfg.measure == "transform_diff" else None
     registered = reg.registered.astype(float)
     classes = classify_frame(template, registered, nb, cfg, transforms=transforms,
                              status=reg.status,
                              evidence=frame_evidence(reg, registered, template_noise))
-    return classes, reg.status.astype(np.uint8)
+    write_npz(layout.classified(frame), **_rows(classes, reg.status))
+    return frame
+
+
+def _rows(classes: FrameClasses, status: np.ndarray) -> dict[str, np.ndarray]:
+    """One frame's rows of labels.npz (before hysteresis), as io/artefacts.write_labels
+    stores them."""
+    return {"raw_labels": classes.labels.astype(np.uint8),
+            "displacement_mm": classes.displacement_mm.astype(np.float32),
+            "deformation_mm": classes.deformation_mm.astype(np.float32),
+            "status": status.astype(np.uint8)}
 
 
 def frame_evidence(reg: FrameRegistration, registered: np.ndarray,
@@ -141,23 +159,25 @@ def classify_task(run_dir: Path, config: Config, frame: int) -> Task:
 def run_classify(run_dir: Path, config: Config,
                  on_step: Callable[[int, int], None] | None = None,
                  executor: Executor | None = None,
-                 classified: dict[int, tuple[FrameClasses, np.ndarray]] | None = None) -> dict:
+                 classified: Collection[int] = ()) -> dict:
     """Classify every frame of a registered run; returns the stage info (class counts etc.).
 
-    Frames are classified as independent tasks on `executor` (default: serial), then the
-    hysteresis runs over time and every frame's labelled cloud is written (tasks again).
-    `classified` holds the `classify_one_frame` results of frames already classified with
-    this config and the current registration (e.g. alongside register); only the others
-    are computed. `on_step(done, total)` reports progress over 2T steps (T frames
-    classified, T clouds written)."""
+    Frames are classified as independent tasks on `executor` (default: serial), each
+    written to RUN/classify/frames/; the hysteresis then runs over time, streaming over
+    those files (`write_labels_streaming`), and every frame's
+    labelled cloud is written (tasks again, in blocks of frames). Memory is flat in the
+    number of frames. `classified`: frames already classified with this config and the
+    current registration (e.g. alongside register); only the others are computed.
+    `on_step(done, total)` reports progress over 2T steps (T frames classified, T clouds
+    written)."""
     layout = RunLayout(run_dir)
     executor = executor or SerialExecutor()
-    classified = dict(classified or {})
     with stage_run(layout.root, STAGE, config) as info:
         n_frames = load_ingested(layout.ingest_dir).n_frames
         total = 2 * n_frames
         step = on_step or (lambda _d, _t: None)
-        count = [1 + len(classified)]
+        early = {k for k in classified if 0 < k < n_frames}
+        count = [1 + len(early)]
 
         def advance(_key: str, _value: object) -> None:
             count[0] += 1
@@ -165,32 +185,67 @@ def run_classify(run_dir: Path, config: Config,
 
         step(count[0], total)
         n = len(read_template(layout).points)
-        todo = [k for k in range(1, n_frames) if k not in classified]
-        tasks = [classify_task(layout.root, config, k) for k in todo]
-        done = executor.run(tasks, advance)
-        classified.update({k: done[t.key] for k, t in zip(todo, tasks, strict=True)})
-        frames = [FrameClasses(labels=np.full(n, STATIC, np.uint8),
-                               displacement_mm=np.zeros(n), deformation_mm=np.full(n, np.nan))]
-        status = [np.full(n, INTRA, np.uint8)]
-        for k in range(1, n_frames):
-            frames.append(classified[k][0])
-            status.append(classified[k][1])
-        raw = np.stack([f.labels for f in frames])
-        labels = apply_hysteresis(raw, config.classify.hysteresis_frames)
-        write_labels(layout, FrameLabels(
-            labels, raw, np.stack([f.displacement_mm for f in frames]),
-            np.stack([f.deformation_mm for f in frames]), np.stack(status)))
-        executor.run([Task(str(k), write_labelled_cloud, (layout.root.absolute(), k, labels[k]))
-                      for k in range(n_frames)], advance)
-        later = labels[1:]
-        counts = {name: int((later == code).sum()) for code, name in CLASS_NAMES.items()}
-        counts["unknown"] = int((later == UNKNOWN).sum())
+        todo = [k for k in range(1, n_frames) if k not in early]
+        executor.run([classify_task(layout.root, config, k) for k in todo], advance)
+        counts, changed = write_labels_streaming(layout, n_frames, n,
+                                                 config.classify.hysteresis_frames)
+        with npz_rows(layout.labels, "labels") as labels:
+            for start in range(0, n_frames, _CLOUD_BLOCK):
+                executor.run([Task(str(k), write_labelled_cloud,
+                                   (layout.root.absolute(), k, labels.read(k)))
+                              for k in range(start, min(start + _CLOUD_BLOCK, n_frames))],
+                             advance)
+        shutil.rmtree(layout.classified_dir, ignore_errors=True)
         info.update(frames=n_frames, points=n, counts_frames_1_on=counts,
-                    classified_with_register=n_frames - 1 - len(todo),
-                    changed_by_hysteresis=int((labels != raw).sum()))
+                    classified_with_register=len(early), changed_by_hysteresis=changed)
         logger.debug("classified %d frames x %d points: %s", n_frames, n, counts)
         result = dict(info)
     return result
+
+
+def write_labels_streaming(layout: RunLayout, n_frames: int, n: int,
+                           hysteresis_frames: int) -> tuple[dict[str, int], int]:
+    """labels.npz from the per-frame files, one frame in memory at a time: the hysteresis'
+    backward pass (whether each label persists), then its forward pass writing every
+    array's rows. Returns the class counts of frames 1.. and how many labels the
+    hysteresis changed."""
+    scratch = {name: layout.classify_dir / f".labels.{name}.tmp"
+               for name in ("persists", *_LABEL_DTYPES)}
+    rows = {name: RowFile(scratch[name], (n_frames, n), dtype, create=True)
+            for name, dtype in (("persists", bool), *_LABEL_DTYPES.items())}
+    try:
+        ahead = HysteresisAhead(n, hysteresis_frames)
+        for k in range(n_frames - 1, 0, -1):
+            rows["persists"].write(k, ahead.step(_classified(layout, k)["raw_labels"]))
+        first = FrameClasses(labels=np.full(n, STATIC, np.uint8), displacement_mm=np.zeros(n),
+                             deformation_mm=np.full(n, np.nan))
+        current = first.labels.copy()
+        counts = dict.fromkeys([*CLASS_NAMES.values(), "unknown"], 0)
+        changed = 0
+        for k in range(n_frames):
+            row = _rows(first, np.full(n, INTRA, np.uint8)) if k == 0 else _classified(layout, k)
+            raw = row["raw_labels"]
+            labels = raw if k == 0 or hysteresis_frames <= 1 else hysteresis_step(
+                current, raw, rows["persists"].read(k))
+            for name, value in (("labels", labels), *row.items()):
+                rows[name].write(k, value)
+            if k:
+                found = np.bincount(labels, minlength=256)
+                for code, name in [*CLASS_NAMES.items(), (UNKNOWN, "unknown")]:
+                    counts[name] += int(found[code])
+                changed += int((labels != raw).sum())
+        write_npz_rows(layout.labels, {name: rows[name] for name in _LABEL_DTYPES})
+    finally:
+        for name, path in scratch.items():
+            rows[name].close()
+            path.unlink(missing_ok=True)
+    return counts, changed
+
+
+def _classified(layout: RunLayout, frame: int) -> dict[str, np.ndarray]:
+    """The rows `classify_one_frame` wrote for a frame."""
+    with np.load(layout.classified(frame), allow_pickle=False) as z:
+        return {name: z[name] for name in _LABEL_DTYPES if name != "labels"}
 
 
 def write_labelled_cloud(run_dir: Path, frame: int, labels: np.ndarray) -> None:
@@ -219,4 +274,4 @@ def pipeline_step(ctx: StageContext, progress: Callable[[float], None]) -> None:
     """The stage within `surgrecon run`: only the frames register did not classify."""
     run_classify(ctx.run_dir, ctx.config, on_step=lambda d, t: progress(d / t),
                  executor=ctx.executor, classified=ctx.classified)
-    ctx.classified.clear()  # T x N labels and measures: not needed any more
+    ctx.classified.clear()

@@ -9,7 +9,8 @@ classify stage's (same settings, rebuilt here). Writes atomically
   RUN/measure/deformation.npz   the per-frame series and the compensated field (T, N)
   RUN/measure/summary.json      onset, release, deepest indentation, largest area, ...
 A point's σ here is that of its registered position and of its template position combined
-(the displacement from frame 0 carries both).
+(the displacement from frame 0 carries both). Frames are measured one at a time and the
+field written by rows (io/rows.py): memory is flat in the number of frames.
 """
 
 from __future__ import annotations
@@ -24,11 +25,20 @@ import numpy as np
 from ..config import Config
 from ..core.classify import Neighbourhoods, template_neighbourhoods
 from ..core.deformation import Rings, surface_normals, surrounding_rings
-from ..core.indentation import SERIES_KEYS, camera_viewpoint, measure_sequence, summarise
+from ..core.indentation import (
+    FIELD_DTYPES,
+    SERIES_KEYS,
+    camera_viewpoint,
+    measure_frame,
+    series_of,
+    summarise,
+)
 from ..core.noise import covariance_sigma
-from ..io.artefacts import read_observations, read_registration, read_template, write_deformation
+from ..io.artefacts import read_observations, read_registration, read_template
+from ..io.atomic import write_json
 from ..io.ingest_store import IngestedLog, load_ingested
 from ..io.metrics import finite_json, write_csv
+from ..io.rows import RowFile, write_npz_rows
 from ..io.run_layout import RunLayout
 from .common import stage_run
 from .registry import StageContext
@@ -62,19 +72,35 @@ def run_measure(run_dir: Path, config: Config,
         n, n_frames = len(template), log.n_frames
         obs = read_observations(layout, n)
         template_sigma = covariance_sigma(obs.covariance + obs.pose_covariance)
-        positions = np.repeat(template[None], n_frames, axis=0)
-        sigma = np.repeat(template_sigma[None], n_frames, axis=0)
-        for k in range(1, n_frames):
-            reg = read_registration(layout, k, n)
-            positions[k] = reg.registered
-            sigma[k] = np.hypot(reg.sigma.astype(float), template_sigma)
-            step(k, n_frames + 1)
         nb, rings, normals = geometry(template, log, config)
-        measured = measure_sequence(template, positions, sigma, log.tool_poses, nb, rings,
-                                    normals, config.deformation, config.tool)
-        summary = finite_json(summarise(measured.series, config.deformation, config.tool))
-        write_deformation(layout, measured, summary)
-        write_csv(layout.deformation_csv, DEFORMATION_COLUMNS, measured.series.rows())
+        figs = []
+        scratch = {key: layout.measure_dir / f".deformation.{key}.tmp" for key in FIELD_DTYPES}
+        layout.measure_dir.mkdir(parents=True, exist_ok=True)
+        field = {key: RowFile(path, (n_frames, n), FIELD_DTYPES[key], create=True)
+                 for key, path in scratch.items()}
+        try:
+            for k in range(n_frames):  # one frame in memory at a time
+                positions, sigma = template, template_sigma
+                if k:
+                    reg = read_registration(layout, k, n)
+                    positions = reg.registered.astype(float)
+                    sigma = np.hypot(reg.sigma.astype(float), template_sigma)
+                fig, rows = measure_frame(template, positions, sigma, log.tool_poses[k], nb,
+                                          rings, normals, config.deformation, config.tool)
+                figs.append(fig)
+                for key, value in rows.items():
+                    field[key].write(k, value)
+                step(k + 1, n_frames + 1)
+            series = series_of(figs)
+            summary = finite_json(summarise(series, config.deformation, config.tool))
+            write_npz_rows(layout.deformation, {**{k: getattr(series, k) for k in SERIES_KEYS},
+                                                **field})
+        finally:
+            for key, path in scratch.items():
+                field[key].close()
+                path.unlink(missing_ok=True)
+        write_json(layout.deformation_summary, summary)
+        write_csv(layout.deformation_csv, DEFORMATION_COLUMNS, series.rows())
         step(n_frames + 1, n_frames + 1)
         info.update(onset_frame=summary["onset_frame"], release_frame=summary["release_frame"],
                     max_indentation_mm=summary["max_indentation_mm"],

@@ -40,7 +40,7 @@ from ..io.artefacts import (
     write_registration,
 )
 from ..io.ingest_store import IngestedLog, load_ingested
-from ..io.run_folder import RunFolder
+from ..io.run_folder import FrameProgress, RunFolder
 from ..io.run_layout import RunLayout
 from .common import recorded_config, stage_run
 from .registry import CLASSIFY_FRAME_TASK, StageContext, resolve
@@ -155,24 +155,30 @@ def run_register(
     Frames are independent tasks except for their base (`base_frame`): with re-basing
     every N_T frames, a frame waits for its base frame, a dependency chain over the bases.
     `executor` runs the tasks (default: serial); `on_frame(frame, n_frames)` is called as
-    each frame finishes (progress), and run.json records every finished frame at once.
+    each frame finishes (progress); the progress record (RUN/registration/progress.jsonl)
+    records every finished frame at once, run.json their counts.
     `after_frame(frame)` may give a task to run on each frame once it is registered (e.g.
     its classification): in the same graph, such tasks fill the workers that the chain
     leaves idle; their results go to `on_after(frame, value)`.
     """
     layout = RunLayout(run_dir)
     run = RunFolder(layout.root)
-    previous = run.stage(STAGE)
     made_with = recorded_config(config, STAGE)
-    same = previous.get("config") == made_with
-    done_before = set(previous.get("frames_done", [])) if same else set()
-    failed: dict[str, str] = dict(previous.get("frames_failed", {})) if same else {}
+    progress = FrameProgress(layout.register_progress)
+    recorded = progress.read() if run.stage(STAGE).get("config") == made_with else {}
     with stage_run(layout.root, STAGE, config,
                    keep=("frames_done", "frames_failed", "config")) as info:
         n_frames = load_ingested(layout.ingest_dir).n_frames
-        done = {k for k in done_before if 0 < k < n_frames and layout.registration(k).is_file()}
-        failed = {k: v for k, v in failed.items() if int(k) in done}
+        recorded = {k: why for k, why in recorded.items()
+                    if 0 < k < n_frames and layout.registration(k).is_file()}
+        done = set(recorded)
+        failed = {str(k): why for k, why in recorded.items() if why}
         _warn_failed(failed, resumed=True)
+        layout.registration_dir.mkdir(parents=True, exist_ok=True)
+        progress.restart(recorded)
+        record = _throttled(lambda: run.mark_stage(
+            STAGE, "running", frames_done=len(done), frames_failed=failed, config=made_with))
+        record(force=True)
         every = config.registration.template_update_every
         frames = [k for k in range(1, n_frames) if k not in done]
         tasks = []
@@ -193,17 +199,34 @@ def run_register(
                     on_after(followers[key], value)
                 return
             done.add(int(key))
-            if isinstance(value, dict) and "failed" in value:
-                failed[key] = value["failed"]
-                _warn_failed({key: value["failed"]}, resumed=False)
-            run.mark_stage(STAGE, "running", frames_done=sorted(done), frames_failed=failed,
-                           config=made_with)
+            why = value["failed"] if isinstance(value, dict) and "failed" in value else ""
+            progress.append(int(key), why)
+            if why:
+                failed[key] = why
+                _warn_failed({key: why}, resumed=False)
+            record(force=len(done) == 1)
             if on_frame is not None:
                 on_frame(int(key), n_frames)
 
-        (executor or SerialExecutor()).run(tasks, on_done)
-        info.update(frames_done=sorted(done), frames_failed=failed)
+        try:
+            (executor or SerialExecutor()).run(tasks, on_done)
+        finally:
+            record(force=True)
+        info.update(frames_done=len(done), frames_failed=failed)
     return frames
+
+
+def _throttled(write: Callable[[], None], seconds: float = 1.0) -> Callable[..., None]:
+    """`write` as a function that does it at most every `seconds` s unless forced: run.json
+    holds the progress counts, the frames themselves are in the progress record."""
+    last = [-np.inf]
+
+    def maybe(force: bool = False) -> None:
+        now = time.monotonic()
+        if force or now - last[0] >= seconds:
+            write()
+            last[0] = now
+    return maybe
 
 
 def pipeline_step(ctx: StageContext, progress: Callable[[float], None]) -> None:

@@ -57,7 +57,7 @@ def run_report(run_dir: Path, config: Config,
         write_csv(files.frames_csv, FRAME_COLUMNS, metrics.rows)
         write_metrics_json(files.summary_json, metrics.summary)
         step(2, 4)
-        views = gather_views(data, config.tool)
+        views = gather_views(layout, data, config.tool)
         pngs = draw_figures(data, metrics, views, config, executor or SerialExecutor())
         step(3, 4)
         write_text(files.html, compose(layout, data, metrics, views, config, pngs,
