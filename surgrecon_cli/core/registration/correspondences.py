@@ -34,10 +34,12 @@ def build_matcher(
     colour_scale: float,
     target_ids: np.ndarray | None,
     landmarks: np.ndarray | None,
+    usable: np.ndarray | None = None,
 ) -> Matcher:
-    """Known pairs (landmarks override template ids) and a KD-tree over the other targets."""
+    """Known pairs (landmarks override template ids) and a KD-tree over the other targets;
+    `usable` (M,) bool: targets free matches may use (None = all; strays are left out)."""
     known = np.full(n_source, -1, np.int64)
-    free = np.ones(len(target_q), bool)
+    free = np.ones(len(target_q), bool) if usable is None else usable.copy()
     if target_ids is not None:
         has = target_ids >= 0
         # the first target point carrying an id wins; later duplicates are ignored

@@ -17,6 +17,7 @@ from scipy.spatial import cKDTree
 
 from ..geometry import fit_rigid
 from .correspondences import Matcher, match
+from .globalinit import global_align
 from .graph import mean_spacing as graph_spacing
 from .graph import sample_nodes
 
@@ -96,12 +97,19 @@ def rigid_prealign(
     target_spacing: float,
     target_tree: cKDTree,
     gate: float,
+    support: float = 0.0,
+    global_init: str = "off",
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Rotation R (3, 3) and translation t (3,) with target ~ source @ R.T + t.
+    """Linear part A (3, 3) (a rotation, or s R after a global initialisation) and
+    translation t (3,) with target ~ source @ A.T + t.
 
     `observed` (N,) bool: source points with a data term; `spacing`, `target_spacing`: mean
     point spacings; `target_tree` indexes the target positions; `gate`: the correspondence
-    distance gate.
+    distance gate; `support` > 0: the result is kept only if it beats the identity on the
+    robust cost mean rho(d), rho = d^2 / (d^2 + support^2), d the position + colour distance
+    of each subsampled point to its nearest usable target (so it cannot make things worse
+    on that cost). `global_init`: 'auto' searches coarse rotations and a scale
+    (globalinit.py) when the clouds start farther apart than `gate`, 'on' always, 'off' never.
     Pairs must pass a mutual check, then the closest `keep` fraction is fitted with Cauchy
     weights. Stops when a step moves the subsample by < 1 % of the point spacing (ours).
     """
@@ -109,7 +117,7 @@ def rigid_prealign(
     if len(known) >= MIN_KNOWN:
         return _l1_fit(source_q[known], matcher.target_q[matcher.known[known]])
     cand = np.flatnonzero(observed)
-    if len(cand) < 3:
+    if len(cand) < 3 or matcher.tree is None:
         return np.eye(3), np.zeros(3)
     sub = cand[sample_nodes(source_q[cand], MAX_POINTS)]
     pts = source_q[sub]
@@ -122,25 +130,35 @@ def rigid_prealign(
     # mutual gate on the subsample: drops pairs onto the rim of a partial target (ours: 3x)
     sub_spacing = graph_spacing(pts)
     mutual = 3.0 * max(sub_spacing, target_spacing)
+    usable = matcher.target_q[matcher.candidates]
 
-    def cost(R: np.ndarray, t: np.ndarray) -> float:
-        moved = pts @ R.T + t
-        corr = match(sub_matcher, moved, rgb, np.inf, mutual, every)
-        ok = corr >= 0
-        r = np.linalg.norm(moved[ok] - matcher.target_q[corr[ok]], axis=1)
-        return float(np.quantile(r, keep)) if len(r) else np.inf
+    tree = matcher.tree
 
-    # Start from identity (clouds from one tracked world frame are close already). Only when
-    # they are farther apart than the correspondence gate, start from the shift of the medians
-    # if it fits better: on a smooth cap the median shift includes a tangential slide that
-    # ICP cannot undo, so it is a last resort (ours).
-    R, t = np.eye(3), np.zeros(3)
-    shift = np.median(matcher.target_q, axis=0) - np.median(pts, axis=0)
-    start_cost = cost(R, t)
-    if start_cost > gate and cost(R, shift) < start_cost:
-        t = shift
+    def nearest(moved: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Nearest usable target in position + colour: index into `usable`, distance."""
+        if matcher.target_rgb is not None and rgb is not None:
+            moved = np.concatenate([moved, matcher.colour_scale * rgb], axis=1)
+        d, j = tree.query(moved, k=1)
+        return j, d
+
+    def robust_cost(A: np.ndarray, t: np.ndarray) -> float:
+        d2 = nearest(pts @ A.T + t)[1] ** 2
+        return float(np.mean(d2 / (d2 + support**2)))
+
+    # Start from identity (clouds from one tracked world frame are close already). When they
+    # are farther apart than the gate, search globally or, without that, start from the
+    # shift of the medians if it fits better: on a smooth cap the median shift includes a
+    # tangential slide that ICP cannot undo, so it is a last resort (ours).
+    A, t = np.eye(3), np.zeros(3)
+    start = float(np.median(target_tree.query(pts, k=1)[0]))
+    if global_init == "on" or (global_init == "auto" and start > gate):
+        A, t = global_align(pts, usable, nearest, keep)
+    elif start > gate:
+        shift = np.median(usable, axis=0) - np.median(pts, axis=0)
+        if np.median(target_tree.query(pts + shift, k=1)[0]) < start:
+            t = shift
     for _ in range(iterations):
-        moved = pts @ R.T + t
+        moved = pts @ A.T + t
         corr = match(sub_matcher, moved, rgb, np.inf, mutual, every)
         ok = corr >= 0
         if ok.sum() < 3:
@@ -155,9 +173,11 @@ def rigid_prealign(
         w = 1.0 / (1.0 + (r[sel] / scale) ** 2)
         dR, dt = _plane_step(src_ok[sel], matcher.target_q[dst_idx[sel]],
                              normals(dst_idx[sel]), w)
-        R_new, t_new = dR @ R, dR @ t + dt
-        step = np.sqrt(np.mean(np.sum((pts @ R_new.T + t_new - moved) ** 2, axis=1)))
-        R, t = R_new, t_new
+        A_new, t_new = dR @ A, dR @ t + dt
+        step = np.sqrt(np.mean(np.sum((pts @ A_new.T + t_new - moved) ** 2, axis=1)))
+        A, t = A_new, t_new
         if step < 0.01 * spacing:
             break
-    return R, t
+    if support > 0 and robust_cost(A, t) >= robust_cost(np.eye(3), np.zeros(3)):
+        return np.eye(3), np.zeros(3)
+    return A, t
