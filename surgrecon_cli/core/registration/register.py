@@ -2,9 +2,13 @@
 
 Su et al. 2019 (section II.D: per-point affines, heavy-tailed data and smoothness
 penalties, ADMM) after Yang et al. 2015 and RPTS:
-robust rigid pre-alignment, then outer steps that (1) re-estimate correspondences (known ids,
-else gated nearest neighbours in position + colour), (2) reweight the l1 data term, (3) run
-ADMM on the energy of `admm.py` with the smoothness weight annealed from stiff to flexible.
+robust rigid pre-alignment (kept only if it beats the identity), then outer steps that
+(1) re-estimate correspondences (known ids, else gated nearest neighbours in position +
+colour, the colour weight measured on the target's texture, strays left out), (2) reweight
+the l1 data term, (3) run ADMM on the energy of `admm.py` with the smoothness weight annealed
+from stiff to flexible. In the last step an observed point with no target surface within
+the support gate (tied to the target's spacing and noise) loses its match: it is reported
+unsupported and only weakly pulled towards not moving (UNSUPPORTED_PULL).
 Inputs in metres; config thresholds in millimetres. Pure numpy/scipy, no I/O.
 """
 
@@ -30,6 +34,10 @@ from .surface import analyse_target, colour_weight
 Callback = Callable[[int, dict[str, Any]], None]
 MU_GROWTH_LIMIT = 64.0  # ours: with mu_growth > 1, mu stops growing at 64 x its start
 SUPPORT_SPACINGS = 3.0  # ours: support gate in target spacings (see `register`)
+# ours: data weight pulling an observed point with no target surface near it (past the edge
+# of a partial target) towards its source position: its neighbours decide near the edge, and
+# far from it the extrapolated motion fades to none instead of growing with distance
+UNSUPPORTED_PULL = 0.1
 
 
 @dataclass(frozen=True)
@@ -43,9 +51,9 @@ class RegistrationResult:
     measures its distance to the edge); NaN for points without a data weight;
     correspondences (N,): target index or -1 (unobserved, or no match passed the gates);
     outliers (N,) bool: supported, but farther than `outlier_mm` from the target's surface;
-    supported (N,) bool: had a data term in the last step (a weight and a match on the
-    target's surface within the support gate); observed points that are not supported were
-    left to follow their neighbours (no target surface there, e.g. cut away);
+    supported (N,) bool: has a weight and the target's surface within the support gate of
+    it in the last step; observed points that are not supported got no data term there and
+    followed their neighbours (no target surface there, e.g. cut away);
     along_surface (N,): estimate of the error along the surface where colour decided the
     matches (residuals.along_surface), NaN elsewhere;
     stats: one dict per step: step 0 the rigid pre-alignment (rotation, translation_m, nodes,
@@ -241,6 +249,7 @@ def register(
     U1 = np.zeros((len(rows), 3))
     U2 = np.zeros((len(ea), 3))
     corr = np.full(n, -1, np.int64)
+    off_surface = np.zeros(n, bool)
     alpha_prev = None
     moved = D_full @ X
     for step in range(cfg.outer_iterations):
@@ -252,11 +261,15 @@ def register(
         last = step == cfg.outer_iterations - 1
         corr = match(matcher, moved, src_rgb, gate, mutual, observed)
         if last:
-            off_surface = usable_tree.query(moved, k=1)[0] > support
-            corr[off_surface & (matcher.known < 0)] = -1
+            off_surface = (usable_tree.query(moved, k=1)[0] > support) & (matcher.known < 0)
+            corr[off_surface] = -1
         matched = corr[rows] >= 0
         G = np.where(matched[:, None], tq[np.maximum(corr[rows], 0)], moved[rows])
         w = np.where(matched, base_w[rows], 0.0)
+        if last:  # no target surface near: a weak pull towards not moving (see the top)
+            rest = off_surface[rows]
+            G[rest] = q[rows[rest]]
+            w[rest] = UNSUPPORTED_PULL * base_w[rows[rest]]
         if reweight > 0 and step > 0:
             r = np.linalg.norm(moved[rows] - G, axis=1)
             w = np.where(is_landmark[rows], w, w * reweight / (r + reweight))
@@ -295,19 +308,20 @@ def register(
     registered = norm.to_metres(moved)
     has = (corr >= 0) & observed
     corr = np.where(has, corr, -1)
+    supported = observed & ~off_surface
     residuals = np.full(n, np.nan)
     residuals[observed] = norm.unit * surface_distance(moved[observed], surf, usable_idx,
                                                        usable_tree)
     pinned = has & (matcher.known >= 0)  # a known pair: the distance to that target point
     residuals[pinned] = np.linalg.norm(registered[pinned] - tgt[corr[pinned]], axis=1)
-    outliers = has & (residuals > cfg.outlier_mm * 1e-3)
+    outliers = supported & (residuals > cfg.outlier_mm * 1e-3)
     along = np.full(n, np.nan)
     if colour_scale > 0 and src_rgb is not None:
         along = norm.unit * along_surface(moved, corr, surf, tq, src_tree)
     stats[-1]["total_seconds"] = time.perf_counter() - t_start
     return RegistrationResult(transforms=transforms, registered=registered, residuals=residuals,
                               correspondences=corr, outliers=outliers, stats=stats,
-                              supported=has, along_surface=along)
+                              supported=supported, along_surface=along)
 
 
 def apply_transforms(
