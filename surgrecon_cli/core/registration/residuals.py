@@ -6,9 +6,9 @@
   partial target measures its distance to that edge. It does not see a slide along the
   surface (nearest-neighbour residuals on a smooth surface carry no such signal).
 - `along_surface`: where colour decided the correspondences, the along-surface offset of
-  each point from its match, averaged over its `ALONG_NEIGHBOURS` nearest source points
-  (the offsets of independent samplings average out; a common slide does not). NaN where
-  there is no such estimate.
+  each point from its match, averaged over the points of its deformation node (the offsets
+  of independent samplings average out; a common slide does not). NaN where there is no
+  such estimate.
 """
 
 from __future__ import annotations
@@ -19,7 +19,6 @@ from scipy.spatial import cKDTree
 from .surface import TargetSurface
 
 PATCH_SPACINGS = 2.0  # ours: radius of the local plane patch, target spacings
-ALONG_NEIGHBOURS = 16  # ours: source points averaged in the along-surface estimate
 
 
 def surface_distance(moved: np.ndarray, surf: TargetSurface, usable_idx: np.ndarray,
@@ -37,9 +36,12 @@ def surface_distance(moved: np.ndarray, surf: TargetSurface, usable_idx: np.ndar
 
 
 def along_surface(moved: np.ndarray, matched_to: np.ndarray, surf: TargetSurface,
-                  target_q: np.ndarray, source_tree: cKDTree) -> np.ndarray:
-    """(N,) along-surface error estimate from matches `matched_to` (N,) target index or -1;
-    `source_tree` indexes the source points (neighbourhoods in the material)."""
+                  target_q: np.ndarray, interp_idx: np.ndarray,
+                  interp_w: np.ndarray) -> np.ndarray:
+    """(N,) along-surface error estimate from matches `matched_to` (N,) target index or -1:
+    the along-surface offsets averaged over the points of each deformation node (a point
+    belongs to its nearest node, interp_idx[:, 0]), blended back with the interpolation
+    weights interp_idx / interp_w (N, k) (graph.interpolation)."""
     n = len(moved)
     out = np.full(n, np.nan)
     has = np.flatnonzero(matched_to >= 0)
@@ -48,14 +50,13 @@ def along_surface(moved: np.ndarray, matched_to: np.ndarray, surf: TargetSurface
     c = matched_to[has]
     off = moved[has] - target_q[c]
     nrm = surf.normal[c]
-    tangential = np.zeros((n, 3))
-    tangential[has] = off - np.einsum("ij,ij->i", off, nrm)[:, None] * nrm
-    counted = np.zeros(n)
-    counted[has] = 1.0
-    k = min(ALONG_NEIGHBOURS, n)
-    _, nn = source_tree.query(source_tree.data[has], k=k)
-    nn = nn.reshape(len(has), k)
-    total = counted[nn].sum(axis=1)
-    mean = tangential[nn].sum(axis=1) / np.maximum(total, 1.0)[:, None]
-    out[has] = np.linalg.norm(mean, axis=1)
+    tangential = off - np.einsum("ij,ij->i", off, nrm)[:, None] * nrm
+    owner = interp_idx[has, 0]
+    m = int(interp_idx.max()) + 1
+    count = np.bincount(owner, minlength=m).astype(float)
+    mean = np.stack([np.bincount(owner, tangential[:, a], minlength=m) for a in range(3)], 1)
+    mean /= np.maximum(count, 1.0)[:, None]
+    w = interp_w[has] * (count[interp_idx[has]] > 0)
+    blended = np.einsum("pk,pki->pi", w, mean[interp_idx[has]])
+    out[has] = np.linalg.norm(blended, axis=1) / np.maximum(w.sum(axis=1), 1e-12)
     return out
