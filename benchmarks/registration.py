@@ -1,209 +1,300 @@
-"""Registration benchmark: surgrecon vs pycpd / probreg (CPD, BCPD) on synthetic dome pairs.
+"""Registration benchmark (issue 14): ours beside BCPD and Fast_RNRR on seeded pair families.
 
-    .venv/bin/pip install -e .[bench]        # pycpd, probreg (benchmark only)
-    .venv/bin/python benchmarks/registration.py [--sizes 2000 5000 10000 50000] [--cap 60]
+    export PYTHONPATH=$PWD
+    nice -n 10 .venv/bin/python benchmarks/registration.py [--quick] [--families F ...]
+        [--seeds 100 101 ...] [--sizes N ...] [--bcpd PATH] [--fast-rnrr PATH]
+        [--set key=value ...] [--variant key=value[,key=value] ...] [--peers pycpd ...]
 
-Pairs: a bumpy dome ~50 mm across (metres), a breathing-like smooth shift plus a 5 mm Gaussian
-indentation, 0.2 mm noise; variants with 20 % gross outliers (extra target points 1-5 mm off
-the surface), with colour (texture), and with 30 % of the target removed (partial overlap).
-The target holds the same material points as the source (shuffled), so the error of a
-registered point is its distance to its true moved position. Every method runs on the same
-pairs, each in a forked worker process (terminated and reported "capped" past the time cap);
-wall and process-CPU time and the worker's peak RSS (which includes the parent's ~imports
-and data, inherited by fork) are reported. The peers see geometry only. All numbers are ours.
+Pairs: sim/pairs_catalog.py (coloured tissue with independent resampling, strays and a cut
+side; colourless scanned blob / torus / body / limb, partial and noisy scans; a 90 degree +
+0.8 scale rotation). Default seeds are the acceptance seeds 100-104 (tuning seeds are 0-4).
+Per family, size and seed it prints, for doing nothing (the source as it is), ours and each
+peer: median / p95 error (mm) against the true moved source, the median error along the true
+surface normal and along the surface (normals: local PCA of the truth), the median as % of
+the bounding-box diagonal, the Spearman rank correlation between the per-point `residuals`
+and the true error (ours only), the wall time and its ratio to ours on the same pair.
+Then a summary per family (means over seeds) and the goals of issue 14, met or not.
+
+Ours: `surgrecon_cli.registration.register(src, tgt, src_rgb, tgt_rgb, config)` in process,
+defaults plus `--set` overrides of RegistrationConfig, timed after one warm-up call.
+Peers (binaries from --bcpd / SURGRECON_BCPD and --fast-rnrr / SURGRECON_FAST_RNRR; "not
+available" without them) run as subprocesses, see benchmarks/registration_peers.py for their
+settings; their wall time includes their process start-up and file I/O (nothing subtracted).
+Everything runs on one thread (OMP/OPENBLAS/MKL_NUM_THREADS=1 unless set otherwise).
 """
 
 from __future__ import annotations
 
-import argparse
-import multiprocessing as mp
-import queue as queue_mod
-import resource
-import sys
-import time
-from collections.abc import Callable
-from dataclasses import dataclass, replace
+import os
 
-import numpy as np
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")  # before numpy is imported: ours on one thread too
 
-from surgrecon_cli.sim.pairs import MM, dome, texture, warp
+import argparse  # noqa: E402
+import dataclasses  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from collections import defaultdict  # noqa: E402
+from pathlib import Path  # noqa: E402
 
+import numpy as np  # noqa: E402
 
-# ----------------------------------------------------------------------------- data
-@dataclass(frozen=True)
-class Pair:
-    source: np.ndarray
-    target: np.ndarray
-    source_rgb: np.ndarray | None
-    target_rgb: np.ndarray | None
-    truth: np.ndarray  # (N, 3) true moved source points
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from registration_metrics import Errors, errors, pca_normals, worst_region_excess  # noqa: E402
+from registration_peers import (  # noqa: E402
+    PeerError,
+    run_bcpd,
+    run_fast_rnrr,
+    run_python_peer,
+)
 
+from surgrecon_cli.config import RegistrationConfig  # noqa: E402
+from surgrecon_cli.registration import register  # noqa: E402
+from surgrecon_cli.sim.pairs import Pair  # noqa: E402
+from surgrecon_cli.sim.pairs_catalog import ACCEPTANCE_SEEDS, FAMILIES, make_pair  # noqa: E402
 
-def make_pair(n: int, *, outliers: float = 0.0, colour: bool = False, partial: float = 0.0,
-              noise_mm: float = 0.2, seed: int = 0) -> Pair:
-    rng = np.random.default_rng(seed)
-    src = dome(n, rng)
-    truth = warp(src)
-    tgt = truth + rng.normal(0, noise_mm * MM, truth.shape)
-    rgb = texture(src)
-    trgb = np.clip(rgb + rng.normal(0, 0.02, rgb.shape), 0, 1)
-    if partial > 0:  # remove a contiguous side of the target
-        keep = tgt[:, 0] > np.quantile(tgt[:, 0], partial)
-        tgt, trgb = tgt[keep], trgb[keep]
-    if outliers > 0:
-        k = round(outliers * len(tgt))
-        base = tgt[rng.integers(0, len(tgt), k)]
-        d = rng.normal(size=(k, 3))
-        d /= np.linalg.norm(d, axis=1, keepdims=True)
-        tgt = np.r_[tgt, base + d * rng.uniform(1, 5, (k, 1)) * MM]
-        trgb = np.r_[trgb, rng.uniform(0, 1, (k, 3))]
-    order = rng.permutation(len(tgt))
-    return Pair(src, tgt[order], rgb if colour else None, trgb[order] if colour else None, truth)
+SHAPE_FAMILIES = [f for f, fam in FAMILIES.items() if not fam.coloured and f != "rotation"]
+QUICK_FAMILIES = ["tissue", "tissue_partial", "blob", "body", "rotation"]
 
 
-# ----------------------------------------------------------------------------- methods
-def run_ours(pair: Pair, **overrides: object) -> np.ndarray:
-    from surgrecon_cli.config import RegistrationConfig
-    from surgrecon_cli.registration import register
-
-    cfg = replace(RegistrationConfig(), **overrides)
-    return register(pair.source, pair.target, pair.source_rgb, pair.target_rgb, cfg).registered
-
-
-def run_pycpd(pair: Pair) -> np.ndarray:
-    from pycpd import DeformableRegistration
-
-    # pycpd registers Y (moving) onto X (fixed); its default w=0 assumes no outliers
-    reg = DeformableRegistration(X=pair.target / MM, Y=pair.source / MM, alpha=2.0, beta=2.0,
-                                 w=0.1, max_iterations=100, tolerance=1e-5)
-    ty, _ = reg.register()
-    return np.asarray(ty) * MM
+def parse_overrides(items: list[str]) -> dict[str, object]:
+    """key=value strings -> RegistrationConfig field values, typed like the defaults."""
+    defaults = RegistrationConfig()
+    names = {f.name for f in dataclasses.fields(RegistrationConfig)}
+    out: dict[str, object] = {}
+    for item in items:
+        key, _, raw = item.partition("=")
+        if key not in names:
+            raise SystemExit(f"--set: RegistrationConfig has no key {key!r}")
+        kind = type(getattr(defaults, key))
+        out[key] = raw.lower() in ("1", "true", "yes") if kind is bool else kind(raw)
+    return out
 
 
-def run_probreg(pair: Pair, method: str) -> np.ndarray:
-    from probreg import bcpd, cpd
-
-    src, tgt = pair.source / MM, pair.target / MM
-    if method == "cpd":
-        res = cpd.registration_cpd(src, tgt, tf_type_name="nonrigid", w=0.1, maxiter=100,
-                                   tol=1e-5, beta=2.0, lmd=2.0)
-        return np.asarray(res.transformation.transform(src)) * MM
-    tf = bcpd.registration_bcpd(src, tgt, w=0.1, maxiter=100, tol=1e-5)
-    return np.asarray(tf.transform(src)) * MM
+def run_ours(pair: Pair, cfg: RegistrationConfig) -> tuple[np.ndarray, np.ndarray, float]:
+    """(registered (N, 3) m, residuals (N,) m, wall s) of one in-process call."""
+    t0 = time.perf_counter()
+    res = register(pair.source, pair.target, pair.source_rgb, pair.target_rgb, cfg)
+    return res.registered, res.residuals, time.perf_counter() - t0
 
 
-def timed(fn: Callable[[], np.ndarray], cap: float) -> tuple[np.ndarray | None, float, str]:
-    """Run fn in a forked worker process; (result, seconds, status: 'ok'/'capped'/error).
-
-    A run past `cap` seconds is terminated, so a slow peer cannot eat the CPU of later runs.
-    """
-    ctx = mp.get_context("fork")
-    queue = ctx.Queue()
-
-    def work() -> None:
-        t0 = time.perf_counter()
-        try:
-            res = fn()
-            queue.put(("ok", res, time.perf_counter() - t0))
-        except Exception as exc:
-            queue.put((type(exc).__name__, None, time.perf_counter() - t0))
-
-    proc = ctx.Process(target=work, daemon=True)
-    proc.start()
-    try:
-        status, res, secs = queue.get(timeout=cap)
-    except queue_mod.Empty:
-        proc.terminate()
-        proc.join()
-        return None, cap, "capped"
-    proc.join()
-    return res, secs, status
+def fmt_row(cells: list[str]) -> str:
+    return "| " + " | ".join(cells) + " |"
 
 
-def measured(fn: Callable[[], np.ndarray]) -> tuple[np.ndarray, float, float, float]:
-    """(result, wall s, process CPU s, peak RSS MB of this process); call in a fresh worker."""
-    t0, c0 = time.perf_counter(), time.process_time()
-    res = fn()
-    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
-    return res, wall, cpu, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+def row(family: str, n: int, seed: int, method: str, e: Errors | None, wall: float | None,
+        ours_wall: float | None, note: str = "") -> str:
+    if e is None:
+        return fmt_row([family, str(n), str(seed), method, note] + [""] * 7)
+    ratio = "" if wall is None or not ours_wall else f"{wall / ours_wall:.1f}"
+    rho = "" if np.isnan(e.spearman) else f"{e.spearman:.2f}"
+    return fmt_row([family, str(n), str(seed), method, f"{e.median:.3f}", f"{e.p95:.3f}",
+                    f"{e.normal:.3f}", f"{e.tangential:.3f}", f"{e.percent_diag:.2f}", rho,
+                    "" if wall is None else f"{wall:.2f}", ratio])
 
 
-def errors_mm(reg: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
-    e = np.linalg.norm(reg - truth, axis=1) / MM
-    return float(np.median(e)), float(np.percentile(e, 95))
-
-
-# ----------------------------------------------------------------------------- main
-CASES = {
-    "clean": {},
-    "outliers20": {"outliers": 0.2},
-    "colour+outliers20": {"outliers": 0.2, "colour": True},
-    "partial30": {"partial": 0.3},
-    "colour+partial30": {"partial": 0.3, "colour": True},
-}
+HEADER = ["family", "n", "seed", "method", "median mm", "p95 mm", "normal mm",
+          "tangential mm", "% diag", "Spearman", "wall s", "time / ours"]
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--sizes", type=int, nargs="+", default=[2000, 5000, 10000, 50000])
-    ap.add_argument("--cases", nargs="+", default=list(CASES), choices=list(CASES))
-    ap.add_argument("--peers", nargs="*", default=["pycpd", "cpd", "bcpd"])
-    ap.add_argument("--peer-max-points", type=int, default=5000,
-                    help="peers are not run above this size (reported capped)")
-    ap.add_argument("--peer-cases", nargs="+", default=["clean", "outliers20", "partial30"],
-                    choices=list(CASES), help="cases the peers run (geometry only)")
-    ap.add_argument("--cap", type=float, default=60.0, help="time cap per peer run (s)")
-    ap.add_argument("--mu-study", action="store_true", help="also time growing mu (x2/iter)")
+    ap.add_argument("--families", nargs="+", choices=list(FAMILIES), default=None)
+    ap.add_argument("--seeds", type=int, nargs="+", default=list(ACCEPTANCE_SEEDS))
+    ap.add_argument("--sizes", type=int, nargs="+", default=None,
+                    help="source sizes for every family (default: each family's own)")
+    ap.add_argument("--quick", action="store_true",
+                    help=f"first seed only, families {' '.join(QUICK_FAMILIES)}, sizes <= 5000")
+    ap.add_argument("--bcpd", default=os.environ.get("SURGRECON_BCPD"))
+    ap.add_argument("--fast-rnrr", default=os.environ.get("SURGRECON_FAST_RNRR"))
+    ap.add_argument("--bcpd-colour-mm", type=float, default=20.0,
+                    help="BCPD colour channels: mm per RGB unit (chosen on tuning seed 0)")
+    ap.add_argument("--peers", nargs="*", default=[],
+                    choices=["pycpd", "probreg-cpd", "probreg-bcpd"],
+                    help="optional Python peers (the `bench` extra)")
+    ap.add_argument("--set", dest="overrides", action="append", default=[],
+                    metavar="KEY=VALUE", help="RegistrationConfig override for ours")
+    ap.add_argument("--variant", action="append", default=[], metavar="K=V[,K=V]",
+                    help="an extra row of ours with these overrides on top of --set")
+    ap.add_argument("--cap", type=float, default=300.0, help="time cap per peer run (s)")
     args = ap.parse_args(argv)
 
-    peers: dict[str, Callable[[Pair], np.ndarray]] = {
-        "pycpd": run_pycpd,
-        "cpd": lambda p: run_probreg(p, "cpd"),
-        "bcpd": lambda p: run_probreg(p, "bcpd"),
-    }
-    print("| size | case | method | median mm | p95 mm | wall s | cpu s | ours/peer wall "
-          "| peak RSS MB |")
-    print("| ---: | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: |")
+    families = args.families or (QUICK_FAMILIES if args.quick else list(FAMILIES))
+    seeds = args.seeds[:1] if args.quick else args.seeds
+    base = parse_overrides(args.overrides)
+    configs = {"ours": RegistrationConfig(**base)}  # type: ignore[arg-type]
+    for v in args.variant:
+        configs[f"ours[{v}]"] = RegistrationConfig(**{**base, **parse_overrides(v.split(","))})
+    warm = make_pair("tissue", 500, 0)
+    for cfg in configs.values():
+        run_ours(warm, cfg)  # imports, caches
+    load = os.getloadavg()
+    print(f"# load average {load[0]:.1f} / {load[1]:.1f} on {os.cpu_count()} cores; "
+          f"threads {os.environ['OMP_NUM_THREADS']}; overrides {base or 'none'}")
+    print(f"# BCPD: {args.bcpd or 'not available'}; Fast_RNRR: {args.fast_rnrr or 'not available'}")
+    print(fmt_row(HEADER))
+    print(fmt_row(["---"] * 4 + ["---:"] * 8))
     sys.stdout.flush()
-    for n in args.sizes:
-        for case in args.cases:
-            pair = make_pair(n, **CASES[case])  # type: ignore[arg-type]
-            run_ours(make_pair(500, **CASES[case]))  # warm-up: imports, caches
-            variants = [("ours", {})]
-            if args.mu_study:
-                variants.append(("ours, mu x2/iter", {"mu_growth": 2.0, "mu": 0.25}))
-            t_ours = np.nan
-            for label, overrides in variants:
-                out, _, status = timed(
-                    lambda p=pair, o=overrides: measured(lambda: run_ours(p, **o)), 600.0)
-                if out is None:
-                    print(f"| {n} | {case} | {label} | {status} | | | | | |")
-                    continue
-                reg, wall, cpu, rss = out
-                t_ours = wall if label == "ours" else t_ours
-                med, p95 = errors_mm(reg, pair.truth)
-                print(f"| {n} | {case} | {label} | {med:.3f} | {p95:.3f} | {wall:.3f} | {cpu:.3f} "
-                      f"| | {rss:.0f} |")
-            for name in args.peers if case in args.peer_cases else ():
-                if n > args.peer_max_points:
-                    print(f"| {n} | {case} | {name} | not run (size > {args.peer_max_points}) "
-                          "| | | | | |")
-                    continue
-                out, secs, status = timed(
-                    lambda f=peers[name], p=pair: measured(lambda: f(p)), args.cap)
-                if status == "capped":
-                    print(f"| {n} | {case} | {name} | capped | | > {args.cap:.0f} | | "
-                          f"< {t_ours / args.cap:.4f} | |")
-                    continue
-                if out is None:
-                    print(f"| {n} | {case} | {name} | failed: {status} | | {secs:.1f} | | | |")
-                    continue
-                res, wall, cpu, rss = out
-                med, p95 = errors_mm(res, pair.truth)
-                print(f"| {n} | {case} | {name} | {med:.3f} | {p95:.3f} | {wall:.2f} | {cpu:.2f} "
-                      f"| {t_ours / wall:.4f} | {rss:.0f} |")
-            sys.stdout.flush()
+    # results[(family, n)][method] -> list of (seed, Errors, wall)
+    results: dict[tuple[str, int], dict[str, list]] = defaultdict(lambda: defaultdict(list))
+    excess: dict[int, float] = {}
+    t_start = time.perf_counter()
+    for family in families:
+        sizes = args.sizes or FAMILIES[family].sizes
+        sizes = [s for s in sizes if s <= 5000] if args.quick else sizes
+        for n in sizes:
+            for seed in seeds:
+                pair = make_pair(family, n, seed)
+                normals = pca_normals(pair.truth)
+                store = results[(family, n)]
+
+                def emit(method: str, reg: np.ndarray, wall: float | None, ours_wall: float | None,
+                         residuals: np.ndarray | None = None, *, p: Pair = pair, nrm: np.ndarray =
+                         normals, s: int = seed, st: dict = store, nn: int = n,
+                         fam: str = family) -> Errors:
+                    e = errors(reg, p.truth, nrm, p.diagonal_m, residuals)
+                    st[method].append((s, e, wall))
+                    print(row(fam, nn, s, method, e, wall, ours_wall))
+                    return e
+
+                nothing = emit("nothing", pair.source, None, None)
+                t_ours = None
+                for label, cfg in configs.items():
+                    reg, resid, wall = run_ours(pair, cfg)
+                    e = emit(label, reg, wall, wall if label == "ours" else t_ours, resid)
+                    if label == "ours":
+                        t_ours = wall
+                        if family == "tissue_partial":
+                            excess[seed] = worst_region_excess(pair.source, e.per_point,
+                                                               nothing.per_point, 5e-3)
+                peers = []
+                if args.bcpd:
+                    peers.append(("bcpd" + ("+colour" if pair.source_rgb is not None else ""),
+                                  lambda p=pair: run_bcpd(args.bcpd, p.source, p.target,
+                                                          p.source_rgb, p.target_rgb, args.cap,
+                                                          args.bcpd_colour_mm)))
+                else:
+                    print(row(family, n, seed, "bcpd", None, None, None, "not available"))
+                if args.fast_rnrr:
+                    peers.append(("fast_rnrr", lambda p=pair, f=family: run_fast_rnrr(
+                        args.fast_rnrr, p.source, p.target, f.startswith("tissue"), args.cap)))
+                else:
+                    print(row(family, n, seed, "fast_rnrr", None, None, None, "not available"))
+                for name in args.peers:
+                    peers.append((name, lambda p=pair, nm=name: run_python_peer(
+                        nm, p.source, p.target, args.cap)))
+                for name, fn in peers:
+                    try:
+                        reg, wall = fn()
+                    except (PeerError, OSError, ValueError) as exc:
+                        print(row(family, n, seed, name, None, None, None, f"failed: {exc}"))
+                        continue
+                    still = np.abs(reg - pair.source).max() < 1e-6 * pair.diagonal_m
+                    emit(name + (" (returned the source unchanged)" if still else ""), reg, wall,
+                         t_ours)
+                sys.stdout.flush()
+    print(f"\n# total benchmark wall time {time.perf_counter() - t_start:.0f} s")
+    summarise(results)
+    goals(results, excess)
     return 0
+
+
+def _mean(rows: list, attr: str) -> float:
+    return float(np.mean([getattr(e, attr) for _, e, _ in rows]))
+
+
+def summarise(results: dict) -> None:
+    """Means over seeds per family, size and method."""
+    print("\n## Means over seeds\n")
+    print(fmt_row(["family", "n", "method", "median mm", "p95 mm", "normal mm",
+                   "tangential mm", "% diag", "Spearman", "wall s", "time / ours"]))
+    print(fmt_row(["---"] * 3 + ["---:"] * 8))
+    for (family, n), methods in results.items():
+        ours_wall = np.mean([w for _, _, w in methods["ours"]]) if "ours" in methods else None
+        for method, rows in methods.items():
+            walls = [w for _, _, w in rows if w is not None]
+            wall = float(np.mean(walls)) if walls else None
+            rho = _mean(rows, "spearman")
+            print(fmt_row([family, str(n), method, f"{_mean(rows, 'median'):.3f}",
+                           f"{_mean(rows, 'p95'):.3f}", f"{_mean(rows, 'normal'):.3f}",
+                           f"{_mean(rows, 'tangential'):.3f}",
+                           f"{_mean(rows, 'percent_diag'):.2f}",
+                           "" if np.isnan(rho) else f"{rho:.2f}",
+                           "" if wall is None else f"{wall:.2f}",
+                           "" if wall is None or not ours_wall else f"{wall / ours_wall:.1f}"]))
+
+
+def goals(results: dict, excess: dict[int, float]) -> None:
+    """The goals table of issue 14 with the measured figures (worst seed unless said)."""
+    out: list[tuple[str, str, str, bool | None]] = []
+
+    def ours(family: str, n: int = 5000) -> list | None:
+        return results.get((family, n), {}).get("ours")
+
+    def verdict(name: str, goal: str, ok: bool | None, value: str) -> None:
+        out.append((name, goal, value, ok))
+
+    for family, med_goal, p95_goal in (("tissue", 0.2, 0.8), ("tissue_partial", 0.4, 2.0)):
+        rows = ours(family)
+        if not rows:
+            verdict(f"{family} 5k, defaults", f"median <= {med_goal}, p95 <= {p95_goal}", None, "")
+            continue
+        med = max(e.median for _, e, _ in rows)
+        p95 = max(e.p95 for _, e, _ in rows)
+        ok = med <= med_goal and p95 <= p95_goal
+        value = f"worst seed {med:.3f} / {p95:.3f} mm"
+        if family == "tissue_partial":
+            worst = max(excess.values())
+            ok = ok and worst <= 0.2
+            value += f"; worst 5 mm cell: ours - nothing = {worst:+.2f} mm"
+            med_goal_text = f"median <= {med_goal}, p95 <= {p95_goal}, no 5 mm cell worse " \
+                            "than nothing by > 0.2 mm (the noise)"
+        else:
+            med_goal_text = f"median <= {med_goal}, p95 <= {p95_goal}"
+        verdict(f"{family} 5k, defaults", med_goal_text, ok, value)
+    for family in SHAPE_FAMILIES:
+        methods = results.get((family, 5000), {})
+        peer = [(_mean(methods[m], "median"), m) for m in ("bcpd", "fast_rnrr") if m in methods]
+        if "ours" not in methods or not peer:
+            verdict(family, "within 1.2x of the best of BCPD / Fast_RNRR", None,
+                    "not measured" if "ours" not in methods else "no peer result")
+            continue
+        best, who = min(peer)
+        mine = _mean(methods["ours"], "median")
+        verdict(family, "mean median within 1.2x of the best of BCPD / Fast_RNRR",
+                mine <= 1.2 * best, f"ours {mine:.3f} mm vs {who} {best:.3f} mm "
+                f"({mine / best:.2f}x)")
+    rows = ours("rotation")
+    verdict("rotation 90 deg + scale 0.8", "median <= 2 % of the diagonal",
+            None if not rows else max(e.percent_diag for _, e, _ in rows) <= 2.0,
+            "" if not rows else f"worst seed {max(e.percent_diag for _, e, _ in rows):.2f} %")
+    rhos = [(e.spearman, f) for (f, _), m in results.items() for _, e, _ in m.get("ours", [])
+            if not np.isnan(e.spearman)]
+    if rhos:
+        low, where = min(rhos)
+        verdict("residual vs true error, Spearman", ">= 0.5", low >= 0.5,
+                f"lowest {low:.2f} ({where}); median {np.median([r for r, _ in rhos]):.2f}")
+    for n, cap in ((5000, 0.2), (20000, 0.6)):
+        rows = ours("tissue", n)
+        bcpd = results.get(("tissue", n), {}).get("bcpd+colour")
+        if not rows:
+            verdict(f"tissue {n // 1000}k in-process time", f"<= {cap} s", None, "not measured")
+            continue
+        wall = float(np.median([w for _, _, w in rows]))
+        ok = wall <= cap
+        value = f"median {wall:.3f} s"
+        if bcpd:
+            ratio = float(np.median([b[2] / o[2] for b, o in zip(bcpd, rows, strict=True)]))
+            ok = ok and ratio >= 10
+            value += f", BCPD+colour / ours {ratio:.1f}x"
+        verdict(f"tissue {n // 1000}k in-process time", f"<= {cap} s and >= 10x BCPD+colour",
+                ok, value)
+    print("\n## Goals of issue 14\n")
+    print(fmt_row(["figure", "goal", "measured", "status"]))
+    print(fmt_row(["---"] * 4))
+    for name, goal, value, ok in out:
+        status = "not measured" if ok is None else ("met" if ok else "NOT MET")
+        print(fmt_row([name, goal, value, status]))
 
 
 if __name__ == "__main__":
