@@ -173,10 +173,12 @@ class RegistrationConfig:
     beta: float = _doc(0.0, "weight keeping each linear part near a rotation (0 = off)")
     data_penalty: str = _doc("l1", "'l1' (heavy-tailed, the paper's model) or 'l2' (Gaussian)")
     smooth_penalty: str = _doc("l1", "'l1' or 'l2' on neighbour differences")
-    admm_iterations: int = _doc(30, "largest number of ADMM iterations per outer step")
+    admm_iterations: int = _doc(15, "largest number of ADMM iterations per outer step")
     final_admm_iterations: int = _doc(
         300, "largest number of ADMM iterations of the last outer step (run to convergence)")
-    outer_iterations: int = _doc(4, "correspondence/annealing outer steps")
+    outer_iterations: int = _doc(
+        8, "correspondence/annealing outer steps (each lets colour-decided matches slide "
+        "the surface further)")
     mu: float = _doc(2.0, "ADMM penalty (in units of the reference node spacing)")
     mu_growth: float = _doc(1.0, "multiply mu by this every ADMM iteration (>1 refactorises)")
     relaxation: float = _doc(1.6, "ADMM over-relaxation factor, in [1, 2)")
@@ -189,8 +191,8 @@ class RegistrationConfig:
         "error / distance is 0.20-0.29 at 5-20 mm, i.e. 2 sigma)")
     color_weight_mm: float = _doc(
         0.0, "mm of position equivalent to a full RGB unit difference; 0 = automatic, from the "
-        "target's texture: ~2.5 mm per mm-of-texture-change where colour beats its noise, "
-        "else colour is not used")
+        "target's texture: a slide along the surface costs 7.5x its length where the colour "
+        "changes by more than its noise over max_correspondence_mm, else colour is not used")
     max_correspondence_mm: float = _doc(
         5.0, "nearest-neighbour correspondences farther are dropped (mm)"
     )

@@ -47,8 +47,8 @@ class RegistrationResult:
     transforms (N, 3, 4): per-point affine T_i, registered_i = T_i @ [p_i, 1].
     registered (N, 3); residuals (N,): for a known pair (target_ids, landmarks) the distance
     to its target point, else the distance to the target's local surface near the
-    registered point (residuals.surface_distance; a point past the edge of a partial target
-    measures its distance to the edge); NaN for points without a data weight;
+    registered point (residuals.surface_distance); NaN for points without a data weight or
+    without target surface near them (not `supported`);
     correspondences (N,): target index or -1 (unobserved, or no match passed the gates);
     outliers (N,) bool: supported, but farther than `outlier_mm` from the target's surface;
     supported (N,) bool: has a weight and the target's surface within the support gate of
@@ -310,8 +310,8 @@ def register(
     corr = np.where(has, corr, -1)
     supported = observed & ~off_surface
     residuals = np.full(n, np.nan)
-    residuals[observed] = norm.unit * surface_distance(moved[observed], surf, usable_idx,
-                                                       usable_tree)
+    residuals[supported] = norm.unit * surface_distance(moved[supported], surf, usable_idx,
+                                                        usable_tree)
     pinned = has & (matcher.known >= 0)  # a known pair: the distance to that target point
     residuals[pinned] = np.linalg.norm(registered[pinned] - tgt[corr[pinned]], axis=1)
     outliers = supported & (residuals > cfg.outlier_mm * 1e-3)

@@ -24,7 +24,7 @@ MAD_SCALE = 1.4826  # median absolute value -> standard deviation for Gaussian d
 # Colour weight (ours): a slide d along textured tissue costs COLOUR_GAIN * d in the matcher's
 # joint position + colour distance; colour is used when, over the gate, the texture changes by
 # more than COLOUR_SNR x its noise.
-COLOUR_GAIN = 2.5
+COLOUR_GAIN = 7.5
 COLOUR_SNR = 2.0
 COLOUR_NEIGHBOUR = 16  # the far neighbour of the two-distance contrast measurement
 COLOUR_SAMPLES = 2000  # ours: target points the contrast is measured on (at most ~2x this)
