@@ -28,7 +28,7 @@ from . import graph
 from .admm import AdmmProblem, AdmmState, energy, factorise, run_admm
 from .correspondences import build_matcher, match
 from .residuals import along_surface, surface_distance
-from .rigid import rigid_prealign
+from .rigid import rigid_prealign, rigid_where_better
 from .surface import analyse_target, colour_weight
 
 Callback = Callable[[int, dict[str, Any]], None]
@@ -219,9 +219,11 @@ def register(
                               gate=gate, support=support, global_init=cfg.global_init)
     else:
         R, t = np.eye(3), np.zeros(3)
+    rigid_nodes = rigid_where_better(q, src_rgb, matcher, observed, R, t, support,
+                                     interp_idx[:, 0], n_nodes)
     X: np.ndarray = np.zeros((n_nodes, 4, 3))
-    X[:, :3, :] = R.T
-    X[:, 3, :] = nodes_q @ R.T + t
+    X[:, :3, :] = np.where(rigid_nodes[:, None, None], R.T, np.eye(3))
+    X[:, 3, :] = np.where(rigid_nodes[:, None], nodes_q @ R.T + t, nodes_q)
     X = X.reshape(-1, 3)
     X0 = X.copy()
     stats: list[dict[str, Any]] = [{

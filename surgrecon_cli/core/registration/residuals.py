@@ -54,8 +54,8 @@ def along_surface(moved: np.ndarray, matched_to: np.ndarray, surf: TargetSurface
     owner = interp_idx[has, 0]
     m = int(interp_idx.max()) + 1
     count = np.bincount(owner, minlength=m).astype(float)
-    mean = np.stack([np.bincount(owner, tangential[:, a], minlength=m) for a in range(3)], 1)
-    mean /= np.maximum(count, 1.0)[:, None]
+    sums = np.stack([np.bincount(owner, tangential[:, a], minlength=m) for a in range(3)], 1)
+    mean = sums / np.maximum(count, 1.0)[:, None]
     w = interp_w[has] * (count[interp_idx[has]] > 0)
     blended = np.einsum("pk,pki->pi", w, mean[interp_idx[has]])
     out[has] = np.linalg.norm(blended, axis=1) / np.maximum(w.sum(axis=1), 1e-12)

@@ -16,7 +16,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..geometry import fit_rigid
-from .correspondences import Matcher, match
+from .correspondences import MATCH_EPS, Matcher, match
 from .globalinit import global_align
 from .graph import mean_spacing as graph_spacing
 from .graph import sample_nodes
@@ -85,6 +85,24 @@ def _l1_fit(src: np.ndarray, dst: np.ndarray, iterations: int = 10):
     return R, t
 
 
+def nearest_usable(matcher: Matcher, moved: np.ndarray,
+                   rgb: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """Nearest usable (free, non-stray) target of each moved point (P, 3) in position +
+    colour: index into matcher.candidates (P,) and joint distance (P,)."""
+    if matcher.target_rgb is not None and rgb is not None:
+        moved = np.concatenate([moved, matcher.colour_scale * rgb], axis=1)
+    d, j = matcher.tree.query(moved, k=1, eps=MATCH_EPS)  # type: ignore[union-attr]
+    return j, d
+
+
+def point_costs(matcher: Matcher, moved: np.ndarray, rgb: np.ndarray | None,
+                support: float) -> np.ndarray:
+    """Robust cost (P,) rho = d^2 / (d^2 + support^2) of moved points, d from
+    `nearest_usable`: ~0 on the target's surface, -> 1 far from it."""
+    d2 = nearest_usable(matcher, moved, rgb)[1] ** 2
+    return d2 / (d2 + support**2)
+
+
 def rigid_prealign(
     source_q: np.ndarray,
     source_rgb: np.ndarray | None,
@@ -105,11 +123,12 @@ def rigid_prealign(
 
     `observed` (N,) bool: source points with a data term; `spacing`, `target_spacing`: mean
     point spacings; `target_tree` indexes the target positions; `gate`: the correspondence
-    distance gate; `support` > 0: the result is kept only if it beats the identity on the
-    robust cost mean rho(d), rho = d^2 / (d^2 + support^2), d the position + colour distance
-    of each subsampled point to its nearest usable target (so it cannot make things worse
-    on that cost). `global_init`: 'auto' searches coarse rotations and a scale
-    (globalinit.py) when the clouds start farther apart than `gate`, 'on' always, 'off' never.
+    distance gate; `support` > 0: the result is kept only if it beats the identity
+    significantly on the robust cost mean rho(d), rho = d^2 / (d^2 + support^2), d the
+    position + colour distance of each subsampled point to its nearest usable target (so it
+    cannot make things worse on that cost). `global_init`: 'auto' searches coarse rotations
+    and a scale (globalinit.py) when the clouds start farther apart than `gate`, 'on'
+    always, 'off' never.
     Pairs must pass a mutual check, then the closest `keep` fraction is fitted with Cauchy
     weights. Stops when a step moves the subsample by < 1 % of the point spacing (ours).
     """
@@ -132,18 +151,12 @@ def rigid_prealign(
     mutual = 3.0 * max(sub_spacing, target_spacing)
     usable = matcher.target_q[matcher.candidates]
 
-    tree = matcher.tree
 
     def nearest(moved: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Nearest usable target in position + colour: index into `usable`, distance."""
-        if matcher.target_rgb is not None and rgb is not None:
-            moved = np.concatenate([moved, matcher.colour_scale * rgb], axis=1)
-        d, j = tree.query(moved, k=1)
-        return j, d
+        return nearest_usable(matcher, moved, rgb)
 
-    def robust_cost(A: np.ndarray, t: np.ndarray) -> float:
-        d2 = nearest(pts @ A.T + t)[1] ** 2
-        return float(np.mean(d2 / (d2 + support**2)))
+    def robust_cost(A: np.ndarray, t: np.ndarray) -> np.ndarray:
+        return point_costs(matcher, pts @ A.T + t, rgb, support)
 
     # Start from identity (clouds from one tracked world frame are close already). When they
     # are farther apart than the gate, search globally or, without that, start from the
@@ -178,6 +191,28 @@ def rigid_prealign(
         A, t = A_new, t_new
         if step < 0.01 * spacing:
             break
-    if support > 0 and robust_cost(A, t) >= robust_cost(np.eye(3), np.zeros(3)):
-        return np.eye(3), np.zeros(3)
+    if support > 0:
+        # paired per-point change of the cost: keep the motion only if it is lower by more
+        # than twice its standard error (a drift that fits the noise better is no gain)
+        gain = robust_cost(np.eye(3), np.zeros(3)) - robust_cost(A, t)
+        if gain.mean() <= 2.0 * gain.std() / np.sqrt(len(gain)):
+            return np.eye(3), np.zeros(3)
     return A, t
+
+
+def rigid_where_better(q: np.ndarray, rgb: np.ndarray | None, matcher: Matcher,
+                       observed: np.ndarray, R: np.ndarray, t: np.ndarray, support: float,
+                       owner: np.ndarray, n_nodes: int) -> np.ndarray:
+    """(M,) bool: nodes that start from the rigid pre-alignment; the others start from the
+    identity. A node keeps the rigid motion unless the robust cost (point_costs) of
+    its observed free points is lower without it: a rigid fit to a moving part must not
+    drag a static part along (ours). `owner` (N,): each point's nearest node."""
+    use = np.ones(n_nodes, bool)
+    free = np.flatnonzero(observed & (matcher.known < 0))
+    if support <= 0 or matcher.tree is None or len(free) == 0:
+        return use
+    pts, col = q[free], rgb[free] if rgb is not None else None
+    change = (point_costs(matcher, pts @ R.T + t, col, support)
+              - point_costs(matcher, pts, col, support))
+    total = np.bincount(owner[free], change, minlength=n_nodes)
+    return total <= 0
