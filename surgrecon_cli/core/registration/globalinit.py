@@ -7,7 +7,8 @@ directions and its in-plane axes are arbitrary. The
 scale is the ratio of the clouds' spreads in their two main directions (the extent of a
 surface, unaffected by its thickness/noise). Every candidate is refined by a few trimmed
 point-to-point ICP steps on a small subsample; the best few by the trimmed mean distance
-are refined further and the best one is returned. All lengths in the solver's units.
+are refined further, beside a refinement from the identity, and the best one is returned.
+All lengths in the solver's units.
 """
 
 from __future__ import annotations
@@ -78,7 +79,7 @@ def global_align(pts: np.ndarray, target: np.ndarray, nearest: Nearest,
         A = scale * R
         tried.append(_icp(pts, target, nearest, A, ct - A @ cs, COARSE_STEPS, keep))
     tried.sort(key=lambda item: item[2])
-    refined = [_icp(pts, target, nearest, A, t, FINE_STEPS, keep)
-               for A, t, _ in tried[:KEEP_BEST]]
+    starts = [(A, t) for A, t, _ in tried[:KEEP_BEST]] + [(np.eye(3), np.zeros(3))]
+    refined = [_icp(pts, target, nearest, A, t, FINE_STEPS, keep) for A, t in starts]
     A, t, _ = min(refined, key=lambda item: item[2])
     return A, t

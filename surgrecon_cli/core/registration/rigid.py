@@ -26,6 +26,9 @@ MIN_KNOWN = 6  # known pairs needed to skip nearest neighbours
 MAX_POINTS = 500  # rigid alignment runs on at most this many (voxel-subsampled) source points
 PLANE_POINT_MIX = 0.3  # weight of the point-to-point term in the point-to-plane step
 CAUCHY_SCALE = 2.0  # Cauchy weight scale, x the median residual of the kept pairs
+# clouds start "far apart" when the median nearest-target distance exceeds the gate and this
+# fraction of the source's RMS radius (ours: motions of 10 % of a shape are not "far")
+GLOBAL_SPREAD = 0.15
 
 
 class _Normals:
@@ -159,14 +162,16 @@ def rigid_prealign(
         return point_costs(matcher, pts @ A.T + t, rgb, support)
 
     # Start from identity (clouds from one tracked world frame are close already). When they
-    # are farther apart than the gate, search globally or, without that, start from the
+    # are far apart, search globally or, without that, start from the
     # shift of the medians if it fits better: on a smooth cap the median shift includes a
     # tangential slide that ICP cannot undo, so it is a last resort (ours).
     A, t = np.eye(3), np.zeros(3)
     start = float(np.median(target_tree.query(pts, k=1)[0]))
-    if global_init == "on" or (global_init == "auto" and start > gate):
+    radius = float(np.sqrt(np.mean(np.sum((pts - pts.mean(axis=0)) ** 2, axis=1))))
+    far = start > max(gate, GLOBAL_SPREAD * radius)
+    if global_init == "on" or (global_init == "auto" and far):
         A, t = global_align(pts, usable, nearest, keep)
-    elif start > gate:
+    elif far:
         shift = np.median(usable, axis=0) - np.median(pts, axis=0)
         if np.median(target_tree.query(pts + shift, k=1)[0]) < start:
             t = shift
