@@ -177,7 +177,7 @@ class RegistrationConfig:
     final_admm_iterations: int = _doc(
         300, "largest number of ADMM iterations of the last outer step (run to convergence)")
     outer_iterations: int = _doc(
-        8, "correspondence/annealing outer steps (each lets colour-decided matches slide "
+        6, "correspondence/annealing outer steps (each lets colour-decided matches slide "
         "the surface further)")
     mu: float = _doc(2.0, "ADMM penalty (in units of the reference node spacing)")
     mu_growth: float = _doc(1.0, "multiply mu by this every ADMM iteration (>1 refactorises)")

@@ -29,6 +29,7 @@ CAUCHY_SCALE = 2.0  # Cauchy weight scale, x the median residual of the kept pai
 # clouds start "far apart" when the median nearest-target distance exceeds the gate and this
 # fraction of the source's RMS radius (ours: motions of 10 % of a shape are not "far")
 GLOBAL_SPREAD = 0.15
+NODE_SAMPLES = 8  # ours: points per node (on average, at least) deciding rigid vs identity
 
 
 class _Normals:
@@ -214,8 +215,10 @@ def rigid_where_better(q: np.ndarray, rgb: np.ndarray | None, matcher: Matcher,
     drag a static part along (ours). `owner` (N,): each point's nearest node."""
     use = np.ones(n_nodes, bool)
     free = np.flatnonzero(observed & (matcher.known < 0))
-    if support <= 0 or matcher.tree is None or len(free) == 0:
+    if support <= 0 or matcher.tree is None or len(free) == 0 or (
+            np.allclose(R, np.eye(3)) and not t.any()):
         return use
+    free = free[:: max(len(free) // (NODE_SAMPLES * n_nodes), 1)]
     pts, col = q[free], rgb[free] if rgb is not None else None
     change = (point_costs(matcher, pts @ R.T + t, col, support)
               - point_costs(matcher, pts, col, support))
