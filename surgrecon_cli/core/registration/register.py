@@ -262,8 +262,10 @@ def register(
         # (beyond the edge of a partial target) get no data term and follow their neighbours
         last = step == cfg.outer_iterations - 1
         corr = match(matcher, moved, src_rgb, gate, mutual, observed)
-        if last:
-            off_surface = (usable_tree.query(moved, k=1)[0] > support) & (matcher.known < 0)
+        if last:  # the gate also allows for what the registration has not converged on
+            near = usable_tree.query(moved, k=1)[0]
+            reach = max(support, SUPPORT_SPACINGS * float(np.median(near[observed])))
+            off_surface = (near > reach) & (matcher.known < 0)
             corr[off_surface] = -1
         matched = corr[rows] >= 0
         G = np.where(matched[:, None], tq[np.maximum(corr[rows], 0)], moved[rows])
