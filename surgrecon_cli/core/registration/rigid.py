@@ -132,7 +132,7 @@ def rigid_prealign(
     significantly on the robust cost mean rho(d), rho = d^2 / (d^2 + support^2), d the
     position + colour distance of each subsampled point to its nearest usable target (so it
     cannot make things worse on that cost). `global_init`: 'auto' searches coarse rotations
-    and a scale (globalinit.py) when the clouds start farther apart than `gate`, 'on'
+    and a scale (globalinit.py) when the clouds start far apart (GLOBAL_SPREAD), 'on'
     always, 'off' never.
     Pairs must pass a mutual check, then the closest `keep` fraction is fitted with Cauchy
     weights. Stops when a step moves the subsample by < 1 % of the point spacing (ours).
@@ -163,8 +163,8 @@ def rigid_prealign(
     def robust_cost(A: np.ndarray, t: np.ndarray) -> np.ndarray:
         return point_costs(matcher, pts @ A.T + t, rgb, support)
 
-    # Start from identity (clouds from one tracked world frame are close already). When they
-    # are far apart, search globally or, without that, start from the
+    # Start from identity (clouds from one tracked world frame are close already). Far apart
+    # (GLOBAL_SPREAD): search globally. Farther apart than the gate only: start from the
     # shift of the medians if it fits better: on a smooth cap the median shift includes a
     # tangential slide that ICP cannot undo, so it is a last resort (ours).
     A, t = np.eye(3), np.zeros(3)
@@ -173,7 +173,7 @@ def rigid_prealign(
     far = start > max(gate, GLOBAL_SPREAD * radius)
     if global_init == "on" or (global_init == "auto" and far):
         A, t = global_align(pts, usable, nearest, keep)
-    elif far:
+    elif start > gate:
         shift = np.median(usable, axis=0) - np.median(pts, axis=0)
         if np.median(target_tree.query(pts + shift, k=1)[0]) < start:
             t = shift
