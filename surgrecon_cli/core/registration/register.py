@@ -259,7 +259,7 @@ def register(
         frac = step / max(cfg.outer_iterations - 1, 1)
         alpha = cfg.alpha_start * (cfg.alpha / cfg.alpha_start) ** frac
         # the last step keeps only matches on the target's surface near the point: the others
-        # (beyond the edge of a partial target) get no data term and follow their neighbours
+        # (beyond the edge of a partial target) lose theirs and follow their neighbours
         last = step == cfg.outer_iterations - 1
         corr = match(matcher, moved, src_rgb, gate, mutual, observed)
         if last:  # the gate also allows for what the registration has not converged on
@@ -285,8 +285,7 @@ def register(
                            beta=cfg.beta, data_l1=data_l1, smooth_l1=smooth_l1)
         state, info, factor = run_admm(
             prob, AdmmState(X=X, U1=U1, U2=U2), factor,
-            max_iter=(cfg.final_admm_iterations if step == cfg.outer_iterations - 1
-                      else cfg.admm_iterations), tol=tol,
+            max_iter=cfg.final_admm_iterations if last else cfg.admm_iterations, tol=tol,
             relax=cfg.relaxation, mu_growth=cfg.mu_growth,
             mu1_max=cfg.mu * MU_GROWTH_LIMIT)
         X, U1, U2 = state.X, state.U1, state.U2
