@@ -7,7 +7,7 @@ directions and its in-plane axes are arbitrary. The
 scale is the ratio of the clouds' spreads in their two main directions (the extent of a
 surface, unaffected by its thickness/noise). Every candidate is refined by a few trimmed
 point-to-point ICP steps on a small subsample; the best few by the trimmed mean distance
-are refined further, beside a refinement from the identity, and the best one is returned.
+are refined further; the best one is returned if it clearly beats the ICP from the identity.
 All lengths in the solver's units.
 """
 
@@ -23,6 +23,9 @@ SPINS = 12  # ours: turns about the least-spread axis (30 degrees apart)
 COARSE_STEPS = 4  # ours: ICP steps per candidate
 KEEP_BEST = 3  # ours: candidates refined further
 FINE_STEPS = 20  # ours: ICP steps of the refinement
+# ours: a turned start must fit clearly better (trimmed mean distance) than the ICP from the
+# identity: a partial view or a symmetric shape fits a wrong turn about as well
+GLOBAL_MARGIN = 0.5
 
 # moved points (P, 3) -> index into the target (P,) and distance (P,) of each one's nearest
 Nearest = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
@@ -79,7 +82,8 @@ def global_align(pts: np.ndarray, target: np.ndarray, nearest: Nearest,
         A = scale * R
         tried.append(_icp(pts, target, nearest, A, ct - A @ cs, COARSE_STEPS, keep))
     tried.sort(key=lambda item: item[2])
-    starts = [(A, t) for A, t, _ in tried[:KEEP_BEST]] + [(np.eye(3), np.zeros(3))]
-    refined = [_icp(pts, target, nearest, A, t, FINE_STEPS, keep) for A, t in starts]
-    A, t, _ = min(refined, key=lambda item: item[2])
-    return A, t
+    refined = [_icp(pts, target, nearest, A, t, FINE_STEPS, keep)
+               for A, t, _ in tried[:KEEP_BEST]]
+    A, t, cost = min(refined, key=lambda item: item[2])
+    A0, t0, cost0 = _icp(pts, target, nearest, np.eye(3), np.zeros(3), FINE_STEPS, keep)
+    return (A, t) if cost < GLOBAL_MARGIN * cost0 else (A0, t0)

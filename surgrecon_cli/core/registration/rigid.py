@@ -27,9 +27,9 @@ MAX_POINTS = 500  # rigid alignment runs on at most this many (voxel-subsampled)
 PLANE_POINT_MIX = 0.3  # weight of the point-to-point term in the point-to-plane step
 CAUCHY_SCALE = 2.0  # Cauchy weight scale, x the median residual of the kept pairs
 # clouds start "far apart" when the median nearest-target distance exceeds the gate and this
-# fraction of the source's RMS radius (ours: a shape moved by 10 % of its size, or seen from
-# one side, stays below it; 90 degrees turned is well above)
-GLOBAL_SPREAD = 0.33
+# fraction of the source's RMS radius (ours; the global search must then also beat the ICP
+# from the identity clearly, globalinit.GLOBAL_MARGIN)
+GLOBAL_SPREAD = 0.15
 NODE_SAMPLES = 8  # ours: points per node (on average, at least) deciding rigid vs identity
 
 
