@@ -179,10 +179,12 @@ class RegistrationConfig:
     beta: float = _doc(0.0, "weight keeping each linear part near a rotation (0 = off)")
     data_penalty: str = _doc("l1", "'l1' (heavy-tailed, the paper's model) or 'l2' (Gaussian)")
     smooth_penalty: str = _doc("l1", "'l1' or 'l2' on neighbour differences")
-    admm_iterations: int = _doc(30, "largest number of ADMM iterations per outer step")
+    admm_iterations: int = _doc(15, "largest number of ADMM iterations per outer step")
     final_admm_iterations: int = _doc(
         300, "largest number of ADMM iterations of the last outer step (run to convergence)")
-    outer_iterations: int = _doc(4, "correspondence/annealing outer steps")
+    outer_iterations: int = _doc(
+        6, "correspondence/annealing outer steps (each lets colour-decided matches slide "
+        "the surface further)")
     mu: float = _doc(2.0, "ADMM penalty (in units of the reference node spacing)")
     mu_growth: float = _doc(1.0, "multiply mu by this every ADMM iteration (>1 refactorises)")
     relaxation: float = _doc(1.6, "ADMM over-relaxation factor, in [1, 2)")
@@ -193,7 +195,10 @@ class RegistrationConfig:
         0.12, "uncertainty of a point without data grows by this many mm per mm of distance "
         "from the nearest point with data (measured on tuning logs: the 95th percentile of "
         "error / distance is 0.20-0.29 at 5-20 mm, i.e. 2 sigma)")
-    color_weight_mm: float = _doc(5.0, "mm of position equivalent to a full RGB unit difference")
+    color_weight_mm: float = _doc(
+        0.0, "mm of position equivalent to a full RGB unit difference; 0 = automatic, from the "
+        "target's texture: a slide along the surface costs 7.5x its length where the colour "
+        "changes by more than its noise over max_correspondence_mm, else colour is not used")
     max_correspondence_mm: float = _doc(
         5.0, "nearest-neighbour correspondences farther are dropped (mm)"
     )
@@ -204,6 +209,9 @@ class RegistrationConfig:
     outlier_mm: float = _doc(1.0, "final correspondence residual above this flags an outlier (mm)")
     rigid_iterations: int = _doc(30, "trimmed-ICP iterations of the rigid pre-alignment")
     rigid_trim: float = _doc(0.8, "fraction of closest pairs kept by the trimmed ICP")
+    global_init: str = _doc(
+        "auto", "coarse rotation + scale search before the ICP: 'auto' (when the clouds start "
+        "farther apart than max_correspondence_mm), 'on' or 'off'")
     template_update_every: int = _doc(
         2, "re-base the template every N_T frames (0 = keep frame 0); frames are tracked and "
         "registered from their base, so N_T also bounds the tracking baseline and the chain "
@@ -236,6 +244,8 @@ class RegistrationConfig:
             _require(getattr(self, name) > 0, key + name, "must be > 0")
         _require(self.rigid_iterations >= 0, key + "rigid_iterations", "must be >= 0")
         _require(0 < self.rigid_trim <= 1, key + "rigid_trim", "must be in (0, 1]")
+        _require(self.global_init in ("auto", "on", "off"), key + "global_init",
+                 "must be 'auto', 'on' or 'off'")
         _require(self.template_update_every >= 0, key + "template_update_every", "must be >= 0")
 
 

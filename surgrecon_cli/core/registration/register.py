@@ -2,9 +2,13 @@
 
 Su et al. 2019 (section II.D: per-point affines, heavy-tailed data and smoothness
 penalties, ADMM) after Yang et al. 2015 and RPTS:
-robust rigid pre-alignment, then outer steps that (1) re-estimate correspondences (known ids,
-else gated nearest neighbours in position + colour), (2) reweight the l1 data term, (3) run
-ADMM on the energy of `admm.py` with the smoothness weight annealed from stiff to flexible.
+robust rigid pre-alignment (kept only if it beats the identity), then outer steps that
+(1) re-estimate correspondences (known ids, else gated nearest neighbours in position +
+colour, the colour weight measured on the target's texture, strays left out), (2) reweight
+the l1 data term, (3) run ADMM on the energy of `admm.py` with the smoothness weight annealed
+from stiff to flexible. In the last step an observed point with no target surface within
+the support gate (tied to the target's spacing and noise) loses its match: it is reported
+unsupported and only weakly pulled towards not moving (UNSUPPORTED_PULL).
 Inputs in metres; config thresholds in millimetres. Pure numpy/scipy, no I/O.
 """
 
@@ -23,10 +27,17 @@ from ...errors import GeometryError
 from . import graph
 from .admm import AdmmProblem, AdmmState, energy, factorise, run_admm
 from .correspondences import build_matcher, match
-from .rigid import rigid_prealign
+from .residuals import along_surface, surface_distance
+from .rigid import rigid_prealign, rigid_where_better
+from .surface import analyse_target, colour_weight
 
 Callback = Callable[[int, dict[str, Any]], None]
 MU_GROWTH_LIMIT = 64.0  # ours: with mu_growth > 1, mu stops growing at 64 x its start
+SUPPORT_SPACINGS = 3.0  # ours: support gate in target spacings (see `register`)
+# ours: data weight pulling an observed point with no target surface near it (past the edge
+# of a partial target) towards its source position: its neighbours decide near the edge, and
+# far from it the extrapolated motion fades to none instead of growing with distance
+UNSUPPORTED_PULL = 0.1
 
 
 @dataclass(frozen=True)
@@ -34,10 +45,17 @@ class RegistrationResult:
     """What `register` returns (metres).
 
     transforms (N, 3, 4): per-point affine T_i, registered_i = T_i @ [p_i, 1].
-    registered (N, 3); residuals (N,): distance to the correspondence, NaN if none;
+    registered (N, 3); residuals (N,): for a known pair (target_ids, landmarks) the distance
+    to its target point, else the distance to the target's local surface near the
+    registered point (residuals.surface_distance); NaN for points without a data weight or
+    without target surface near them (not `supported`);
     correspondences (N,): target index or -1 (unobserved, or no match passed the gates);
-    outliers (N,) bool: matched, but the final residual exceeds `outlier_mm` (the l1 data
-    term let the point stay away from its match);
+    outliers (N,) bool: supported, but farther than `outlier_mm` from the target's surface;
+    supported (N,) bool: has a weight and the target's surface within the support gate of
+    it in the last step; observed points that are not supported got no data term there and
+    followed their neighbours (no target surface there, e.g. cut away);
+    along_surface (N,): estimate of the error along the surface where colour decided the
+    matches (residuals.along_surface), NaN elsewhere;
     stats: one dict per step: step 0 the rigid pre-alignment (rotation, translation_m, nodes,
     seconds), then one per outer step (alpha, ADMM iterations, residuals in mm, seconds);
     the last carries total_seconds.
@@ -49,6 +67,8 @@ class RegistrationResult:
     correspondences: np.ndarray
     outliers: np.ndarray
     stats: list[dict[str, Any]]
+    supported: np.ndarray | None = None
+    along_surface: np.ndarray | None = None
 
 
 def _points(name: str, a: Any, n: int | None = None) -> np.ndarray:
@@ -172,14 +192,23 @@ def register(
     if lm is not None:
         is_landmark[lm[:, 0]] = True
     observed = base_w > 0
-    colour_scale = norm.mm(cfg.color_weight_mm)
     if src_rgb is None or tgt_rgb is None:  # colour is used only when both clouds have it
         src_rgb = tgt_rgb = None
-    matcher = build_matcher(tq, n, tgt_rgb, colour_scale, ids, lm)
     tgt_tree = cKDTree(tq)
-    tgt_spacing = float(np.median(tgt_tree.query(tq, k=2)[0][:, 1]))
-    mutual = cfg.mutual_spacings * max(norm.spacing, tgt_spacing)
+    surf = analyse_target(tq, tgt_tree)
+    tgt_spacing = surf.spacing
     gate = norm.mm(cfg.max_correspondence_mm)
+    # support: how far a registered point may be from the target's surface and still be
+    # supported by it (ours: SUPPORT_SPACINGS x the target spacing, or 2 sigma of its noise)
+    support = SUPPORT_SPACINGS * max(tgt_spacing, 2.0 * surf.noise)
+    colour_scale = 0.0
+    if tgt_rgb is not None:
+        colour_scale = (norm.mm(cfg.color_weight_mm) if cfg.color_weight_mm > 0 else
+                        colour_weight(tq, tgt_rgb, tgt_tree, ~surf.stray, gate))
+    matcher = build_matcher(tq, n, tgt_rgb, colour_scale, ids, lm, usable=~surf.stray)
+    usable_idx = np.flatnonzero(~surf.stray)
+    usable_tree = cKDTree(tq[usable_idx])
+    mutual = cfg.mutual_spacings * max(norm.spacing, tgt_spacing)
 
     # --- rigid pre-alignment, X initialised to it ---
     t_rigid = time.perf_counter()
@@ -187,16 +216,20 @@ def register(
         R, t = rigid_prealign(q, src_rgb, matcher, observed, iterations=cfg.rigid_iterations,
                               keep=cfg.rigid_trim, spacing=norm.spacing,
                               target_spacing=tgt_spacing, target_tree=tgt_tree,
-                              gate=gate)
+                              gate=gate, support=support, global_init=cfg.global_init)
     else:
         R, t = np.eye(3), np.zeros(3)
+    rigid_nodes = rigid_where_better(q, src_rgb, matcher, observed, R, t, support,
+                                     interp_idx[:, 0], n_nodes)
     X: np.ndarray = np.zeros((n_nodes, 4, 3))
-    X[:, :3, :] = R.T
-    X[:, 3, :] = nodes_q @ R.T + t
+    X[:, :3, :] = np.where(rigid_nodes[:, None, None], R.T, np.eye(3))
+    X[:, 3, :] = np.where(rigid_nodes[:, None], nodes_q @ R.T + t, nodes_q)
     X = X.reshape(-1, 3)
     X0 = X.copy()
     stats: list[dict[str, Any]] = [{
-        "step": 0, "stage": "rigid", "rotation": R, "translation_m": t * norm.unit,
+        "step": 0, "stage": "rigid", "rotation": R / np.cbrt(np.linalg.det(R)),
+        "scale": float(np.cbrt(np.linalg.det(R))), "translation_m": t * norm.unit,
+        "colour_weight_mm": colour_scale * norm.unit * 1e3, "target_strays": int(surf.stray.sum()),
         "nodes": n_nodes, "seconds": time.perf_counter() - t_rigid,
         "setup_seconds": t_rigid - t_start,
     }]
@@ -218,16 +251,29 @@ def register(
     U1 = np.zeros((len(rows), 3))
     U2 = np.zeros((len(ea), 3))
     corr = np.full(n, -1, np.int64)
+    off_surface = np.zeros(n, bool)
     alpha_prev = None
     moved = D_full @ X
     for step in range(cfg.outer_iterations):
         t_step = time.perf_counter()
         frac = step / max(cfg.outer_iterations - 1, 1)
         alpha = cfg.alpha_start * (cfg.alpha / cfg.alpha_start) ** frac
+        # the last step keeps only matches on the target's surface near the point: the others
+        # (beyond the edge of a partial target) lose theirs and follow their neighbours
+        last = step == cfg.outer_iterations - 1
         corr = match(matcher, moved, src_rgb, gate, mutual, observed)
+        if last:  # the gate also allows for what the registration has not converged on
+            near = usable_tree.query(moved, k=1)[0]
+            reach = max(support, SUPPORT_SPACINGS * float(np.median(near[observed])))
+            off_surface = (near > reach) & (matcher.known < 0)
+            corr[off_surface] = -1
         matched = corr[rows] >= 0
         G = np.where(matched[:, None], tq[np.maximum(corr[rows], 0)], moved[rows])
         w = np.where(matched, base_w[rows], 0.0)
+        if last:  # no target surface near: a weak pull towards not moving (see the top)
+            rest = off_surface[rows]
+            G[rest] = q[rows[rest]]
+            w[rest] = UNSUPPORTED_PULL * base_w[rows[rest]]
         if reweight > 0 and step > 0:
             r = np.linalg.norm(moved[rows] - G, axis=1)
             w = np.where(is_landmark[rows], w, w * reweight / (r + reweight))
@@ -239,8 +285,7 @@ def register(
                            beta=cfg.beta, data_l1=data_l1, smooth_l1=smooth_l1)
         state, info, factor = run_admm(
             prob, AdmmState(X=X, U1=U1, U2=U2), factor,
-            max_iter=(cfg.final_admm_iterations if step == cfg.outer_iterations - 1
-                      else cfg.admm_iterations), tol=tol,
+            max_iter=cfg.final_admm_iterations if last else cfg.admm_iterations, tol=tol,
             relax=cfg.relaxation, mu_growth=cfg.mu_growth,
             mu1_max=cfg.mu * MU_GROWTH_LIMIT)
         X, U1, U2 = state.X, state.U1, state.U2
@@ -264,14 +309,22 @@ def register(
     node_T = _global_node_transforms(X, nodes_q, norm)
     transforms = np.einsum("pk,pkij->pij", interp_w, node_T[interp_idx])
     registered = norm.to_metres(moved)
-    residuals = np.full(n, np.nan)
     has = (corr >= 0) & observed
     corr = np.where(has, corr, -1)
-    residuals[has] = np.linalg.norm(registered[has] - tgt[corr[has]], axis=1)
-    outliers = has & (residuals > cfg.outlier_mm * 1e-3)
+    supported = observed & ~off_surface
+    residuals = np.full(n, np.nan)
+    residuals[supported] = norm.unit * surface_distance(moved[supported], surf, usable_idx,
+                                                        usable_tree)
+    pinned = has & (matcher.known >= 0)  # a known pair: the distance to that target point
+    residuals[pinned] = np.linalg.norm(registered[pinned] - tgt[corr[pinned]], axis=1)
+    outliers = supported & (residuals > cfg.outlier_mm * 1e-3)
+    along = np.full(n, np.nan)
+    if colour_scale > 0 and src_rgb is not None:
+        along = norm.unit * along_surface(moved, corr, surf, tq, interp_idx, interp_w)
     stats[-1]["total_seconds"] = time.perf_counter() - t_start
     return RegistrationResult(transforms=transforms, registered=registered, residuals=residuals,
-                              correspondences=corr, outliers=outliers, stats=stats)
+                              correspondences=corr, outliers=outliers, stats=stats,
+                              supported=supported, along_surface=along)
 
 
 def apply_transforms(

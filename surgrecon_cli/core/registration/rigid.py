@@ -16,7 +16,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..geometry import fit_rigid
-from .correspondences import Matcher, match
+from .correspondences import MATCH_EPS, Matcher, match
+from .globalinit import global_align
 from .graph import mean_spacing as graph_spacing
 from .graph import sample_nodes
 
@@ -25,6 +26,11 @@ MIN_KNOWN = 6  # known pairs needed to skip nearest neighbours
 MAX_POINTS = 500  # rigid alignment runs on at most this many (voxel-subsampled) source points
 PLANE_POINT_MIX = 0.3  # weight of the point-to-point term in the point-to-plane step
 CAUCHY_SCALE = 2.0  # Cauchy weight scale, x the median residual of the kept pairs
+# clouds start "far apart" when the median nearest-target distance exceeds the gate and this
+# fraction of the source's RMS radius (ours; the global search must then also beat the ICP
+# from the identity clearly, globalinit.GLOBAL_MARGIN)
+GLOBAL_SPREAD = 0.15
+NODE_SAMPLES = 8  # ours: points per node (on average, at least) deciding rigid vs identity
 
 
 class _Normals:
@@ -84,6 +90,24 @@ def _l1_fit(src: np.ndarray, dst: np.ndarray, iterations: int = 10):
     return R, t
 
 
+def nearest_usable(matcher: Matcher, moved: np.ndarray,
+                   rgb: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """Nearest usable (free, non-stray) target of each moved point (P, 3) in position +
+    colour: index into matcher.candidates (P,) and joint distance (P,)."""
+    if matcher.target_rgb is not None and rgb is not None:
+        moved = np.concatenate([moved, matcher.colour_scale * rgb], axis=1)
+    d, j = matcher.tree.query(moved, k=1, eps=MATCH_EPS)  # type: ignore[union-attr]
+    return j, d
+
+
+def point_costs(matcher: Matcher, moved: np.ndarray, rgb: np.ndarray | None,
+                support: float) -> np.ndarray:
+    """Robust cost (P,) rho = d^2 / (d^2 + support^2) of moved points, d from
+    `nearest_usable`: ~0 on the target's surface, -> 1 far from it."""
+    d2 = nearest_usable(matcher, moved, rgb)[1] ** 2
+    return d2 / (d2 + support**2)
+
+
 def rigid_prealign(
     source_q: np.ndarray,
     source_rgb: np.ndarray | None,
@@ -96,12 +120,20 @@ def rigid_prealign(
     target_spacing: float,
     target_tree: cKDTree,
     gate: float,
+    support: float = 0.0,
+    global_init: str = "off",
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Rotation R (3, 3) and translation t (3,) with target ~ source @ R.T + t.
+    """Linear part A (3, 3) (a rotation, or s R after a global initialisation) and
+    translation t (3,) with target ~ source @ A.T + t.
 
     `observed` (N,) bool: source points with a data term; `spacing`, `target_spacing`: mean
     point spacings; `target_tree` indexes the target positions; `gate`: the correspondence
-    distance gate.
+    distance gate; `support` > 0: the result is kept only if it beats the identity
+    significantly on the robust cost mean rho(d), rho = d^2 / (d^2 + support^2), d the
+    position + colour distance of each subsampled point to its nearest usable target (so it
+    cannot make things worse on that cost). `global_init`: 'auto' searches coarse rotations
+    and a scale (globalinit.py) when the clouds start far apart (GLOBAL_SPREAD), 'on'
+    always, 'off' never.
     Pairs must pass a mutual check, then the closest `keep` fraction is fitted with Cauchy
     weights. Stops when a step moves the subsample by < 1 % of the point spacing (ours).
     """
@@ -109,7 +141,7 @@ def rigid_prealign(
     if len(known) >= MIN_KNOWN:
         return _l1_fit(source_q[known], matcher.target_q[matcher.known[known]])
     cand = np.flatnonzero(observed)
-    if len(cand) < 3:
+    if len(cand) < 3 or matcher.tree is None:
         return np.eye(3), np.zeros(3)
     sub = cand[sample_nodes(source_q[cand], MAX_POINTS)]
     pts = source_q[sub]
@@ -122,25 +154,31 @@ def rigid_prealign(
     # mutual gate on the subsample: drops pairs onto the rim of a partial target (ours: 3x)
     sub_spacing = graph_spacing(pts)
     mutual = 3.0 * max(sub_spacing, target_spacing)
+    usable = matcher.target_q[matcher.candidates]
 
-    def cost(R: np.ndarray, t: np.ndarray) -> float:
-        moved = pts @ R.T + t
-        corr = match(sub_matcher, moved, rgb, np.inf, mutual, every)
-        ok = corr >= 0
-        r = np.linalg.norm(moved[ok] - matcher.target_q[corr[ok]], axis=1)
-        return float(np.quantile(r, keep)) if len(r) else np.inf
 
-    # Start from identity (clouds from one tracked world frame are close already). Only when
-    # they are farther apart than the correspondence gate, start from the shift of the medians
-    # if it fits better: on a smooth cap the median shift includes a tangential slide that
-    # ICP cannot undo, so it is a last resort (ours).
-    R, t = np.eye(3), np.zeros(3)
-    shift = np.median(matcher.target_q, axis=0) - np.median(pts, axis=0)
-    start_cost = cost(R, t)
-    if start_cost > gate and cost(R, shift) < start_cost:
-        t = shift
+    def nearest(moved: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return nearest_usable(matcher, moved, rgb)
+
+    def robust_cost(A: np.ndarray, t: np.ndarray) -> np.ndarray:
+        return point_costs(matcher, pts @ A.T + t, rgb, support)
+
+    # Start from identity (clouds from one tracked world frame are close already). Far apart
+    # (GLOBAL_SPREAD): search globally. Farther apart than the gate only: start from the
+    # shift of the medians if it fits better: on a smooth cap the median shift includes a
+    # tangential slide that ICP cannot undo, so it is a last resort (ours).
+    A, t = np.eye(3), np.zeros(3)
+    start = float(np.median(target_tree.query(pts, k=1)[0]))
+    radius = float(np.sqrt(np.mean(np.sum((pts - pts.mean(axis=0)) ** 2, axis=1))))
+    far = start > max(gate, GLOBAL_SPREAD * radius)
+    if global_init == "on" or (global_init == "auto" and far):
+        A, t = global_align(pts, usable, nearest, keep)
+    elif start > gate:
+        shift = np.median(usable, axis=0) - np.median(pts, axis=0)
+        if np.median(target_tree.query(pts + shift, k=1)[0]) < start:
+            t = shift
     for _ in range(iterations):
-        moved = pts @ R.T + t
+        moved = pts @ A.T + t
         corr = match(sub_matcher, moved, rgb, np.inf, mutual, every)
         ok = corr >= 0
         if ok.sum() < 3:
@@ -155,9 +193,35 @@ def rigid_prealign(
         w = 1.0 / (1.0 + (r[sel] / scale) ** 2)
         dR, dt = _plane_step(src_ok[sel], matcher.target_q[dst_idx[sel]],
                              normals(dst_idx[sel]), w)
-        R_new, t_new = dR @ R, dR @ t + dt
-        step = np.sqrt(np.mean(np.sum((pts @ R_new.T + t_new - moved) ** 2, axis=1)))
-        R, t = R_new, t_new
+        A_new, t_new = dR @ A, dR @ t + dt
+        step = np.sqrt(np.mean(np.sum((pts @ A_new.T + t_new - moved) ** 2, axis=1)))
+        A, t = A_new, t_new
         if step < 0.01 * spacing:
             break
-    return R, t
+    if support > 0:
+        # paired per-point change of the cost: keep the motion only if it is lower by more
+        # than twice its standard error (a drift that fits the noise better is no gain)
+        gain = robust_cost(np.eye(3), np.zeros(3)) - robust_cost(A, t)
+        if gain.mean() <= 2.0 * gain.std() / np.sqrt(len(gain)):
+            return np.eye(3), np.zeros(3)
+    return A, t
+
+
+def rigid_where_better(q: np.ndarray, rgb: np.ndarray | None, matcher: Matcher,
+                       observed: np.ndarray, R: np.ndarray, t: np.ndarray, support: float,
+                       owner: np.ndarray, n_nodes: int) -> np.ndarray:
+    """(M,) bool: nodes that start from the rigid pre-alignment; the others start from the
+    identity. A node keeps the rigid motion unless the robust cost (point_costs) of
+    its observed free points is lower without it: a rigid fit to a moving part must not
+    drag a static part along (ours). `owner` (N,): each point's nearest node."""
+    use = np.ones(n_nodes, bool)
+    free = np.flatnonzero(observed & (matcher.known < 0))
+    if support <= 0 or matcher.tree is None or len(free) == 0 or (
+            np.allclose(R, np.eye(3)) and not t.any()):
+        return use
+    free = free[:: max(len(free) // (NODE_SAMPLES * n_nodes), 1)]
+    pts, col = q[free], rgb[free] if rgb is not None else None
+    change = (point_costs(matcher, pts @ R.T + t, col, support)
+              - point_costs(matcher, pts, col, support))
+    total = np.bincount(owner[free], change, minlength=n_nodes)
+    return total <= 0
