@@ -14,7 +14,9 @@ from .common import common_options, progress
 log = logging.getLogger(__name__)
 
 SUMMARY_COLUMNS = ("source", "target", "output", "source_points", "target_points",
-                   "residual_median_mm", "residual_p95_mm", "outliers", "seconds", "error")
+                   "supported", "unsupported", "residual_median_mm", "residual_p95_mm",
+                   "along_surface_median_mm", "outliers", "colour_weight_mm", "rotation_deg",
+                   "scale", "seconds", "error")
 
 
 def _register_one(job: Any, cfg: Any, *, use_ids: bool, landmarks: Path | None = None,
@@ -50,20 +52,47 @@ def _register_one(job: Any, cfg: Any, *, use_ids: bool, landmarks: Path | None =
     write_cloud_ply(job.output, result.registered, rgb=src.rgb, point_id=ids,
                     residual=result.residuals,
                     extra={"correspondence": result.correspondences.astype(np.int32),
-                           "outlier": result.outliers.astype(np.uint8)})
-    res_mm = result.residuals[np.isfinite(result.residuals)] * 1e3
-    row = {"source": str(job.source), "target": str(job.target), "output": str(job.output),
-           "source_points": len(src.xyz), "target_points": len(dst.xyz),
-           "residual_median_mm": float(np.median(res_mm)) if res_mm.size else float("nan"),
-           "residual_p95_mm": float(np.percentile(res_mm, 95)) if res_mm.size else float("nan"),
-           "outliers": int(result.outliers.sum()), "seconds": seconds, "error": ""}
-    return src, result, row
+                           "outlier": result.outliers.astype(np.uint8),
+                           "supported": result.supported.astype(np.uint8)})
+    return src, result, _summary_row(job, result, len(dst.xyz), seconds)
+
+
+def _summary_row(job: Any, result: Any, n_target: int, seconds: float) -> dict[str, Any]:
+    """What the run can know of its own error (no ground truth): mm, degrees."""
+    import numpy as np
+
+    def stat(values: Any, q: float) -> float:
+        finite = values[np.isfinite(values)] * 1e3
+        return float(np.percentile(finite, q)) if finite.size else float("nan")
+
+    rigid = result.stats[0]
+    cos = (np.trace(rigid["rotation"]) - 1.0) / 2.0
+    return {"source": str(job.source), "target": str(job.target), "output": str(job.output),
+            "source_points": len(result.registered), "target_points": n_target,
+            "supported": int(result.supported.sum()),
+            "unsupported": int((~result.supported).sum()),
+            "residual_median_mm": stat(result.residuals, 50),
+            "residual_p95_mm": stat(result.residuals, 95),
+            "along_surface_median_mm": stat(result.along_surface, 50),
+            "outliers": int(result.outliers.sum()),
+            "colour_weight_mm": float(rigid["colour_weight_mm"]),
+            "rotation_deg": float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))),
+            "scale": float(rigid["scale"]), "seconds": seconds, "error": ""}
 
 
 def _summary_line(row: dict[str, Any]) -> str:
-    return (f"registered {row['source_points']} points onto {row['target_points']}: residual "
-            f"median {row['residual_median_mm']:.3f} mm, p95 {row['residual_p95_mm']:.3f} mm, "
-            f"{row['outliers']} outliers, {row['seconds']:.2f} s -> {row['output']}")
+    """The row in words, each figure labelled with what it measures."""
+    colour = (f"colour {row['colour_weight_mm']:.0f} mm per RGB unit"
+              if row["colour_weight_mm"] > 0 else "colour not used")
+    along = row["along_surface_median_mm"]
+    along_text = f", along it {along:.3f} mm (from colour)" if along == along else ""
+    return (f"registered {row['source_points']} points onto {row['target_points']} ({colour}; "
+            f"rigid start {row['rotation_deg']:.1f} deg, scale {row['scale']:.3f}): "
+            f"{row['supported']} on target surface, {row['unsupported']} without (followed "
+            f"their neighbours); estimated error (no ground truth): across the surface median "
+            f"{row['residual_median_mm']:.3f} mm, p95 {row['residual_p95_mm']:.3f} mm"
+            f"{along_text}; {row['outliers']} outliers; {row['seconds']:.2f} s "
+            f"-> {row['output']}")
 
 
 def _batch_jobs(source: Path | None, target: Path | None, pairs: Path | None,
@@ -133,8 +162,21 @@ def register_pair_cmd(source: Path | None, target: Path | None, output: Path,
                       quiet: bool) -> None:
     """Register SOURCE non-rigidly onto TARGET (sparse l1 energy, ADMM; Su et al. 2019).
 
-    Writes SOURCE moved onto TARGET with its colours, point_id, residual (m) and the extra
-    properties `correspondence` (target index, -1 = none) and `outlier` (0/1).
+    Writes SOURCE moved onto TARGET with its colours, point_id, residual (m: distance to
+    the target's surface, NaN where there is none) and the extra properties
+    `correspondence` (target index, -1 = none), `outlier` (0/1) and `supported` (0/1: had
+    target surface near it; 0 = followed its neighbours, e.g. the target was cut there).
+
+    \b
+    Colour is used when both PLYs carry red/green/blue: its weight is measured from the
+    target's texture (0 = colour not informative there), or set in mm per RGB unit.
+    The keys that matter (--set registration.KEY=VALUE):
+      color_weight_mm        0 = automatic; e.g. 50: a full RGB unit costs 50 mm
+      max_correspondence_mm  5: matches farther than this are dropped (mm)
+      alpha                  0.05: final smoothness; larger = stiffer motion
+      outer_iterations       6: more lets matches slide further (slower)
+      global_init            auto|on|off: coarse rotation + scale search first
+      rigid_iterations       30: trimmed ICP (0 = no rigid start)
 
     Many pairs run in one process (imports and start-up paid once): SOURCE and TARGET
     folders register every NAME.ply onto the same-named target into the folder -o, or
@@ -144,7 +186,7 @@ def register_pair_cmd(source: Path | None, target: Path | None, output: Path,
     \b
     Examples:
       surgrecon register-pair frame0.ply frame7.ply -o frame0_on_7.ply \\
-          --landmarks pairs.csv --set registration.alpha=0.1
+          --landmarks pairs.csv --set registration.color_weight_mm=50
       surgrecon register-pair before/ after/ -o registered/
       surgrecon register-pair --pairs pairs.txt -o registered/
     """
