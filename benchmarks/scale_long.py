@@ -31,13 +31,14 @@ from pathlib import Path
 import numpy as np
 from long_log import _LAUNCHER, surgrecon_executable, write_long_log
 
-from surgrecon_cli.core.labels import SHIFTING, STATIC, UNKNOWN
+from surgrecon_cli.core.labels import SHIFTING, STATIC
 from surgrecon_cli.io.artefacts import FrameRegistration
 from surgrecon_cli.io.atomic import write_json, write_npz
 from surgrecon_cli.io.ingest_store import _load_ingested, load_ingested
 from surgrecon_cli.io.run_folder import FrameProgress, RunFolder
 from surgrecon_cli.io.run_layout import RunLayout
 from surgrecon_cli.report.frames import FrameAccumulator
+from surgrecon_cli.sim.random_frames import write_random_classified
 from surgrecon_cli.stages.classify import write_labels_streaming
 
 POINTS = 2200  # template points (the sample's order of magnitude)
@@ -102,15 +103,6 @@ def progress_write(work: Path, n_frames: int) -> dict[str, float]:
     return {"old": old, "now": now, "run_json_counts": counts}
 
 
-def _classified_frames(layout: RunLayout, n_frames: int, rng: np.random.Generator) -> None:
-    for k in range(1, n_frames):
-        write_npz(layout.classified(k),
-                  raw_labels=rng.choice([STATIC, SHIFTING, UNKNOWN], POINTS).astype(np.uint8),
-                  displacement_mm=rng.random(POINTS, np.float32),
-                  deformation_mm=rng.random(POINTS, np.float32),
-                  status=np.zeros(POINTS, np.uint8))
-
-
 def _traced(fn) -> tuple[float, int]:
     """Wall seconds of fn() and its peak traced allocation (bytes)."""
     tracemalloc.start()
@@ -126,7 +118,7 @@ def classify_labels(work: Path, n_frames: int) -> dict[str, float]:
     """classify's label writing (hysteresis passes, labels.npz by rows): seconds a frame
     and peak bytes held."""
     layout = RunLayout(work / f"classify{n_frames}")
-    _classified_frames(layout, n_frames, np.random.default_rng(1))
+    write_random_classified(layout, n_frames, POINTS, np.random.default_rng(1))
     seconds, peak = _traced(lambda: write_labels_streaming(layout, n_frames, POINTS, 3))
     return {"seconds": seconds / n_frames, "peak": peak}
 

@@ -13,11 +13,11 @@ import numpy as np
 from surgrecon_cli.core.hysteresis import apply_hysteresis
 from surgrecon_cli.core.labels import DEFORMING, SHIFTING, STATIC, UNKNOWN
 from surgrecon_cli.io.artefacts import FrameRegistration
-from surgrecon_cli.io.atomic import write_npz
 from surgrecon_cli.io.rows import npz_rows
 from surgrecon_cli.io.run_folder import FrameProgress
 from surgrecon_cli.io.run_layout import RunLayout
 from surgrecon_cli.report.frames import SAMPLED_FRAMES, FrameAccumulator
+from surgrecon_cli.sim.random_frames import write_random_classified
 from surgrecon_cli.stages.classify import write_labels_streaming
 
 
@@ -62,15 +62,6 @@ def test_hysteresis_matches_its_definition():
                                       _by_definition(labels, frames))
 
 
-def _write_frames(layout: RunLayout, n_frames: int, n: int, rng: np.random.Generator) -> None:
-    for k in range(1, n_frames):
-        write_npz(layout.classified(k),
-                  raw_labels=rng.choice([STATIC, SHIFTING, UNKNOWN], n).astype(np.uint8),
-                  displacement_mm=rng.random(n, np.float32),
-                  deformation_mm=rng.random(n, np.float32),
-                  status=np.zeros(n, np.uint8))
-
-
 def _peak_bytes(layout: RunLayout, n_frames: int, n: int) -> int:
     tracemalloc.start()
     try:
@@ -85,7 +76,7 @@ def test_label_writing_memory_is_flat_in_the_frames(tmp_path: Path):
     peaks = {}
     for n_frames in (80, 300):  # both past the 256 KiB blocks the .npz is copied in
         layout = RunLayout(tmp_path / str(n_frames))
-        _write_frames(layout, n_frames, n, rng)
+        write_random_classified(layout, n_frames, n, rng)
         peaks[n_frames] = _peak_bytes(layout, n_frames, n)
         with np.load(layout.labels) as z:  # the streamed file is whole and as the passes say
             raw = z["raw_labels"]
