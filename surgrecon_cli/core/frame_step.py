@@ -141,23 +141,23 @@ def register_with_contact(source: np.ndarray, source_rgb: np.ndarray, target_xyz
     by the same push. Returns the result and the number of points in contact."""
     guess = predicted_positions(source, target_xyz, target_ids,
                                 config.registration.interp_neighbors)
+    without_data = weights == 0
     inside, pushed = push_out_of_tool(guess, tool_pose, config.tool)
-    contact = np.flatnonzero(inside & (weights == 0))
+    predicted = inside & without_data
+    contact = np.flatnonzero(predicted)
     result = register(source, np.concatenate([target_xyz, pushed[contact]]),
                       source_rgb=source_rgb,
                       target_rgb=np.concatenate([target_rgb, source_rgb[contact]]),
                       config=config.registration,
                       target_ids=np.concatenate([target_ids, contact]),
-                      weights=np.where(inside & (weights == 0), 1.0, weights))
+                      weights=np.where(predicted, 1.0, weights))
     inside, pushed = push_out_of_tool(result.registered, tool_pose, config.tool)
-    moved = inside & (weights == 0)
+    moved = inside & without_data
     transforms = result.transforms.copy()
     transforms[moved, :, 3] += pushed[moved] - result.registered[moved]
     registered = np.where(moved[:, None], pushed, result.registered)
-    in_contact = moved.copy()
-    in_contact[contact] = True
     return (replace(result, transforms=transforms, registered=registered),
-            int(in_contact.sum()))
+            int((moved | predicted).sum()))
 
 
 def registered_sigma(template: np.ndarray, template_sigma: np.ndarray, registered: np.ndarray,

@@ -49,6 +49,15 @@ def remove_leftovers(folder: Path | str) -> int:
     return removed
 
 
+def file_identity(*paths: Path | str) -> tuple[tuple[int, ...], ...]:
+    """(device, inode, mtime ns, ctime ns, size) of each file: a key for a per-process
+    cache of what was read from them. Files written here are replaced by a rename, never
+    rewritten in place, so a new version has a new identity. Raises FileNotFoundError."""
+    stats = [os.stat(path) for path in paths]
+    return tuple((st.st_dev, st.st_ino, st.st_mtime_ns, st.st_ctime_ns, st.st_size)
+                 for st in stats)
+
+
 def write_bytes(path: Path | str, data: bytes) -> None:
     with atomic_open(path, "wb") as f:
         f.write(data)

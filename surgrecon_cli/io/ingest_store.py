@@ -18,7 +18,7 @@ import numpy as np
 from ..core.cameras import CameraModel
 from ..core.sync import PoseStream
 from ..errors import InputError, RunFolderError
-from .atomic import write_json, write_npz
+from .atomic import file_identity, write_json, write_npz
 from .run_layout import RunLayout
 
 
@@ -134,11 +134,16 @@ def load_ingested(root: Path) -> IngestedLog:
     them. The arrays are read-only, shared by every caller of the process."""
     root = Path(root)
     try:
-        stamp = tuple((st.st_dev, st.st_ino, st.st_mtime_ns, st.st_size) for st in (
-            RunLayout.ingest_cameras(root).stat(), RunLayout.ingest_frames(root).stat()))
+        stamp = ingest_identity(root)
     except FileNotFoundError as exc:
         raise RunFolderError(f"{root}: no ingested data; run `surgrecon ingest` first") from exc
     return _load_ingested(str(root), stamp)
+
+
+def ingest_identity(root: Path | str) -> tuple[tuple[int, ...], ...]:
+    """The identity of `RUN/ingest/`'s files (io/atomic.file_identity), for caches of what
+    is derived from them. Raises FileNotFoundError before ingest has completed."""
+    return file_identity(RunLayout.ingest_cameras(Path(root)), RunLayout.ingest_frames(Path(root)))
 
 
 @functools.lru_cache(maxsize=2)

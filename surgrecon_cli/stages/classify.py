@@ -40,7 +40,7 @@ from ..io.artefacts import (
     read_template,
     write_frame_cloud,
 )
-from ..io.atomic import write_npz
+from ..io.atomic import file_identity, write_npz
 from ..io.ingest_store import load_ingested
 from ..io.rows import RowFile, npz_rows, write_npz_rows
 from ..io.run_layout import RunLayout
@@ -73,7 +73,7 @@ TemplateInputs = tuple[np.ndarray, Neighbourhoods, TemplateNoise]
 
 
 @functools.lru_cache(maxsize=4)
-def _cached_template(run_dir: str, _stamp: tuple[int, ...], neighbourhood_mm: float,
+def _cached_template(run_dir: str, _stamp: tuple[tuple[int, ...], ...], neighbourhood_mm: float,
                      min_neighbours: int, max_neighbours: int) -> TemplateInputs:
     layout = RunLayout(run_dir)
     template = read_template(layout).points
@@ -91,10 +91,8 @@ def template_and_neighbourhoods(run_dir: Path, config: Config) -> TemplateInputs
     and template file (~30 ms on the sample; a worker classifies many frames). The file is
     replaced, never rewritten in place, so its device, inode, times and size identify it."""
     layout = RunLayout(Path(run_dir).absolute())
-    st = layout.template_ply.stat()
     cfg = config.classify
-    stamp = (st.st_dev, st.st_ino, st.st_mtime_ns, st.st_ctime_ns, st.st_size)
-    return _cached_template(str(layout.root), stamp,
+    return _cached_template(str(layout.root), file_identity(layout.template_ply),
                             cfg.neighbourhood_mm, cfg.min_neighbours, cfg.max_neighbours)
 
 

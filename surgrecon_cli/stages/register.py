@@ -39,7 +39,7 @@ from ..io.artefacts import (
     read_template,
     write_registration,
 )
-from ..io.ingest_store import IngestedLog, load_ingested
+from ..io.ingest_store import IngestedLog, ingest_identity, load_ingested
 from ..io.run_folder import FrameProgress, RunFolder
 from ..io.run_layout import RunLayout
 from .common import recorded_config, stage_run
@@ -80,9 +80,8 @@ def frame_views(log: IngestedLog, frame: int) -> list[TrackingView | None]:
     """A frame's images prepared for tracking (decoded, grey, noise level), built once per
     process: the frames of one base are tracked from the same views, and a frame that is
     itself a base (re-basing) is tracked into and then from; a worker often registers
-    them in turn. Keyed by the ingest's identity (path, inode, mtime, size) and frame."""
-    st = RunLayout.ingest_frames(log.root).stat()
-    key = (str(Path(log.root).absolute()), st.st_ino, st.st_mtime_ns, st.st_size, frame)
+    them in turn. Keyed by the ingest folder, its files' identity and the frame."""
+    key = (str(Path(log.root).absolute()), ingest_identity(log.root), frame)
     with _VIEWS_LOCK:  # a Dask worker may run tasks on several threads
         if key not in _VIEWS:
             _VIEWS[key] = tuple(None if image is None else tracking_view(image)
