@@ -61,19 +61,18 @@ def _summary_row(job: Any, result: Any, n_target: int, seconds: float) -> dict[s
     """What the run can know of its own error (no ground truth): mm, degrees."""
     import numpy as np
 
-    def stat(values: Any, q: float) -> float:
-        finite = values[np.isfinite(values)] * 1e3
-        return float(np.percentile(finite, q)) if finite.size else float("nan")
+    from ..core.scoring import distance_stats_mm
 
+    residual = distance_stats_mm(result.residuals)
     rigid = result.stats[0]
     cos = (np.trace(rigid["rotation"]) - 1.0) / 2.0
     return {"source": str(job.source), "target": str(job.target), "output": str(job.output),
             "source_points": len(result.registered), "target_points": n_target,
             "supported": int(result.supported.sum()),
             "unsupported": int((~result.supported).sum()),
-            "residual_median_mm": stat(result.residuals, 50),
-            "residual_p95_mm": stat(result.residuals, 95),
-            "along_surface_median_mm": stat(result.along_surface, 50),
+            "residual_median_mm": residual["median_mm"],
+            "residual_p95_mm": residual["p95_mm"],
+            "along_surface_median_mm": distance_stats_mm(result.along_surface)["median_mm"],
             "outliers": int(result.outliers.sum()),
             "colour_weight_mm": float(rigid["colour_weight_mm"]),
             "rotation_deg": float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))),
