@@ -12,7 +12,9 @@ them (B-frames, outside Foxglove's rules) still gives each message its own image
 `flush` drains the decoder at the end of the log. A message after the first keyframe that
 yields no frame (or a damaged one) is an error naming the topic and stamp, raised once the
 decoder is `REORDER_LIMIT` frames past it or at the end; messages before the first keyframe
-cannot be decoded and are skipped, with one warning per topic.
+cannot be decoded and are skipped, with one warning per topic. Lost and duplicated messages
+are found by `video_checks.StreamCheck`: duplicates are not decoded, and `problems` (after
+`flush`) lists the gaps with the frames decoded against a missing reference.
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ import numpy as np
 from ..errors import InputError
 from .images import MAX_IMAGE_PIXELS, StoredImage
 from .records import ImageRecord
+from .video_checks import StreamCheck, VideoProblem, fmt_stamp, nal_units
 
 logger = logging.getLogger(__name__)
 
@@ -36,10 +39,6 @@ INSTALL_HINT = 'pip install "surgrecon[video]"'
 REORDER_LIMIT = 16
 """Frames a decoder may hold back and reorder (H.264/H.265: at most the 16 of the decoded
 picture buffer); a message this far behind the frames coming out has lost its frame."""
-
-
-def _fmt_stamp(stamp_ns: int) -> str:
-    return f"{int(stamp_ns) // 1_000_000_000}.{int(stamp_ns) % 1_000_000_000:09d} s"
 
 
 def import_av(topic: str, fmt: str) -> Any:
@@ -56,13 +55,7 @@ def import_av(topic: str, fmt: str) -> Any:
 
 def nal_types(data: bytes, fmt: str) -> list[int]:
     """The NAL unit types of an Annex B access unit (start codes 00 00 01 / 00 00 00 01)."""
-    types = []
-    pos = data.find(b"\x00\x00\x01")
-    while pos >= 0 and pos + 3 < len(data):
-        header = data[pos + 3]
-        types.append(header & 0x1F if fmt == "h264" else (header >> 1) & 0x3F)
-        pos = data.find(b"\x00\x00\x01", pos + 3)
-    return types
+    return [u[0] & 0x1F if fmt == "h264" else (u[0] >> 1) & 0x3F for u in nal_units(data)]
 
 
 def is_keyframe(data: bytes, fmt: str) -> bool:
@@ -88,7 +81,9 @@ class VideoDecoder:
     """Decodes one topic's CompressedVideo messages, in log order; see the module docstring.
 
     `decode(record)` and `flush()` return `(stamp_ns, StoredImage)` pairs (PNG, lossless),
-    in message order, for the frames that came out of the decoder.
+    in message order, for the frames that came out of the decoder; frames decoded against
+    a missing reference (after a lost message, up to the next keyframe) are left out, and
+    `problems` lists the lost and duplicated messages.
     """
 
     def __init__(self, topic: str, fmt: str) -> None:
@@ -106,23 +101,31 @@ class VideoDecoder:
         self.sent = 0
         self.skipped: list[int] = []  # stamps of messages before the first keyframe
         self.started = False
+        self.check = StreamCheck(fmt)
+        self.damaged: set[int] = set()  # packet indices decoded against a missing reference
 
     def decode(self, record: ImageRecord) -> list[tuple[int, StoredImage]]:
         if str(record.format).lower() != self.format:
-            raise InputError(f"{self.topic}: video at stamp {_fmt_stamp(record.stamp_ns)} is "
+            raise InputError(f"{self.topic}: video at stamp {fmt_stamp(record.stamp_ns)} is "
                              f"{record.format!r}, the topic started as {self.format!r}")
         data = bytes(record.data)
         if not data:  # (an empty packet would tell FFmpeg that the stream ends)
             raise InputError(f"{self.topic}: video message at stamp "
-                             f"{_fmt_stamp(record.stamp_ns)} is empty")
+                             f"{fmt_stamp(record.stamp_ns)} is empty")
+        keyframe = is_keyframe(data, self.format)
         if not self.started:
-            if not is_keyframe(data, self.format):
+            if not keyframe:
                 self.skipped.append(record.stamp_ns)
                 return []
             self.started = True
             self._warn_skipped()
+        damaged = self.check.admit(record.stamp_ns, data, keyframe)
+        if damaged is None:  # a duplicate
+            return []
         index = self.sent
         self.sent += 1
+        if damaged:
+            self.damaged.add(index)
         self.pending[index] = record.stamp_ns
         packet = self.av.Packet(data)
         packet.pts = index
@@ -138,21 +141,28 @@ class VideoDecoder:
                     "with its parameter sets), so none decodes")
             return []
         out = self._frames(None, None)
+        for index in self.damaged.intersection(self.pending):
+            del self.pending[index]
         if self.pending:
             stamp = next(iter(self.pending.values()))
-            raise InputError(f"{self.topic}: video message at stamp {_fmt_stamp(stamp)} gives "
+            raise InputError(f"{self.topic}: video message at stamp {fmt_stamp(stamp)} gives "
                              f"no frame ({len(self.pending)} of {self.sent} messages without "
                              "one at the end of the log)")
         return out
+
+    @property
+    def problems(self) -> list[VideoProblem]:
+        """Lost and duplicated messages found so far (`video_checks.VideoProblem`)."""
+        return self.check.problems
 
     def _warn_skipped(self) -> None:
         if self.skipped:
             logger.warning("%s: %d video messages before the first keyframe (stamps %s to %s) "
                            "cannot be decoded and are skipped", self.topic, len(self.skipped),
-                           _fmt_stamp(self.skipped[0]), _fmt_stamp(self.skipped[-1]))
+                           fmt_stamp(self.skipped[0]), fmt_stamp(self.skipped[-1]))
 
     def _frames(self, packet: Any, stamp_ns: int | None) -> list[tuple[int, StoredImage]]:
-        where = (f"video message at stamp {_fmt_stamp(stamp_ns)}" if stamp_ns is not None
+        where = (f"video message at stamp {fmt_stamp(stamp_ns)}" if stamp_ns is not None
                  else "video at the end of the log")
         try:
             frames = self.context.decode(packet)
@@ -166,13 +176,17 @@ class VideoDecoder:
             if index not in self.pending:
                 raise InputError(f"{self.topic}: {where}: the decoder returned a frame that "
                                  "belongs to no message")
-            missed = next((k for k in self.pending if k < index - REORDER_LIMIT), None)
-            if missed is not None:
-                raise InputError(f"{self.topic}: video message at stamp "
-                                 f"{_fmt_stamp(self.pending[missed])} gives no frame")
+            missed = [k for k in self.pending if k < index - REORDER_LIMIT]
+            for k in missed:  # (a decoder may give no frame for a damaged one)
+                if k not in self.damaged:
+                    raise InputError(f"{self.topic}: video message at stamp "
+                                     f"{fmt_stamp(self.pending[k])} gives no frame")
+                del self.pending[k]
             stamp = self.pending.pop(index)
+            if index in self.damaged:
+                continue
             if frame.is_corrupt:
-                raise InputError(f"{self.topic}: video message at stamp {_fmt_stamp(stamp)} "
+                raise InputError(f"{self.topic}: video message at stamp {fmt_stamp(stamp)} "
                                  "decodes to a damaged frame (missing or corrupt data)")
             out.append((stamp, self._stored(frame)))
         return out

@@ -40,7 +40,7 @@ from ..io.run_folder import RunFolder
 from ..io.run_layout import INGEST_STAGING_PREFIX, TEMPORARY_SUFFIX, RunLayout
 from .common import recorded_config
 from .ingest_frames import check_clocks, log_span, world_poses
-from .ingest_streams import StreamCollector
+from .ingest_streams import StreamCollector, video_report
 from .registry import StageContext
 
 logger = logging.getLogger(__name__)
@@ -223,6 +223,9 @@ def _assemble(collector: StreamCollector, reader: LogReader, config: Config, sta
     jitter = [pose_jitter(s.stamps_ns, s.positions, s.quats) for s in pose_streams]
     report = _report(ids, cams, stamps, pose_streams, jitter, frames, image_index, usable,
                      trimmed)
+    for cid, cam in zip(ids, cams, strict=True):
+        report["cameras"][cid].update(video_report(
+            cam, frame_stamps, round(config.ingest.sync_tolerance_ms * 1e6)))
     report["tracker_bodies"] = _tracker_bodies(ids, pose_streams, jitter, gap_ns)
     for cid in ids:
         report["cameras"][cid]["pose_source"] = poses_in_world.sources[cid]

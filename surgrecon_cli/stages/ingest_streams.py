@@ -19,6 +19,7 @@ from ..io.records import CameraInfoRecord, ImageRecord, JointStateRecord, PoseRe
 from ..io.run_layout import RunLayout
 from ..io.video import CODECS as VIDEO_CODECS
 from ..io.video import VideoDecoder
+from ..io.video_checks import VideoProblem
 
 logger = logging.getLogger(__name__)
 
@@ -73,6 +74,7 @@ class CameraStreams:
     info_changed: bool = False
     poses: Poses | None = None
     pose_topic: str = ""
+    video: list[VideoProblem] = field(default_factory=list)  # lost / duplicated messages
 
 
 class StreamCollector:
@@ -137,6 +139,7 @@ class StreamCollector:
         for camera, decoder in self.videos.values():
             for stamp, stored in decoder.flush():
                 self._store(camera, stamp, stored)
+            self.cameras[camera].video.extend(decoder.problems)
 
     def _store(self, camera: str, stamp_ns: int, stored: StoredImage) -> None:
         cam = self.cameras[camera]
@@ -193,3 +196,49 @@ class StreamCollector:
         values = values.reshape(len(stamps), len(self.joint_names))
         order = np.argsort(stamps, kind="stable")
         return stamps[order], values[order]
+
+
+def video_report(cam: CameraStreams, frame_stamps_ns: np.ndarray,
+                 tolerance_ns: int) -> dict[str, int]:
+    """A camera's video problems (lost and duplicated messages; io/video_checks.py) as
+    report counts, each warned about naming the camera and the frames (of `frame_stamps_ns`
+    (T,) ns, increasing) that lost its image."""
+    for p in cam.video:
+        where = f"camera {cam.camera_id}: video on {cam.image_topic}"
+        if p.kind == "duplicate":
+            logger.warning("%s: the message at %s is a duplicate (%s); not decoded", where,
+                           fmt_stamp(p.stamp_ns), p.detail)
+            continue
+        frames = _frames_near(np.asarray(p.damaged, np.int64), frame_stamps_ns, tolerance_ns)
+        logger.warning("%s: a message is lost before %s (%s); the %d images from there to the "
+                       "next keyframe are decoded against a missing reference and dropped "
+                       "(frames %s)", where, fmt_stamp(p.stamp_ns), p.detail, len(p.damaged),
+                       _ranges(frames) or "none formed")
+    return {"video_lost": sum(p.kind == "gap" for p in cam.video),
+            "video_duplicates": sum(p.kind == "duplicate" for p in cam.video),
+            "video_damaged": sum(len(p.damaged) for p in cam.video)}
+
+
+def _frames_near(stamps_ns: np.ndarray, frame_stamps_ns: np.ndarray,
+                 tolerance_ns: int) -> list[int]:
+    """Indices of the frames (stamps (T,) ns, increasing) nearest each stamp (N,) ns, for
+    those within `tolerance_ns` of one."""
+    if not len(frame_stamps_ns) or not len(stamps_ns):
+        return []
+    hi = np.clip(np.searchsorted(frame_stamps_ns, stamps_ns), 0, len(frame_stamps_ns) - 1)
+    lo = np.clip(hi - 1, 0, None)
+    near = np.where(np.abs(frame_stamps_ns[hi] - stamps_ns)
+                    < np.abs(frame_stamps_ns[lo] - stamps_ns), hi, lo)
+    close = np.abs(frame_stamps_ns[near] - stamps_ns) <= tolerance_ns
+    return sorted({int(k) for k in near[close]})
+
+
+def _ranges(values: list[int]) -> str:
+    """Sorted ints -> '3-5, 9'."""
+    runs: list[list[int]] = []
+    for v in values:
+        if runs and v == runs[-1][1] + 1:
+            runs[-1][1] = v
+        else:
+            runs.append([v, v])
+    return ", ".join(f"{a}-{b}" if b > a else f"{a}" for a, b in runs)
