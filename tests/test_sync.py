@@ -104,10 +104,19 @@ def test_validate_pose_stream_errors_name_topic_and_stamp():
 def test_validate_pose_stream_sorts_dedupes_and_normalises():
     stamps = np.array([3, 1, 2, 2])
     q = np.tile([0.0, 0, 0, 1.0005], (4, 1))
-    s = validate_pose_stream("x", stamps, np.arange(12.0).reshape(4, 3), q)
-    assert list(s.stamps_ns) == [1, 2, 3]
+    positions = np.arange(12.0).reshape(4, 3)
+    positions[3] = positions[2] + [2e-4, 0, 0]  # within 1 mm of the sample it repeats
+    s = validate_pose_stream("x", stamps, positions, q)
+    assert list(s.stamps_ns) == [1, 2, 3] and len(s.conflict_stamps_ns) == 0
     np.testing.assert_allclose(np.linalg.norm(s.quats, axis=1), 1.0)
     np.testing.assert_allclose(s.positions[1], [6, 7, 8])  # first of the repeated stamp
+    # samples at one stamp 5 cm or 1° apart conflict: both dropped, and listed
+    for moved, turned in ((0.05, 0.0), (0.0, 1.0)):
+        positions[3] = positions[2] + [moved, 0, 0]
+        q[3] = [np.sin(np.radians(turned) / 2), 0, 0, np.cos(np.radians(turned) / 2)]
+        s = validate_pose_stream("x", stamps, positions, q)
+        assert list(s.stamps_ns) == [1, 3] and list(s.conflict_stamps_ns) == [2]
+        np.testing.assert_allclose(s.conflict_sizes, [[moved, np.radians(turned)]], atol=1e-6)
 
 
 def test_interpolate_values_linear_gap_and_bounds():

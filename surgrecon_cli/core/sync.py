@@ -11,7 +11,7 @@ Stamps are int64 nanoseconds.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -20,6 +20,10 @@ from .geometry import interpolate_poses, make_pose
 
 QUAT_NORM_TOLERANCE = 1e-3
 """|‖q‖ − 1| above this is an invalid orientation; below it the quaternion is normalised."""
+REPEAT_POSITION_M = 1e-3
+REPEAT_ROTATION_RAD = float(np.radians(0.1))
+"""Samples of one stream at one stamp agree when within these of the first (1 mm, the
+accuracy required, and 0.1°, about 1 mm at 0.5 m); otherwise they conflict."""
 
 
 @dataclass(frozen=True)
@@ -96,6 +100,10 @@ class PoseStream:
     stamps_ns: np.ndarray
     positions: np.ndarray
     quats: np.ndarray
+    conflict_stamps_ns: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    conflict_sizes: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    """Stamps (K,) ns where samples conflicted and were dropped (`validate_pose_stream`),
+    and their largest disagreement (K, 2): position m, rotation rad."""
 
     def __len__(self) -> int:
         return int(self.stamps_ns.shape[0])
@@ -104,11 +112,17 @@ class PoseStream:
 def validate_pose_stream(
     name: str, stamps_ns: np.ndarray, positions: np.ndarray, quats: np.ndarray
 ) -> PoseStream:
-    """Sort by stamp, drop repeated stamps (first kept), check and normalise the quaternions.
+    """Sort by stamp, check and normalise the quaternions, resolve repeated stamps.
 
     stamps_ns (M,), positions (M, 3), quats (M, 4). Raises `InputError` naming `name` (the
     topic) and the stamp of the first non-finite value or non-unit quaternion
     (|‖q‖ − 1| > 1e-3); smaller deviations are normalised away.
+
+    Several samples at one stamp: when they all agree with the first (within
+    `REPEAT_POSITION_M` and `REPEAT_ROTATION_RAD`; a message recorded twice) the first is
+    kept; when they conflict, none can be trusted and all are dropped (the stream is
+    interpolated across that stamp from its neighbours, within the gap limit), listed in
+    the result's `conflict_stamps_ns` / `conflict_sizes` for the caller to warn about.
     """
     stamps = np.asarray(stamps_ns, dtype=np.int64).reshape(-1)
     pos = np.asarray(positions, dtype=float).reshape(-1, 3)
@@ -132,9 +146,20 @@ def validate_pose_stream(
             f"{name}: pose at stamp {_fmt_stamp(stamps[k])} has a non-unit quaternion "
             f"(|q| = {norms[k]:.6g}, expected 1 within {QUAT_NORM_TOLERANCE:g})"
         )
-    keep = np.ones(len(stamps), dtype=bool)
-    keep[1:] = np.diff(stamps) > 0
-    return PoseStream(stamps[keep], pos[keep], q[keep] / norms[keep, None])
+    q = q / norms[:, None]
+    first = np.ones(len(stamps), dtype=bool)  # the first sample of each stamp
+    first[1:] = np.diff(stamps) > 0
+    starts = np.flatnonzero(first)
+    group = np.cumsum(first) - 1
+    lead = starts[group]
+    moved = np.linalg.norm(pos - pos[lead], axis=1)
+    turned = 2 * np.arccos(np.clip(np.abs(np.einsum("ij,ij->i", q, q[lead])), 0.0, 1.0))
+    size = np.stack([moved, turned], axis=1)
+    size = np.maximum.reduceat(size, starts, axis=0) if len(starts) else size
+    conflict = (size[:, 0] > REPEAT_POSITION_M) | (size[:, 1] > REPEAT_ROTATION_RAD)
+    keep = first & ~conflict[group]
+    return PoseStream(stamps[keep], pos[keep], q[keep], stamps[starts[conflict]],
+                      size[conflict])
 
 
 def poses_at(

@@ -31,6 +31,10 @@ logger = logging.getLogger(__name__)
 _STDERR_LOCK = threading.Lock()
 MAX_IMAGE_PIXELS = 1 << 26
 """Largest image accepted (67 Mpx; an 8K camera has 33 Mpx)."""
+DECODE_FLAGS = cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION
+"""How every image is decoded: 3-channel BGR, pixels as stored. An EXIF orientation tag is
+ignored, as ROS (cv_bridge) does: the calibration and the size in CameraInfo describe the
+stored pixels, and a rotated image would match neither."""
 _JPEG_MAGIC = b"\xff\xd8\xff"
 _PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 _CORRUPT = ("Corrupt JPEG data", "Premature end of JPEG file")  # libjpeg: data was damaged
@@ -89,7 +93,7 @@ def prepare_image(record: ImageRecord) -> StoredImage:
     if claimed is not None:
         _check_pixels(*claimed)
     with _native_stderr() as native:
-        bgr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+        bgr = cv2.imdecode(np.frombuffer(data, np.uint8), DECODE_FLAGS)
     kind = record.format or "compressed"
     if bgr is None:
         why = f" ({native[-1]})" if native else ""

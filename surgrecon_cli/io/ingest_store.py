@@ -19,6 +19,7 @@ from ..core.cameras import CameraModel
 from ..core.sync import PoseStream
 from ..errors import InputError, RunFolderError
 from .atomic import file_identity, write_json, write_npz
+from .images import DECODE_FLAGS
 from .run_layout import RunLayout
 
 
@@ -68,7 +69,7 @@ class IngestedLog:
             raise RunFolderError(f"frame {frame}: camera {self.cameras[camera_index]} has no image")
         path = self.root / rel
         data = np.fromfile(path, dtype=np.uint8)
-        bgr = cv2.imdecode(data, cv2.IMREAD_COLOR)
+        bgr = cv2.imdecode(data, DECODE_FLAGS)
         if bgr is None:
             raise InputError(f"{path}: stored image does not decode; re-run ingest")
         return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)

@@ -9,6 +9,7 @@ line naming both frames and the config key that chose them.
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -21,7 +22,9 @@ from ..core.world_poses import chain_stream, stream_to_world, transformed
 from ..errors import InputError
 from ..io.mcap import LogReader
 from ..io.mcap.transforms import read_transforms
-from .ingest_streams import CameraStreams, Poses
+from .ingest_streams import CameraStreams, Poses, fmt_stamp
+
+logger = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -42,6 +45,7 @@ def world_poses(ids: Sequence[str], cams: Sequence[CameraStreams], tool: Poses,
     world = topics.world_frame
     gap_ns = round(config.ingest.pose_gap_ms * 1e6)
     tree = _tree(reader, config, allow_truncated)
+    conflicts = _Conflicts(tree, world)
     streams, sources = [], {}
     for cid, cam in zip(ids, cams, strict=True):
         what = f"camera {cid}"
@@ -50,29 +54,70 @@ def world_poses(ids: Sequence[str], cams: Sequence[CameraStreams], tool: Poses,
             streams.append(_chain(tree, world, frame, span_ns, gap_ns,
                                   f"{what} (topics.camera_frame = {topics.camera_frame!r})"))
             sources[cid] = _chain_text(tree, world, frame)
+            conflicts.chain(frame)
             continue
         if cam.poses is None or not len(cam.poses.stamps):
             raise InputError(f"{what}: images on {cam.image_topic} but no pose on "
                              f"topics.camera_pose = {topics.camera_pose!r}")
         frame = cam.poses.frame
-        streams.append(stream_to_world(cam.poses.validated(), cam.pose_topic, frame, tree,
+        streams.append(stream_to_world(conflicts.topic(cam.poses), cam.pose_topic, frame, tree,
                                        world, gap_ns, what))
         sources[cid] = _topic_text(cam.pose_topic, frame, world)
+        conflicts.chain(frame)
     if not topics.tool_pose:
         tool_stream = tool.validated()
     elif reader.role_uses_transforms("tool_pose"):
         tool_stream = _chain(tree, world, topics.tool_frame, span_ns, gap_ns,
                              f"tool (topics.tool_frame = {topics.tool_frame!r})")
         sources["tool"] = _chain_text(tree, world, topics.tool_frame)
+        conflicts.chain(topics.tool_frame)
     elif config.tool.base_to_world:  # the tip in the robot's base frame
-        tool_stream = transformed(tool.validated(), base_to_world_pose(config.tool.base_to_world),
-                                  tool.name)
+        tool_stream = transformed(conflicts.topic(tool),
+                                  base_to_world_pose(config.tool.base_to_world), tool.name)
         sources["tool"] = f"{tool.name} through tool.base_to_world"
     else:
-        tool_stream = stream_to_world(tool.validated(), tool.name, tool.frame, tree, world,
+        tool_stream = stream_to_world(conflicts.topic(tool), tool.name, tool.frame, tree, world,
                                       gap_ns, "tool")
         sources["tool"] = _topic_text(tool.name, tool.frame, world)
+        conflicts.chain(tool.frame)
     return WorldPoses(streams, tool_stream, sources)
+
+
+class _Conflicts:
+    """Warns, once per stream, about the conflicting samples at one stamp that
+    `sync.validate_pose_stream` dropped: on the pose topics and on the TF edges that the
+    poses go through."""
+
+    def __init__(self, tree: TfTree | None, world: str) -> None:
+        self.tree, self.world = tree, world
+        self.warned: set[str] = set()
+
+    def topic(self, poses: Poses) -> PoseStream:
+        """The validated stream of a pose topic, warned about."""
+        stream = poses.validated()
+        self._warn(poses.name, stream)
+        return stream
+
+    def chain(self, frame: str) -> None:
+        """Warn about the TF edges between `frame` and the world."""
+        if self.tree is None or frame in ("", self.world):
+            return
+        up, down = self.tree.chain(self.world, frame)
+        for edge in (*up, *down):
+            self._warn(f"TF {edge.parent!r} -> {edge.child!r}", edge.stream)
+
+    def _warn(self, name: str, stream: PoseStream) -> None:
+        n = len(stream.conflict_stamps_ns)
+        if not n or name in self.warned:
+            return
+        self.warned.add(name)
+        metres, radians = stream.conflict_sizes.max(axis=0)
+        logger.warning(
+            "%s: %d stamp%s with pose samples that disagree (first at %s; up to %.3g mm and "
+            "%.3g deg apart); neither is trusted: the samples at %s dropped and the stream "
+            "interpolated across %s", name, n, "s" if n > 1 else "",
+            fmt_stamp(int(stream.conflict_stamps_ns[0])), metres * 1e3, np.degrees(radians),
+            "those stamps are" if n > 1 else "that stamp is", "them" if n > 1 else "it")
 
 
 def _tree(reader: LogReader, config: Config, allow_truncated: bool) -> TfTree | None:

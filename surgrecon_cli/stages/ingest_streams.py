@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from ..core.cameras import CameraModel
+from ..core.intrinsics import implausible_intrinsics
 from ..core.sync import PoseStream, validate_pose_stream
 from ..errors import GeometryError, InputError
 from ..io.images import StoredImage, prepare_image
@@ -171,6 +172,10 @@ class StreamCollector:
         except (GeometryError, ValueError) as exc:
             raise InputError(f"{where} are invalid ({exc})") from exc
         if cam.model is None:
+            why = implausible_intrinsics(record.K, int(record.width), int(record.height), model)
+            if why is not None:
+                raise InputError(f"{where} cannot be a real camera's: {why}; fix the "
+                                 "calibration, or leave the camera out of topics.image")
             cam.model = model
             cam.info_topic = item.topic
             sizes = np.array(cam.sizes, dtype=np.int64).reshape(-1, 2)
