@@ -13,7 +13,8 @@ import synth_log
 from mcap.writer import Writer
 
 from surgrecon_cli.core.geometry import invert_pose, make_pose
-from surgrecon_cli.core.tf_tree import build_tf_tree, concat_samples, make_samples
+from surgrecon_cli.core.tf_samples import concat_samples, make_samples
+from surgrecon_cli.core.tf_tree import build_tf_tree
 from surgrecon_cli.errors import InputError
 from surgrecon_cli.io.mcap.transforms import is_static_channel, read_transforms
 from surgrecon_cli.io.records import PoseRecord

@@ -1,10 +1,10 @@
 """A time-indexed TF tree: transforms between named frames, composed through the tree.
 
 Pure numpy, no I/O. Input are transform samples as `/tf` and `/tf_static` carry them (ROS
-`tf2_msgs/TFMessage`, Foxglove `FrameTransform(s)`): sample i is the pose of frame `child[i]` in
-frame `parent[i]` at `stamps_ns[i]` (translation m, unit quaternion x y z w), i.e.
-p_parent = T_i @ p_child. Each child has one parent (the tf2 convention), so the frames form a
-forest; an *edge* is one (parent, child) pair with all its samples.
+`tf2_msgs/TFMessage`, Foxglove `FrameTransform(s)`), stored per edge (`tf_samples`): a sample
+is the pose of frame `child` in frame `parent` at a stamp (translation m, unit quaternion
+x y z w), i.e. p_parent = T @ p_child. Each child has one parent (the tf2 convention), so
+the frames form a forest; an *edge* is one (parent, child) pair with all its samples.
 
 - A dynamic edge (from `/tf`) is interpolated to the query stamps like the tracker streams
   (`sync.validate_pose_stream` + `geometry.interpolate_poses`: linear translation, slerp
@@ -21,7 +21,6 @@ Stamps are int64 nanoseconds.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -29,65 +28,9 @@ import numpy as np
 from ..errors import InputError
 from .geometry import invert_pose, make_pose
 from .sync import PoseStream, poses_at, rate_hz, validate_pose_stream
+from .tf_samples import EdgeSamples, TransformSamples
 
 _MAX_LISTED = 40
-
-
-@dataclass(frozen=True)
-class TransformSamples:
-    """Transform samples, in any order.
-
-    parent, child (N,) str: frame names (sample i is the pose of child[i] in parent[i]);
-    stamps_ns (N,) int64 ns; translations (N, 3) m; quats (N, 4) x y z w (unit);
-    static (N,) bool: latched (from `/tf_static`), valid for the whole log whatever its stamp.
-    """
-
-    parent: np.ndarray
-    child: np.ndarray
-    stamps_ns: np.ndarray
-    translations: np.ndarray
-    quats: np.ndarray
-    static: np.ndarray
-
-    def __len__(self) -> int:
-        return int(self.stamps_ns.shape[0])
-
-
-def make_samples(
-    parent: Sequence[str] | np.ndarray,
-    child: Sequence[str] | np.ndarray,
-    stamps_ns: Sequence[int] | np.ndarray,
-    translations: Sequence[Sequence[float] | np.ndarray] | np.ndarray,
-    quats: Sequence[Sequence[float] | np.ndarray] | np.ndarray,
-    static: bool | Sequence[bool] | np.ndarray = False,
-) -> TransformSamples:
-    """`TransformSamples` from array-likes of N samples (shapes checked); `static` may be one
-    bool for all. Raises ValueError on mismatched lengths or shapes."""
-    par = np.asarray(parent, dtype=str).reshape(-1)
-    chi = np.asarray(child, dtype=str).reshape(-1)
-    n = len(par)
-    stamps = np.asarray(stamps_ns, dtype=np.int64).reshape(-1)
-    trans = np.asarray(translations, dtype=float).reshape(-1, 3) if n else np.zeros((0, 3))
-    q = np.asarray(quats, dtype=float).reshape(-1, 4) if n else np.zeros((0, 4))
-    stat = np.broadcast_to(np.asarray(static, dtype=bool), (n,)).copy()
-    if not (len(chi) == len(stamps) == len(trans) == len(q) == n):
-        raise ValueError(f"transform samples: {n} parents, {len(chi)} children, "
-                         f"{len(stamps)} stamps, {len(trans)} translations, {len(q)} quats")
-    return TransformSamples(par, chi, stamps, trans, q, stat)
-
-
-def concat_samples(parts: Sequence[TransformSamples]) -> TransformSamples:
-    """All samples of `parts`, in order."""
-    if not parts:
-        return make_samples([], [], [], [], [])
-    return TransformSamples(
-        np.concatenate([p.parent for p in parts]).astype(str),
-        np.concatenate([p.child for p in parts]).astype(str),
-        np.concatenate([p.stamps_ns for p in parts]).astype(np.int64),
-        np.concatenate([p.translations for p in parts]).reshape(-1, 3),
-        np.concatenate([p.quats for p in parts]).reshape(-1, 4),
-        np.concatenate([p.static for p in parts]).astype(bool),
-    )
 
 
 @dataclass(frozen=True)
@@ -271,49 +214,44 @@ def _compose(edges: list[TfEdge], query: np.ndarray, max_gap_ns: int) -> np.ndar
 
 
 def build_tf_tree(samples: TransformSamples) -> TfTree:
-    """Group samples into edges and check the tree.
+    """Group the samples' edges by child frame and check the tree.
 
     Raises InputError when a child frame has two parents (naming the child and both parents),
     when an edge is both static and dynamic, when the edges form a cycle, when a sample's
     child is its own parent, and (naming the edge and stamp) on a non-finite value or a
     non-unit quaternion.
     """
-    n = len(samples)
-    if n == 0:
-        return TfTree(())
-    bad = samples.parent == samples.child
-    if bad.any():
-        k = int(np.argmax(bad))
-        raise InputError(f"TF transform from frame {samples.parent[k]!r} to itself")
-    children, inverse = np.unique(samples.child, return_inverse=True)
-    order = np.argsort(inverse, kind="stable")  # by child, arrival order within a child
-    bounds = np.cumsum(np.bincount(inverse, minlength=len(children)))[:-1]
-    edges = []
-    for child, idx in zip(children, np.split(order, bounds), strict=True):
-        edges.append(_edge(str(child), samples, idx))
-    return TfTree(tuple(edges))
+    by_child: dict[str, list[EdgeSamples]] = {}
+    for e in samples.edges:
+        if e.parent == e.child:
+            raise InputError(f"TF transform from frame {e.parent!r} to itself")
+        by_child.setdefault(e.child, []).append(e)
+    return TfTree(tuple(_edge(child, by_child[child]) for child in sorted(by_child)))
 
 
-def _edge(child: str, samples: TransformSamples, idx: np.ndarray) -> TfEdge:
-    parents, counts = np.unique(samples.parent[idx], return_counts=True)
-    if len(parents) > 1:
-        listed = ", ".join(f"{str(p)!r} ({c} transform{'s' if c > 1 else ''})"
-                           for p, c in zip(parents, counts, strict=True))
+def _edge(child: str, group: list[EdgeSamples]) -> TfEdge:
+    """The edge of `child` from its samples (one `EdgeSamples` per parent and kind)."""
+    counts: dict[str, int] = {}
+    for e in group:
+        counts[e.parent] = counts.get(e.parent, 0) + len(e.stamps_ns)
+    if len(counts) > 1:
+        listed = ", ".join(f"{p!r} ({c} transform{'s' if c > 1 else ''})"
+                           for p, c in sorted(counts.items()))
         raise InputError(
-            f"TF frame {child!r} has {len(parents)} parents: {listed}; a frame has one parent in "
+            f"TF frame {child!r} has {len(counts)} parents: {listed}; a frame has one parent in "
             "a TF tree (fix the publishers, or drop one of the transforms)")
-    parent = str(parents[0])
-    static = samples.static[idx]
-    name = f"TF transform {parent!r} -> {child!r}"
-    if static.any() and not static.all():
+    e = group[0]
+    name = f"TF transform {e.parent!r} -> {child!r}"
+    if len(group) > 1:
+        static = sum(len(g.stamps_ns) for g in group if g.static)
         raise InputError(
-            f"{name} is published both as static ({int(static.sum())} on /tf_static) and as "
-            f"dynamic ({int((~static).sum())} on /tf); publish it on one of them")
-    if static[0]:
-        idx = idx[-1:]  # latched: the last one published wins
-    stream = validate_pose_stream(name, samples.stamps_ns[idx], samples.translations[idx],
-                                  samples.quats[idx])
-    return TfEdge(parent, child, bool(static[0]), stream, len(static))
+            f"{name} is published both as static ({static} on /tf_static) and as "
+            f"dynamic ({counts[e.parent] - static} on /tf); publish it on one of them")
+    stamps, values = e.stamps_ns, e.values
+    if e.static:  # latched: the last one published wins
+        stamps, values = stamps[-1:], values[-1:]
+    stream = validate_pose_stream(name, stamps, values[:, :3], values[:, 3:])
+    return TfEdge(e.parent, child, e.static, stream, len(e.stamps_ns))
 
 
 def _check_acyclic(by_child: dict[str, TfEdge]) -> None:

@@ -17,7 +17,8 @@ import numpy as np
 
 from ..config import Config
 from ..core.sync import PoseStream, base_to_world_pose
-from ..core.tf_tree import TfTree, build_tf_tree, concat_samples
+from ..core.tf_samples import concat_samples
+from ..core.tf_tree import TfTree, build_tf_tree
 from ..core.world_poses import chain_stream, stream_to_world, transformed
 from ..errors import InputError
 from ..io.mcap import LogReader

@@ -13,6 +13,7 @@ import numpy as np
 from ..core.cameras import CameraModel
 from ..core.intrinsics import implausible_intrinsics
 from ..core.sync import PoseStream, validate_pose_stream
+from ..core.tf_samples import frame_id_problem
 from ..errors import GeometryError, InputError
 from ..io.images import StoredImage, prepare_image
 from ..io.mcap import LogItem
@@ -99,6 +100,11 @@ class StreamCollector:
 
     def add(self, item: LogItem) -> None:
         record = item.record
+        if isinstance(record, PoseRecord):
+            why = frame_id_problem(record.frame_id) or frame_id_problem(record.child_frame_id)
+            if why is not None:
+                raise InputError(f"{item.topic}: pose at stamp {fmt_stamp(record.stamp_ns)} "
+                                 f"has {why}")
         if item.role == "image" and isinstance(record, ImageRecord):
             self._image(item, record)
         elif item.role == "camera_info" and isinstance(record, CameraInfoRecord):

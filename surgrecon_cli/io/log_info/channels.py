@@ -20,7 +20,7 @@ from typing import Any
 
 from mcap.records import Channel, Message, Schema
 
-from ...core.tf_tree import TransformSamples, concat_samples
+from ...core.tf_samples import TransformSamples, concat_samples
 from ..mcap.base import KINDS
 from ..mcap.registry import DECODERS, DESERIALIZERS, find_decoder
 from ..mcap.scan import ALL, FIRST, SKIP, ChannelScan, LogScan, scan_mcap

@@ -21,10 +21,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 from mcap.records import Channel, Message, Schema
 
-from ...core.tf_tree import TransformSamples, make_samples
+from ...core.tf_samples import SampleCollector, TransformSamples, frame_id_problem, make_samples
 from ...errors import InputError
 from ..records import PoseRecord
 from .registry import DESERIALIZERS, find_decoder
@@ -87,11 +86,7 @@ class TransformCollector:
         self.topics: dict[str, bool] = {}
         self.counts: dict[str, int] = {}
         self.child_frames: dict[str, set[str]] = {}
-        self._parent: list[str] = []
-        self._child: list[str] = []
-        self._stamps: list[int] = []
-        self._values: list[tuple[float, ...]] = []
-        self._is_static: list[bool] = []
+        self._samples = SampleCollector()
 
     def select(self, channel: Channel, schema: Schema | None) -> str:
         name = schema.name if schema else ""
@@ -127,14 +122,16 @@ class TransformCollector:
                 f"{message.log_time / 1e9:.6f} s does not decode as "
                 f"{schema.name if schema else 'transforms'} ({exc})") from exc
         for r in records:
+            why = frame_id_problem(r.frame_id) or frame_id_problem(r.child_frame_id)
+            if why is not None:
+                raise InputError(f"{self.path}: transform on {channel.topic} at log time "
+                                 f"{message.log_time / 1e9:.6f} s has {why}")
             stamp = r.stamp_ns
-            self._stamps.append(message.log_time if self.use_log_time or stamp <= 0 else stamp)
-            self._parent.append(r.frame_id)
-            self._child.append(r.child_frame_id)
-            self._values.append((*r.position, *r.orientation))
-            self._is_static.append(static)
+            self._samples.add(r.frame_id, r.child_frame_id, static,
+                              message.log_time if self.use_log_time or stamp <= 0 else stamp,
+                              (*r.position, *r.orientation))
+            self.child_frames[channel.topic].add(r.child_frame_id)
         self.counts[channel.topic] += len(records)
-        self.child_frames[channel.topic].update(r.child_frame_id for r in records)
 
     def result(self, scan: LogScan) -> TransformLog:
         """Everything collected, with the scan it came from."""
@@ -147,9 +144,7 @@ class TransformCollector:
                             {t: tuple(sorted(f)) for t, f in self.child_frames.items()}, scan)
 
     def samples(self) -> TransformSamples:
-        values = np.asarray(self._values, dtype=float).reshape(-1, 7)
-        return make_samples(self._parent, self._child, self._stamps, values[:, :3],
-                            values[:, 3:], np.asarray(self._is_static, dtype=bool))
+        return self._samples.samples()
 
 
 def read_transforms(path: Path, time_source: str = "header",
