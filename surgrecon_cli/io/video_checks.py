@@ -34,6 +34,7 @@ DUPLICATE_WINDOW = 16
 """Payloads remembered for duplicate detection (the decoded picture buffer's size)."""
 PERIOD_WINDOW = 32
 """Stamp steps whose median is the stream's period (the stamp-based check)."""
+_SLICE_HEADER_BYTES = 64
 _HIGH_PROFILES = (100, 110, 122, 244, 44, 83, 86, 118, 128, 138, 139, 134, 135)
 
 
@@ -140,7 +141,7 @@ class H264FrameNumbers:
         return None
 
     def _slice(self, nal: bytes, idr: bool) -> tuple[int, int] | None:
-        bits = _Bits(nal[1:])
+        bits = _Bits(nal[1:_SLICE_HEADER_BYTES])  # (frame_num is in its first bytes)
         bits.ue(), bits.ue()  # first_mb_in_slice, slice_type
         sps = self.sps[self.pps[bits.ue()]]
         if sps.separate_colour_plane:

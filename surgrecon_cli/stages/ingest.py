@@ -194,7 +194,8 @@ def _assemble(collector: StreamCollector, reader: LogReader, config: Config, sta
     pose_streams, tool = poses_in_world.cameras, poses_in_world.tool
     gap_ns = round(config.ingest.pose_gap_ms * 1e6)
 
-    frames = group_frames(stamps, round(config.ingest.sync_tolerance_ms * 1e6))
+    tolerance_ns = round(config.ingest.sync_tolerance_ms * 1e6)
+    frames = group_frames(stamps, tolerance_ns)
     T, C = frames.image_index.shape
     image_stamps = np.full((T, C), -1, dtype=np.int64)
     poses = np.full((T, C, 4, 4), np.nan)
@@ -224,8 +225,7 @@ def _assemble(collector: StreamCollector, reader: LogReader, config: Config, sta
     report = _report(ids, cams, stamps, pose_streams, jitter, frames, image_index, usable,
                      trimmed)
     for cid, cam in zip(ids, cams, strict=True):
-        report["cameras"][cid].update(video_report(
-            cam, frame_stamps, round(config.ingest.sync_tolerance_ms * 1e6)))
+        report["cameras"][cid].update(video_report(cam, frame_stamps, tolerance_ns))
     report["tracker_bodies"] = _tracker_bodies(ids, pose_streams, jitter, gap_ns)
     for cid in ids:
         report["cameras"][cid]["pose_source"] = poses_in_world.sources[cid]
