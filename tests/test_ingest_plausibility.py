@@ -16,7 +16,7 @@ from test_ingest import check_log
 
 from surgrecon_cli.cli.main import main
 from surgrecon_cli.core.cameras import CameraModel
-from surgrecon_cli.core.intrinsics import implausible_intrinsics
+from surgrecon_cli.core.intrinsics import folds_before_corners, implausible_intrinsics
 from surgrecon_cli.io.records import CameraInfoRecord, ImageRecord, PoseRecord
 
 
@@ -132,9 +132,17 @@ def test_implausible_intrinsics_are_refused_naming_topic_and_value(
     ("equidistant", [-0.02, 0.01, -0.004, 0.0005]),  # a fisheye
 ])
 def test_real_lenses_are_plausible(model: str, dist: list[float]):
-    K = np.array([[500.0, 0, 330], [0, 500, 235], [0, 0, 1]])
+    K = np.array([[500.0, 0, 319.5], [0, 500, 239.5], [0, 0, 1]])
     assert implausible_intrinsics(K, 640, 480, CameraModel(K, np.array(dist), 640, 480,
                                                            model)) is None
-    # the same camera, but with a strongly barrel lens that folds back before the corners
-    bad = CameraModel(K, np.array([-1.0, 0.0, 0.0, 0.0, 0.0]), 640, 480)
-    assert "not monotonic" in str(implausible_intrinsics(K, 640, 480, bad))
+    camera = CameraModel(K, np.array(dist), 640, 480, model)
+    assert folds_before_corners(K, 640, 480, camera) is None
+    # r_d = r - k r^3 peaks at r_d = 2 / (3 sqrt(3 k)): 0.385 for k = 1, before the edges'
+    # midpoints (0.64 and 0.47 from the principal point); 0.72 for k = 0.286, past the
+    # edges but before the corners (0.8): refused, and only warned about.
+    edges = CameraModel(K, np.array([-1.0, 0.0, 0.0, 0.0, 0.0]), 640, 480)
+    assert "not monotonic out to pixel (319.5, 0)" in str(
+        implausible_intrinsics(K, 640, 480, edges))
+    corners = CameraModel(K, np.array([-0.286, 0.0, 0.0, 0.0, 0.0]), 640, 480)
+    assert implausible_intrinsics(K, 640, 480, corners) is None
+    assert "not monotonic out to pixel (0, 0)" in str(folds_before_corners(K, 640, 480, corners))

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from ..core.cameras import CameraModel
-from ..core.intrinsics import implausible_intrinsics
+from ..core.intrinsics import folds_before_corners, implausible_intrinsics
 from ..core.sync import PoseStream, validate_pose_stream
 from ..core.tf_samples import frame_id_problem
 from ..errors import GeometryError, InputError
@@ -182,6 +182,10 @@ class StreamCollector:
             if why is not None:
                 raise InputError(f"{where} cannot be a real camera's: {why}; fix the "
                                  "calibration, or leave the camera out of topics.image")
+            corners = folds_before_corners(record.K, int(record.width), int(record.height),
+                                           model)
+            if corners is not None:
+                logger.warning("%s: %s; points imaged there are misplaced", where, corners)
             cam.model = model
             cam.info_topic = item.topic
             sizes = np.array(cam.sizes, dtype=np.int64).reshape(-1, 2)
