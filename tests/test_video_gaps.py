@@ -64,7 +64,7 @@ def test_a_duplicated_message_is_not_decoded_again(order: list[int]):
     assert [k for k, _ in out] == list(range(N))
     assert min(p for _, p in out) > 35
     [problem] = decoder.problems
-    assert problem.kind == "duplicate" and "same payload as the message at" in problem.detail
+    assert problem.kind == "duplicate" and "same payload and stamp" in problem.detail
 
 
 @needs_av

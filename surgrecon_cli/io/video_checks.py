@@ -12,8 +12,9 @@ CompressedVideo carries no frame counter, so `StreamCheck` uses what the stream 
   encoders need not step by one), and H.264 streams whose headers cannot be read: the
   stamps. A stamp step above `GAP_FACTOR` times the median of the last `PERIOD_WINDOW`
   steps is a lost message (not judged before the stream's fourth message).
-- Both: a message whose payload repeats one of the last `DUPLICATE_WINDOW` messages is a
-  duplicate; it is not decoded (decoding it twice shifts the decoder's references).
+- Both: a message whose payload and stamp repeat one of the last `DUPLICATE_WINDOW`
+  messages' is a duplicate; it is not decoded (decoding it twice shifts the decoder's
+  references). (Payloads alone may repeat: a still scene can encode to the same bytes.)
 
 Frames from a gap up to the next keyframe are *damaged*: decoded against a missing
 reference. (Not detected: an H.264 `memory_management_control_operation` 5, which resets
@@ -191,7 +192,7 @@ class StreamCheck:
 
     def __init__(self, fmt: str) -> None:
         self.numbers = H264FrameNumbers() if fmt == "h264" else None
-        self.recent: deque[tuple[bytes, int]] = deque(maxlen=DUPLICATE_WINDOW)
+        self.recent: deque[bytes] = deque(maxlen=DUPLICATE_WINDOW)  # payload + stamp digests
         self.steps: deque[int] = deque(maxlen=PERIOD_WINDOW)  # recent positive stamp steps
         self.last_stamp: int | None = None
         self.problems: list[VideoProblem] = []
@@ -199,13 +200,14 @@ class StreamCheck:
 
     def admit(self, stamp_ns: int, data: bytes, keyframe: bool) -> bool | None:
         stamp = int(stamp_ns)
-        digest = hashlib.blake2b(data, digest_size=16).digest()
-        earlier = next((s for d, s in self.recent if d == digest), None)
-        if earlier is not None:
-            self.problems.append(VideoProblem(
-                "duplicate", stamp, f"same payload as the message at {fmt_stamp(earlier)}"))
+        hashed = hashlib.blake2b(data, digest_size=16)
+        hashed.update(stamp.to_bytes(8, "little", signed=True))
+        digest = hashed.digest()
+        if digest in self.recent:
+            self.problems.append(VideoProblem("duplicate", stamp,
+                                              "same payload and stamp as an earlier message"))
             return None
-        self.recent.append((digest, stamp))
+        self.recent.append(digest)
         lost = self._lost(stamp, data)
         if keyframe:
             self.gap = None
