@@ -36,8 +36,9 @@ _MAX_LISTED = 40
 @dataclass(frozen=True)
 class TfEdge:
     """The transforms of `child` in `parent`: `stream` holds the samples sorted by stamp with
-    repeated stamps dropped (a static edge: its one latched sample); `published` counts the
-    samples received."""
+    repeated stamps resolved (`sync.validate_pose_stream`: conflicting ones dropped and
+    listed); a static edge: its one latched sample; `published` counts the samples
+    received."""
 
     parent: str
     child: str
