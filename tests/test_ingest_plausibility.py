@@ -17,6 +17,7 @@ from test_ingest import check_log
 from surgrecon_cli.cli.main import main
 from surgrecon_cli.core.cameras import CameraModel
 from surgrecon_cli.core.intrinsics import folds_before_corners, implausible_intrinsics
+from surgrecon_cli.io.ingest_store import load_ingested
 from surgrecon_cli.io.records import CameraInfoRecord, ImageRecord, PoseRecord
 
 
@@ -79,6 +80,8 @@ def test_conflicting_pose_samples_at_one_stamp_are_dropped_with_a_warning(
     [line] = [w for w in err.splitlines() if "disagree" in w]
     assert line.startswith(f"{name}: 1 stamp with pose samples that disagree")
     assert "1700000000.200000000 s" in line and "up to 50 mm" in line
+    report = load_ingested(run / "ingest").report["cameras"]
+    assert [report[c]["pose_conflicts"] for c in ("0", "1", "2")] == [0, 1, 0]
 
 
 def test_agreeing_repeated_samples_are_kept_silently(tmp_path: Path, capsys):

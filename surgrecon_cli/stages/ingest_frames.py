@@ -31,11 +31,13 @@ logger = logging.getLogger(__name__)
 @dataclass(frozen=True)
 class WorldPoses:
     """Camera-to-world pose streams (one per camera, sorted ids), the tool tip's (empty
-    without a robot), and for the report where each came from."""
+    without a robot), and for the report where each came from and how many stamps of
+    conflicting samples its topic or TF chain had (by camera id, and "tool")."""
 
     cameras: list[PoseStream]
     tool: PoseStream
     sources: dict[str, str]
+    conflicts: dict[str, int]
 
 
 def world_poses(ids: Sequence[str], cams: Sequence[CameraStreams], tool: Poses,
@@ -55,60 +57,62 @@ def world_poses(ids: Sequence[str], cams: Sequence[CameraStreams], tool: Poses,
             streams.append(_chain(tree, world, frame, span_ns, gap_ns,
                                   f"{what} (topics.camera_frame = {topics.camera_frame!r})"))
             sources[cid] = _chain_text(tree, world, frame)
-            conflicts.chain(frame)
+            conflicts.chain(cid, frame)
             continue
         if cam.poses is None or not len(cam.poses.stamps):
             raise InputError(f"{what}: images on {cam.image_topic} but no pose on "
                              f"topics.camera_pose = {topics.camera_pose!r}")
         frame = cam.poses.frame
-        streams.append(stream_to_world(conflicts.topic(cam.poses), cam.pose_topic, frame, tree,
-                                       world, gap_ns, what))
+        streams.append(stream_to_world(conflicts.topic(cid, cam.poses), cam.pose_topic, frame,
+                                       tree, world, gap_ns, what))
         sources[cid] = _topic_text(cam.pose_topic, frame, world)
-        conflicts.chain(frame)
+        conflicts.chain(cid, frame)
     if not topics.tool_pose:
         tool_stream = tool.validated()
     elif reader.role_uses_transforms("tool_pose"):
         tool_stream = _chain(tree, world, topics.tool_frame, span_ns, gap_ns,
                              f"tool (topics.tool_frame = {topics.tool_frame!r})")
         sources["tool"] = _chain_text(tree, world, topics.tool_frame)
-        conflicts.chain(topics.tool_frame)
+        conflicts.chain("tool", topics.tool_frame)
     elif config.tool.base_to_world:  # the tip in the robot's base frame
-        tool_stream = transformed(conflicts.topic(tool),
+        tool_stream = transformed(conflicts.topic("tool", tool),
                                   base_to_world_pose(config.tool.base_to_world), tool.name)
         sources["tool"] = f"{tool.name} through tool.base_to_world"
     else:
-        tool_stream = stream_to_world(conflicts.topic(tool), tool.name, tool.frame, tree, world,
-                                      gap_ns, "tool")
+        tool_stream = stream_to_world(conflicts.topic("tool", tool), tool.name, tool.frame, tree,
+                                      world, gap_ns, "tool")
         sources["tool"] = _topic_text(tool.name, tool.frame, world)
-        conflicts.chain(tool.frame)
-    return WorldPoses(streams, tool_stream, sources)
+        conflicts.chain("tool", tool.frame)
+    return WorldPoses(streams, tool_stream, sources, conflicts.counts)
 
 
 class _Conflicts:
     """Warns, once per stream, about the conflicting samples at one stamp that
     `sync.validate_pose_stream` dropped: on the pose topics and on the TF edges that the
-    poses go through."""
+    poses go through; `counts` their stamps by user (camera id or "tool")."""
 
     def __init__(self, tree: TfTree | None, world: str) -> None:
         self.tree, self.world = tree, world
         self.warned: set[str] = set()
+        self.counts: dict[str, int] = {}
 
-    def topic(self, poses: Poses) -> PoseStream:
+    def topic(self, user: str, poses: Poses) -> PoseStream:
         """The validated stream of a pose topic, warned about."""
         stream = poses.validated()
-        self._warn(poses.name, stream)
+        self._warn(user, poses.name, stream)
         return stream
 
-    def chain(self, frame: str) -> None:
+    def chain(self, user: str, frame: str) -> None:
         """Warn about the TF edges between `frame` and the world."""
         if self.tree is None or frame in ("", self.world):
             return
         up, down = self.tree.chain(self.world, frame)
         for edge in (*up, *down):
-            self._warn(f"TF {edge.parent!r} -> {edge.child!r}", edge.stream)
+            self._warn(user, f"TF {edge.parent!r} -> {edge.child!r}", edge.stream)
 
-    def _warn(self, name: str, stream: PoseStream) -> None:
+    def _warn(self, user: str, name: str, stream: PoseStream) -> None:
         n = len(stream.conflict_stamps_ns)
+        self.counts[user] = self.counts.get(user, 0) + n
         if not n or name in self.warned:
             return
         self.warned.add(name)
