@@ -9,7 +9,7 @@ import click
 
 from .common import progress, quiet_options
 
-_EXISTING = click.Path(exists=True, dir_okay=False, path_type=Path)
+_FILE = click.Path(dir_okay=False, path_type=Path)  # missing: one line from convert
 
 
 def _frame_range(ctx: click.Context, param: click.Parameter, value: str | None) -> slice:
@@ -40,7 +40,7 @@ def _cameras(ctx: click.Context, param: click.Parameter,
 @click.option("-o", "--output", "out", required=True,
               type=click.Path(dir_okay=False, path_type=Path),
               help="MCAP log to write; the config goes beside it as OUT.toml.")
-@click.option("--calibration", "calibration", multiple=True, required=True, type=_EXISTING,
+@click.option("--calibration", "calibration", multiple=True, required=True, type=_FILE,
               help="Calibration file: OpenCV YAML/XML (M1 D1 M2 D2 R T, K1/K2, left/right), "
               "JSON with the same fields, 'fx fy cx cy baseline' of a rectified pair, or one ROS "
               "camera_info YAML per camera (repeat the option).")
@@ -59,12 +59,12 @@ def _cameras(ctx: click.Context, param: click.Parameter,
 @click.option("--start-time", default=1.0, show_default=True, type=float, metavar="SECONDS",
               help="Stamp of the first frame with --fps or a video's own times (not 0: ROS "
               "reads a zero stamp as unset).")
-@click.option("--stamps", type=_EXISTING,
+@click.option("--stamps", type=_FILE,
               help="Stamps file: one per source frame (seconds, or integer nanoseconds).")
-@click.option("--camera-poses", type=_EXISTING,
+@click.option("--camera-poses", type=_FILE,
               help="TUM file (t x y z qx qy qz qw; s, m) of the first camera in the world; "
               "default: the rig is fixed in the world.")
-@click.option("--tool-poses", type=_EXISTING,
+@click.option("--tool-poses", type=_FILE,
               help="TUM file of the tool tip in the world (the robot roles are off without).")
 @click.option("--image-format", default="jpeg", show_default=True,
               type=click.Choice(["jpeg", "png"]),

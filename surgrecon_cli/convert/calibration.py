@@ -95,9 +95,6 @@ def load_rig(paths: Sequence[Path], units: str | None = None,
             fallback = names[i] if i < len(names) else str(d.get("camera_name") or f"cam{i}")
             raw.append(_single(d, path, fallback, ros_rig=True))
         _relative_to_first(raw)
-    if names and len(names) == len(raw):
-        for cam, name in zip(raw, names, strict=True):
-            cam.name = name
     return _scaled(raw, units, paths[0])
 
 
@@ -171,9 +168,9 @@ def _single(d: Any, path: Path, name: str, ros_rig: bool = False) -> _Raw:
     if model is None:
         raise InputError(f"calibration file {path}: camera {name!r} has distortion model "
                          f"{model_name!r}; supported: {', '.join(DISTORTION_MODELS)}")
-    D = _coefficients(D, model, name, path)
-    if not model_name and D.size == 8:
+    if not model_name and D.size > 5:
         model = "rational_polynomial"
+    D = _coefficients(D, model, name, path)
     to_rig = np.eye(4)
     if ros_rig and "projection_matrix" in d:
         to_rig = _ros_pose(d, path, name)
@@ -182,7 +179,7 @@ def _single(d: Any, path: Path, name: str, ros_rig: bool = False) -> _Raw:
 
 def _coefficients(D: np.ndarray, model: str, name: str, path: Path) -> np.ndarray:
     """Coefficients padded to the model's count; beyond it (thin prism, tilt) only zeros."""
-    n = 8 if model == "plumb_bob" and D.size > 5 else DISTORTION_MODELS[model]
+    n = DISTORTION_MODELS[model]
     if D.size > n and np.any(D[n:] != 0):
         raise InputError(f"calibration file {path}: camera {name!r} has {D.size} distortion "
                          f"coefficients; supported: plumb_bob (5), rational_polynomial (8), "

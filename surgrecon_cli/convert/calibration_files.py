@@ -71,8 +71,8 @@ def _numbers(text: str) -> dict[str, Any] | None:
 def _filestorage(path: Path) -> dict[str, Any]:
     try:
         fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
-    except cv2.error as exc:
-        reason = str(exc).strip().splitlines()[-1]
+    except (cv2.error, SystemError) as exc:  # SystemError: a cv2.error raised in the binding
+        reason = str(exc.__cause__ or exc).strip().splitlines()[-1]
         raise InputError(f"calibration file {path}: OpenCV cannot parse it ({reason})") from None
     try:
         if not fs.isOpened():

@@ -9,6 +9,8 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+from mcap.writer import CompressionType
+
 from ..errors import InputError
 from ..io.atomic import write_text
 from ..sim.log_writer import write_log
@@ -128,7 +130,7 @@ def convert(req: ConvertRequest,
     frames = progress(source.frames(indices), total=len(indices), desc="convert",
                       unit="frame")
     write_log(req.out, messages(rig, frames, stamps, start_ns, camera_poses, tool_poses),
-              "ros2")
+              "ros2", compression=CompressionType.NONE)  # images are compressed already
     poses = (f"rig poses from {req.camera_poses.name}" if req.camera_poses
              else "rig fixed in the world")
     config = req.out.with_suffix(".toml")
