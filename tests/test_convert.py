@@ -183,3 +183,20 @@ def test_one_folder_per_camera(tmp_path: Path):
         IMAGE.format(n) for n in "abc"} | {INFO.format(n) for n in "abc"}
     np.testing.assert_allclose(static_pose(log, "a_optical_frame")[1], [0.005, 0, 0])
     np.testing.assert_allclose(static_pose(log, "b_optical_frame")[1], [0, 0.005, 0])
+
+
+def test_resized_images_scale_the_calibration_when_asked(tmp_path: Path, capsys):
+    """Calibrated at 320x240, recorded at 160x120: an error naming both sizes, or with
+    --scale-calibration K for the half-size image (pixel centres: u' = (u + 0.5) / 2 - 0.5)."""
+    stereo_folder(tmp_path / "rec", frames=2, ext=".jpg", size=(160, 120))
+    opencv_calibration(tmp_path / "calib.yaml", size=(320, 240))
+    out = tmp_path / "rec.mcap"
+    assert _convert(tmp_path / "rec", "-o", out, "--calibration", tmp_path / "calib.yaml") == 2
+    assert "--scale-calibration" in capsys.readouterr().err
+    assert _convert(tmp_path / "rec", "-o", out, "--calibration", tmp_path / "calib.yaml",
+                    "--scale-calibration") == 0
+    info = read_log(out)[INFO.format("right")][0][1]
+    assert (info.width, info.height) == (160, 120)
+    K = np.reshape(info.k, (3, 3))
+    np.testing.assert_allclose(K[[0, 1], [0, 1]], K_RIGHT[[0, 1], [0, 1]] / 2)
+    np.testing.assert_allclose(K[[0, 1], [2, 2]], (K_RIGHT[[0, 1], [2, 2]] + 0.5) / 2 - 0.5)

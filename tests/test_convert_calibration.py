@@ -141,3 +141,23 @@ def test_bad_calibration_files_name_the_file(tmp_path: Path, text: str, needle: 
     with pytest.raises(InputError) as err:
         load_rig([path])
     assert str(path) in str(err.value) and needle in str(err.value)
+
+
+def test_cameras_given_by_their_poses_and_the_file_units(tmp_path: Path):
+    """`pose`: camera-to-rig 4x4 (e.g. hand-eye results in a robot base), read in the file's
+    `units` even when every offset is below 1."""
+    import json
+
+    a = np.eye(4)
+    a[:3, 3] = [0.5, 0.2, -0.1]
+    b = np.eye(4)
+    b[:3, :3] = R_STEREO
+    b[:3, 3] = [0.4, 0.3, 0.0]
+    (tmp_path / "rig.json").write_text(json.dumps({"units": "mm", "cameras": {
+        "a": {"K": K_LEFT.tolist(), "D": [], "pose": a.tolist()},
+        "b": {"K": K_RIGHT.tolist(), "D": [], "pose": b.tolist()}}}), encoding="utf-8")
+    rig = load_rig([tmp_path / "rig.json"])
+    assert rig.units == "mm"
+    np.testing.assert_allclose(rig.cameras[0].to_rig[:3, 3], [0.0005, 0.0002, -0.0001])
+    np.testing.assert_allclose(rig.cameras[1].to_rig[:3, :3], R_STEREO, atol=1e-12)
+    np.testing.assert_allclose(rig.cameras[1].to_rig[:3, 3], [0.0004, 0.0003, 0.0])

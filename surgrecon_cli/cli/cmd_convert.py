@@ -54,6 +54,9 @@ def _cameras(ctx: click.Context, param: click.Parameter,
 @click.option("--units", type=click.Choice(["mm", "m"]),
               help="Unit of the calibration's lengths (T, baseline). Default: millimetres when "
               "the largest camera offset is above 1, else metres.")
+@click.option("--scale-calibration", is_flag=True,
+              help="The images are the calibrated ones resized: scale each camera's intrinsics "
+              "from the calibration's width/height to its images' (instead of an error).")
 @click.option("--fps", type=click.FloatRange(min=0, min_open=True),
               help="Frame rate of the images (default: a video's own times, else 30).")
 @click.option("--start-time", default=1.0, show_default=True, type=float, metavar="SECONDS",
@@ -75,7 +78,8 @@ def _cameras(ctx: click.Context, param: click.Parameter,
 @quiet_options
 def convert_cmd(src: Path | None, out: Path, calibration: tuple[Path, ...], left: str | None,
                 right: str | None, cameras: tuple[tuple[str, Path], ...], layout: str,
-                units: str | None, fps: float | None, start_time: float, stamps: Path | None,
+                units: str | None, scale_calibration: bool, fps: float | None,
+                start_time: float, stamps: Path | None,
                 camera_poses: Path | None, tool_poses: Path | None, image_format: str,
                 frames: slice, quiet: bool) -> None:
     """Turn stereo (or per-camera) images or a stereo video plus a calibration file into a
@@ -98,7 +102,8 @@ def convert_cmd(src: Path | None, out: Path, calibration: tuple[Path, ...], left
                              left=left, right=right, layout=layout, units=units, fps=fps,
                              start_time=start_time, stamps=stamps,
                              camera_poses=camera_poses, tool_poses=tool_poses,
-                             image_format=image_format, frames=frames)
+                             image_format=image_format, frames=frames,
+                             scale_calibration=scale_calibration)
     result = convert(request, progress(quiet))
     click.echo(f"{result.log}: {result.frames} frames of cameras {', '.join(result.cameras)} "
                f"({result.source}; calibration lengths in {result.units})")

@@ -9,7 +9,8 @@ Layouts understood (key names case-sensitive, as the tools write them):
   in the `right` block. OpenCV's convention: a point x1 in the first camera is
   x2 = R x1 + T in the second.
 - `cameras`: a mapping name -> block (`K D`, optional `R T` in the same convention from the
-  first camera, optional `width height`), for more than two cameras.
+  first camera, or `pose`: the 4x4 camera-to-rig pose in any common frame, e.g. a robot base
+  from hand-eye calibration; optional `width height`), for more than two cameras.
 - ROS `camera_info` YAML, one file per camera (`camera_matrix`, `distortion_model`,
   `distortion_coefficients`, `rectification_matrix`, `projection_matrix`): the cameras are
   placed from the projection matrices (Tx = -fx' B) and rectification rotations.
@@ -17,8 +18,9 @@ Layouts understood (key names case-sensitive, as the tools write them):
   `baseline` to the right).
 
 Lengths (T, baseline, ROS Tx/fx') are in the file's unit: metres or millimetres. Unless told
-(`units`), the largest camera offset decides: above 1 it is millimetres (no stereo endoscope
-or surgical camera rig is a metre wide), else metres.
+(`units` given, or a `units: mm|m` key in the file), the largest camera offset decides:
+above 1 it is millimetres (no stereo endoscope or surgical camera rig is a metre wide), else
+metres.
 """
 
 from __future__ import annotations
@@ -60,7 +62,8 @@ class CameraCalibration:
 
 @dataclass(frozen=True)
 class Rig:
-    """The calibrated cameras, in the file's order; `units` says how lengths were read."""
+    """The calibrated cameras, in the file's order; `units` says how lengths were read. The
+    rig frame is the first camera's optical frame, or the frame `cameras` poses are in."""
 
     cameras: tuple[CameraCalibration, ...]
     units: str
@@ -87,7 +90,10 @@ def load_rig(paths: Sequence[Path], units: str | None = None,
     if not paths:
         raise InputError("no calibration file given (--calibration FILE)")
     if len(paths) == 1:
-        raw = _cameras(read_calibration_file(paths[0]), paths[0])
+        d = read_calibration_file(paths[0])
+        raw = _cameras(d, paths[0])
+        if units is None and str(d.get("units", "")).strip() in UNITS:
+            units = str(d["units"]).strip()
     else:
         raw = []
         for i, path in enumerate(paths):
@@ -207,7 +213,14 @@ def _relative_to_first(cams: list[_Raw]) -> None:
 
 
 def _extrinsic(d: Any, path: Path, required: bool) -> np.ndarray:
-    """Camera-to-rig pose from OpenCV's R, T (x_cam = R x_rig + T), in file units."""
+    """Camera-to-rig pose from OpenCV's R, T (x_cam = R x_rig + T), or a `pose` (4, 4) that is
+    the camera-to-rig pose itself (e.g. a hand-eye result), in file units."""
+    if isinstance(d, Mapping) and "pose" in d:
+        pose = _shaped(d["pose"], (4, 4), "pose", path)
+        if not np.allclose(pose[3], [0, 0, 0, 1]):
+            raise InputError(f"calibration file {path}: a pose's last row must be 0 0 0 1")
+        pose[:3, :3] = nearest_rotation(pose[:3, :3])
+        return pose
     if not isinstance(d, Mapping) or ("R" not in d and "T" not in d):
         if required:
             raise InputError(f"calibration file {path}: no R and T between the cameras")

@@ -42,6 +42,7 @@ class ConvertRequest:
     image_format: str = "jpeg"
     frames: slice = field(default_factory=lambda: slice(None))
     start_time: float = 1.0
+    scale_calibration: bool = False
 
 
 @dataclass(frozen=True)
@@ -129,7 +130,8 @@ def convert(req: ConvertRequest,
     tool_poses = read_tum(req.tool_poses, "tool pose file") if req.tool_poses else None
     frames = progress(source.frames(indices), total=len(indices), desc="convert",
                       unit="frame")
-    write_log(req.out, messages(rig, frames, stamps, start_ns, camera_poses, tool_poses),
+    write_log(req.out, messages(rig, frames, stamps, start_ns, camera_poses, tool_poses,
+                                  req.scale_calibration),
               "ros2", compression=CompressionType.NONE)  # images are compressed already
     poses = (f"rig poses from {req.camera_poses.name}" if req.camera_poses
              else "rig fixed in the world")
