@@ -161,3 +161,19 @@ def test_cameras_given_by_their_poses_and_the_file_units(tmp_path: Path):
     np.testing.assert_allclose(rig.cameras[0].to_rig[:3, 3], [0.0005, 0.0002, -0.0001])
     np.testing.assert_allclose(rig.cameras[1].to_rig[:3, :3], R_STEREO, atol=1e-12)
     np.testing.assert_allclose(rig.cameras[1].to_rig[:3, 3], [0.0004, 0.0003, 0.0])
+
+
+def test_opencv_file_with_left_right_blocks(tmp_path: Path):
+    import cv2
+
+    path = tmp_path / "blocks.yaml"
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
+    for side, K, D in (("left", K_LEFT, D_LEFT), ("right", K_RIGHT, D_RIGHT)):
+        fs.startWriteStruct(side, cv2.FileNode_MAP)
+        fs.write("camera_matrix", K)
+        fs.write("distortion_coefficients", D[None])
+        fs.endWriteStruct()
+    fs.write("R", R_STEREO)
+    fs.write("T", T_STEREO_MM[:, None])
+    fs.release()
+    _check_stereo(load_rig([path]))
