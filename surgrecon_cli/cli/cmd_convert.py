@@ -42,8 +42,9 @@ def _cameras(ctx: click.Context, param: click.Parameter,
               help="MCAP log to write; the config goes beside it as OUT.toml.")
 @click.option("--calibration", "calibration", multiple=True, required=True, type=_FILE,
               help="Calibration file: OpenCV YAML/XML (M1 D1 M2 D2 R T, K1/K2, left/right), "
-              "JSON with the same fields, 'fx fy cx cy baseline' of a rectified pair, or one ROS "
-              "camera_info YAML per camera (repeat the option).")
+              "JSON with the same fields, 'fx fy cx cy baseline' of a rectified pair, a "
+              "'cameras' map for more cameras, or one ROS camera_info YAML per camera (repeat "
+              "the option).")
 @click.option("--left", help="Left image folder's name inside SRC (default: found).")
 @click.option("--right", help="Right image folder's name inside SRC.")
 @click.option("--camera", "cameras", multiple=True, metavar="NAME=PATH", callback=_cameras,
@@ -65,8 +66,9 @@ def _cameras(ctx: click.Context, param: click.Parameter,
 @click.option("--stamps", type=_FILE,
               help="Stamps file: one per source frame (seconds, or integer nanoseconds).")
 @click.option("--camera-poses", type=_FILE,
-              help="TUM file (t x y z qx qy qz qw; s, m) of the first camera in the world; "
-              "default: the rig is fixed in the world.")
+              help="TUM file (t x y z qx qy qz qw; s, m) of the rig in the world: the first "
+              "camera's optical frame (or the frame of a 'cameras' file's poses); default: the "
+              "rig is fixed in the world.")
 @click.option("--tool-poses", type=_FILE,
               help="TUM file of the tool tip in the world (the robot roles are off without).")
 @click.option("--image-format", default="jpeg", show_default=True,
