@@ -154,4 +154,8 @@ def config_text(log_name: str, rig: Rig, poses: str, tool: bool) -> str:
         'joint_states = ""',
         f'world_frame = "{WORLD}"',
     ]
+    if tool:
+        lines += ["", "# The tool's shaft, masked and removed (defaults: 4 mm radius, 150 mm): set "
+                  "them for your instrument.", "# [tool]", "# shaft_radius_m = 0.004",
+                  "# shaft_length_m = 0.15"]
     return "\n".join(lines) + "\n"
