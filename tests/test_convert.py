@@ -139,18 +139,21 @@ def test_the_written_config_ingests_the_log_with_its_geometry(tmp_path: Path):
 
 def test_tum_poses_and_stamps_file(tmp_path: Path):
     """The rig moves as the camera pose file says, the tool as the tool file says, and the
-    frames take the stamps file's times."""
+    frames take the stamps file's times; ingest interpolates both to the image times."""
     from scipy.spatial.transform import Rotation
 
     stereo_folder(tmp_path / "rec", frames=3, ext=".png")
     opencv_calibration(tmp_path / "calib.yaml")
     (tmp_path / "stamps.txt").write_text("# t [s]\n100.0\n100.1\n100.25\n", encoding="utf-8")
+    # rig: turns 10 deg about z and moves 10 mm along x every 0.1 s, from 99.95 s
     quats = Rotation.from_euler("z", [[0], [10], [20], [30]], degrees=True).as_quat()
+    pose_times = [99.95, 100.05, 100.15, 100.25]
     rows = [f"{t} {0.01 * k} 0.0 0.1 {' '.join(map(str, q))}"
-            for k, (t, q) in enumerate(zip([99.9, 100.1, 100.2, 100.3], quats, strict=True))]
+            for k, (t, q) in enumerate(zip(pose_times, quats, strict=True))]
     (tmp_path / "cam.tum").write_text("\n".join(rows) + "\n", encoding="utf-8")
-    (tmp_path / "tool.tum").write_text("100.0 0 0 0.05 0 0 0 1\n100.3 0.01 0 0.05 0 0 0 1\n",
-                                       encoding="utf-8")
+    (tmp_path / "tool.tum").write_text(
+        "".join(f"{100 + k / 10:.1f} {0.01 * k} 0 0.05 0 0 0 1\n" for k in range(4)),
+        encoding="utf-8")
     out = tmp_path / "rec.mcap"
     assert _convert(tmp_path / "rec", "-o", out, "--calibration", tmp_path / "calib.yaml",
                     "--stamps", tmp_path / "stamps.txt", "--camera-poses", tmp_path / "cam.tum",
@@ -159,10 +162,32 @@ def test_tum_poses_and_stamps_file(tmp_path: Path):
     assert _stamps(log, IMAGE.format("left")) == [100 * 10**9, 100_100_000_000, 100_250_000_000]
     tf = [(t.header.stamp.sec * 10**9 + t.header.stamp.nanosec, t.child_frame_id)
           for _, m in log["/tf"] for t in m.transforms]
-    assert [t for t, child in tf if child == "rig"] == [99_900_000_000, 100_100_000_000,
-                                                        100_200_000_000, 100_300_000_000]
-    assert [t for t, child in tf if child == "tool_tip"] == [100 * 10**9, 100_300_000_000]
+    assert [t for t, child in tf if child == "rig"] == [round(t * 1e9) for t in pose_times]
+    assert [t for t, child in tf if child == "tool_tip"] == [100 * 10**9 + k * 10**8
+                                                             for k in range(4)]
     assert 'tool_pose = "/tf"' in out.with_suffix(".toml").read_text(encoding="utf-8")
+
+    run = tmp_path / "run"
+    assert main(["ingest", str(out), "-o", str(run), "--config", str(out.with_suffix(".toml")),
+                 "-q"]) == 0
+    from surgrecon_cli.io.ingest_store import load_ingested
+
+    ingested = load_ingested(run / "ingest")
+    assert ingested.usable.all()
+    want_rot, want_pos = right_in_left_m()
+    for f, t in enumerate([100.0, 100.1, 100.25]):
+        k = (t - 99.95) / 0.1  # rig pose index, fractional
+        rig_rot = Rotation.from_euler("z", 10 * k, degrees=True).as_matrix()
+        rig_pos = np.array([0.01 * k, 0.0, 0.1])
+        np.testing.assert_allclose(ingested.poses[f, 0, :3, :3], rig_rot, atol=1e-9)
+        np.testing.assert_allclose(ingested.poses[f, 0, :3, 3], rig_pos, atol=1e-9)
+        if f == 2:  # at a pose stamp; between them ingest interpolates each camera's chain
+            np.testing.assert_allclose(ingested.poses[f, 1, :3, :3], rig_rot @ want_rot,
+                                       atol=1e-9)
+            np.testing.assert_allclose(ingested.poses[f, 1, :3, 3],
+                                       rig_rot @ want_pos + rig_pos, atol=1e-9)
+        np.testing.assert_allclose(ingested.tool_poses[f, :3, 3],
+                                   [0.01 * (t - 100) / 0.1, 0, 0.05], atol=1e-9)
 
 
 def test_one_folder_per_camera(tmp_path: Path):
