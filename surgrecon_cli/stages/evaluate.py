@@ -136,13 +136,19 @@ def _honesty_part(result: dict[str, Any], labels: np.ndarray, errors: np.ndarray
                   sigma: np.ndarray, has_data: np.ndarray) -> None:
     """Does the run know what it does not know? Over frames >= 1: the registration error of
     labelled points; the share of labelled points whose true error is within the reported
-    2σ (calibration); the share unknown; labelled points with no data that are more than
-    `UNSUPPORTED_MM` off (extrapolated and still labelled)."""
+    2σ (calibration) and the factor 2σ would need to cover 95 % of them (`sigma_scale_95`,
+    above 1 when σ understates the error); the share unknown; labelled points with no data
+    that are more than `UNSUPPORTED_MM` off (extrapolated and still labelled)."""
     labelled = labels[1:] != UNKNOWN
     err, sig = errors[1:].astype(float), sigma[1:].astype(float)
     result["registration"]["labelled"] = error_summary(np.where(labelled, err, np.nan) * 1e-3)
-    within = (err <= 2.0 * sig)[labelled & np.isfinite(err)]
+    checked = labelled & np.isfinite(err)
+    within = (err <= 2.0 * sig)[checked]
     result["labels"]["calibration_2sigma"] = float(within.mean()) if within.size else None
+    with np.errstate(divide="ignore", invalid="ignore"):
+        scale = (err / (2.0 * sig))[checked]
+    result["labels"]["sigma_scale_95"] = (float(np.percentile(scale, 95))
+                                          if within.size else None)
     result["labels"]["unknown_fraction"] = float((~labelled).mean()) if labelled.size else None
     result["registration"]["unsupported_moved"] = int(
         (labelled & ~has_data[1:] & (err > UNSUPPORTED_MM)).sum())
