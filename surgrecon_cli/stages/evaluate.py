@@ -23,7 +23,7 @@ import numpy as np
 from ..config import Config
 from ..core.deformation_scoring import score_deformation, true_deformation
 from ..core.evaluation import error_summary, on_tool, registration_errors, true_point_labels
-from ..core.indentation import camera_viewpoint
+from ..core.indentation import NOT_MEASURED, camera_viewpoint, tool_known
 from ..core.labels import UNKNOWN
 from ..core.scoring import distance_stats_mm, label_scores, map_to_surface
 from ..errors import InputError
@@ -163,6 +163,8 @@ def _deformation_part(layout: RunLayout, gt: GroundTruth, log: IngestedLog, conf
     truth = true_deformation(gt.vertices, poses, view, config)
     part = score_deformation(measured, truth.series, gt.indentation_m)
     part["tool_poses"] = "ground truth" if gt.tool_poses is not None else "ingested"
+    if not tool_known(log.tool_poses).any():  # no robot in the log: contact not measured
+        part["goals"] = dict.fromkeys(part["goals"], NOT_MEASURED)
     return part
 
 
