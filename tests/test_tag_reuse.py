@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from surgrecon_cli.config import Config
+from surgrecon_cli.io.compare import load_runs
 from surgrecon_cli.io.run_folder import RunFolder
 from surgrecon_cli.pipeline import run_pipeline, tagged
 from surgrecon_cli.planning import reusable_stages
@@ -53,6 +54,9 @@ def test_tagged_run_reuses_unchanged_stages_and_equals_a_fresh_run(pipeline_log:
     ev_got = json.loads((out / "metrics/evaluation.json").read_text())
     ev_want = json.loads((fresh / "metrics/evaluation.json").read_text())
     assert ev_got["labels"]["overall"] == ev_want["labels"]["overall"]
+    (figures,) = load_runs([out])
+    assert figures.figures["register (s)"] == "reused"
+    assert figures.figures["classify (s)"] == stages["classify"]["seconds"]
     # the original run is untouched
     assert RunFolder(copy_run).read()["config"]["classify"]["significance"] == 0.123
 
