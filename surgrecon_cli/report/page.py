@@ -16,7 +16,14 @@ import numpy as np
 
 from .. import __version__
 from ..config import Config
-from ..core.quality import MAX_RESIDUAL_RATIO, MAX_UNKNOWN, MIN_OBSERVED
+from ..core.quality import (
+    GOOD_2SIGMA,
+    MAX_RESIDUAL_RATIO,
+    MAX_UNKNOWN,
+    MIN_OBSERVED,
+    pooled_within_2sigma,
+    verdict,
+)
 from ..io import report_html as rh
 from ..io.run_layout import DESCRIBED_FILES, RunLayout
 from .figures import cloud_key
@@ -67,6 +74,10 @@ def _overview(data: RunData, metrics: Metrics) -> rh.Section:
                       "good" if med is not None and med <= 1.0 else "bad"))
     if ev and ev.get("macro_f1") is not None:
         items.append(("label macro-F1", f"{ev['macro_f1']:.3f}", ""))
+    calibration = ((data.evaluation or {}).get("labels") or {}).get("calibration_2sigma")
+    if calibration is not None:
+        items.append(("labelled points within 2σ of the truth (95 % expected)",
+                      f"{calibration:.0%}", "good" if calibration >= GOOD_2SIGMA else "bad"))
     inp = data.run.get("input", {})
     seconds = stage_seconds(data.run)
     stage_rows = [(name, entry.get("status"), seconds.get(name))
@@ -157,6 +168,9 @@ def _quality(data: RunData, frames: FrameFigures, metrics: Metrics,
         basis = ("Against ground truth" if v.basis == "ground truth"
                  else "Without ground truth")
         sec.add(rh.paragraph(f"{basis}: {v.text[0].lower()}{v.text[1:]}", note=v.fits))
+        if v.basis == "ground truth":  # what the residuals alone would have said
+            residuals = verdict(*pooled_within_2sigma(frames.quality))
+            sec.add(rh.paragraph(f"Residuals alone: {residuals.text}", note=True))
     return sec
 
 
