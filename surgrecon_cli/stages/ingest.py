@@ -236,6 +236,7 @@ def _assemble(collector: StreamCollector, reader: LogReader, config: Config, sta
     joint_stamps, joint_values = collector.joints()
     joint_positions = interpolate_values(joint_stamps, joint_values, frame_stamps, gap_ns)
 
+    collector.save_videos(staging, ids)
     image_paths = _place_images(staging, cams, orders, image_index)
     jitter = [pose_jitter(s.stamps_ns, s.positions, s.quats) for s in pose_streams]
     report = _report(ids, cams, stamps, pose_streams, jitter, frames, image_index, usable,
