@@ -82,6 +82,12 @@ def test_truncated_and_forced_ingests_are_recorded(tmp_path: Path):
     caveats = run_caveats(RunFolder(run).read(), load_ingested(run / "ingest").report)
     assert caveats == [f"--force: replaced the run of {cut.resolve()} (another log) in this "
                        "folder."]
+    # damage after the data section: every message read, and said so
+    salvaged = tmp_path / "salvaged.mcap"
+    salvaged.write_bytes(full.read_bytes()[:-20])
+    assert main(["ingest", str(salvaged), "-o", str(tmp_path / "s"), "-q"]) == 0
+    (caveat,) = run_caveats(RunFolder(tmp_path / "s").read(), {})
+    assert caveat.startswith("Damaged log salvaged: salvaged.mcap") and "every message" in caveat
     # the same log again, --force: nothing was lost, nothing to say
     assert main(["ingest", str(full), "-o", str(run), "-q", "--force"]) == 0
     assert run_caveats(RunFolder(run).read(), {}) == []

@@ -4,6 +4,7 @@ ingest report.
 
 Sources (recorded by the stages in run.json):
 - ingest `truncated`: the log was damaged and `--allow-truncated` used the data before it;
+- ingest `salvaged`: the log was damaged after its data (index, summary): read by streaming;
 - ingest `replaced`: `--force` replaced the run of another log, or wrote into a folder that
   was not a run folder;
 - register `frames_failed`: frames that could not be registered (their points unknown).
@@ -30,6 +31,10 @@ def run_caveats(run: dict[str, Any], ingest_report: dict[str, Any]) -> list[str]
         out.append(f"Damaged log read with --allow-truncated: {damage}. Only the data before "
                    f"the damage was used ({kept}{extra}); the rest of the recording is missing "
                    "from every result.")
+    if ingest.get("salvaged"):
+        out.append(f"Damaged log salvaged: {ingest['salvaged']}; every message was still read "
+                   "(by streaming, without the log's index), so the results are complete, "
+                   "but the file should be re-copied or repaired.")
     if ingest.get("replaced"):
         out.append(f"--force: {ingest['replaced']}.")
     failed = register.get("frames_failed") or {}

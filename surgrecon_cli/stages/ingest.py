@@ -113,7 +113,8 @@ def ingest(
     if before.get("sha256") and before["sha256"] != reader.sha256:
         replaced = f"replaced the run of {before.get('path')} (another log) in this folder"
     run.mark_stage(STAGE, "done", cameras=cameras, frames=log.n_frames,
-                   truncated=reader.damage, usable_views=int(log.usable.sum()),
+                   truncated=reader.damage, salvaged=reader.salvaged,
+                   usable_views=int(log.usable.sum()),
                    seconds=round(time.perf_counter() - start, 3), replaced=replaced,
                    config=recorded_config(config, STAGE))
     return IngestResult(run_dir, log.cameras, log.n_frames, report)
