@@ -167,6 +167,7 @@ def simulate_cmd(
       surgrecon simulate sim.mcap --cameras 6 --frames 20 --seed 7
       surgrecon simulate stereo.mcap --variant stereo --frames 12 --seed 101
       surgrecon simulate noisy.mcap --variant noisy --tracker-noise-mm 0.5
+      surgrecon simulate no_robot.mcap --no-robot
     """
     from ..sim.simulate import simulate
     from ..sim.variants import variant_config
