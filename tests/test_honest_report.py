@@ -117,6 +117,7 @@ def test_report_boxes_caveats_and_words_the_verdict(copy_run: Path):
     assert "only 69% of labelled points are within 2σ of the truth" in quality
     summary = json.loads(files.summary_json.read_text())
     assert len(summary["caveats"]) == 2
+    assert RunFolder(copy_run).stage("report")["caveats"] == summary["caveats"]
     assert summary["quality"]["verdict"]["fits"] is False
     assert summary["quality"]["verdict"]["basis"] == "ground truth"
 

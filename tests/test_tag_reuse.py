@@ -54,6 +54,7 @@ def test_tagged_run_reuses_unchanged_stages_and_equals_a_fresh_run(pipeline_log:
     ev_got = json.loads((out / "metrics/evaluation.json").read_text())
     ev_want = json.loads((fresh / "metrics/evaluation.json").read_text())
     assert ev_got["labels"]["overall"] == ev_want["labels"]["overall"]
+    assert "<tr><td>register</td><td>reused</td>" in (out / "report.html").read_text()
     (figures,) = load_runs([out])
     assert figures.figures["register (s)"] == "reused"
     assert figures.figures["classify (s)"] == stages["classify"]["seconds"]

@@ -80,7 +80,8 @@ def _overview(data: RunData, metrics: Metrics) -> rh.Section:
                       f"{calibration:.0%}", "good" if calibration >= GOOD_2SIGMA else "bad"))
     inp = data.run.get("input", {})
     seconds = stage_seconds(data.run)
-    stage_rows = [(name, entry.get("status"), seconds.get(name))
+    stage_rows = [(name, "reused" if entry.get("reused_from") else entry.get("status"),
+                   seconds.get(name))
                   for name, entry in data.run.get("stages", {}).items() if name in TIMED_STAGES]
     return rh.Section("overview", "Overview").add(
         rh.tiles(items),
