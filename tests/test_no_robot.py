@@ -69,6 +69,7 @@ def test_contact_not_measured_without_tool_pose(pipeline_log: Path, copy_run: Pa
     contact = contact[: contact.index("</section>")]
     assert "not measured" in contact and "missed" not in contact
     assert '<div class="v">none</div>' not in contact
+    assert "<td>not measured</td><td>within 1 frame</td>" in contact  # no made-up scores
     summary_json = json.loads(files.summary_json.read_text())
     assert summary_json["deformation"]["contact"] == "not measured"
     assert set(summary_json["evaluation"]["deformation"]["goals"].values()) == {"not measured"}
