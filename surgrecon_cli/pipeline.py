@@ -17,6 +17,7 @@ register stage frame by frame. Validity is checked against run.json:
 
 from __future__ import annotations
 
+import functools
 import logging
 import shutil
 import time
@@ -124,11 +125,12 @@ def run_pipeline(log: Path, run_dir: Path, config: Config, ground_truth: Path | 
                                 on_progress, on_stage, own, force, seed_from)
     log, run_dir = Path(log), Path(run_dir)
     log_input = resolve_log(log)
+    log_sha = functools.cache(log_input.sha256)  # read the log once, if at all
     gt = find_ground_truth(log, ground_truth)
     gt_sha = file_sha256(gt) if gt else None
     reused: tuple[str, ...] = ()
     if seed_from is not None and not RunFolder(run_dir).exists():
-        reused = seed_run(Path(seed_from), run_dir, config, log_input.sha256(), gt_sha)
+        reused = seed_run(Path(seed_from), run_dir, config, log_sha(), gt_sha)
         if reused:
             logger.info("%s: reusing %s of %s (config keys unchanged)", run_dir,
                         ", ".join(reused), seed_from)
@@ -141,7 +143,7 @@ def run_pipeline(log: Path, run_dir: Path, config: Config, ground_truth: Path | 
         if remove_leftovers(run_dir):
             logger.info("%s: removed the temporary files of an interrupted run", run_dir)
         recorded = run.input_hash
-        if recorded and recorded != log_input.sha256():
+        if recorded and recorded != log_sha():
             made_from = run.read().get("input", {}).get("path", "another log")
             if not force:
                 raise RunFolderError(
