@@ -17,6 +17,7 @@ register stage frame by frame. Validity is checked against run.json:
 
 from __future__ import annotations
 
+import functools
 import logging
 import shutil
 import time
@@ -35,8 +36,9 @@ from .io.artefacts import read_json
 from .io.atomic import remove_leftovers, write_text
 from .io.ground_truth import gt_path_beside
 from .io.log_input import resolve_log
-from .io.run_folder import RunFolder, config_value, file_sha256, plain
+from .io.run_folder import RunFolder, file_sha256, plain
 from .io.run_layout import RunLayout
+from .planning import Planner, seed_run
 from .stages import registry
 from .stages.registry import StageContext
 
@@ -59,7 +61,8 @@ def open_executor(config: Config) -> closing[Executor]:
 @dataclass
 class PipelineResult:
     """What `run_pipeline` did: per stage "ran", "resumed" or "skipped" (or "-" when not
-    applicable, e.g. evaluate without ground truth), seconds per stage, and outputs."""
+    applicable, e.g. evaluate without ground truth; "reused": linked from the run it was
+    seeded from), seconds per stage, and outputs."""
 
     run_dir: Path
     actions: dict[str, str] = field(default_factory=dict)
@@ -77,52 +80,6 @@ def find_ground_truth(log: Path, given: Path | None) -> Path | None:
         return Path(given)
     beside = gt_path_beside(log)
     return beside if beside.is_file() else None
-
-
-class _Planner:
-    """Decides which stages are still valid in a run folder for this log and config."""
-
-    def __init__(self, run: RunFolder, config: Config, gt_sha: str | None):
-        self.run = run
-        self.layout = RunLayout(run.path)
-        self.current = plain(to_dict(config))
-        self.gt_sha = gt_sha
-
-    def changed_keys(self, stage: str) -> list[str]:
-        """Config keys its outputs depend on whose value differs from the one recorded in
-        its run.json entry (else in run.json's config)."""
-        data = self.run.read()
-        own = data.get("stages", {}).get(stage, {}).get("config", {})
-        changed = []
-        for key in registry.config_keys(stage):
-            if isinstance(own, dict) and key in own:
-                recorded = own[key]
-            else:
-                recorded = config_value(data.get("config", {}), key)
-            if recorded != config_value(self.current, key):
-                changed.append(key)
-        return changed
-
-    def first_stale(self, wanted: tuple[str, ...]) -> tuple[str | None, str]:
-        """The first stage (in pipeline order) that must run from scratch, and why."""
-        for stage in wanted:
-            spec = registry.spec(stage)
-            entry = self.run.stage(stage)
-            changed = self.changed_keys(stage) if entry else []
-            if changed:
-                return stage, f"config changed ({', '.join(changed)})"
-            if spec.resumable and not self.run.is_done(stage):
-                continue  # resumable frame by frame (it checks its own config)
-            if not self.run.is_done(stage):
-                return stage, "not done"
-            key = getattr(self.layout, spec.key_output)
-            if not key.exists():
-                return stage, f"{self.layout.relative(key)} is missing"
-            if spec.needs_ground_truth:
-                recorded = entry.get("ground_truth", {}).get("sha256")
-                if recorded != self.gt_sha:
-                    return stage, "ground truth changed"
-        return None, ""
 
 
 def _delete_outputs(run_dir: Path, stages: tuple[str, ...]) -> None:
@@ -150,22 +107,33 @@ def _invalidate(run: RunFolder, config: Config, stages: tuple[str, ...]) -> None
 def run_pipeline(log: Path, run_dir: Path, config: Config, ground_truth: Path | None = None,
                  allow_truncated: bool = False, on_progress: Progress | None = None,
                  on_stage: Callable[[str, str], None] | None = None,
-                 executor: Executor | None = None, force: bool = False) -> PipelineResult:
+                 executor: Executor | None = None, force: bool = False,
+                 seed_from: Path | None = None) -> PipelineResult:
     """Run (or resume) every stage on `run_dir` for `log`.
 
     ground_truth: GT file to evaluate against (default: NAME.gt.npz beside the log if any).
     on_progress(stage, fraction_of_whole_run) and on_stage(stage, action) report progress.
     executor: where the stages' tasks run (default: the config's `[run]` executor, started
     and closed by this call). force: replace a run folder made from another log (without
-    it, RunFolderError: the folder's results are not thrown away silently).
+    it, RunFolderError: the folder's results are not thrown away silently). seed_from: a
+    run folder of the same log whose still-valid stage outputs a new `run_dir` starts from
+    (hard links; planning.seed_run): those stages are "reused", not rerun.
     """
     if executor is None:
         with open_executor(config) as own:
             return run_pipeline(log, run_dir, config, ground_truth, allow_truncated,
-                                on_progress, on_stage, own, force)
+                                on_progress, on_stage, own, force, seed_from)
     log, run_dir = Path(log), Path(run_dir)
     log_input = resolve_log(log)
+    log_sha = functools.cache(log_input.sha256)  # read the log once, if at all
     gt = find_ground_truth(log, ground_truth)
+    gt_sha = file_sha256(gt) if gt else None
+    reused: tuple[str, ...] = ()
+    if seed_from is not None and not RunFolder(run_dir).exists():
+        reused = seed_run(Path(seed_from), run_dir, config, log_sha(), gt_sha)
+        if reused:
+            logger.info("%s: reusing %s of %s (config keys unchanged)", run_dir,
+                        ", ".join(reused), seed_from)
     wanted = tuple(s.name for s in registry.STAGES if not s.needs_ground_truth or gt)
     result = PipelineResult(run_dir=run_dir, ground_truth=gt)
     ctx = StageContext(log=log, run_dir=run_dir, config=config, executor=executor,
@@ -175,7 +143,7 @@ def run_pipeline(log: Path, run_dir: Path, config: Config, ground_truth: Path | 
         if remove_leftovers(run_dir):
             logger.info("%s: removed the temporary files of an interrupted run", run_dir)
         recorded = run.input_hash
-        if recorded and recorded != log_input.sha256():
+        if recorded and recorded != log_sha():
             made_from = run.read().get("input", {}).get("path", "another log")
             if not force:
                 raise RunFolderError(
@@ -184,7 +152,7 @@ def run_pipeline(log: Path, run_dir: Path, config: Config, ground_truth: Path | 
             logger.warning("%s: replacing the run of %s (--force)", run_dir, made_from)
             _delete_outputs(run_dir, STAGES[1:])
             ctx.force_ingest = True
-    planner = _Planner(run, config, file_sha256(gt) if gt else None)
+    planner = Planner(run, config, gt_sha)
     if run.exists() and not ctx.force_ingest:
         stale, why = planner.first_stale(wanted)
         if stale == "ingest" and run.is_done("ingest"):
@@ -206,12 +174,13 @@ def run_pipeline(log: Path, run_dir: Path, config: Config, ground_truth: Path | 
                 on_progress(stage, (start + weight * min(max(fraction, 0.0), 1.0))
                             / total_weight)
 
-        action = _action(run, stage, ran_any or ctx.force_ingest)
+        action = ("reused" if stage in reused and not ran_any
+                  else _action(run, stage, ran_any or ctx.force_ingest))
         if on_stage is not None:
             on_stage(stage, action)
         result.actions[stage] = action
         start = time.perf_counter()
-        if action != "skipped":
+        if action not in ("skipped", "reused"):
             ran_any = True
             registry.step(stage)(ctx, progress)
             result.seconds[stage] = round(time.perf_counter() - start, 3)
@@ -244,19 +213,20 @@ def _record_seconds(run: RunFolder, stage: str, seconds: float) -> None:
 
 
 def tagged(run_dir: Path, tag: str) -> Path:
-    """`run_dir/tag` for a sweep's labelled run (`tag` one plain folder name), or `run_dir`
-    without a tag; InputError for a tag that is not a plain name."""
+    """`RUN-tag` beside `run_dir` for a sweep's labelled run (`tag` a plain name), or
+    `run_dir` without a tag; InputError for a tag that is not a plain name."""
     if not tag:
         return Path(run_dir)
     if tag in (".", "..") or "/" in tag or "\\" in tag or not tag.isprintable():
         raise InputError(f"--tag {tag!r}: use a plain folder name (letters, digits, - _ .)")
-    return Path(run_dir) / tag
+    run_dir = Path(run_dir) if Path(run_dir).name else Path(run_dir).resolve()
+    return run_dir.with_name(f"{run_dir.name}-{tag}")
 
 
 def run_folders_for(logs: list[Path], runs_root: Path, tag: str = "") -> list[Path]:
     """One run folder per log under `runs_root`, named after the log's file name without
-    `.mcap` (a bag folder: its name), and `tag` below it if given; InputError when two logs
-    would share a folder."""
+    `.mcap` (a bag folder: its name), with `-tag` appended if given (RUNS/NAME-tag);
+    InputError when two logs would share a folder."""
     names = [Path(log).name.removesuffix(".mcap") for log in logs]
     folders = [tagged(Path(runs_root) / (n if n not in ("", ".", "..") else Path(log).name), tag)
                for n, log in zip(names, logs, strict=True)]
@@ -278,20 +248,24 @@ def run_many(logs: list[Path], runs_root: Path, config: Config,
     Logs run concurrently (one driver thread each, as many as the executor has workers),
     so that the tasks of all logs keep the workers busy. A log that fails (e.g.
     corrupt) does not stop the others: its entry in the returned list is the error.
-    on_progress(log, stage, fraction) reports each log's progress.
+    on_progress(log, stage, fraction) reports each log's progress. With a `tag`, each
+    RUNS/NAME-tag starts from RUNS/NAME's still-valid outputs (`run_pipeline`'s seed_from).
     """
     if executor is None:
         with open_executor(config) as own:
             return run_many(logs, runs_root, config, allow_truncated, own, on_progress, force,
                             tag)
     folders = run_folders_for(logs, runs_root, tag)
+    bases = dict(zip(folders, run_folders_for(logs, runs_root) if tag else [None] * len(logs),
+                     strict=True))
     Path(runs_root).mkdir(parents=True, exist_ok=True)
 
     def one(log: Path, folder: Path) -> PipelineResult | SurgReconError:
         report = None if on_progress is None else partial(on_progress, log)
         try:
             return run_pipeline(log, folder, config, allow_truncated=allow_truncated,
-                                on_progress=report, executor=executor, force=force)
+                                on_progress=report, executor=executor, force=force,
+                                seed_from=bases[folder])
         except SurgReconError as exc:
             return exc
 

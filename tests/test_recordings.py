@@ -88,10 +88,12 @@ def test_tagged_runs_of_one_log_sit_side_by_side(tmp_path: Path):
     from surgrecon_cli.errors import InputError
     from surgrecon_cli.pipeline import run_folders_for, tagged
 
-    assert tagged(tmp_path, "") == tmp_path and tagged(tmp_path, "a0.2") == tmp_path / "a0.2"
+    # beside the run, not inside it (issue 22)
+    assert tagged(tmp_path, "") == tmp_path
+    assert tagged(tmp_path / "run", "a0.2") == tmp_path / "run-a0.2"
     logs = [tmp_path / "x.mcap", tmp_path / "bag"]
     assert run_folders_for(logs, tmp_path / "runs", "strict") == [
-        tmp_path / "runs" / "x" / "strict", tmp_path / "runs" / "bag" / "strict"]
+        tmp_path / "runs" / "x-strict", tmp_path / "runs" / "bag-strict"]
     for bad in ("..", "a/b", "a\\b", "a\nb"):
         try:
             tagged(tmp_path, bad)

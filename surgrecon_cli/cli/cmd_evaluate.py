@@ -109,14 +109,23 @@ def format_evaluation(ev: dict[str, Any]) -> str:
         for name, row in zip(axes["rows"], o["confusion"], strict=True):
             lines.append(f"  {name:<10}" + "".join(f"{v:>10}" for v in row))
     deformation = ev.get("deformation")
-    if deformation:
+    if deformation and all(isinstance(v, str) for v in deformation["goals"].values()):
+        lines.append("contact and indentation: not measured (no tool pose in the log); "
+                     "goals: " + ", ".join(f"{k} {v}" for k, v in deformation["goals"].items()))
+    elif deformation:
         depth = deformation["indentation_error_mm"]["median"]
         area = deformation["area_error_share"]["median"]
-        goals = ", ".join(f"{k} {'-' if v is None else ('met' if v else 'MISSED')}"
-                          for k, v in deformation["goals"].items())
+        goals = ", ".join(f"{k} {_goal(v)}" for k, v in deformation["goals"].items())
         lines.append(f"contact onset/release {deformation['onset_frame']}/"
                      f"{deformation['release_frame']} (truth {deformation['true_onset_frame']}/"
                      f"{deformation['true_release_frame']}); indentation error median "
                      f"{'-' if depth is None else f'{depth:.2f}'} mm; area error median "
                      f"{'-' if area is None else f'{area:.1%}'}; goals: {goals}")
     return "\n".join(lines)
+
+
+def _goal(value: bool | str | None) -> str:
+    """A deformation goal: met, MISSED, "-" (nothing to judge) or why it was not judged."""
+    if isinstance(value, str):
+        return value
+    return "-" if value is None else ("met" if value else "MISSED")

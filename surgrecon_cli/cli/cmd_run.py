@@ -28,8 +28,11 @@ from .common import common_options, executor_options, progress
               help="Replace a run folder that holds the run of another log (refused "
                    "without it).")
 @click.option("--tag", default="", metavar="LABEL",
-              help="Write to RUN/LABEL (with several logs RUNS/NAME/LABEL), so that runs of "
-                   "one log with other settings sit side by side (`surgrecon compare`).")
+              help="Write to RUN-LABEL beside RUN (with several logs RUNS/NAME-LABEL), so "
+                   "that runs of one log with other settings sit side by side (`surgrecon "
+                   "compare RUN RUN-LABEL`). A new RUN-LABEL starts from RUN: every stage "
+                   "output of RUN whose config keys did not change is reused (hard links, "
+                   "copies across devices), only the rest is computed.")
 @click.option("--export", "exports", type=click.Choice(["mcap"]), multiple=True,
               help="At the end, also write RUN/export.mcap for Foxglove (as `surgrecon "
                    "export RUN --mcap`), with RUN/export.layout.json beside it.")
@@ -43,8 +46,10 @@ def run_cmd(logs: tuple[Path, ...], run_dir: Path, gt_path: Path | None, allow_t
     Resumable: rerunning on the same RUN skips finished stages (and registered frames); a
     RUN made from another log is refused (--force replaces it). A changed config section
     reruns the first stage that depends on it and all later ones (e.g. registration.*
-    reruns register, classify and report, not ingest or the template). Prints the report's
-    path at the end.
+    reruns register, classify and report, not ingest or the template). With --tag the run
+    goes to RUN-LABEL beside RUN and reuses RUN's outputs that the change leaves valid
+    (e.g. a classify.* change recomputes classify and what follows it, not ingest, the
+    template or the registration). Prints the report's path at the end.
 
     The stages' tasks run on --executor (serial, processes, or dask on a LocalCluster or the
     cluster at --scheduler); the outputs are the same whichever runs them. Several logs
@@ -68,9 +73,9 @@ def run_cmd(logs: tuple[Path, ...], run_dir: Path, gt_path: Path | None, allow_t
                          "NAME.gt.npz beside it is used")
     with open_executor(config) as executor:
         if len(logs) == 1:
-            run_dir = tagged(run_dir, tag)
+            base, run_dir = run_dir, tagged(run_dir, tag)
             _run_one(logs[0], run_dir, gt_path, allow_truncated, force, config, quiet,
-                     executor)
+                     executor, base if tag else None)
             if "mcap" in exports:
                 _export_mcap([run_dir])
         else:
@@ -79,7 +84,8 @@ def run_cmd(logs: tuple[Path, ...], run_dir: Path, gt_path: Path | None, allow_t
 
 
 def _run_one(log: Path, run_dir: Path, gt_path: Path | None, allow_truncated: bool,
-             force: bool, config: Any, quiet: bool, executor: Any) -> None:
+             force: bool, config: Any, quiet: bool, executor: Any,
+             seed_from: Path | None = None) -> None:
     from ..pipeline import run_pipeline
     from .cmd_evaluate import format_evaluation
 
@@ -91,7 +97,7 @@ def _run_one(log: Path, run_dir: Path, gt_path: Path | None, allow_truncated: bo
 
         result = run_pipeline(log, run_dir, config, ground_truth=gt_path,
                               allow_truncated=allow_truncated, on_progress=on_progress,
-                              executor=executor, force=force)
+                              executor=executor, force=force, seed_from=seed_from)
     for stage, action in result.actions.items():
         seconds = result.seconds.get(stage)
         timing = f" in {seconds:.1f} s" if seconds is not None else ""

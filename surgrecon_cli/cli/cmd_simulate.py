@@ -8,6 +8,7 @@ from pathlib import Path
 import click
 from click.core import ParameterSource
 
+from ..config import TopicsConfig
 from ..sim.names import LENSES, POSE_CONVENTIONS
 from ..sim.variants import VARIANTS
 from .common import common_options
@@ -28,7 +29,33 @@ _FIELDS = {
     "tracker_noise_mm": ("tracker_noise_pos", 1000),
     "tracker_noise_deg": ("tracker_noise_deg", 1),
     "lens": ("lens", 1),
+    "robot": ("robot", 1),
 }
+
+def _no_robot_topics(topics: TopicsConfig) -> bool:
+    """True when `--set topics.tool_pose=""` (and topics.joint_states="") asks for a log
+    without a robot; UsageError for any other `topics` setting (the simulator writes the
+    default topic names)."""
+    from dataclasses import asdict
+
+    given, default = asdict(topics), asdict(TopicsConfig())
+    robot = ("tool_pose", "joint_states")
+    changed = sorted(k for k in default if given[k] != default[k] and k not in robot)
+    if changed:
+        raise click.UsageError(
+            f"simulate writes the default topic names; it does not take topics.{changed[0]} "
+            "(only topics.tool_pose=\"\", the same as --no-robot). Set the topics when you "
+            "ingest or run the log.")
+    for key in robot:
+        if given[key] not in ("", default[key]):
+            raise click.UsageError(f"simulate writes topics.{key} on {default[key]}; here "
+                                   "it takes only \"\" (a log without a robot: --no-robot)")
+    if given["joint_states"] == "" and given["tool_pose"]:
+        raise click.UsageError("simulate records the tool pose and joint states together: "
+                               "for a log without the robot use --no-robot (or "
+                               "topics.tool_pose=\"\")")
+    return given["tool_pose"] == ""
+
 
 _VARIANT_HELP = "\n".join(f"  {v.name:<12} {v.description}" for v in VARIANTS.values())
 
@@ -112,6 +139,11 @@ def _explicit(ctx: click.Context, name: str) -> bool:
     'pip install "surgrecon[video]").',
 )
 @click.option("--separated", is_flag=True, help="Place the last camera where it shares no view.")
+@click.option("--robot/--no-robot", default=True, show_default=True,
+              help="Record the robot's tool pose and joint states; --no-robot writes a log "
+                   "without them (the tool is still in the images; the same as --set "
+                   "topics.tool_pose=\"\" here), to be run with --set topics.tool_pose=\"\" "
+                   "--set topics.joint_states=\"\".")
 @common_options
 @click.pass_context
 def simulate_cmd(
@@ -135,6 +167,7 @@ def simulate_cmd(
       surgrecon simulate sim.mcap --cameras 6 --frames 20 --seed 7
       surgrecon simulate stereo.mcap --variant stereo --frames 12 --seed 101
       surgrecon simulate noisy.mcap --variant noisy --tracker-noise-mm 0.5
+      surgrecon simulate no_robot.mcap --no-robot
     """
     from ..sim.simulate import simulate
     from ..sim.variants import variant_config
@@ -145,6 +178,11 @@ def simulate_cmd(
         if _explicit(ctx, name):
             key, divisor = _FIELDS[name]
             overrides[key] = value / divisor if divisor != 1 else value
+    if _no_robot_topics(config.topics):
+        overrides["robot"] = False
+    if not overrides.get("robot", True) and poses == "robot-base":
+        raise click.UsageError("--poses robot-base gives the tool in the robot's base frame: "
+                               "it needs the robot (drop --no-robot)")
     try:
         cfg = variant_config(variant, **overrides)
     except ValueError as exc:
@@ -176,5 +214,7 @@ def simulate_cmd(
     from ..sim.conventions import CONVENTIONS
 
     settings = CONVENTIONS[poses].settings
+    if not cfg.robot:
+        settings = (*settings, 'topics.tool_pose=""', 'topics.joint_states=""')
     if settings:
         click.echo("ingest it with: " + " ".join(f"--set '{s}'" for s in settings))

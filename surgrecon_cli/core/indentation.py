@@ -42,6 +42,10 @@ from .dent import (
     value_at_axis,
 )
 
+# What the contact figures read where the tool pose is unknown (no robot in the log, or a
+# gap in its stream): not measured, which is not "no contact".
+NOT_MEASURED = "not measured"
+
 SERIES_KEYS = ("contact", "clearance_mm", "tolerance_mm", "indentation_mm",
                "indentation_normal_mm", "depth_under_tip_mm", "depth_sigma_mm",
                "penetration_mm", "area_mm2", "volume_mm3", "force_n", "contact_point")
@@ -257,6 +261,12 @@ def camera_viewpoint(camera_poses: np.ndarray, usable: np.ndarray,
     if len(centres):
         return centres.mean(0)
     return np.asarray(points, float).mean(0) + np.array([0.0, 0.0, 1.0])
+
+
+def tool_known(tool_poses: np.ndarray) -> np.ndarray:
+    """Frames (T,) bool whose tool pose (T, 4, 4) is known (finite): where contact can be
+    measured at all."""
+    return np.isfinite(np.asarray(tool_poses, float)).all(axis=(1, 2))
 
 
 def contact_events(contact: np.ndarray) -> tuple[int | None, int | None]:

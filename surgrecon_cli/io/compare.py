@@ -3,9 +3,10 @@ keys in which they differ.
 
 Figures come from RUN/metrics/summary.json (written by report), RUN/metrics/evaluation.json
 (evaluate) and the stage timings in RUN/run.json (a stage's own `seconds`, else the
-pipeline's); a figure a run does not have is shown as
-"-". The config is the one recorded in run.json (RUN/config.toml if run.json has none);
-keys are compared as dotted `section.key` names.
+pipeline's; "reused" for a stage a tagged run linked from the run it started from, left out
+of the total); a figure a run does not have is shown as "-". The config is the one recorded
+in run.json (RUN/config.toml if run.json has none); keys are compared as dotted
+`section.key` names.
 """
 
 from __future__ import annotations
@@ -23,7 +24,8 @@ from .metrics import read_csv
 from .run_folder import RunFolder, config_value
 from .run_layout import RunLayout
 
-_STAGES = ("ingest", "build-template", "register", "classify", "evaluate", "report")
+_STAGES = ("ingest", "build-template", "register", "classify", "measure", "evaluate",
+           "report")
 
 # (row label, source, dotted path in it); sources: summary, evaluation, seconds
 FIGURES: tuple[tuple[str, str, str], ...] = (
@@ -99,7 +101,8 @@ def load_run(path: Path, label: str | None = None) -> RunFigures:
         sources["evaluation"] = read_json(layout.evaluation_json, "evaluate")
     stages = data.get("stages", {})
     piped = data.get("pipeline", {}).get("seconds", {})  # the stages that time themselves
-    seconds = {name: stages.get(name, {}).get("seconds", piped.get(name)) for name in _STAGES}
+    seconds = {name: "reused" if stages.get(name, {}).get("reused_from")
+               else stages.get(name, {}).get("seconds", piped.get(name)) for name in _STAGES}
     done = [s for s in seconds.values() if isinstance(s, int | float)]
     seconds["total"] = sum(done) if done else None
     sources["seconds"] = seconds

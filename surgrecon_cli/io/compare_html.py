@@ -30,28 +30,58 @@ PER_FRAME: tuple[tuple[str, str, str], ...] = (
 _PALETTE = ("#4C78A8", "#D1495B", "#59A14F", "#F2A541", "#9C6ADE", "#2CA3A3", "#7F7F7F")
 
 
-def overlaid(runs: Sequence[RunFigures], column: str, title: str, ylabel: str) -> bytes | None:
-    """One line per run of a frames.csv column against the frame (None if no run has it)."""
-    series = []
+_LINES = ("-", "--", ":", "-.")
+_MARKERS = ("o", "s", "^", "D", "v", "P", "X")
+
+
+def _series(runs: Sequence[RunFigures], column: str) -> list[tuple[str, np.ndarray, np.ndarray]]:
+    """(label, frames, values) of a frames.csv column for each run."""
+    out = []
     for run in runs:
         frames = np.array([row["frame"] for row in run.frames if column in row], float)
         values = np.array([row[column] for row in run.frames if column in row], float)
-        series.append((run.label, frames, values))
+        out.append((run.label, frames, values))
+    return out
+
+
+def identical_to(series: list[tuple[str, np.ndarray, np.ndarray]]) -> list[str]:
+    """For each series, the label of an earlier one with the same frames and values ("" if
+    none): drawn over it, it would hide it."""
+    out = []
+    for i, (_, frames, values) in enumerate(series):
+        twin = next((label for label, f, v in series[:i] if len(values) and f.shape == frames.shape
+                     and np.array_equal(f, frames) and np.allclose(v, values, equal_nan=True)),
+                    "")
+        out.append(twin)
+    return out
+
+
+def overlaid(runs: Sequence[RunFigures], column: str, title: str,
+             ylabel: str) -> tuple[bytes, str] | None:
+    """One line per run of a frames.csv column against the frame, and a caption naming the
+    runs whose lines coincide (None if no run has the column). Each run has its own colour,
+    line style and marker, so a line drawn over an identical one leaves both visible."""
+    series = _series(runs, column)
     if not any(len(v) for _, _, v in series):
         return None
+    twins = identical_to(series)
+    caption = "; ".join(f"{label} is identical to {twin} (lines drawn over each other)"
+                        for (label, _, _), twin in zip(series, twins, strict=True) if twin)
     with rc_context(STYLE):
         fig = new_figure(7.5, 2.6)
         ax = fig.add_subplot()
-        for i, (label, frames, values) in enumerate(series):
+        for i, ((label, frames, values), twin) in enumerate(zip(series, twins, strict=True)):
             if len(values):
-                ax.plot(frames, values, marker="o", markersize=3, linewidth=1.4,
-                        color=_PALETTE[i % len(_PALETTE)], label=label)
+                ax.plot(frames, values, marker=_MARKERS[i % len(_MARKERS)],
+                        markersize=6 if i == 0 else 3.5, linestyle=_LINES[i % len(_LINES)],
+                        linewidth=2.4 if i == 0 else 1.4, color=_PALETTE[i % len(_PALETTE)],
+                        label=f"{label} (= {twin})" if twin else label, zorder=2 + i)
         ax.set_xlabel("frame")
         ax.xaxis.set_major_locator(MaxNLocator(integer=True))
         ax.set_ylabel(ylabel)
         ax.set_title(title, loc="left")
         ax.legend(loc="upper left", bbox_to_anchor=(1.0, 1.0))
-        return to_png(fig)
+        return to_png(fig), caption
 
 
 def comparison_html(runs: Sequence[RunFigures]) -> str:
@@ -70,10 +100,10 @@ def comparison_html(runs: Sequence[RunFigures]) -> str:
     else:
         config.add(rh.paragraph("The runs have the same config."))
     plots = rh.Section("frames", "Per frame")
-    drawn = [png for column, title, unit in PER_FRAME
-             if (png := overlaid(runs, column, title, unit)) is not None]
+    drawn = [plot for column, title, unit in PER_FRAME
+             if (plot := overlaid(runs, column, title, unit)) is not None]
     if drawn:
-        plots.add(*(rh.figure(png) for png in drawn))
+        plots.add(*(rh.figure(png, caption) for png, caption in drawn))
     else:
         plots.add(rh.paragraph("No run has metrics/frames.csv (run `surgrecon report`)."))
     paths = rh.Section("runs", "Runs").add(rh.table(["run", "folder"],

@@ -17,7 +17,9 @@ time in the source log (RUN/ingest/frames.npz `stamps_ns`). Per frame k:
                             RUN/metrics/deformation.csv; when `measure` is done, and then
                             the cloud also carries inward_mm (float32, the compensated
                             displacement into the tissue) and deformed (uint8))
-  /cameras/CC/image         foxglove.CompressedImage  the image as recorded (JPEG / PNG)
+  /cameras/CC/image         foxglove.CompressedImage  the image as recorded (JPEG / PNG);
+                            for a video camera foxglove.CompressedVideo: its H.264 / H.265
+                            packets as recorded (RUN/ingest/video/CC.npz), not re-encoded
   /cameras/CC/calibration   foxglove.CameraCalibration
   /cameras/CC/annotations   foxglove.ImageAnnotations  the cloud's points projected, by class
 
@@ -56,12 +58,13 @@ from .foxglove_scene import (
     camera_calibration,
     class_colours,
     compressed_image,
+    compressed_video,
     frame_transforms,
     image_annotations,
     projected_labels,
     scene_update,
 )
-from .ingest_store import IngestedLog, load_ingested
+from .ingest_store import IngestedLog, VideoPackets, load_ingested, load_video
 from .mcap_out import McapOut
 from .metrics import read_csv
 from .run_folder import RunFolder
@@ -124,6 +127,8 @@ def export_mcap(run_dir: Path, out_path: Path,
     measures_schema = {**metrics_schema(measures), "title": "surgrecon.Deformation",
                        "description": "One frame's tool-tissue contact and indentation "
                        "(core/indentation.py; mm, mm², mm³, N; force_n a model output)"}
+    videos = {c: VideoPassThrough(log, c, video) for c in range(len(log.cameras))
+              if (video := load_video(log.root, c)) is not None}
     out_path = Path(out_path)
     with atomic_open(out_path, "wb") as stream:
         out = McapOut(stream)
@@ -142,7 +147,7 @@ def export_mcap(run_dir: Path, out_path: Path,
                 ("inward_mm", "<f4", measured.field.inward_mm[k]),
                 ("deformed", "u1", measured.field.deformed[k].astype(np.uint8))]
             _write_frame(out, layout, log, config, k, n, displacement[k], (metrics[k], schema),
-                         extra)
+                         extra, videos)
             if measured is not None:
                 stamp = int(log.stamps_ns[k])
                 out.json(TOPIC_DEFORMATION, "surgrecon.Deformation", measures_schema,
@@ -168,12 +173,36 @@ def _rgba(rgb: np.ndarray) -> list[tuple[str, str, np.ndarray]]:
             ("alpha", "u1", alpha)]
 
 
+class VideoPassThrough:
+    """A video camera's recorded packets, passed through to /cameras/CC/image as
+    foxglove.CompressedVideo (no re-encoding): every packet up to a frame's image is
+    written before that frame's annotations, the image's own packet stamped with the frame
+    time (as the other messages of the frame), the ones between frames with their own."""
+
+    def __init__(self, log: IngestedLog, c: int, video: VideoPackets) -> None:
+        self.log, self.c, self.format = log, c, video.format
+        self.packets = video.packets()
+        self.sent = 0
+
+    def up_to(self, out: McapOut, k: int) -> None:
+        image_stamp = int(self.log.image_stamps_ns[k, self.c])
+        frame_stamp = int(self.log.stamps_ns[k])
+        while self.sent < len(self.packets) and self.packets[self.sent][0] <= image_stamp:
+            own, data = self.packets[self.sent]
+            stamp = frame_stamp if own == image_stamp else own
+            out.protobuf(camera_topic(self.c, "image"),
+                         compressed_video(stamp, self.c, data, self.format), stamp)
+            self.sent += 1
+
+
 def _write_frame(out: McapOut, layout: RunLayout, log: IngestedLog, config: Config, k: int,
                  n: int, displacement_mm: np.ndarray,
                  metrics: tuple[dict[str, Any], dict[str, Any]],
-                 extra: list[tuple[str, str, np.ndarray]]) -> None:
+                 extra: list[tuple[str, str, np.ndarray]],
+                 videos: dict[int, VideoPassThrough]) -> None:
     """All messages of frame k; metrics: the frame's metrics and their JSON Schema; extra:
-    more per-point fields of the cloud (name, dtype, values (N,) by point_id)."""
+    more per-point fields of the cloud (name, dtype, values (N,) by point_id); videos: the
+    video cameras' packet streams by camera index."""
     stamp = int(log.stamps_ns[k])
     cloud = read_frame_cloud(layout, k)
     ids = cloud["point_id"].astype(np.int64)
@@ -205,14 +234,17 @@ def _write_frame(out: McapOut, layout: RunLayout, log: IngestedLog, config: Conf
         rel = log.image_paths[k][c]
         if not rel:
             continue
-        image = log.root / rel
-        try:
-            data = image.read_bytes()
-        except OSError as exc:
-            raise RunFolderError(f"{image}: cannot read ({exc.strerror or exc}); re-run "
-                                 "ingest") from exc
-        out.protobuf(camera_topic(c, "image"),
-                     compressed_image(stamp, c, data, image.suffix.lstrip(".")), stamp)
+        if c in videos:
+            videos[c].up_to(out, k)
+        else:
+            image = log.root / rel
+            try:
+                data = image.read_bytes()
+            except OSError as exc:
+                raise RunFolderError(f"{image}: cannot read ({exc.strerror or exc}); re-run "
+                                     "ingest") from exc
+            out.protobuf(camera_topic(c, "image"),
+                         compressed_image(stamp, c, data, image.suffix.lstrip(".")), stamp)
         out.protobuf(camera_topic(c, "calibration"), camera_calibration(stamp, c, model), stamp)
         uv = np.zeros((0, 2))
         labels = np.zeros(0, np.uint8)

@@ -13,6 +13,7 @@ from collections.abc import Sequence
 import numpy as np
 from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
 from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
+from foxglove_schemas_protobuf.CompressedVideo_pb2 import CompressedVideo
 from foxglove_schemas_protobuf.CylinderPrimitive_pb2 import CylinderPrimitive
 from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
 from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
@@ -133,6 +134,12 @@ def compressed_image(stamp: int, index: int, data: bytes, extension: str) -> Com
     """A stored image's bytes as recorded (`extension` jpg / jpeg / png / webp)."""
     fmt = {"jpg": "jpeg"}.get(extension.lower(), extension.lower())
     return CompressedImage(timestamp=timestamp(stamp), frame_id=camera_frame(index),
+                           data=data, format=fmt)
+
+
+def compressed_video(stamp: int, index: int, data: bytes, fmt: str) -> CompressedVideo:
+    """One recorded video packet (an H.264 / H.265 access unit, Annex B) as is."""
+    return CompressedVideo(timestamp=timestamp(stamp), frame_id=camera_frame(index),
                            data=data, format=fmt)
 
 

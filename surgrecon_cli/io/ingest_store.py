@@ -2,7 +2,8 @@
 
 cameras.json holds the camera ids (sorted strings), intrinsics and the ingest report;
 frames.npz the per-frame arrays (see `IngestedLog`); images/ every image as recorded
-(compressed bytes kept; raw images stored as PNG). Paths: io/run_layout.py.
+(compressed bytes kept; raw images and decoded video frames stored as PNG); video/ a video
+camera's packets as recorded (`VideoPackets`, for the export). Paths: io/run_layout.py.
 """
 
 from __future__ import annotations
@@ -172,3 +173,39 @@ def _load_ingested(root_name: str, _stamp: tuple[tuple[int, ...], ...]) -> Inges
         image_paths=tuple(tuple(str(p) for p in row) for row in arrays["image_paths"]),
         report=meta.get("report", {}),
     )
+
+
+@dataclass(frozen=True)
+class VideoPackets:
+    """A video camera's packets as recorded (from its first keyframe): format "h264" or
+    "h265", data (B,) uint8 all packets back to back, sizes (P,) bytes and stamps_ns (P,)
+    of each."""
+
+    format: str
+    data: np.ndarray
+    sizes: np.ndarray
+    stamps_ns: np.ndarray
+
+    def packets(self) -> list[tuple[int, bytes]]:
+        """(stamp_ns, bytes) of every packet, in recorded order."""
+        ends = np.cumsum(self.sizes)
+        return [(int(s), self.data[e - n:e].tobytes())
+                for s, e, n in zip(self.stamps_ns, ends, self.sizes, strict=True)]
+
+
+def save_video(root: Path, camera_index: int, video: VideoPackets) -> None:
+    """`ingest/video/CC.npz` of camera index CC."""
+    write_npz(RunLayout.ingest_video(root, camera_index), format=np.array(video.format),
+              data=video.data, sizes=video.sizes, stamps_ns=video.stamps_ns)
+
+
+def load_video(root: Path, camera_index: int) -> VideoPackets | None:
+    """Camera index CC's packets as recorded, None for a camera that is not a video."""
+    path = RunLayout.ingest_video(Path(root), camera_index)
+    if not path.is_file():
+        return None
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            return VideoPackets(str(z["format"]), z["data"], z["sizes"], z["stamps_ns"])
+    except (OSError, ValueError, KeyError) as exc:
+        raise RunFolderError(f"{path}: unreadable ({exc}); re-run ingest") from exc

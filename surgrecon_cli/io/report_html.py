@@ -1,7 +1,8 @@
 """A self-contained HTML report: inline CSS, PNG figures embedded as base64, no scripts.
 
 Build a list of `Section`s (each a title and a list of blocks made by `paragraph`,
-`table`, `figure`, `tiles`) and render it with `render`.
+`table`, `figure`, `tiles`) and render it with `render`, with the run's caveats (what
+damaged or altered it) in a box above everything.
 """
 
 from __future__ import annotations
@@ -41,6 +42,10 @@ figure { margin:10px 0 18px; }
 figure img { max-width:100%; height:auto; display:block; }
 figcaption { color:var(--muted); font-size:12.5px; margin-top:4px; }
 .grid2 { display:grid; grid-template-columns:repeat(auto-fit,minmax(420px,1fr)); gap:12px; }
+.caveats { background:#fff4e5; border:2px solid #e08a00; border-radius:8px;
+            padding:12px 24px; margin:22px 0; }
+.caveats h2 { margin:0 0 6px; font-size:17px; color:#8a4b00; }
+.caveats li { margin:3px 0; }
 code { background:#f0f3f6; padding:1px 4px; border-radius:3px; font-size:12.5px; }
 footer { color:var(--muted); font-size:12px; text-align:center; padding:20px; }
 """
@@ -69,10 +74,19 @@ def raw(markup: str) -> str:
     return markup
 
 
+@dataclass(frozen=True)
+class Link:
+    """A table cell that links `text` to `href` (a relative path or URL)."""
+
+    href: str
+    text: str
+
+
 def table(columns: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:
-    """An HTML table; floats shown with 3 significant decimals, None as a dash."""
+    """An HTML table; floats shown with 3 significant decimals, None as a dash, `Link`s as
+    links."""
     head = "".join(f"<th>{html.escape(str(c))}</th>" for c in columns)
-    body = "".join("<tr>" + "".join(f"<td>{html.escape(_fmt(v))}</td>" for v in row) + "</tr>"
+    body = "".join("<tr>" + "".join(f"<td>{_cell(v)}</td>" for v in row) + "</tr>"
                    for row in rows)
     return f"<table><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>"
 
@@ -98,10 +112,14 @@ def tiles(items: Sequence[tuple[str, str, str]]) -> str:
     return f'<div class="tiles">{cells}</div>'
 
 
-def render(title: str, subtitle: str, sections: Sequence[Section], footer: str = "") -> str:
-    """The whole document."""
+def render(title: str, subtitle: str, sections: Sequence[Section], footer: str = "",
+           caveats: Sequence[str] = ()) -> str:
+    """The whole document; `caveats` (plain sentences) in a box above the first section."""
     nav = "".join(f'<a href="#{s.anchor}">{html.escape(s.title)}</a>' for s in sections)
-    body = "".join(f'<section id="{s.anchor}"><h2>{html.escape(s.title)}</h2>'
+    box = ('<div class="caveats" id="caveats"><h2>Caveats: read before trusting this run</h2>'
+           "<ul>" + "".join(f"<li>{html.escape(c)}</li>" for c in caveats) + "</ul></div>"
+           if caveats else "")
+    body = box + "".join(f'<section id="{s.anchor}"><h2>{html.escape(s.title)}</h2>'
                    + "".join(s.blocks) + "</section>" for s in sections)
     return (
         "<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
@@ -111,6 +129,12 @@ def render(title: str, subtitle: str, sections: Sequence[Section], footer: str =
         f"<nav>{nav}</nav><main>{body}</main>"
         f"<footer>{html.escape(footer)}</footer></body></html>\n"
     )
+
+
+def _cell(value: Any) -> str:
+    if isinstance(value, Link):
+        return f'<a href="{html.escape(value.href)}">{html.escape(value.text)}</a>'
+    return html.escape(_fmt(value))
 
 
 def _fmt(value: Any) -> str:

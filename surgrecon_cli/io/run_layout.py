@@ -5,6 +5,8 @@
   RUN/ingest/cameras.json        camera ids, intrinsics, ingest report (io/ingest_store.py)
   RUN/ingest/frames.npz          per-frame stamps, poses, tool poses, joints
   RUN/ingest/images/CC/FFFFFF.*  image of camera index CC at frame FFFFFF, as recorded
+                                 (PNG, decoded, for a video camera)
+  RUN/ingest/video/CC.npz        a video camera's H.264/H.265 packets as recorded (export)
   RUN/template.ply               the template cloud P (frame 0)
   RUN/template/observations.npz  where each template point was seen, its covariance
   RUN/template/summary.json      template counts and pair plan
@@ -87,6 +89,17 @@ class RunLayout:
     def staged_relpath(camera_index: int, count: int, ext: str) -> str:
         """Path, relative to the ingest folder, of a camera's `count`-th streamed image."""
         return f"staged/{camera_index:02d}/{count:08d}.{ext}"
+
+    @staticmethod
+    def staged_video(ingest_dir: Path, camera_index: int) -> Path:
+        """A video camera's packets as recorded, appended as they stream in (by discovery
+        index)."""
+        return Path(ingest_dir) / "staged" / f"{camera_index:02d}.video"
+
+    @staticmethod
+    def ingest_video(ingest_dir: Path, camera_index: int) -> Path:
+        """A video camera's packets as recorded, with their stamps (io/ingest_store.py)."""
+        return Path(ingest_dir) / "video" / f"{camera_index:02d}.npz"
 
     def ingest_staging(self, token: str) -> Path:
         return self.root / f"{INGEST_STAGING_PREFIX}{token}"

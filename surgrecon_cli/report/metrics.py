@@ -14,7 +14,9 @@ import numpy as np
 from .. import __version__
 from ..config import Config
 from ..core.labels import STATUS_NAMES
+from ..core.quality import Verdict, pooled_within_2sigma, verdict
 from ..io.metrics import finite_json
+from .caveats import run_caveats
 from .frames import CLASS_CODES, STATUS_CODES, stats
 from .gather import RunData
 
@@ -26,7 +28,8 @@ FRAME_COLUMNS = (
     "displacement_median_mm", "displacement_p95_mm", "displacement_max_mm",
     "seconds_target", "seconds_register",
     "observed_fraction", "unobserved_fraction", "outlier_fraction", "unknown_fraction",
-    "sigma_median_mm", "residual_over_sigma", "failed", "converged", "trustworthy",
+    "sigma_median_mm", "residual_over_sigma", "residual_within_2sigma", "failed",
+    "converged", "trustworthy",
     "error_median_mm", "error_p95_mm", "error_max_mm", "macro_f1",
 )
 # The stages the report times, in pipeline order (the report itself is not one of them).
@@ -37,11 +40,14 @@ TIMED_STAGES = ("ingest", "build-template", "register", "classify", "measure", "
 class Metrics:
     """rows: one dict per frame (FRAME_COLUMNS; None where a stage is not done); summary:
     the run at a glance (strict JSON); noise: the measured noise (`noise_figures`), None
-    before registration."""
+    before registration; verdict: the run's statement on its accuracy (None before
+    registration); caveats: what damaged or altered the run (report/caveats.py)."""
 
     rows: list[dict[str, Any]]
     summary: dict[str, Any]
     noise: dict[str, Any] | None
+    verdict: Verdict | None = None
+    caveats: tuple[str, ...] = ()
 
 
 def measure(data: RunData, config: Config) -> Metrics:
@@ -51,7 +57,24 @@ def measure(data: RunData, config: Config) -> Metrics:
         noise = noise_figures(data.log.report, data.template_summary,
                               data.frames.tracking_px[1:])
     rows = frame_rows(data)
-    return Metrics(rows, run_summary(data, noise, rows, config), noise)
+    judged = None if data.frames is None else run_verdict(data)
+    caveats = tuple(run_caveats(data.run, data.log.report))
+    summary = run_summary(data, noise, rows, config)
+    summary["caveats"] = list(caveats)
+    if judged is not None:
+        summary["quality"]["verdict"] = {"fits": judged.fits, "basis": judged.basis,
+                                         "text": judged.text}
+    return Metrics(rows, summary, noise, judged, caveats)
+
+
+def run_verdict(data: RunData) -> Verdict:
+    """The verdict from the evaluation's calibration when there is ground truth, else from
+    the registration residuals against their σ."""
+    assert data.frames is not None
+    share, ratio = pooled_within_2sigma(data.frames.quality)
+    labels = (data.evaluation or {}).get("labels") or {}
+    return verdict(share, ratio, labels.get("calibration_2sigma"),
+                   labels.get("sigma_scale_95"))
 
 
 def noise_figures(ingest_report: dict[str, Any], template_summary: dict[str, Any] | None,
@@ -176,6 +199,7 @@ def run_summary(data: RunData, noise: dict[str, Any] | None, rows: list[dict[str
     if frames is not None:
         summary["noise"] = noise
         summary["quality"] = {
+            "residual_within_2sigma": pooled_within_2sigma(frames.quality)[0],
             "per_frame": [q.row() for q in frames.quality],
             "warnings": [w for q in frames.quality for w in q.warnings],
             "untrustworthy_frames": [q.frame for q in frames.quality if q.warnings],

@@ -16,12 +16,20 @@ import numpy as np
 
 from .. import __version__
 from ..config import Config
+from ..core.quality import (
+    GOOD_2SIGMA,
+    MAX_RESIDUAL_RATIO,
+    MAX_UNKNOWN,
+    MIN_OBSERVED,
+    pooled_within_2sigma,
+    verdict,
+)
 from ..io import report_html as rh
 from ..io.run_layout import DESCRIBED_FILES, RunLayout
 from .figures import cloud_key
 from .frames import FrameFigures
 from .gather import CloudView, RunData
-from .metrics import TIMED_STAGES, Metrics
+from .metrics import TIMED_STAGES, Metrics, stage_seconds
 from .page_deformation import contact_section
 
 Figures = Mapping[str, bytes]
@@ -33,19 +41,20 @@ def compose(layout: RunLayout, data: RunData, metrics: Metrics, views: list[Clou
     log = data.log
     sections = [_overview(data, metrics), _cameras(data, pngs)]
     if data.frames is not None and metrics.noise is not None and log.n_frames > 1:
-        sections.append(_quality(data, data.frames, metrics.noise, pngs))
+        sections.append(_quality(data, data.frames, metrics, pngs))
     sections += [_labels(config, pngs), _clouds(views, pngs), _registration(pngs),
                  contact_section(data, config, pngs), _timing(data.run, pngs)]
     if data.evaluation:
         sections.append(_evaluation(data.evaluation, pngs))
     sections.append(rh.Section("files", "Files").add(rh.table(("file", "contents"), [
-        (layout.relative(getattr(layout, name)), what) for name, what in DESCRIBED_FILES])))
+        (rh.Link(layout.relative(path), layout.relative(path)), what) for path, what in
+        ((getattr(layout, name), what) for name, what in DESCRIBED_FILES) if path.exists()])))
     subtitle = (f"{Path(str(data.run.get('input', {}).get('path', ''))).name} · "
                 f"{log.n_frames} frames · {len(log.cameras)} cameras · {layout.root.name}")
     return rh.render("surgrecon run report", subtitle, [s for s in sections if s.blocks],
                      footer=f"surgrecon {__version__} · generated "
                             f"{created.strftime('%Y-%m-%d %H:%M UTC')} · Su, Huang & "
-                            "Hannaford, IROS 2019")
+                            "Hannaford, IROS 2019", caveats=metrics.caveats)
 
 
 def _overview(data: RunData, metrics: Metrics) -> rh.Section:
@@ -65,8 +74,14 @@ def _overview(data: RunData, metrics: Metrics) -> rh.Section:
                       "good" if med is not None and med <= 1.0 else "bad"))
     if ev and ev.get("macro_f1") is not None:
         items.append(("label macro-F1", f"{ev['macro_f1']:.3f}", ""))
+    calibration = ((data.evaluation or {}).get("labels") or {}).get("calibration_2sigma")
+    if calibration is not None:
+        items.append(("labelled points within 2σ of the truth (95 % expected)",
+                      f"{calibration:.0%}", "good" if calibration >= GOOD_2SIGMA else "bad"))
     inp = data.run.get("input", {})
-    stage_rows = [(name, entry.get("status"), entry.get("seconds"))
+    seconds = stage_seconds(data.run)
+    stage_rows = [(name, "reused" if entry.get("reused_from") else entry.get("status"),
+                   seconds.get(name))
                   for name, entry in data.run.get("stages", {}).items() if name in TIMED_STAGES]
     return rh.Section("overview", "Overview").add(
         rh.tiles(items),
@@ -115,10 +130,12 @@ def _cameras(data: RunData, pngs: Figures) -> rh.Section:
     return sec
 
 
-def _quality(data: RunData, frames: FrameFigures, noise: dict[str, Any],
+def _quality(data: RunData, frames: FrameFigures, metrics: Metrics,
              pngs: Figures) -> rh.Section:
     """Per frame: what the data support (shares observed / unknown), the median σ and the
-    residual against the noise, with the frames not to trust named in plain words."""
+    residual against the noise, with the frames not to trust named in plain words, and the
+    run's verdict (measured calibration with ground truth, else the residuals against σ)."""
+    noise = metrics.noise or {}
     jitter = [v for v in (noise.get("tracker_jitter_mm") or {}).values() if v is not None]
     jitter_deg = [v for v in (noise.get("tracker_jitter_deg") or {}).values() if v is not None]
     bodies = data.log.report.get("tracker_bodies", [])
@@ -143,8 +160,18 @@ def _quality(data: RunData, frames: FrameFigures, noise: dict[str, Any],
     if warnings:
         sec.add(rh.paragraph("Frames not to trust: " + "; ".join(warnings) + "."))
     else:
-        sec.add(rh.paragraph("Every frame is supported by data and fits within its noise.",
-                             note=True))
+        sec.add(rh.paragraph(
+            f"No frame is flagged: each has at least {MIN_OBSERVED:.0%} of the template "
+            f"observed, at most {MAX_UNKNOWN:.0%} of its points unknown, a median residual "
+            f"under {MAX_RESIDUAL_RATIO:g}σ and a converged solve.", note=True))
+    if metrics.verdict is not None:
+        v = metrics.verdict
+        basis = ("Against ground truth" if v.basis == "ground truth"
+                 else "Without ground truth")
+        sec.add(rh.paragraph(f"{basis}: {v.text[0].lower()}{v.text[1:]}", note=v.fits))
+        if v.basis == "ground truth":  # what the residuals alone would have said
+            residuals = verdict(*pooled_within_2sigma(frames.quality))
+            sec.add(rh.paragraph(f"Residuals alone: {residuals.text}", note=True))
     return sec
 
 

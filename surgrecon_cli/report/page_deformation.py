@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 
 from ..config import Config
+from ..core.indentation import NOT_MEASURED, tool_known
 from ..io import report_html as rh
 from .gather import RunData
 
@@ -21,8 +22,9 @@ def contact_section(data: RunData, config: Config, pngs: Mapping[str, bytes]) ->
         return sec
     series, summary = data.deformation, data.deformation_summary or {}
     d = config.deformation
+    known = tool_known(data.log.tool_poses)
     onset, release = summary.get("onset_frame"), summary.get("release_frame")
-    items = [("contact", "none" if onset is None else
+    items = [("contact", NOT_MEASURED if not known.any() else "none" if onset is None else
               f"frames {onset}–{release - 1 if release is not None else series.n_frames - 1}",
               ""),
              ("deepest indentation", _mm(summary.get("max_indentation_mm"),
@@ -31,7 +33,14 @@ def contact_section(data: RunData, config: Config, pngs: Mapping[str, bytes]) ->
              ("largest indented volume", _num(summary.get("max_volume_mm3"), "mm³"), "")]
     if d.youngs_modulus_kpa > 0:
         items.append(("force proxy (model)", _num(summary.get("max_force_n"), "N"), ""))
+    if not known.any():
+        items = [(name, NOT_MEASURED, "") for name, _value, _mood in items]
     sec.add(rh.tiles(items))
+    if not known.all():
+        sec.add(rh.paragraph(
+            f"Contact is not measured in {int((~known).sum())} of {len(known)} frames: the "
+            "tool pose is unknown there (no robot kinematics in the log, or a gap in its "
+            "stream). That is not the same as no contact.", note=bool(known.any())))
     if "deformation-over-time" in pngs:
         sec.add(rh.figure(pngs["deformation-over-time"],
                           "Left: depth of the tissue under the tool tip along the tool axis, "
@@ -66,7 +75,8 @@ def contact_section(data: RunData, config: Config, pngs: Mapping[str, bytes]) ->
             "(valid for indentations much smaller than the radius).", note=True))
     rows = [(r["frame"], "yes" if r["contact"] else "", r["clearance_mm"], r["tolerance_mm"],
              r["indentation_mm"], r["penetration_mm"], r["area_mm2"], r["volume_mm3"],
-             r["force_n"]) for r in series.rows()]
+             r["force_n"]) if k else (r["frame"], NOT_MEASURED, *[None] * 7)
+            for r, k in zip(series.rows(), known, strict=True)]
     sec.add(rh.table(("frame", "contact", "clearance mm", "tolerance mm", "indentation mm",
                       "penetration mm", "area mm²", "volume mm³", "force N (model)"), rows))
     scores = (data.evaluation or {}).get("deformation")
@@ -81,11 +91,13 @@ def _scores(s: dict[str, Any]) -> str:
 
     def verdict(name: str) -> str:
         value = goals.get(name)
+        if isinstance(value, str):
+            return value
         return "–" if value is None else ("met" if value else "missed")
 
     depth, share = s["indentation_error_mm"], s["indentation_error_share"]
     free = s["out_of_contact"]
-    return rh.table(("against ground truth", "measured", "goal", ""), [
+    rows = [
         ("contact onset / release (frame)",
          f"{s['onset_frame']} / {s['release_frame']} (truth {s['true_onset_frame']} / "
          f"{s['true_release_frame']})", "within 1 frame", verdict("contact_events")),
@@ -97,7 +109,10 @@ def _scores(s: dict[str, Any]) -> str:
         ("out of contact: false contacts, |depth| / σ (max)",
          f"{free['false_contacts']}, {_num(free['depth_over_sigma_max'], '')}",
          "0, ≤ 2", verdict("breathing")),
-    ])
+    ]
+    if goals and all(v == NOT_MEASURED for v in goals.values()):
+        rows = [(name, NOT_MEASURED, goal, "") for name, _, goal, _ in rows]
+    return rh.table(("against ground truth", "measured", "goal", ""), rows)
 
 
 def _num(value: Any, unit: str) -> str:

@@ -77,6 +77,9 @@ class SimConfig:
     sweep_deg: float = 0.0
     # Lens model of every camera: plumb_bob, rational_polynomial or equidistant (fisheye).
     lens: str = "plumb_bob"
+    # The robot's kinematics (tool pose, joint states) in the log; False: a log without a
+    # robot (the tool is still in the scene and the images, its pose is not recorded).
+    robot: bool = True
 
     def __post_init__(self) -> None:
         if self.lens not in LENSES:

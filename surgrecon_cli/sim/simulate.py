@@ -154,7 +154,7 @@ class LogBuilder:
                         PoseRecord(_ns(t), WORLD, "", p, q),
                     )
                 )
-        for t in np.arange(-0.1, t_end, 1 / cfg.robot_rate):
+        for t in np.arange(-0.1, t_end, 1 / cfg.robot_rate) if cfg.robot else ():
             p, q = motion.tool_pose(t)
             out.append(("/raven/tool_tip", _ns(t) + 500_000, PoseRecord(_ns(t), WORLD, "", p, q)))
             out.append(

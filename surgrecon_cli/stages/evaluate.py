@@ -23,7 +23,7 @@ import numpy as np
 from ..config import Config
 from ..core.deformation_scoring import score_deformation, true_deformation
 from ..core.evaluation import error_summary, on_tool, registration_errors, true_point_labels
-from ..core.indentation import camera_viewpoint
+from ..core.indentation import NOT_MEASURED, camera_viewpoint, tool_known
 from ..core.labels import UNKNOWN
 from ..core.scoring import distance_stats_mm, label_scores, map_to_surface
 from ..errors import InputError
@@ -136,13 +136,19 @@ def _honesty_part(result: dict[str, Any], labels: np.ndarray, errors: np.ndarray
                   sigma: np.ndarray, has_data: np.ndarray) -> None:
     """Does the run know what it does not know? Over frames >= 1: the registration error of
     labelled points; the share of labelled points whose true error is within the reported
-    2σ (calibration); the share unknown; labelled points with no data that are more than
-    `UNSUPPORTED_MM` off (extrapolated and still labelled)."""
+    2σ (calibration) and the factor 2σ would need to cover 95 % of them (`sigma_scale_95`,
+    above 1 when σ understates the error); the share unknown; labelled points with no data
+    that are more than `UNSUPPORTED_MM` off (extrapolated and still labelled)."""
     labelled = labels[1:] != UNKNOWN
     err, sig = errors[1:].astype(float), sigma[1:].astype(float)
     result["registration"]["labelled"] = error_summary(np.where(labelled, err, np.nan) * 1e-3)
-    within = (err <= 2.0 * sig)[labelled & np.isfinite(err)]
+    checked = labelled & np.isfinite(err)
+    within = (err <= 2.0 * sig)[checked]
     result["labels"]["calibration_2sigma"] = float(within.mean()) if within.size else None
+    with np.errstate(divide="ignore", invalid="ignore"):
+        scale = (err / (2.0 * sig))[checked]
+    result["labels"]["sigma_scale_95"] = (float(np.percentile(scale, 95))
+                                          if within.size else None)
     result["labels"]["unknown_fraction"] = float((~labelled).mean()) if labelled.size else None
     result["registration"]["unsupported_moved"] = int(
         (labelled & ~has_data[1:] & (err > UNSUPPORTED_MM)).sum())
@@ -157,6 +163,8 @@ def _deformation_part(layout: RunLayout, gt: GroundTruth, log: IngestedLog, conf
     truth = true_deformation(gt.vertices, poses, view, config)
     part = score_deformation(measured, truth.series, gt.indentation_m)
     part["tool_poses"] = "ground truth" if gt.tool_poses is not None else "ingested"
+    if not tool_known(log.tool_poses).any():  # no robot in the log: contact not measured
+        part["goals"] = dict.fromkeys(part["goals"], NOT_MEASURED)
     return part
 
 

@@ -12,6 +12,7 @@ import contextlib
 import logging
 import os
 import shutil
+import time
 import uuid
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -77,8 +78,9 @@ def ingest(
     log_path, run_dir = Path(log_path), Path(run_dir)
     reader = LogReader(log_path, config.topics, config.ingest.time_source, allow_truncated,
                        on_bytes)
+    start = time.perf_counter()
     reader.check_magic()
-    run = _prepare_run_folder(run_dir, log_path, config, force)
+    run, before = _prepare_run_folder(run_dir, log_path, config, force)
     layout = RunLayout(run_dir)
     for leftover in run_dir.glob(f"{INGEST_STAGING_PREFIX}*"):
         shutil.rmtree(leftover, ignore_errors=True)
@@ -107,8 +109,13 @@ def ingest(
     run.update(input={"path": str(log_path.resolve()), "sha256": reader.sha256,
                       "bytes": reader.size},
                ingest={"cameras": cameras, "frames": log.n_frames})
+    replaced = before.get("folder", "")
+    if before.get("sha256") and before["sha256"] != reader.sha256:
+        replaced = f"replaced the run of {before.get('path')} (another log) in this folder"
     run.mark_stage(STAGE, "done", cameras=cameras, frames=log.n_frames,
-                   truncated=reader.damage, usable_views=int(log.usable.sum()),
+                   truncated=reader.damage, salvaged=reader.salvaged,
+                   usable_views=int(log.usable.sum()),
+                   seconds=round(time.perf_counter() - start, 3), replaced=replaced,
                    config=recorded_config(config, STAGE))
     return IngestResult(run_dir, log.cameras, log.n_frames, report)
 
@@ -127,16 +134,27 @@ def pipeline_step(ctx: StageContext, progress: Callable[[float], None]) -> None:
     ctx.force_ingest = False
 
 
-def _prepare_run_folder(run_dir: Path, log_path: Path, config: Config, force: bool) -> RunFolder:
+def _prepare_run_folder(run_dir: Path, log_path: Path, config: Config,
+                        force: bool) -> tuple[RunFolder, dict[str, str]]:
+    """The run folder, started afresh, and what was there before (`path`, `sha256` of the
+    log of a run it held; `folder`: what --force wrote into), for the run's caveats."""
     run = RunFolder(run_dir)
+    before: dict[str, str] = {}
     if run.exists():
         if run.is_done(STAGE) and not force:
             raise RunFolderError(
                 f"{run_dir} already holds an ingested log; pass --force to replace it "
                 "(later stages will re-run) or use a new run folder")
-    elif run_dir.exists() and not force:
+        before = {k: str(v) for k, v in run.read().get("input", {}).items()
+                  if k in ("path", "sha256") and v}
+    elif run_dir.exists():
         entries = list(run_dir.iterdir())
-        if any(not _leftover(p) for p in entries):
+        others = [p for p in entries if not _leftover(p)]
+        if others and force:
+            before["folder"] = (f"wrote into {run_dir}, a folder that was not a run folder; "
+                                f"its {len(others)} other entries are kept")
+            entries = []
+        elif others:
             raise RunFolderError(f"{run_dir} exists, is not empty and has no run.json; "
                                  "use a new or empty folder")
         for path in entries:  # of a run killed before it wrote run.json
@@ -146,7 +164,7 @@ def _prepare_run_folder(run_dir: Path, log_path: Path, config: Config, force: bo
                 path.unlink()
     run.start(log_path, config)
     run.mark_stage(STAGE, "running")
-    return run
+    return run, before
 
 
 def _leftover(path: Path) -> bool:
@@ -220,6 +238,7 @@ def _assemble(collector: StreamCollector, reader: LogReader, config: Config, sta
     joint_stamps, joint_values = collector.joints()
     joint_positions = interpolate_values(joint_stamps, joint_values, frame_stamps, gap_ns)
 
+    collector.save_videos(staging, ids)
     image_paths = _place_images(staging, cams, orders, image_index)
     jitter = [pose_jitter(s.stamps_ns, s.positions, s.quats) for s in pose_streams]
     report = _report(ids, cams, stamps, pose_streams, jitter, frames, image_index, usable,

@@ -16,6 +16,7 @@ from ..core.sync import PoseStream, validate_pose_stream
 from ..core.tf_samples import frame_id_problem
 from ..errors import GeometryError, InputError
 from ..io.images import StoredImage, prepare_image
+from ..io.ingest_store import VideoPackets, save_video
 from ..io.mcap import LogItem
 from ..io.records import CameraInfoRecord, ImageRecord, JointStateRecord, PoseRecord
 from ..io.run_layout import RunLayout
@@ -77,6 +78,9 @@ class CameraStreams:
     poses: Poses | None = None
     pose_topic: str = ""
     video: list[VideoProblem] = field(default_factory=list)  # lost / duplicated messages
+    video_format: str = ""  # h264 / h265 for a video camera: its packets are kept too
+    packet_stamps: array = field(default_factory=lambda: array("q"))
+    packet_sizes: array = field(default_factory=lambda: array("q"))
 
 
 class StreamCollector:
@@ -131,8 +135,11 @@ class StreamCollector:
         if record.format in VIDEO_CODECS:  # one stateful decoder per topic (io/video.py)
             if item.topic not in self.videos:
                 self.videos[item.topic] = (item.camera, VideoDecoder(item.topic, record.format))
-            for stamp, stored in self.videos[item.topic][1].decode(record):
+            decoder = self.videos[item.topic][1]
+            for stamp, stored in decoder.decode(record):
                 self._store(item.camera, stamp, stored)
+            if decoder.started:  # kept as recorded, for the export (from the first keyframe)
+                self._packet(cam, record)
             return
         try:
             stored = prepare_image(record)
@@ -140,6 +147,26 @@ class StreamCollector:
             raise InputError(f"{item.topic}: image at stamp {fmt_stamp(record.stamp_ns)} "
                              f"does not decode ({exc})") from exc
         self._store(item.camera, record.stamp_ns, stored)
+
+    def _packet(self, cam: CameraStreams, record: ImageRecord) -> None:
+        path = RunLayout.staged_video(self.root, cam.index)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with open(path, "ab") as f:
+            f.write(bytes(record.data))
+        cam.video_format = str(record.format).lower()
+        cam.packet_stamps.append(record.stamp_ns)
+        cam.packet_sizes.append(len(record.data))
+
+    def save_videos(self, staging: Path, ids: tuple[str, ...]) -> None:
+        """Each video camera's packets, by its index c in the sorted `ids`, as
+        `ingest/video/CC.npz` (io/ingest_store.save_video)."""
+        for c, camera in enumerate(ids):
+            cam = self.cameras[camera]
+            if cam.video_format:
+                data = RunLayout.staged_video(self.root, cam.index).read_bytes()
+                save_video(staging, c, VideoPackets(
+                    cam.video_format, np.frombuffer(data, np.uint8),
+                    np.array(cam.packet_sizes, np.int64), np.array(cam.packet_stamps, np.int64)))
 
     def finish(self) -> None:
         """At the end of the log: the frames video decoders still hold."""

@@ -5,7 +5,8 @@ Reads the template, its observations (the frame-0 points' uncertainty), every re
 frame (positions and σ) and the ingested tool and camera poses; the neighbourhoods are the
 classify stage's (same settings, rebuilt here). Writes atomically
   RUN/metrics/deformation.csv   one row per frame (DEFORMATION_COLUMNS; force_n empty when
-                                the force model is off)
+                                the force model is off; a frame without a tool pose: contact
+                                "not measured", the rest empty)
   RUN/measure/deformation.npz   the per-frame series and the compensated field (T, N)
   RUN/measure/summary.json      onset, release, deepest indentation, largest area, ...
 A point's σ here is that of its registered position and of its template position combined
@@ -27,11 +28,13 @@ from ..core.classify import Neighbourhoods, template_neighbourhoods
 from ..core.deformation import Rings, surface_normals, surrounding_rings
 from ..core.indentation import (
     FIELD_DTYPES,
+    NOT_MEASURED,
     SERIES_KEYS,
     camera_viewpoint,
     measure_frame,
     series_of,
     summarise,
+    tool_known,
 )
 from ..core.noise import covariance_sigma
 from ..io.artefacts import read_observations, read_registration, read_template
@@ -99,8 +102,13 @@ def run_measure(run_dir: Path, config: Config,
             for key, path in scratch.items():
                 field[key].close()
                 path.unlink(missing_ok=True)
+        measured = tool_known(log.tool_poses)
+        summary.update(contact_measured_frames=int(measured.sum()),
+                       contact=None if measured.any() else NOT_MEASURED)
         write_json(layout.deformation_summary, summary)
-        write_csv(layout.deformation_csv, DEFORMATION_COLUMNS, series.rows())
+        write_csv(layout.deformation_csv, DEFORMATION_COLUMNS,
+                  [row if known else {"frame": row["frame"], "contact": NOT_MEASURED}
+                   for row, known in zip(series.rows(), measured, strict=True)])
         step(n_frames + 1, n_frames + 1)
         info.update(onset_frame=summary["onset_frame"], release_frame=summary["release_frame"],
                     max_indentation_mm=summary["max_indentation_mm"],

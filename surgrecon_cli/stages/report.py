@@ -63,7 +63,8 @@ def run_report(run_dir: Path, config: Config,
         write_text(files.html, compose(layout, data, metrics, views, config, pngs,
                                        datetime.now(UTC)))
         step(4, 4)
-        info.update(html=str(files.html), frames=data.log.n_frames)
+        info.update(html=str(files.html), frames=data.log.n_frames,
+                    caveats=list(metrics.caveats))
     return files
 
 

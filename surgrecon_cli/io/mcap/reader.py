@@ -88,6 +88,7 @@ class LogReader:
         self.sha256 = ""
         self.valid_bytes = 0
         self.damage: str | None = None
+        self.salvaged: str | None = None  # damage after the data: every message still read
         self.last_log_time_ns: int | None = None
         self.channels: dict[str, str] = {}
         self.message_counts: dict[str, int] = {}
@@ -304,6 +305,7 @@ class LogReader:
         if data_complete:
             logger.warning("%s: %s after the data section; all messages were read",
                            self.file, reason)
+            self.salvaged = f"{self.file.name}: {reason} after the data section"
             return
         t = self.last_log_time_ns
         when = f"log time {t / 1e9:.6f} s" if t is not None else "before any message"
