@@ -31,6 +31,7 @@ import traceback
 from pathlib import Path
 
 import numpy as np
+import pytest
 from fuzz_mcap import (
     BYTE_FAMILIES,
     CHUNK_FAMILIES,
@@ -328,6 +329,7 @@ def judge(case: Case, result: dict, baseline: dict[str, Path]) -> str:
         return f"exit 0 but the result does not load: {type(exc).__name__}: {exc}"
 
 
+@pytest.mark.slow
 def test_fuzzed_inputs(tmp_path: Path, capsys):
     start = time.perf_counter()
     cases = generate(tmp_path)

@@ -271,6 +271,7 @@ def _trigger(run: Path, kind: str, offset: float) -> Callable[[float], bool]:
     return after_start_of(run, kind, offset)
 
 
+@pytest.mark.slow
 def test_kill_and_resume(pipeline_log: Path, tmp_path: Path):
     t0 = time.perf_counter()
     refs = [tmp_path / f"ref{i}" for i in range(LANES)]
@@ -329,6 +330,7 @@ def test_killed_at_the_first_write(pipeline_log: Path, tmp_path: Path, leftover:
     assert main(["ingest", str(pipeline_log), "-o", str(run), "-q"]) == 0
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("executor", ["serial", "processes"])
 def test_ctrl_c_keeps_registered_frames(pipeline_log: Path, tmp_path: Path, executor: str):
     """Ctrl-C (SIGINT to the process group, as a terminal sends it) during register keeps

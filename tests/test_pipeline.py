@@ -84,6 +84,7 @@ def test_rerun_skips_everything(copy_run, pipeline_log, capsys):
         {k: v for k, v in before.items() if k != "run.json"}
 
 
+@pytest.mark.slow
 def test_config_changes_rerun_the_stages_they_affect(copy_run, pipeline_log):
     registered = _mtimes(copy_run, "registration/*.npz")
     config = load_config(overrides=["classify.deform_mm=0.2"])

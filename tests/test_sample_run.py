@@ -16,6 +16,8 @@ from plyfile import PlyData
 
 from surgrecon_cli.cli.main import main
 
+pytestmark = pytest.mark.slow  # the whole sample run (module fixture)
+
 SAMPLE = Path(__file__).resolve().parents[1] / "sample_data" / "sample.mcap"
 
 
