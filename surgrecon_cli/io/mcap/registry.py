@@ -94,6 +94,6 @@ def supported(kinds: tuple[str, ...]) -> list[str]:
 
 def no_images_message(path: object) -> str:
     """The one line for a log with no channel of an image schema (info and ingest say it)."""
-    return (f"{path}: no camera images in this log (no channel has an image schema, e.g. "
-            "sensor_msgs/msg/CompressedImage or foxglove.CompressedImage); surgrecon "
+    return (f"{path}: no camera images in this log (no channel of an image schema surgrecon "
+            "reads, e.g. sensor_msgs/msg/CompressedImage or foxglove.CompressedImage); surgrecon "
             "reconstructs from camera images, so no [topics] config can make it run on this log")
