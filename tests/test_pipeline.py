@@ -110,6 +110,7 @@ def test_config_changes_rerun_the_stages_they_affect(copy_run, pipeline_log):
     assert run.stage("register")["config"]["registration"]["alpha"] == 0.1
 
 
+@pytest.mark.slow
 def test_killed_register_resumes_at_the_next_frame(copy_run, pipeline_log):
     run = RunFolder(copy_run)
     data = run.read()
@@ -141,6 +142,7 @@ def test_killed_register_resumes_at_the_next_frame(copy_run, pipeline_log):
                 np.testing.assert_array_equal(z[name], value)
 
 
+@pytest.mark.slow
 def test_another_input_is_refused_unless_forced(copy_run, pipeline_log):
     run = RunFolder(copy_run)
     data = run.read()
