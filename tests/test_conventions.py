@@ -90,6 +90,7 @@ def _scores(run: Path) -> dict:
     return evaluation
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("convention", ["tf-tree", "robot-base"])
 def test_the_pipeline_scores_the_same_in_another_convention(pipeline_run, tmp_path: Path,
                                                             convention: str):

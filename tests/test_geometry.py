@@ -32,6 +32,6 @@ def test_slerp_takes_the_shorter_arc_from_q0():
     q0 = np.tile([0.0, 0, 0, 1], (3, 1))
     q1 = -np.array([[0.0, 0, HALF, HALF]] * 3)  # the same rotation, other sign
     q = slerp(q0, q1, np.array([0.0, 0.5, 1.0]))
-    np.testing.assert_array_equal(q[0], q0[0])
+    np.testing.assert_allclose(q[0], q0[0], atol=1e-15)
     np.testing.assert_allclose(q[1], [0, 0, np.sin(np.pi / 8), np.cos(np.pi / 8)], atol=1e-15)
     np.testing.assert_allclose(q[2], -q1[2], atol=1e-15)  # in q0's hemisphere

@@ -318,7 +318,16 @@ def test_shell_segments():
         shell_segments("surgrecon config | less")
 
 
-@pytest.mark.parametrize("example", EXAMPLES, ids=[e.removeprefix("surgrecon ") for e in EXAMPLES])
+def _example(example: str) -> object:
+    """An example as a test case, marked slow when it runs the whole pipeline (`run`) or
+    starts worker processes or a Dask cluster (tens of seconds each on 2 cores)."""
+    words = example.split()
+    slow = words[1] == "run" or "--executor" in words or "--scheduler" in words
+    return pytest.param(example, id=example.removeprefix("surgrecon "),
+                        marks=[pytest.mark.slow] if slow else [])
+
+
+@pytest.mark.parametrize("example", [_example(e) for e in EXAMPLES])
 def test_help_example_runs(example, world, dask_scheduler, tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
     for tokens in shell_segments(example):

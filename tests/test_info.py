@@ -3,7 +3,6 @@ shipped sample, on simulated logs, on a log with a TF tree, and on damaged logs.
 
 from __future__ import annotations
 
-import time
 from pathlib import Path
 
 import numpy as np
@@ -44,10 +43,8 @@ def test_sample_log(tmp_path: Path, capsys):
     assert load_config(cfg).topics == TopicsConfig()
 
 
-def test_info_is_fast_on_an_indexed_log():
-    start = time.perf_counter()
-    info = scan_log(SAMPLE)
-    assert info.indexed and time.perf_counter() - start < 2.0
+def test_info_reads_an_indexed_log_from_its_indexes():
+    assert scan_log(SAMPLE).indexed
 
 
 @pytest.fixture(scope="module")

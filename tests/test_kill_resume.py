@@ -45,6 +45,7 @@ LANES = 2
 SURGRECON = [sys.executable, "-c",
              "import sys; from surgrecon_cli.cli.main import main; sys.exit(main())"]
 TIMING_KEYS = ("seconds",)  # metrics keys / columns starting with these are wall times
+HANG_GUARD_S = 600  # wall-clock limit that only a hung run reaches, however loaded the machine
 
 
 def start_run(log: Path, run: Path) -> subprocess.Popen:
@@ -56,7 +57,7 @@ def start_run(log: Path, run: Path) -> subprocess.Popen:
 def run_to_end(log: Path, run: Path) -> tuple[float, str]:
     start = time.perf_counter()
     proc = start_run(log, run)
-    out, err = proc.communicate(timeout=90)
+    out, err = proc.communicate(timeout=HANG_GUARD_S)
     assert proc.returncode == 0, err.decode()
     return time.perf_counter() - start, out.decode()
 
@@ -271,6 +272,7 @@ def _trigger(run: Path, kind: str, offset: float) -> Callable[[float], bool]:
     return after_start_of(run, kind, offset)
 
 
+@pytest.mark.slow
 def test_kill_and_resume(pipeline_log: Path, tmp_path: Path):
     t0 = time.perf_counter()
     refs = [tmp_path / f"ref{i}" for i in range(LANES)]
@@ -329,6 +331,7 @@ def test_killed_at_the_first_write(pipeline_log: Path, tmp_path: Path, leftover:
     assert main(["ingest", str(pipeline_log), "-o", str(run), "-q"]) == 0
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("executor", ["serial", "processes"])
 def test_ctrl_c_keeps_registered_frames(pipeline_log: Path, tmp_path: Path, executor: str):
     """Ctrl-C (SIGINT to the process group, as a terminal sends it) during register keeps
@@ -339,14 +342,14 @@ def test_ctrl_c_keeps_registered_frames(pipeline_log: Path, tmp_path: Path, exec
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             start_new_session=True)
     seen: list[int] = []
-    deadline = time.perf_counter() + 120
+    deadline = time.perf_counter() + HANG_GUARD_S
     while proc.poll() is None and time.perf_counter() < deadline:
         seen = registered(run)
         if len(seen) >= 2:
             os.killpg(proc.pid, signal.SIGINT)
             break
         time.sleep(0.01)
-    _, err = proc.communicate(timeout=60)
+    _, err = proc.communicate(timeout=HANG_GUARD_S)
     if proc.returncode == 0:
         pytest.fail("the run finished before it could be interrupted")
     assert proc.returncode == 130, err.decode()
@@ -354,6 +357,6 @@ def test_ctrl_c_keeps_registered_frames(pipeline_log: Path, tmp_path: Path, exec
     assert entry["status"] == "failed" and "Ctrl-C" in entry["error"]
     assert set(seen) <= set(registered(run))
     out = subprocess.run([*SURGRECON, "run", str(pipeline_log), "-o", str(run)],
-                         capture_output=True, text=True, timeout=120)
+                         capture_output=True, text=True, timeout=HANG_GUARD_S)
     assert out.returncode == 0, out.stderr
     assert re.search(r"register\s+resumed", out.stdout + out.stderr)

@@ -15,6 +15,8 @@ from surgrecon_cli.io.ingest_store import load_ingested
 from surgrecon_cli.sim.scene import SimConfig
 from surgrecon_cli.sim.simulate import simulate
 
+pytestmark = pytest.mark.slow  # whole-pipeline runs of simulated lenses
+
 
 def _run(root: Path, lens: str) -> tuple[dict, set[str]]:
     log = root / f"{lens}.mcap"

@@ -84,6 +84,7 @@ def test_rerun_skips_everything(copy_run, pipeline_log, capsys):
         {k: v for k, v in before.items() if k != "run.json"}
 
 
+@pytest.mark.slow
 def test_config_changes_rerun_the_stages_they_affect(copy_run, pipeline_log):
     registered = _mtimes(copy_run, "registration/*.npz")
     config = load_config(overrides=["classify.deform_mm=0.2"])
@@ -109,6 +110,7 @@ def test_config_changes_rerun_the_stages_they_affect(copy_run, pipeline_log):
     assert run.stage("register")["config"]["registration"]["alpha"] == 0.1
 
 
+@pytest.mark.slow
 def test_killed_register_resumes_at_the_next_frame(copy_run, pipeline_log):
     run = RunFolder(copy_run)
     data = run.read()
@@ -140,6 +142,7 @@ def test_killed_register_resumes_at_the_next_frame(copy_run, pipeline_log):
                 np.testing.assert_array_equal(z[name], value)
 
 
+@pytest.mark.slow
 def test_another_input_is_refused_unless_forced(copy_run, pipeline_log):
     run = RunFolder(copy_run)
     data = run.read()

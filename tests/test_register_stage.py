@@ -20,6 +20,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from surgrecon_cli.config import load_config
 from surgrecon_cli.core.scoring import map_to_surface
@@ -83,6 +84,7 @@ def test_default_template_update_registers_to_the_truth(pipeline_run, pipeline_l
     _check_against_truth(run_dir, _gt_path(pipeline_log))
 
 
+@pytest.mark.slow
 def test_another_template_update_keeps_transforms_relative_to_frame_0(copy_run, pipeline_log):
     config = load_config(overrides=["registration.template_update_every=3"])
     result = run_pipeline(pipeline_log, copy_run, config)

@@ -4,6 +4,7 @@ deforming; a narrow-baseline stereo endoscope keeps its far points."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from surgrecon_cli.config import Config
 from surgrecon_cli.core.cameras import world_to_camera
@@ -15,6 +16,8 @@ from surgrecon_cli.sim.simulate import simulate
 from surgrecon_cli.sim.variants import variant_config
 from surgrecon_cli.stages.ingest import ingest
 from surgrecon_cli.stages.template import run_build_template
+
+pytestmark = pytest.mark.slow  # whole-pipeline runs of simulator variants
 
 
 def test_rigid_scene_yields_no_deforming(tmp_path):

@@ -186,6 +186,7 @@ def test_tissue_inside_the_tool_is_pushed_onto_its_surface():
     assert not push_out_of_tool(pushed, tip_down, cfg)[0].any()
 
 
+@pytest.mark.slow
 def test_sequencing_matches_half_the_pairs_at_the_accuracy_of_all_pairs():
     """6 cameras: sequencing matches at most half the 15 pairs (a spanning tree, plus a
     replacement for a failed link) and its template is as close to the true surface as the

@@ -325,6 +325,7 @@ points vary by more than 5 % between any two image codecs). Three frames keep th
 under two minutes."""
 
 
+@pytest.mark.slow
 @needs_av
 def test_h264_log_reconstructs_like_the_jpeg_log(tmp_path: Path,
                                                  monkeypatch: pytest.MonkeyPatch):

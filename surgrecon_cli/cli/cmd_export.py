@@ -16,7 +16,8 @@ from .common import progress, quiet_options
                    "it). Needs a classified run.")
 @click.option("--tum", "tum_dir", type=click.Path(file_okay=False, path_type=Path),
               help="Write every camera's and the tool's poses as TUM trajectories into DIR "
-                   "(camera_CC.tum, tool.tum). Needs an ingested run.")
+                   "(camera_CC.tum, camera_CC_tracker.tum, tool.tum, tool_robot.tum). "
+                   "Needs an ingested run.")
 @click.option("--force", is_flag=True, help="Replace an existing --mcap file.")
 @quiet_options
 def export_cmd(run_dir: Path, mcap_path: Path | None, tum_dir: Path | None, force: bool,
@@ -34,8 +35,10 @@ def export_cmd(run_dir: Path, mcap_path: Path | None, tum_dir: Path | None, forc
     is a Foxglove layout (3D view, image, plots): in Foxglove open the file, then Layouts >
     Import from file.
 
-    --tum: `t tx ty tz qx qy qz qw` files (t in seconds) of the synchronised poses in
-    ingest/frames.npz, as evo reads them (`evo_traj tum DIR/*.tum`).
+    --tum: `t tx ty tz qx qy qz qw` files (t in seconds since the epoch, metres, world
+    frame), as evo reads them (`evo_traj tum DIR/*.tum`): camera_CC.tum and tool.tum the
+    poses interpolated to the images / frames (ingest/frames.npz), camera_CC_tracker.tum and
+    tool_robot.tum the tracker's and the robot's streams as recorded (ingest/streams.npz).
 
     \b
     Examples:

@@ -33,6 +33,9 @@ def info_cmd(log: Path, write_config: Path | None, force: bool, config: Any,
     edge) as ingest will compose it. Checks the [topics] of the effective config against
     the log. Fast: reads the summary and indexes where the log has them.
 
+    A log without camera images is described, and said to be one that surgrecon cannot
+    reconstruct from; --write-config then writes nothing and exits with 2.
+
     --write-config writes a [topics] block that ingest runs with as written: world_frame,
     and tool_pose = "" / joint_states = "" when the log has no robot / no joints. A tool
     pose in a frame no transform connects to the world needs tool.base_to_world, which
@@ -49,6 +52,7 @@ def info_cmd(log: Path, write_config: Path | None, force: bool, config: Any,
     from ..errors import InputError
     from ..io.atomic import atomic_open
     from ..io.log_info import format_info, scan_log, topics_toml
+    from ..io.mcap.registry import no_images_message
 
     if write_config is not None and write_config.exists() and not force:
         raise InputError(f"{write_config} exists; pass --force to replace it")
@@ -56,6 +60,8 @@ def info_cmd(log: Path, write_config: Path | None, force: bool, config: Any,
     if not (quiet and write_config is not None):
         click.echo(format_info(info, config.topics, config.tool.base_to_world))
     if write_config is not None:
+        if not info.has_images:
+            raise InputError(f"{no_images_message(info.path)}; {write_config} not written")
         with atomic_open(write_config, "w") as f:
             f.write(topics_toml(info))
         click.echo(f"wrote {write_config}: run with --config {write_config}")

@@ -55,7 +55,8 @@ def progress(quiet: bool) -> Callable[..., Any]:
     """A factory of tqdm bars (disabled with --quiet) for pipeline callbacks."""
     from tqdm import tqdm
 
-    return functools.partial(tqdm, disable=quiet, dynamic_ncols=True, leave=False)
+    return functools.partial(tqdm, disable=True if quiet else None, dynamic_ncols=True,
+                             leave=False)
 
 
 def executor_options(func: Callable[..., Any]) -> Callable[..., Any]:

@@ -225,12 +225,26 @@ def base_to_world_pose(base_to_world: Sequence[float]) -> np.ndarray:
     return make_pose(values[:3], values[3:] / norm)
 
 
-def rate_hz(stamps_ns: np.ndarray) -> float:
-    """Mean sample rate (Hz) of sorted stamps (N,) ns; 0 with fewer than two distinct stamps."""
-    stamps = np.asarray(stamps_ns, dtype=np.int64)
-    if len(stamps) < 2 or stamps[-1] <= stamps[0]:
+MIN_RATE_SPAN_NS = 1_000_000
+"""A mean rate needs its messages spread over at least this (1 ms): a burst (latched static
+transforms, messages recorded together) has a span of ns to µs and no meaningful rate."""
+
+
+def mean_rate_hz(count: int, first_ns: int, last_ns: int) -> float:
+    """Mean rate (Hz) of `count` messages from first_ns to last_ns; 0 (no rate) with fewer
+    than two or a span under MIN_RATE_SPAN_NS."""
+    span_ns = last_ns - first_ns
+    if count < 2 or span_ns < MIN_RATE_SPAN_NS:
         return 0.0
-    return float((len(stamps) - 1) / ((stamps[-1] - stamps[0]) * 1e-9))
+    return float((count - 1) / (span_ns * 1e-9))
+
+
+def rate_hz(stamps_ns: np.ndarray) -> float:
+    """Mean sample rate (Hz) of sorted stamps (N,) ns (`mean_rate_hz`; 0 = no rate)."""
+    stamps = np.asarray(stamps_ns, dtype=np.int64)
+    if len(stamps) < 2:
+        return 0.0
+    return mean_rate_hz(len(stamps), int(stamps[0]), int(stamps[-1]))
 
 
 def _median_ns(stamps: np.ndarray) -> int:

@@ -2,7 +2,9 @@
 
 One file per camera (DIR/camera_CC.tum: the camera-to-world pose in the optical frame at
 each of its images' stamps) and one for the tool (DIR/tool.tum: the tool tip in the world at
-each frame's stamp), from RUN/ingest/frames.npz. Each line is `t tx ty tz qx qy qz qw`: t in
+each frame's stamp), from RUN/ingest/frames.npz; and the streams as recorded, in the world
+frame at their own stamps (DIR/camera_CC_tracker.tum, DIR/tool_robot.tum), from
+RUN/ingest/streams.npz. Each line is `t tx ty tz qx qy qz qw`: t in
 seconds since the epoch (all nine decimals of the nanosecond stamp), the translation in
 metres and the unit quaternion (w >= 0) written with 17 significant digits, so that they
 read back to the same doubles. Frames without a pose (NaN) are left out. `#` lines say

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
+from .lfs import refuse_lfs_pointer
 from .run_folder import file_sha256
 
 _KEYS = ("faces", "vertices", "labels", "stamps_ns")
@@ -48,6 +49,7 @@ def gt_path_beside(log_path: Path) -> Path:
 def load_ground_truth(path: Path) -> GroundTruth:
     """Read and check a ground-truth file; InputError naming the file on any problem."""
     path = Path(path)
+    refuse_lfs_pointer(path, "ground truth")
     try:
         with np.load(path, allow_pickle=False) as z:
             missing = [k for k in _KEYS if k not in z.files]

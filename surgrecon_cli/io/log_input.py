@@ -16,6 +16,7 @@ from pathlib import Path
 import yaml
 
 from ..errors import InputError
+from .lfs import refuse_lfs_pointer
 
 METADATA = "metadata.yaml"
 
@@ -79,8 +80,15 @@ def _from_metadata(folder: Path) -> tuple[Path, ...]:
 
 
 def resolve_log(path: Path | str) -> LogInput:
-    """The log named by `path`; InputError (one line) when there is none."""
-    path = Path(path)
+    """The log named by `path`; InputError (one line) when there is none, or when one of its
+    files is a Git LFS pointer (not downloaded)."""
+    log = _resolve(Path(path))
+    for file in log.files:
+        refuse_lfs_pointer(file, "log")
+    return log
+
+
+def _resolve(path: Path) -> LogInput:
     if path.is_file():
         return LogInput(path, (path,))
     if not path.is_dir():

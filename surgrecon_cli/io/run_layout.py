@@ -27,7 +27,8 @@
 
 Exports, outside the run folder (`surgrecon export`):
   OUT.mcap, OUT.layout.json      the Foxglove export and its layout beside it
-  DIR/camera_CC.tum, DIR/tool.tum  trajectories in TUM format
+  DIR/camera_CC.tum, DIR/tool.tum  trajectories in TUM format, at image / frame stamps
+  DIR/camera_CC_tracker.tum, DIR/tool_robot.tum  the pose streams as recorded
 
 Camera ids never become paths: image folders and trajectory files use the camera's index in
 the sorted id list.

@@ -138,6 +138,11 @@ def _chain(tree: TfTree | None, world: str, frame: str, span_ns: tuple[int, int]
     if tree is None:
         raise InputError(f"{what}: the pose topic carries transforms but the log has no TF "
                          "tree (no transform was read)")
+    if world not in tree.frames:  # the world, not the camera/tool frame `what` names
+        raise InputError(f"topics.world_frame = {world!r} is not a frame of the log's TF tree "
+                         f"(roots: {', '.join(tree.roots)}); set topics.world_frame to the "
+                         "frame the reconstruction is to be in (`surgrecon info LOG` shows "
+                         "the tree)")
     try:
         return chain_stream(tree, world, frame, span_ns, gap_ns, f"TF {world} <- {frame}")
     except InputError as exc:

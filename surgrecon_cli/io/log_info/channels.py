@@ -20,6 +20,7 @@ from typing import Any
 
 from mcap.records import Channel, Message, Schema
 
+from ...core.sync import mean_rate_hz
 from ...core.tf_samples import TransformSamples, concat_samples
 from ..mcap.base import KINDS
 from ..mcap.registry import DECODERS, DESERIALIZERS, find_decoder
@@ -31,7 +32,8 @@ from ..records import CameraInfoRecord, ImageRecord, JointStateRecord, PoseRecor
 @dataclass(frozen=True)
 class ChannelInfo:
     """One channel: `kind` what its schema carries ("" if surgrecon cannot read it), message
-    count, log times (ns) of the first and last message (-1 if none), mean rate (Hz), the
+    count, log times (ns) of the first and last message (-1 if none), mean rate (Hz; 0 =
+    none: one message, or all within 1 ms, `core.sync.mean_rate_hz`), the
     first message's frame id ("" if none or not read), a short `detail`, and for transform
     channels `static` (latched) and the child frames."""
 
@@ -180,9 +182,7 @@ class _Merged:
 
     def info(self) -> ChannelInfo:
         c = self.c
-        rate = 0.0
-        if self.count > 1 and self.last_ns > self.first_ns:
-            rate = (self.count - 1) / ((self.last_ns - self.first_ns) * 1e-9)
+        rate = mean_rate_hz(self.count, self.first_ns, self.last_ns)
         if self.transforms is not None:
             frames = tuple(sorted(self.child_frames))
             detail = (f"{self.transforms} transforms, {len(frames)} child frames"

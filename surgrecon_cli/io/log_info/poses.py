@@ -22,6 +22,11 @@ from .channels import ChannelInfo
 WORLD = "world"
 
 
+def _rate(rate_hz: float, before: str = "") -> str:
+    """"40.0 Hz" (after `before`), or "" for no rate (one message, or a burst)."""
+    return f"{before}{rate_hz:.1f} Hz" if rate_hz > 0 else ""
+
+
 @dataclass(frozen=True)
 class Hop:
     """One step of a chain, from frame `start` to frame `end` over one TF edge: `up` when
@@ -34,7 +39,7 @@ class Hop:
     up: bool = True
 
     def text(self) -> str:
-        kind = "static" if self.static else f"dynamic {self.rate_hz:.1f} Hz"
+        kind = "static" if self.static else f"dynamic{_rate(self.rate_hz, ' ')}"
         return f" -({kind}{'' if self.up else ', inverted'})-> {self.end}"
 
 
@@ -64,7 +69,8 @@ class PoseChain:
         if self.via_tf:
             head = self.frame
         else:
-            head = (f"{self.topic} ({self.rate_hz:.1f} Hz) in "
+            rate = _rate(self.rate_hz)
+            head = (f"{self.topic}{f' ({rate})' if rate else ''} in "
                     f"{self.frame or f'{self.world} (no frame id)'}")
         return head + "".join(h.text() for h in self.hops)
 

@@ -8,6 +8,7 @@ import textwrap
 from collections.abc import Sequence
 
 from ...config import TopicsConfig
+from ..mcap.registry import no_images_message
 from .config_text import check_topics
 from .patterns import captures
 from .roles import other_candidates
@@ -23,11 +24,15 @@ _ROLE_LABELS = {
 
 def format_info(info: LogInfo, topics: TopicsConfig | None = None,
                 base_to_world: tuple[float, ...] = ()) -> str:
-    """The whole `info` text; the config check only when `topics` is given."""
-    parts = [_header(info), _files(info), _channel_table(info), _tf_section(info),
-             _roles_section(info), _poses_section(info)]
-    if topics is not None:
-        parts.append(_config_section(info, topics, base_to_world))
+    """The whole `info` text; the config check only when `topics` is given. A log without
+    camera images ends after its TF tree with the line saying so (no roles, no config)."""
+    parts = [_header(info), _files(info), _channel_table(info), _tf_section(info)]
+    if not info.has_images:
+        parts.append(no_images_message(info.path))
+    else:
+        parts += [_roles_section(info), _poses_section(info)]
+        if topics is not None:
+            parts.append(_config_section(info, topics, base_to_world))
     return "\n\n".join(p for p in parts if p)
 
 
@@ -78,6 +83,11 @@ def _stamp(ns: int) -> str:
     return f"{ns // 1_000_000_000}.{ns % 1_000_000_000:09d} s"
 
 
+def _rate(rate_hz: float) -> str:
+    """The rate column: Hz, or "-" where there is no rate (one message, or a burst)."""
+    return f"{rate_hz:.1f}" if rate_hz > 0 else "-"
+
+
 def _table(rows: Sequence[tuple[str, ...]], right: set[int]) -> list[str]:
     widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
     return ["  ".join(v.rjust(w) if i in right else v.ljust(w)
@@ -94,7 +104,7 @@ def _channel_table(info: LogInfo) -> str:
         if not c.kind:
             detail = "(not read by surgrecon)"
         rows.append((c.topic, c.schema_name or "-", c.message_encoding, str(c.count),
-                     f"{c.rate_hz:.1f}", f"{c.span_s:.2f}", detail))
+                     _rate(c.rate_hz), f"{c.span_s:.2f}", detail))
     return "channels:\n" + "\n".join("  " + line for line in _table(rows, {3, 4, 5}))
 
 
@@ -115,7 +125,7 @@ def _tf_section(info: LogInfo) -> str:
             rows.append((name, "-", "root", "", "", ""))
             continue
         rows.append((name, s.parent, "static" if s.static else "dynamic", str(s.samples),
-                     "" if s.static else f"{s.rate_hz:.1f}",
+                     "" if s.static else _rate(s.rate_hz),
                      "" if s.static else f"{(s.last_ns - s.first_ns) * 1e-9:.2f}"))
     return head + ":\n" + "\n".join("  " + line for line in _table(rows, {3, 4, 5}))
 

@@ -56,6 +56,11 @@ class LogInfo:
         return "; ".join(f"{f.path.name}: {f.damage}" for f in damaged) or None
 
     @property
+    def has_images(self) -> bool:
+        """Some channel carries camera images (without one nothing can be reconstructed)."""
+        return any(c.kind == "image" for c in self.channels)
+
+    @property
     def world_frame(self) -> str:
         return self.topics.get("world_frame", "world")
 

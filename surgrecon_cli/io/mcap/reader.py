@@ -30,7 +30,7 @@ from ..log_input import resolve_log
 from ..records import Record
 from .base import SchemaDecoder
 from .bounded import BoundedFile, TrackedFile, as_stream, chunk_records, read_summary
-from .registry import DESERIALIZERS, find_decoder, supported
+from .registry import DESERIALIZERS, find_decoder, no_images_message, supported
 from .topics import ROLE_KINDS, TopicRoles
 
 logger = logging.getLogger(__name__)
@@ -96,10 +96,13 @@ class LogReader:
         self._deserializers: dict[str, Any] = {}
         self._log_time_stamps: dict[str, int] = {}  # records stamped by log time, per topic
         self.transform_topics: set[str] = set()  # role topics carrying transforms (TF)
+        self._image_channels: set[str] = set()  # topics of an image schema, whatever the role
 
     # -- channels and roles --------------------------------------------------------------
     def _classify(self, topic: str, schema_name: str, encoding: str) -> _ChannelInfo:
         info = _ChannelInfo(topic, schema_name, encoding)
+        if find_decoder(encoding, schema_name, ROLE_KINDS["image"]) is not None:
+            self._image_channels.add(topic)
         matches = self.roles.match(topic)
         rejected = []
         for m in matches:
@@ -126,6 +129,8 @@ class LogReader:
         return info
 
     def _missing_roles_error(self, missing: list[str], channels: dict[str, str]) -> InputError:
+        if "image" in missing and not self._image_channels and not self.damage:
+            return InputError(no_images_message(self.path))
         wanted = ", ".join(f"topics.{r} = {self.roles.patterns[r]!r}" for r in missing)
         if self.damage:
             return InputError(f"{self.path}: no complete frame before the damage "

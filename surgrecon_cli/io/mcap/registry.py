@@ -90,3 +90,10 @@ def supported(kinds: tuple[str, ...]) -> list[str]:
     if "joint_states" in kinds:
         out.append("any JSON with name/position arrays (json)")
     return out
+
+
+def no_images_message(path: object) -> str:
+    """The one line for a log with no channel of an image schema (info and ingest say it)."""
+    return (f"{path}: no camera images in this log (no channel of an image schema surgrecon "
+            "reads, e.g. sensor_msgs/msg/CompressedImage or foxglove.CompressedImage); surgrecon "
+            "reconstructs from camera images, so no [topics] config can make it run on this log")
