@@ -35,7 +35,7 @@ from .io.artefacts import read_json
 from .io.atomic import remove_leftovers, write_text
 from .io.ground_truth import gt_path_beside
 from .io.log_input import resolve_log
-from .io.run_folder import RunFolder, config_value, file_sha256, plain
+from .io.run_folder import RunFolder, config_value, file_sha256, plain, run_folder_lock
 from .io.run_layout import RunLayout
 from .stages import registry
 from .stages.registry import StageContext
@@ -163,7 +163,16 @@ def run_pipeline(log: Path, run_dir: Path, config: Config, ground_truth: Path | 
         with open_executor(config) as own:
             return run_pipeline(log, run_dir, config, ground_truth, allow_truncated,
                                 on_progress, on_stage, own, force)
-    log, run_dir = Path(log), Path(run_dir)
+    with run_folder_lock(run_dir, "run", create=True):
+        return _run_locked(Path(log), Path(run_dir), config, ground_truth, allow_truncated,
+                           on_progress, on_stage, executor, force)
+
+
+def _run_locked(log: Path, run_dir: Path, config: Config, ground_truth: Path | None,
+                allow_truncated: bool, on_progress: Progress | None,
+                on_stage: Callable[[str, str], None] | None, executor: Executor,
+                force: bool) -> PipelineResult:
+    """`run_pipeline` holding the run folder's lock."""
     log_input = resolve_log(log)
     gt = find_ground_truth(log, ground_truth)
     wanted = tuple(s.name for s in registry.STAGES if not s.needs_ground_truth or gt)

@@ -61,6 +61,7 @@ def run_cmd(logs: tuple[Path, ...], run_dir: Path, gt_path: Path | None, allow_t
       surgrecon run logs/*.mcap -o runs/ --executor processes --workers 2
       surgrecon run logs/*.mcap -o runs/ --scheduler tcp://10.0.0.5:8786
     """
+    from ..io.run_folder import run_folder_lock
     from ..pipeline import open_executor, tagged
 
     if len(logs) > 1 and gt_path is not None:
@@ -69,10 +70,11 @@ def run_cmd(logs: tuple[Path, ...], run_dir: Path, gt_path: Path | None, allow_t
     with open_executor(config) as executor:
         if len(logs) == 1:
             run_dir = tagged(run_dir, tag)
-            _run_one(logs[0], run_dir, gt_path, allow_truncated, force, config, quiet,
-                     executor)
-            if "mcap" in exports:
-                _export_mcap([run_dir])
+            with run_folder_lock(run_dir, "run", create=True):
+                _run_one(logs[0], run_dir, gt_path, allow_truncated, force, config, quiet,
+                         executor)
+                if "mcap" in exports:
+                    _export_mcap([run_dir])
         else:
             _run_many(list(logs), run_dir, allow_truncated, force, config, quiet, executor,
                       exports, tag)
