@@ -8,6 +8,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import re
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -17,6 +18,13 @@ import numpy as np
 
 _UMASK = os.umask(0)
 os.umask(_UMASK)
+# The temporary name of an interrupted write: `.NAME.` + mkstemp's 8 random characters + `.tmp`.
+_TEMPORARY_NAME = re.compile(r"\..+\.[a-z0-9_]{8}\.tmp")
+
+
+def is_temporary(name: str) -> bool:
+    """Whether a file name is one of `atomic_open`'s temporaries (not, e.g., `.draft.tmp`)."""
+    return _TEMPORARY_NAME.fullmatch(name) is not None
 
 
 @contextlib.contextmanager
@@ -39,11 +47,12 @@ def atomic_open(path: Path | str, mode: str = "wb") -> Iterator[IO[Any]]:
 
 
 def remove_leftovers(folder: Path | str) -> int:
-    """Delete the temporary files of killed writes (`.NAME.*.tmp`) anywhere under `folder`;
-    returns how many. Only for a folder no other process is writing to."""
+    """Delete the temporary files of killed writes (`.NAME.XXXXXXXX.tmp`) anywhere under
+    `folder`; returns how many. Only for a folder no other process is writing to (hold its
+    lock)."""
     removed = 0
     for tmp in Path(folder).rglob(".*.tmp"):
-        if tmp.is_file():
+        if is_temporary(tmp.name) and tmp.is_file() and not tmp.is_symlink():
             tmp.unlink(missing_ok=True)
             removed += 1
     return removed

@@ -32,12 +32,13 @@ from ..core.sync import (
     poses_at,
     rate_hz,
 )
-from ..errors import InputError, RunFolderError, SurgReconError
+from ..errors import InputError, RunFolderError, SurgReconError, quoted
+from ..io.atomic import is_temporary
 from ..io.ingest_store import IngestedLog, save_ingested, save_pose_streams
 from ..io.log_input import resolve_log
 from ..io.mcap import LogReader
 from ..io.run_folder import RunFolder
-from ..io.run_layout import INGEST_STAGING_PREFIX, TEMPORARY_SUFFIX, RunLayout
+from ..io.run_layout import INGEST_STAGING_PREFIX, RunLayout
 from .common import recorded_config
 from .ingest_frames import check_clocks, log_span, world_poses
 from .ingest_streams import StreamCollector
@@ -81,7 +82,8 @@ def ingest(
     run = _prepare_run_folder(run_dir, log_path, config, force)
     layout = RunLayout(run_dir)
     for leftover in run_dir.glob(f"{INGEST_STAGING_PREFIX}*"):
-        shutil.rmtree(leftover, ignore_errors=True)
+        if RunLayout.is_ingest_staging(leftover) and not leftover.is_symlink():
+            shutil.rmtree(leftover, ignore_errors=True)
     staging = layout.ingest_staging(uuid.uuid4().hex[:12])
     staging.mkdir()  # (mkdtemp would make it 0700; this respects the umask)
     try:
@@ -135,12 +137,15 @@ def _prepare_run_folder(run_dir: Path, log_path: Path, config: Config, force: bo
                 f"{run_dir} already holds an ingested log; pass --force to replace it "
                 "(later stages will re-run) or use a new run folder")
     elif run_dir.exists() and not force:
-        entries = list(run_dir.iterdir())
-        if any(not _leftover(p) for p in entries):
-            raise RunFolderError(f"{run_dir} exists, is not empty and has no run.json; "
+        lock = RunLayout(run_dir).lock_file
+        entries = [p for p in run_dir.iterdir() if p != lock]
+        foreign = [p.name for p in entries if not _leftover(p)]
+        if foreign:
+            raise RunFolderError(f"{run_dir} exists, is not empty and has no run.json (it holds "
+                                 f"{quoted(foreign[0])}, which surgrecon did not write); "
                                  "use a new or empty folder")
         for path in entries:  # of a run killed before it wrote run.json
-            if path.is_dir():
+            if path.is_dir() and not path.is_symlink():
                 shutil.rmtree(path)
             else:
                 path.unlink()
@@ -151,8 +156,7 @@ def _prepare_run_folder(run_dir: Path, log_path: Path, config: Config, force: bo
 
 def _leftover(path: Path) -> bool:
     """A temporary file or staging folder of a run killed before it wrote run.json."""
-    return path.name.startswith(".") and (path.name.endswith(TEMPORARY_SUFFIX)
-                                          or path.name.startswith(INGEST_STAGING_PREFIX))
+    return is_temporary(path.name) or RunLayout.is_ingest_staging(path)
 
 
 def _swap_in(staging: Path, final: Path) -> None:
