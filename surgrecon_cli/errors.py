@@ -5,8 +5,13 @@ Names taken from an input (topics, frame ids, keys) are echoed through `cut` / `
 50 MB frame id must not become a 50 MB error line.
 """
 
+import errno
 from typing import Any
 
+# errno values of an output the system refuses to hold: the user's to fix, not a bug.
+WRITE_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM,
+                          errno.EFBIG, errno.ENOTDIR, errno.EISDIR, errno.ELOOP,
+                          errno.ENAMETOOLONG})
 NAME_LIMIT = 120  # characters of an input-controlled string echoed in a message
 
 
@@ -46,6 +51,10 @@ class InputError(SurgReconError):
 
 class TopicError(InputError):
     """A role of the `[topics]` config matches no channel, or a schema is unsupported."""
+
+
+class OutputError(SurgReconError):
+    """An output could not be written: no space left, read-only or not writable."""
 
 
 class RunFolderError(SurgReconError):

@@ -266,7 +266,7 @@ def run_folders_for(logs: list[Path], runs_root: Path, tag: str = "") -> list[Pa
     """One run folder per log under `runs_root`, named after the log's file name without
     `.mcap` (a bag folder: its name), and `tag` below it if given; InputError when two logs
     would share a folder."""
-    names = [Path(log).name.removesuffix(".mcap") for log in logs]
+    names = [Path(log).absolute().name.removesuffix(".mcap") for log in logs]
     folders = [tagged(Path(runs_root) / (n if n not in ("", ".", "..") else Path(log).name), tag)
                for n, log in zip(names, logs, strict=True)]
     seen: dict[Path, Path] = {}

@@ -144,3 +144,64 @@ def test_ingest_removes_only_its_own_leftovers(pipeline_log: Path, tmp_path: Pat
     assert json.loads((out / "run.json").read_text())["stages"]["ingest"]["status"] == "done"
     assert sorted(p.name for p in out.iterdir() if p.name.startswith(".")) == [
         ".surgrecon.lock"]
+
+
+# ---- finding 7: crashes that are one-line errors (or handled) -----------------------------
+def test_first_joint_state_without_joints_is_skipped(tmp_path: Path, capsys):
+    import dataclasses
+
+    import synth_log
+
+    def empty_first(messages):
+        first = min((i for i, m in enumerate(messages)
+                     if isinstance(m[2], synth_log.JointStateRecord)), key=lambda i: messages[i][1])
+        topic, t, rec = messages[first]
+        messages[first] = (topic, t, dataclasses.replace(rec, names=(), positions=np.zeros(0)))
+        return messages
+
+    log = synth_log.write(tmp_path / "log.mcap", synth_log.SynthSpec(mutate=empty_first))
+    assert main(["ingest", str(log), "-o", str(tmp_path / "run"), "-q"]) == 0
+    assert "joint state without joints" in capsys.readouterr().err
+    data = np.load(tmp_path / "run" / "ingest" / "frames.npz")
+    assert data["joint_positions"].shape[1] == len(synth_log.JOINTS)
+    assert np.isfinite(data["joint_positions"]).all()
+
+
+def test_log_named_dot_and_foreign_run_json(pipeline_log: Path, tmp_path: Path, capsys,
+                                            monkeypatch):
+    bag = tmp_path / "bag"
+    bag.mkdir()
+    (bag / "rec.mcap").symlink_to(pipeline_log)
+    monkeypatch.chdir(bag)
+    assert main(["ingest", ".", "-o", str(tmp_path / "run"), "-q"]) == 0
+    other = tmp_path / "other"
+    other.mkdir()
+    for text in ('{"tool": "x"}', '{"surgrecon": "0.1.0", "stages": [1]}',
+                 '{"surgrecon": "0.1.0", "stages": {"ingest": "done"}}'):
+        (other / "run.json").write_text(text)
+        for command in (["run", "."], ["ingest", "."]):
+            assert main([*command, "-o", str(other), "-q"]) == 2
+            err = capsys.readouterr().err.strip()
+            assert len(err.splitlines()) == 1 and "not a surgrecon run.json" in err, err
+        assert (other / "run.json").read_text() == text  # never overwritten
+
+
+def test_full_disk_and_unusable_output_folders_name_the_file(copy_run: Path, pipeline_log: Path,
+                                                             monkeypatch, capsys):
+    import errno
+
+    import surgrecon_cli.io.atomic as atomic
+
+    def full(_fd: int) -> None:
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(atomic.os, "fsync", full)
+    assert main(["report", str(copy_run), "-q"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "No space left on device" in err
+    assert str(copy_run) in err  # the file that could not be written
+    monkeypatch.undo()
+    for out in (os.devnull, "/proc/surgrecon-test/run"):
+        assert main(["run", str(pipeline_log), "-o", out, "-q"]) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and out in err, err

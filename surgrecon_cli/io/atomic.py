@@ -16,6 +16,8 @@ from typing import IO, Any
 
 import numpy as np
 
+from ..errors import WRITE_ERRNOS, OutputError
+
 _UMASK = os.umask(0)
 os.umask(_UMASK)
 # The temporary name of an interrupted write: `.NAME.` + mkstemp's 8 random characters + `.tmp`.
@@ -31,8 +33,11 @@ def is_temporary(name: str) -> bool:
 def atomic_open(path: Path | str, mode: str = "wb") -> Iterator[IO[Any]]:
     """Open a temporary sibling of `path` for writing; rename it over `path` on success."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    except OSError as exc:
+        raise _not_written(path, exc) from exc
     os.chmod(tmp, 0o666 & ~_UMASK)  # mkstemp creates 0600; final files get the usual mode
     try:
         with os.fdopen(fd, mode) as handle:
@@ -40,10 +45,17 @@ def atomic_open(path: Path | str, mode: str = "wb") -> Iterator[IO[Any]]:
             handle.flush()
             os.fsync(handle.fileno())
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as exc:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
+        if isinstance(exc, OSError) and exc.errno in WRITE_ERRNOS and exc.filename is None:
+            raise _not_written(path, exc) from exc  # a full disk while writing `path`
         raise
+
+
+def _not_written(path: Path, exc: OSError) -> OutputError:
+    return OutputError(f"{path}: cannot write ({exc.strerror or type(exc).__name__}); free "
+                       "space or choose a writable folder")
 
 
 def remove_leftovers(folder: Path | str) -> int:

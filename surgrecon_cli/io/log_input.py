@@ -36,7 +36,8 @@ class LogInput:
     @property
     def name(self) -> str:
         """The recording's name: the file name without `.mcap`, or the folder's name."""
-        return self.path.name.removesuffix(".mcap") if self.path.is_file() else self.path.name
+        name = self.path.absolute().name  # (`.` has no name of its own)
+        return name.removesuffix(".mcap") if self.path.is_file() else name
 
     def sha256(self) -> str:
         """SHA-256 of the files' bytes, concatenated in order, read in 1 MiB blocks."""

@@ -107,8 +107,12 @@ class RunFolder:
                                  "`surgrecon ingest LOG.mcap -o RUN` first") from exc
         except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
             raise RunFolderError(f"{self.run_json}: unreadable ({exc})") from exc
-        if not isinstance(data, dict):
-            raise RunFolderError(f"{self.run_json}: not a JSON object")
+        tables = ("stages", "input", "config", "ingest", "pipeline")
+        if (not isinstance(data, dict) or "surgrecon" not in data
+                or not all(isinstance(data.get(k, {}), dict) for k in tables)
+                or not all(isinstance(v, dict) for v in data.get("stages", {}).values())):
+            raise RunFolderError(f"{self.run_json}: not a surgrecon run.json (another tool's, "
+                                 "or damaged); use a new run folder")
         return data
 
     def write(self, data: dict[str, Any]) -> None:

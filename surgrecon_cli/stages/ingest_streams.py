@@ -87,6 +87,7 @@ class StreamCollector:
         self.joint_topic = ""
         self.joint_stamps = array("q")
         self.joint_values = array("d")
+        self.empty_joint_states = 0
         self.videos: dict[str, tuple[str, VideoDecoder]] = {}  # topic -> camera, decoder
 
     def _camera(self, camera: str) -> CameraStreams:
@@ -179,6 +180,12 @@ class StreamCollector:
                            item.topic, fmt_stamp(record.stamp_ns))
 
     def _joints(self, item: LogItem, record: JointStateRecord) -> None:
+        if not record.names:  # carries no joint: skipped (said once per log)
+            if not self.empty_joint_states:
+                logger.warning("%s: a joint state without joints at stamp %s; such messages "
+                               "are skipped", item.topic, fmt_stamp(record.stamp_ns))
+            self.empty_joint_states += 1
+            return
         if not self.joint_names:
             self.joint_names = tuple(record.names)
             self.joint_topic = item.topic
