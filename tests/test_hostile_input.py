@@ -205,3 +205,62 @@ def test_full_disk_and_unusable_output_folders_name_the_file(copy_run: Path, pip
         assert main(["run", str(pipeline_log), "-o", out, "-q"]) == 2
         err = capsys.readouterr().err.strip()
         assert len(err.splitlines()) == 1 and out in err, err
+
+
+# ---- finding 9: TF problems on frames nobody uses are warnings ----------------------------
+TF_CONFIG = ('[topics]\ncamera_pose = "/tf"\ncamera_frame = "endoscope_{camera}_optical"\n'
+             'tool_pose = "/tf"\ntool_frame = "raven_tool_tip"\n')
+
+
+def test_tf_problems_on_unused_frames_warn_and_ingest_succeeds(tmp_path: Path, capsys):
+    import synth_log
+    from synth_log import MS, T0
+
+    def pose(parent: str, child: str, xyz=(0.0, 0.0, 0.0)):
+        return ("/tf", T0 + 5 * MS, synth_log.PoseRecord(T0, parent, child, np.array(xyz),
+                                                         np.array([0.0, 0, 0, 1])))
+
+    extra = [pose("world", "gripper", (np.nan, 0, 0)), pose("world", "base"),
+             pose("map", "base"), pose("loop_a", "loop_b"), pose("loop_b", "loop_a")]
+    log = synth_log.write(tmp_path / "log.mcap", synth_log.SynthSpec(tf_topic="/tf",
+                                                                     extra=extra))
+    config = tmp_path / "tf.toml"
+    config.write_text(TF_CONFIG)
+    assert main(["ingest", str(log), "-o", str(tmp_path / "run"), "--config", str(config),
+                 "-q"]) == 0
+    err = capsys.readouterr().err
+    assert "'gripper'" in err and "non-finite" in err
+    assert "'base' has 2 parents" in err and "cycle" in err and "np.str_" not in err
+    # the same problem on a frame a camera needs stays an error, in one line
+    config.write_text(TF_CONFIG.replace("endoscope_{camera}_optical", "gripper"))
+    assert main(["ingest", str(log), "-o", str(tmp_path / "run2"), "--config", str(config),
+                 "-q"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith("error: camera 0") and "non-finite" in err[-1]
+
+
+def test_negative_stamp_is_called_negative(tmp_path: Path, capsys):
+    import dataclasses
+
+    import synth_log
+
+    def negative(messages):
+        topic, t, rec = next(m for m in messages if isinstance(m[2], synth_log.PoseRecord))
+        messages.append((topic, t + 1, dataclasses.replace(rec, stamp_ns=-5)))
+        return messages
+
+    log = synth_log.write(tmp_path / "log.mcap", synth_log.SynthSpec(mutate=negative))
+    main(["ingest", str(log), "-o", str(tmp_path / "run"), "-q"])
+    err = capsys.readouterr().err
+    assert "negative header stamp" in err and "zero header stamp" not in err
+
+
+def test_long_names_in_errors_are_cut():
+    from surgrecon_cli.core.tf_tree import build_tf_tree, make_samples
+    from surgrecon_cli.errors import NAME_LIMIT
+
+    huge = "f" * 5_000_000
+    tree = build_tf_tree(make_samples(["world"], [huge], [0], [[0, 0, 0]], [[0, 0, 0, 1]]))
+    with pytest.raises(InputError) as exc:
+        tree.lookup("map", huge, np.array([0]), 1)
+    assert len(str(exc.value)) < 4 * NAME_LIMIT + 200 and "characters)" in str(exc.value)
