@@ -105,3 +105,23 @@ def test_lock_file_that_is_a_link_or_unwritable_folder_is_one_line(tmp_path: Pat
     with pytest.raises(RunFolderError, match="not a folder"), \
             run_folder_lock(Path(os.devnull), "run", create=True):
         pass
+
+
+def test_a_read_only_archive_is_read_unlocked_but_never_written(copy_run: Path, monkeypatch):
+    import errno
+
+    lock = RunLayout(copy_run).lock_file
+    lock.unlink(missing_ok=True)
+    real_open = os.open
+
+    def read_only(path, flags, *args):
+        if Path(path) == lock:
+            raise OSError(errno.EROFS, "Read-only file system", str(path))
+        return real_open(path, flags, *args)
+
+    monkeypatch.setattr(os, "open", read_only)
+    with run_folder_lock(copy_run, "export", writes=False):
+        pass
+    with pytest.raises(RunFolderError, match="Read-only file system"), \
+            run_folder_lock(copy_run, "report"):
+        pass

@@ -19,7 +19,7 @@ from .common import locks_run_folder, progress, quiet_options
                    "(camera_CC.tum, tool.tum). Needs an ingested run.")
 @click.option("--force", is_flag=True, help="Replace an existing --mcap file.")
 @quiet_options
-@locks_run_folder()
+@locks_run_folder(writes=False)
 def export_cmd(run_dir: Path, mcap_path: Path | None, tum_dir: Path | None, force: bool,
                quiet: bool) -> None:
     """Export RUN's results where robotics tools read them.

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import contextlib
 import datetime
+import errno
 import fcntl
 import hashlib
 import importlib.metadata
@@ -205,12 +206,14 @@ _HELD_GUARD = threading.Lock()
 
 
 @contextlib.contextmanager
-def run_folder_lock(path: Path | str, command: str, create: bool = False) -> Iterator[None]:
+def run_folder_lock(path: Path | str, command: str, create: bool = False,
+                    writes: bool = True) -> Iterator[None]:
     """Hold the run folder's lock while the body runs: another process holding it makes this
     raise RunFolderError at once, naming its pid, start time and command. Re-entrant within
     one process (the pipeline's stages run under the command's lock). create: make the folder
     (and its parents) first; without it a folder that does not exist is not locked (the
-    command reports it)."""
+    command reports it). writes=False (a command that only reads the run): a read-only
+    folder without a lock file is read unlocked."""
     folder = Path(path)
     if create:
         _make_folder(folder)
@@ -222,7 +225,7 @@ def run_folder_lock(path: Path | str, command: str, create: bool = False) -> Ite
         if key in _HELD:
             _HELD[key][1] += 1
         else:
-            _HELD[key] = [_acquire(folder, command), 1]
+            _HELD[key] = [_acquire(folder, command, writes), 1]
     try:
         yield
     finally:
@@ -230,9 +233,10 @@ def run_folder_lock(path: Path | str, command: str, create: bool = False) -> Ite
             _HELD[key][1] -= 1
             if _HELD[key][1] == 0:
                 fd = _HELD.pop(key)[0]
-                with contextlib.suppress(OSError):
-                    os.ftruncate(fd, 0)
-                os.close(fd)  # releases the lock
+                if fd >= 0:
+                    with contextlib.suppress(OSError):
+                        os.ftruncate(fd, 0)
+                    os.close(fd)  # releases the lock
 
 
 def _make_folder(folder: Path) -> None:
@@ -248,13 +252,15 @@ def _make_folder(folder: Path) -> None:
         raise RunFolderError(f"{folder}: not a folder; give a folder path")
 
 
-def _acquire(folder: Path, command: str) -> int:
+def _acquire(folder: Path, command: str, writes: bool) -> int:
     """Open and lock RUN/.surgrecon.lock (never following a link), record who holds it;
-    returns the open descriptor."""
+    returns the open descriptor (-1: a read-only folder read unlocked, see writes)."""
     lock = RunLayout(folder).lock_file
     try:
         fd = os.open(lock, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o666)
     except OSError as exc:
+        if not writes and exc.errno in (errno.EROFS, errno.EACCES) and not lock.exists():
+            return -1  # nobody can write there either
         raise RunFolderError(f"{lock}: cannot open the run folder's lock file "
                              f"({exc.strerror or type(exc).__name__}); use a writable "
                              "folder") from exc
