@@ -12,7 +12,7 @@ import numpy as np
 
 from ..core.cameras import CameraModel
 from ..core.sync import PoseStream, validate_pose_stream
-from ..errors import GeometryError, InputError
+from ..errors import GeometryError, InputError, quoted
 from ..io.images import StoredImage, prepare_image
 from ..io.mcap import LogItem
 from ..io.records import CameraInfoRecord, ImageRecord, JointStateRecord, PoseRecord
@@ -40,8 +40,8 @@ class Poses:
     def add(self, record: PoseRecord) -> None:
         if record.frame_id not in self.frames:
             if self.frames:
-                raise InputError(f"{self.name}: poses in frames {sorted(self.frames)[0]!r} and "
-                                 f"{record.frame_id!r} (at {fmt_stamp(record.stamp_ns)}); "
+                raise InputError(f"{self.name}: poses in frames {quoted(min(self.frames))} and "
+                                 f"{quoted(record.frame_id)} (at {fmt_stamp(record.stamp_ns)}); "
                                  "one pose topic must keep one frame")
             self.frames.add(record.frame_id)
         self.stamps.append(record.stamp_ns)
