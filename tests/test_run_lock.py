@@ -7,10 +7,12 @@ command (the kernel drops the lock with the process)."""
 from __future__ import annotations
 
 import hashlib
+import json
 import os
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -58,6 +60,39 @@ def test_second_process_refuses_at_once_and_the_first_keeps_its_outputs(
         holder.communicate("", timeout=30)
     assert holder.returncode == 0
     assert digest(copy_run) == before
+
+
+def test_a_real_command_holds_the_lock_for_its_whole_run(copy_run: Path, pipeline_log: Path):
+    """`surgrecon report` frozen (SIGSTOP) while it holds the lock: `surgrecon run` on the
+    same folder refuses at once naming it; resumed, the report finishes as if alone."""
+    layout = RunLayout(copy_run)
+    before = digest(copy_run)
+    first = subprocess.Popen([*SURGRECON, "report", str(copy_run), "-q"],
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        for _ in range(6000):  # until it holds the lock (its pid in the lock file)
+            if layout.lock_file.exists() and f'"pid": {first.pid}' in \
+                    layout.lock_file.read_text():
+                break
+            assert first.poll() is None, first.communicate()
+            time.sleep(0.01)
+        first.send_signal(signal.SIGSTOP)
+        second = subprocess.run([*SURGRECON, "run", str(pipeline_log), "-o", str(copy_run),
+                                 "-q"], capture_output=True, text=True, timeout=120)
+    finally:
+        first.send_signal(signal.SIGCONT)
+        _, err = first.communicate(timeout=300)
+    assert second.returncode == 2 and f"pid {first.pid}" in second.stderr, second.stderr
+    assert "surgrecon report" in second.stderr
+    assert first.returncode == 0, err
+    rewritten = {layout.relative(p) for p in (layout.report_html, layout.summary_json,
+                                              layout.frames_csv, layout.run_json)}
+    after = digest(copy_run)
+    assert {k: v for k, v in after.items() if k not in rewritten} == {
+        k: v for k, v in before.items() if k not in rewritten}
+    assert json.loads(layout.summary_json.read_text())
+    assert all(s["status"] == "done" for s in json.loads(layout.run_json.read_text())["stages"]
+               .values())
 
 
 @pytest.mark.parametrize("command", ["build-template", "register", "classify", "measure",
