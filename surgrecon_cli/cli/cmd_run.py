@@ -67,17 +67,16 @@ def run_cmd(logs: tuple[Path, ...], run_dir: Path, gt_path: Path | None, allow_t
     if len(logs) > 1 and gt_path is not None:
         raise InputError("--ground-truth goes with one log; with several, each log's "
                          "NAME.gt.npz beside it is used")
-    with open_executor(config) as executor:
-        if len(logs) == 1:
-            run_dir = tagged(run_dir, tag)
-            with run_folder_lock(run_dir, "run", create=True):
-                _run_one(logs[0], run_dir, gt_path, allow_truncated, force, config, quiet,
-                         executor)
-                if "mcap" in exports:
-                    _export_mcap([run_dir])
-        else:
-            _run_many(list(logs), run_dir, allow_truncated, force, config, quiet, executor,
-                      exports, tag)
+    if len(logs) == 1:  # the folder's lock first: a second run refuses before starting workers
+        run_dir = tagged(run_dir, tag)
+        with run_folder_lock(run_dir, "run", create=True), open_executor(config) as executor:
+            _run_one(logs[0], run_dir, gt_path, allow_truncated, force, config, quiet, executor)
+            if "mcap" in exports:
+                _export_mcap([run_dir])
+        return
+    with open_executor(config) as executor:  # each run folder is locked by run_pipeline
+        _run_many(list(logs), run_dir, allow_truncated, force, config, quiet, executor,
+                  exports, tag)
 
 
 def _run_one(log: Path, run_dir: Path, gt_path: Path | None, allow_truncated: bool,

@@ -267,8 +267,11 @@ def _acquire(folder: Path, command: str, writes: bool) -> int:
     try:
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except OSError as exc:
-        holder = _holder(fd)
+        holder = _holder(fd) if isinstance(exc, BlockingIOError) else ""
         os.close(fd)
+        if not holder:  # e.g. a file system without locks
+            raise RunFolderError(f"{lock}: cannot be locked ({exc.strerror}); use a run "
+                                 "folder on a local disk") from exc
         raise RunFolderError(f"{folder} is in use by {holder}; wait for it to finish or use "
                              "another folder") from exc
     started = datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")
