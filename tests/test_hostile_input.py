@@ -134,6 +134,7 @@ def test_ingest_keeps_user_files_in_the_output_folder(pipeline_log: Path, tmp_pa
     assert len(err.splitlines()) == 1 and "did not write" in err
     assert (out / ".draft.tmp").read_text() == "mine too"
     assert (out / ".ingest-notes" / "todo.txt").read_text() == "mine"
+    assert sorted(p.name for p in out.iterdir()) == [".draft.tmp", ".ingest-notes"]  # no trace
 
 
 def test_ingest_removes_only_its_own_leftovers(pipeline_log: Path, tmp_path: Path):

@@ -236,6 +236,8 @@ def run_folder_lock(path: Path | str, command: str, create: bool = False,
                 if fd >= 0:
                     with contextlib.suppress(OSError):
                         os.ftruncate(fd, 0)
+                        if not RunLayout(key).run_json.exists():  # no run folder: no trace
+                            RunLayout(key).lock_file.unlink()
                     os.close(fd)  # releases the lock
 
 
@@ -274,6 +276,9 @@ def _acquire(folder: Path, command: str, writes: bool) -> int:
                                  "folder on a local disk") from exc
         raise RunFolderError(f"{folder} is in use by {holder}; wait for it to finish or use "
                              "another folder") from exc
+    if os.fstat(fd).st_ino != getattr(_stat(lock), "st_ino", None):  # unlinked meanwhile
+        os.close(fd)
+        return _acquire(folder, command, writes)
     started = datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")
     record = json.dumps({"pid": os.getpid(), "started": started, "command": command})
     try:
@@ -284,6 +289,12 @@ def _acquire(folder: Path, command: str, writes: bool) -> int:
         raise RunFolderError(f"{lock}: cannot write ({exc.strerror or type(exc).__name__}); "
                              "free space or use another folder") from exc
     return fd
+
+
+def _stat(path: Path) -> os.stat_result | None:
+    with contextlib.suppress(FileNotFoundError):
+        return os.stat(path, follow_symlinks=False)
+    return None
 
 
 def _holder(fd: int) -> str:
