@@ -1,5 +1,34 @@
 """One exception family. The CLI turns any `SurgReconError` into one line (and its
-`details`, one item per indented line after it) and exit code 2."""
+`details`, one item per indented line after it) and exit code 2.
+
+Names taken from an input (topics, frame ids, keys) are echoed through `cut` / `quoted`: a
+50 MB frame id must not become a 50 MB error line.
+"""
+
+import errno
+from typing import Any
+
+# errno values of an output the system refuses to hold: the user's to fix, not a bug.
+WRITE_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM,
+                          errno.EFBIG, errno.ENOTDIR, errno.EISDIR, errno.ELOOP,
+                          errno.ENAMETOOLONG})
+NAME_LIMIT = 120  # characters of an input-controlled string echoed in a message
+
+
+def cut(text: str, limit: int = NAME_LIMIT) -> str:
+    """`text` cut to `limit` characters, the cut marked with an ellipsis and the length."""
+    if len(text) <= limit:
+        return text
+    return f"{text[:limit]}… ({len(text)} characters)"
+
+
+def quoted(value: Any, limit: int = NAME_LIMIT) -> str:
+    """An input-controlled name for a message: plain quoted text (numpy strings and bytes as
+    their text, not `np.str_('world')`), cut to `limit` characters."""
+    if isinstance(value, bytes):
+        value = value.decode("utf-8", "replace")
+    text = str(value) if isinstance(value, str) else repr(value)
+    return repr(cut(text, limit)) if isinstance(value, str) else cut(text, limit)
 
 
 class SurgReconError(Exception):
@@ -22,6 +51,10 @@ class InputError(SurgReconError):
 
 class TopicError(InputError):
     """A role of the `[topics]` config matches no channel, or a schema is unsupported."""
+
+
+class OutputError(SurgReconError):
+    """An output could not be written: no space left, read-only or not writable."""
 
 
 class RunFolderError(SurgReconError):

@@ -36,7 +36,7 @@ from .io.artefacts import read_json
 from .io.atomic import remove_leftovers, write_text
 from .io.ground_truth import gt_path_beside
 from .io.log_input import resolve_log
-from .io.run_folder import RunFolder, file_sha256, plain
+from .io.run_folder import RunFolder, file_sha256, plain, run_folder_lock
 from .io.run_layout import RunLayout
 from .planning import Planner, seed_run
 from .stages import registry
@@ -123,7 +123,16 @@ def run_pipeline(log: Path, run_dir: Path, config: Config, ground_truth: Path | 
         with open_executor(config) as own:
             return run_pipeline(log, run_dir, config, ground_truth, allow_truncated,
                                 on_progress, on_stage, own, force, seed_from)
-    log, run_dir = Path(log), Path(run_dir)
+    with run_folder_lock(run_dir, "run", create=True):
+        return _run_locked(Path(log), Path(run_dir), config, ground_truth, allow_truncated,
+                           on_progress, on_stage, executor, force, seed_from)
+
+
+def _run_locked(log: Path, run_dir: Path, config: Config, ground_truth: Path | None,
+                allow_truncated: bool, on_progress: Progress | None,
+                on_stage: Callable[[str, str], None] | None, executor: Executor,
+                force: bool, seed_from: Path | None) -> PipelineResult:
+    """`run_pipeline` holding the run folder's lock."""
     log_input = resolve_log(log)
     log_sha = functools.cache(log_input.sha256)  # read the log once, if at all
     gt = find_ground_truth(log, ground_truth)
@@ -227,7 +236,7 @@ def run_folders_for(logs: list[Path], runs_root: Path, tag: str = "") -> list[Pa
     """One run folder per log under `runs_root`, named after the log's file name without
     `.mcap` (a bag folder: its name), with `-tag` appended if given (RUNS/NAME-tag);
     InputError when two logs would share a folder."""
-    names = [Path(log).name.removesuffix(".mcap") for log in logs]
+    names = [Path(log).absolute().name.removesuffix(".mcap") for log in logs]
     folders = [tagged(Path(runs_root) / (n if n not in ("", ".", "..") else Path(log).name), tag)
                for n, log in zip(names, logs, strict=True)]
     seen: dict[Path, Path] = {}

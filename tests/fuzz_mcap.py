@@ -13,7 +13,9 @@ JPEG and raw images; poses as PoseStamped or transforms). Families:
   quaternions, non-finite positions, zero-size images, a raw image claiming 60000x60000 px,
   PNG/JPEG headers claiming huge sizes, corrupt image bytes, duplicated, out-of-order and odd
   stamps, wrong record types on a topic, bad intrinsics, joint states and raw encodings, a
-  missing topic.
+  missing topic; an empty first joint state, a JPEG with stray bytes before its size
+  marker, NaN / second parent / cycle / self-transform on TF frames nobody uses, negative
+  stamps, frame ids of 100 kB (issue 25).
 """
 
 from __future__ import annotations
@@ -483,6 +485,47 @@ def message_mutation(family: str, rng: random.Random):
                               {"format": "mono8", "width": 64, "height": 48, "step": 64},
                               {"format": "rgb8", "width": 1 << 31, "height": 1, "step": 0}))
         fn = lambda m: replace(m, ImageRecord, **changes)  # noqa: E731
+    elif family == "empty_first_joint_state":  # ROS publishers send these before homing
+        expect = "0"
+
+        def fn(messages):
+            joints = [i for i, m in enumerate(messages) if isinstance(m[2], JointStateRecord)]
+            if joints:
+                i = min(joints, key=lambda i: messages[i][1])
+                topic, t, rec = messages[i]
+                messages[i] = (topic, t, dataclasses.replace(rec, names=(),
+                                                             positions=np.zeros(0)))
+            return messages
+    elif family == "stray_byte_jpeg":  # libjpeg skips stray bytes before a marker
+        expect = "2"
+        side = rng.choice((20000, 30000, 65535))
+        header = _jpeg_header(side, side)
+        sof = header.find(b"\xff\xc0")
+        stray = bytes(rng.choice(range(255)) for _ in range(rng.randint(1, 3)))
+        data = header[:sof] + stray + rng.choice((b"", b"\xff\xff")) + header[sof:]
+        fn = lambda m: replace(m, ImageRecord, format="jpeg", data=data,  # noqa: E731
+                               width=0, height=0, step=0)
+    elif family == "tf_unused_frame_problem":  # tf2 only warns about frames nobody uses
+        expect = "0"
+        kind = rng.choice(("nan", "two_parents", "cycle", "self"))
+        pairs = {"nan": [("world", "probe")], "two_parents": [("world", "arm"), ("map", "arm")],
+                 "cycle": [("ring_a", "ring_b"), ("ring_b", "ring_a")],
+                 "self": [("hand", "hand")]}[kind]
+        xyz = np.array([np.nan, 0, 0]) if kind == "nan" else np.zeros(3)
+
+        def fn(messages):
+            t = synth_log.T0 + 5 * synth_log.MS
+            return messages + [("/tf", t, PoseRecord(t - synth_log.MS, parent, child, xyz,
+                                                     np.array([0.0, 0, 0, 1])))
+                               for parent, child in pairs]
+    elif family == "negative_stamps":
+        stamp = -rng.randint(1, 10**12)
+        fn = lambda m: replace(m, rng.choice((ImageRecord, PoseRecord,  # noqa: E731
+                                              JointStateRecord)), k=2, stamp_ns=stamp)
+    elif family == "long_frame_id":  # echoed in errors: cut, never whole
+        expect = "2"
+        name = rng.choice(("f", "é", "\n")) * rng.choice((5000, 100_000))
+        fn = lambda m: replace(m, PoseRecord, frame_id=name)  # noqa: E731
     elif family == "drop_topic":
         def fn(messages):
             topic = rng.choice(sorted({m[0] for m in messages}))
@@ -495,4 +538,6 @@ def message_mutation(family: str, rng: random.Random):
 MESSAGE_FAMILIES = ("nan_quaternion", "zero_quaternion", "nan_position", "zero_size_image",
                     "huge_raw_image", "huge_compressed_image", "corrupt_image", "duplicate_stamps",
                     "out_of_order_stamps", "odd_stamps", "wrong_type", "bad_intrinsics",
-                    "bad_joints", "bad_raw_image", "drop_topic")
+                    "bad_joints", "bad_raw_image", "drop_topic", "empty_first_joint_state",
+                    "stray_byte_jpeg", "tf_unused_frame_problem", "negative_stamps",
+                    "long_frame_id")

@@ -62,3 +62,46 @@ def test_keys_renamed_with_their_unit_are_still_read():
     config = load_config(overrides=["tool.shaft_radius=0.005", "target.occlusion_depth=0.01"])
     assert config.tool.shaft_radius_m == 0.005 and config.target.occlusion_depth_m == 0.01
     assert load_config(overrides=["tool.margin=0.002"]).tool.margin_m == 0.002
+
+
+@pytest.mark.parametrize(
+    ("override", "key"),
+    [
+        ("ingest.sync_tolerance_ms=inf", "ingest.sync_tolerance_ms"),
+        ("ingest.pose_gap_ms=nan", "ingest.pose_gap_ms"),
+        ("target.klt_window_px=100000", "target.klt_window_px"),
+        ("deformation.ring_points=100000000", "deformation.ring_points"),
+        ("target.klt_levels=-3", "target.klt_levels"),
+        ("tool.base_to_world=[0,0,0,0,0,0,inf]", "tool.base_to_world"),
+    ],
+)
+def test_values_that_would_fail_later_are_refused_at_load(override, key):
+    with pytest.raises(ConfigError, match=rf"{key}: must be"):
+        load_config(None, [override])
+
+
+def test_every_numeric_key_has_bounds_that_hold_its_default():
+    import dataclasses
+
+    for section in dataclasses.fields(Config):
+        for f in dataclasses.fields(section.type if isinstance(section.type, type)
+                                    else type(getattr(Config(), section.name))):
+            default = getattr(getattr(Config(), section.name), f.name)
+            if isinstance(default, bool) or not isinstance(default, int | float | tuple):
+                continue
+            low, high = f.metadata["bounds"]
+            assert all(low <= v <= high for v in (default if isinstance(default, tuple)
+                                                  else (default,))), (section.name, f.name)
+
+
+def test_bom_deep_nesting_and_old_with_new_key(tmp_path):
+    path = tmp_path / "c.toml"
+    path.write_text("\ufeff[ingest]\nsync_tolerance_ms = 20\n", encoding="utf-8")
+    assert load_config(path).ingest.sync_tolerance_ms == 20.0
+    path.write_text("[ingest]\nx = " + "[" * 50_000 + "]" * 50_000 + "\n")
+    with pytest.raises(ConfigError, match="nested too deeply"):
+        load_config(path)
+    path.write_text("[tool]\nshaft_radius = 0.005\nshaft_radius_m = 0.006\n")
+    with pytest.raises(ConfigError, match=r"tool\.shaft_radius: is the old name of "
+                                          r"tool\.shaft_radius_m"):
+        load_config(path)

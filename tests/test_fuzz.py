@@ -54,6 +54,7 @@ CASE_TIMEOUT_S = 10  # s of CPU time
 MEMORY_HEADROOM = 1 << 30  # bytes of address space a case may add to the worker's start-up size
 WORKERS = 2
 WORKER_TIMEOUT_S = 240
+MAX_ERROR_LINE = 2100  # characters (cli/main.MESSAGE_LIMIT and the cut's marker)
 
 
 @dataclasses.dataclass
@@ -104,7 +105,7 @@ def generate(tmp: Path) -> list[Case]:
         family = CHUNK_FAMILIES[k % len(CHUNK_FAMILIES)]
         add_log(family, base, chunk_mutation(base, rng, family), "any", "sane",
                 allow_truncated=rng.random() < 0.3)
-    for k in range(140):
+    for k in range(200):
         base = rng.choice(bases)
         family = MESSAGE_FAMILIES[k % len(MESSAGE_FAMILIES)]
         mutate, expect = message_mutation(family, rng)
@@ -320,6 +321,8 @@ def judge(case: Case, result: dict, baseline: dict[str, Path]) -> str:
         tail = lines[lines.index(errors[0]) + 1:] if len(errors) == 1 else []
         if len(errors) != 1 or not all(ln.startswith("  ") for ln in tail):
             return f"exit 2 without exactly one final 'error:' line: {lines[-3:]}"
+        if len(errors[0]) > MAX_ERROR_LINE:
+            return f"an error line of {len(errors[0])} characters: {errors[0][:200]}"
         if result["native_stderr"].strip():
             return f"native stderr output: {result['native_stderr'].strip()[:200]}"
         return ""

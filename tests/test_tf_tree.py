@@ -196,20 +196,41 @@ def test_errors_name_the_frames():
 
     two = make_samples(["world", "tracker", "tracker"], ["cam", "cam", "cam"], [T0, T0, T0 + 1],
                        np.zeros((3, 3)), [[0, 0, 0, 1]] * 3)
+    # a bad edge is left out (tf2 only warns); a lookup that needs it says why
     with pytest.raises(InputError, match=r"'cam' has 2 parents: 'tracker' \(2 transforms\), "
                                          r"'world' \(1 transform\)"):
-        build_tf_tree(two)
+        build_tf_tree(two).lookup("world", "cam", [T0], GAP)
     cycle = make_samples(["a", "b", "c"], ["b", "c", "a"], [T0] * 3, np.zeros((3, 3)),
                          [[0, 0, 0, 1]] * 3)
     with pytest.raises(InputError, match="cycle: a -> b -> c -> a"):
-        build_tf_tree(cycle)
+        build_tf_tree(cycle).lookup("a", "b", [T0], GAP)
     mixed = make_samples(["w", "w"], ["c", "c"], [T0, T0 + 1], np.zeros((2, 3)),
                          [[0, 0, 0, 1]] * 2, [True, False])
     with pytest.raises(InputError, match=r"both as static .* and as dynamic"):
-        build_tf_tree(mixed)
+        build_tf_tree(mixed).lookup("w", "c", [T0], GAP)
     bad_q = make_samples(["w"], ["c"], [T0], [[0, 0, 0]], [[0, 0, 0, 2]])
     with pytest.raises(InputError, match=r"'w' -> 'c'.*non-unit quaternion"):
-        build_tf_tree(bad_q)
+        build_tf_tree(bad_q).lookup("w", "c", [T0], GAP)
+
+
+def test_problems_on_frames_nobody_uses_leave_the_rest_of_the_tree_usable():
+    """NaN, a second parent, a cycle or a self-transform on frames off the camera's chain:
+    the tree is built without them, the camera's pose is exact, the problems are listed."""
+    good = _tree_samples()
+    bad = make_samples(
+        ["world", "world", "tracker", "x", "y", "z", "z"],
+        ["nan_frame", "two_parents", "two_parents", "y", "x", "z", "z"],
+        [T0] * 7, [[np.nan, 0, 0], *[[0, 0, 0]] * 6], [[0, 0, 0, 1]] * 7)
+    tree = build_tf_tree(concat_samples([good, bad]))
+    q = TRACKER_STAMPS[1:-1] + 7 * MS
+    np.testing.assert_allclose(tree.lookup("world", "endoscope_1_optical", q, GAP),
+                               truth("endoscope_1_optical", q), atol=1e-9)
+    assert set(tree.problems) == {"nan_frame", "two_parents", "x", "y", "z"}
+    assert "non-finite" in tree.problems["nan_frame"]
+    assert "to itself" in tree.problems["z"] and "cycle" in tree.problems["x"]
+    assert "np.str_" not in " ".join(tree.problems.values())
+    with pytest.raises(InputError, match="non-finite"):
+        tree.lookup("world", "nan_frame", [T0], GAP)
 
 
 def test_empty_tree():

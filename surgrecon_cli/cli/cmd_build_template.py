@@ -7,13 +7,14 @@ from typing import Any
 
 import click
 
-from .common import common_options, executor_options, progress
+from .common import common_options, executor_options, locks_run_folder, progress
 
 
 @click.command("build-template")
 @click.argument("run_dir", type=click.Path(exists=True, file_okay=False, path_type=Path))
 @common_options
 @executor_options
+@locks_run_folder()
 def build_template_cmd(run_dir: Path, config: Any, quiet: bool) -> None:
     """Build the template cloud P from frame 0 of an ingested run.
 

@@ -7,7 +7,7 @@ from typing import Any
 
 import click
 
-from .common import common_options, progress
+from .common import common_options, locks_run_folder, progress
 
 
 @click.command("evaluate")
@@ -16,6 +16,7 @@ from .common import common_options, progress
               help="Ground truth (NAME.gt.npz from `surgrecon simulate`); default: the one "
                    "beside the run's input log.")
 @common_options
+@locks_run_folder()
 def evaluate_cmd(run_dir: Path, gt_path: Path | None, config: Any, quiet: bool) -> None:
     """Score a run against the simulator's ground truth.
 

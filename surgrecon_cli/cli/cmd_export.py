@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from .common import progress, quiet_options
+from .common import locks_run_folder, progress, quiet_options
 
 
 @click.command("export")
@@ -20,6 +20,7 @@ from .common import progress, quiet_options
                    "Needs an ingested run.")
 @click.option("--force", is_flag=True, help="Replace an existing --mcap file.")
 @quiet_options
+@locks_run_folder(writes=False)
 def export_cmd(run_dir: Path, mcap_path: Path | None, tum_dir: Path | None, force: bool,
                quiet: bool) -> None:
     """Export RUN's results where robotics tools read them.

@@ -7,7 +7,7 @@ from typing import Any
 
 import click
 
-from .common import common_options, progress
+from .common import common_options, locks_run_folder, progress
 
 
 @click.command("ingest")
@@ -28,6 +28,7 @@ from .common import common_options, progress
 )
 @click.option("--force", is_flag=True, help="Replace an existing ingest in RUN.")
 @common_options
+@locks_run_folder(create=True)
 def ingest_cmd(
     log: Path, run_dir: Path, allow_truncated: bool, force: bool, config: Any, quiet: bool
 ) -> None:

@@ -7,12 +7,13 @@ from typing import Any
 
 import click
 
-from .common import common_options, progress
+from .common import common_options, locks_run_folder, progress
 
 
 @click.command("measure")
 @click.argument("run_dir", type=click.Path(exists=True, file_okay=False, path_type=Path))
 @common_options
+@locks_run_folder()
 def measure_cmd(run_dir: Path, config: Any, quiet: bool) -> None:
     """Measure tool-tissue contact and indentation in every registered frame.
 

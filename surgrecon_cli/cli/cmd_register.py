@@ -7,13 +7,14 @@ from typing import Any
 
 import click
 
-from .common import common_options, executor_options, progress
+from .common import common_options, executor_options, locks_run_folder, progress
 
 
 @click.command("register")
 @click.argument("run_dir", type=click.Path(exists=True, file_okay=False, path_type=Path))
 @common_options
 @executor_options
+@locks_run_folder()
 def register_cmd(run_dir: Path, config: Any, quiet: bool) -> None:
     """Register the template to every later frame of a run (resumable).
 

@@ -7,13 +7,14 @@ from typing import Any
 
 import click
 
-from .common import common_options, executor_options, progress
+from .common import common_options, executor_options, locks_run_folder, progress
 
 
 @click.command("report")
 @click.argument("run_dir", type=click.Path(exists=True, file_okay=False, path_type=Path))
 @common_options
 @executor_options
+@locks_run_folder()
 def report_cmd(run_dir: Path, config: Any, quiet: bool) -> None:
     """Write the metrics and the HTML report of a run (uses whatever stages are done).
 

@@ -66,21 +66,23 @@ def run_cmd(logs: tuple[Path, ...], run_dir: Path, gt_path: Path | None, allow_t
       surgrecon run logs/*.mcap -o runs/ --executor processes --workers 2
       surgrecon run logs/*.mcap -o runs/ --scheduler tcp://10.0.0.5:8786
     """
+    from ..io.run_folder import run_folder_lock
     from ..pipeline import open_executor, tagged
 
     if len(logs) > 1 and gt_path is not None:
         raise InputError("--ground-truth goes with one log; with several, each log's "
                          "NAME.gt.npz beside it is used")
-    with open_executor(config) as executor:
-        if len(logs) == 1:
-            base, run_dir = run_dir, tagged(run_dir, tag)
-            _run_one(logs[0], run_dir, gt_path, allow_truncated, force, config, quiet,
-                     executor, base if tag else None)
+    if len(logs) == 1:  # the folder's lock first: a second run refuses before starting workers
+        base, run_dir = run_dir, tagged(run_dir, tag)
+        with run_folder_lock(run_dir, "run", create=True), open_executor(config) as executor:
+            _run_one(logs[0], run_dir, gt_path, allow_truncated, force, config, quiet, executor,
+                     base if tag else None)
             if "mcap" in exports:
                 _export_mcap([run_dir])
-        else:
-            _run_many(list(logs), run_dir, allow_truncated, force, config, quiet, executor,
-                      exports, tag)
+        return
+    with open_executor(config) as executor:  # each run folder is locked by run_pipeline
+        _run_many(list(logs), run_dir, allow_truncated, force, config, quiet, executor,
+                  exports, tag)
 
 
 def _run_one(log: Path, run_dir: Path, gt_path: Path | None, allow_truncated: bool,

@@ -85,6 +85,25 @@ def executor_options(func: Callable[..., Any]) -> Callable[..., Any]:
     return wrapper
 
 
+def locks_run_folder(create: bool = False, writes: bool = True) -> Callable[..., Any]:
+    """Hold the lock of the command's `run_dir` (io/run_folder.run_folder_lock) for the whole
+    command: a second command on the same folder refuses at once. create: make the folder;
+    writes=False: the command only reads the run (a read-only archive is read unlocked)."""
+
+    def decorate(func: Callable[..., Any]) -> Callable[..., Any]:
+        @functools.wraps(func)
+        def wrapper(*args: Any, **kwargs: Any) -> Any:
+            from ..io.run_folder import run_folder_lock
+
+            command = click.get_current_context().info_name or func.__name__
+            with run_folder_lock(kwargs["run_dir"], command, create=create, writes=writes):
+                return func(*args, **kwargs)
+
+        return wrapper
+
+    return decorate
+
+
 def quiet_options(func: Callable[..., Any]) -> Callable[..., Any]:
     """Add --debug and --quiet (for commands that read a run's own config, not a new one)."""
 

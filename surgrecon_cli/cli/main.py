@@ -10,7 +10,10 @@ import sys
 import click
 
 from .. import __version__
+from ..errors import cut
 from .common import STATE
+
+MESSAGE_LIMIT = 2000  # characters of an error line (a name from a log could be megabytes)
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
@@ -41,7 +44,7 @@ _register_commands()
 
 def main(argv: list[str] | None = None) -> int:
     """Run the CLI; known errors become one line on stderr and exit code 2."""
-    from ..errors import SurgReconError
+    from ..errors import WRITE_ERRNOS, SurgReconError
 
     STATE["debug"] = False  # set again by --debug while parsing this call's arguments
     try:
@@ -67,6 +70,11 @@ def main(argv: list[str] | None = None) -> int:
     except Exception as exc:
         if STATE["debug"]:
             raise
+        if isinstance(exc, OSError) and exc.errno in WRITE_ERRNOS:  # the system's, not a bug
+            where = f"{exc.filename}: " if exc.filename else ""
+            click.echo(f"error: {_one_line(Exception(where + str(exc.strerror)))}; free space "
+                       "or choose a writable folder", err=True)
+            return 2
         click.echo(f"internal error: {type(exc).__name__}: {_one_line(exc)} (re-run with --debug)",
                    err=True)
         return 3
@@ -75,8 +83,9 @@ def main(argv: list[str] | None = None) -> int:
 
 def _one_line(exc: BaseException) -> str:
     """The message on one line: line breaks and other control characters escaped (names
-    taken from a log may hold any character)."""
-    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in str(exc).strip())
+    taken from a log may hold any character), cut to MESSAGE_LIMIT characters."""
+    text = cut(str(exc).strip(), MESSAGE_LIMIT)
+    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
 
 
 if __name__ == "__main__":

@@ -10,7 +10,7 @@ import typing
 from pathlib import Path
 from typing import Any
 
-from ..errors import ConfigError
+from ..errors import ConfigError, cut
 from .schema import Config, _require
 
 logger = logging.getLogger(__name__)
@@ -73,6 +73,8 @@ def from_dict(data: dict[str, Any], base: Config | None = None) -> Config:
         updates = {}
         for key, value in values.items():
             full = f"{name}.{key}"
+            _require(full not in RENAMED or RENAMED[full] not in values, full,
+                     f"is the old name of {name}.{RENAMED.get(full)}; give only the new one")
             if full in RENAMED:
                 logger.warning("config key %s is now %s.%s (same unit); please rename it",
                                full, name, RENAMED[full])
@@ -93,6 +95,8 @@ def parse_override(text: str) -> dict[str, Any]:
         value = tomllib.loads(f"v = {raw}")["v"]
     except tomllib.TOMLDecodeError:
         value = raw
+    except RecursionError as exc:
+        raise ConfigError(f"--set {path}: value nested too deeply") from exc
     return {section: {key: value}}
 
 
@@ -100,12 +104,17 @@ def load_config(path: Path | None = None, overrides: typing.Sequence[str] = ()) 
     """Defaults, then the TOML file at `path`, then each `--set` override in order."""
     config = Config()
     if path is not None:
-        try:
-            data = tomllib.loads(Path(path).read_text(encoding="utf-8"))
+        try:  # (utf-8-sig: a byte-order mark some editors write is accepted)
+            data = tomllib.loads(Path(path).read_text(encoding="utf-8-sig"))
         except FileNotFoundError as exc:
             raise ConfigError(f"{path}: config file not found") from exc
         except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-            raise ConfigError(f"{path}: not valid TOML ({exc})") from exc
+            raise ConfigError(f"{path}: not valid TOML ({cut(str(exc))})") from exc
+        except RecursionError as exc:
+            raise ConfigError(f"{path}: not valid TOML (nested too deeply)") from exc
+        except OSError as exc:
+            raise ConfigError(f"{path}: unreadable ({exc.strerror or type(exc).__name__})"
+                              ) from exc
         config = from_dict(data, config)
     for text in overrides:
         config = from_dict(parse_override(text), config)

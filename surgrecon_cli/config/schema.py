@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from .fields import _doc, _require
+from .fields import _doc, _require, check_bounds
 from .schema_deformation import DeformationConfig
 from .schema_registration import RegistrationConfig
 
@@ -46,9 +46,11 @@ class TopicsConfig:
 class IngestConfig:
     """Time synchronisation and validation of the log."""
 
-    sync_tolerance_ms: float = _doc(15.0, "images within this of each other form one frame (ms)")
+    sync_tolerance_ms: float = _doc(15.0, "images within this of each other form one frame (ms)",
+        bounds=(0, 1e4))
     pose_gap_ms: float = _doc(
-        100.0, "largest tracker/robot gap bridged by interpolation (ms); beyond: camera unusable"
+        100.0, "largest tracker/robot gap bridged by interpolation (ms); beyond: camera unusable",
+        bounds=(0, 6e4)
     )
     time_source: str = _doc("header", "'header' (message stamp, else log_time) or 'log_time'")
 
@@ -60,20 +62,23 @@ class IngestConfig:
             "ingest.time_source",
             f"must be 'header' or 'log_time', got {self.time_source!r}",
         )
+        check_bounds(self, "ingest")
 
 
 @dataclass(frozen=True)
 class ToolConfig:
     """Tool model: a shaft cylinder from the tip along the tool frame's +z axis."""
 
-    shaft_radius_m: float = _doc(0.004, "shaft radius (m)")
-    shaft_length_m: float = _doc(0.15, "shaft length from the tip (m)")
+    shaft_radius_m: float = _doc(0.004, "shaft radius (m)", bounds=(0, 0.1))
+    shaft_length_m: float = _doc(0.15, "shaft length from the tip (m)", bounds=(0, 2))
     base_to_world: tuple[float, ...] = _doc(
-        (), "robot base pose in the world: [x y z qx qy qz qw] (m); empty = tool pose is in world"
+        (), "robot base pose in the world: [x y z qx qy qz qw] (m); empty = tool pose is in world",
+        bounds=(-1000.0, 1000.0)
     )
-    mask_margin_px: float = _doc(6.0, "tool mask dilation in the images (px)")
+    mask_margin_px: float = _doc(6.0, "tool mask dilation in the images (px)", bounds=(0, 500))
     margin_m: float = _doc(
-        0.0015, "3D points closer than radius + margin to the shaft axis are dropped (m)"
+        0.0015, "3D points closer than radius + margin to the shaft axis are dropped (m)",
+        bounds=(0, 0.1)
     )
 
     def __post_init__(self) -> None:
@@ -85,40 +90,48 @@ class ToolConfig:
             "must be empty or [x, y, z, qx, qy, qz, qw]",
         )
         _require(self.mask_margin_px >= 0 and self.margin_m >= 0, "tool.margin_m", "must be >= 0")
+        check_bounds(self, "tool")
 
 
 @dataclass(frozen=True)
 class TemplateConfig:
     """Template building: features, camera grouping / pair sequencing, triangulation."""
 
-    max_features: int = _doc(6000, "SIFT keypoints per image")
+    max_features: int = _doc(6000, "SIFT keypoints per image", bounds=(1, 200_000))
     contrast_threshold: float = _doc(
-        0.008, "SIFT contrast threshold (OpenCV default 0.04; tissue is low-contrast)"
+        0.008, "SIFT contrast threshold (OpenCV default 0.04; tissue is low-contrast)",
+        bounds=(0, 1)
     )
     ratio: float = _doc(
-        0.9, "Lowe ratio test (against the runner-up inside or outside the epipolar segment)"
+        0.9, "Lowe ratio test (against the runner-up inside or outside the epipolar segment)",
+        bounds=(0, 1)
     )
-    epipolar_px: float = _doc(2.0, "largest distance of a match to its epipolar line (px)")
+    epipolar_px: float = _doc(2.0, "largest distance of a match to its epipolar line (px)",
+        bounds=(0, 1000))
     max_reprojection_px: float = _doc(
-        1.5, "largest reprojection error of a triangulated point (px)"
+        1.5, "largest reprojection error of a triangulated point (px)", bounds=(0, 1000)
     )
     min_angle_deg: float = _doc(
         1.0, "smallest triangulation angle between two rays (deg); a floor against degenerate "
-        "rays only: depth accuracy decides through max_sigma_mm")
+        "rays only: depth accuracy decides through max_sigma_mm", bounds=(0, 90))
     max_sigma_mm: float = _doc(
         2.5, "largest 3D position uncertainty (RMS, from the measured pixel noise and the "
-        "camera geometry) of a template point (mm)")
-    min_pair_matches: int = _doc(40, "verified matches for two cameras to be linked")
+        "camera geometry) of a template point (mm)", bounds=(0, 1000))
+    min_pair_matches: int = _doc(40, "verified matches for two cameras to be linked",
+        bounds=(0, 100_000))
     match_all_pairs: bool = _doc(
         True, "match every candidate camera pair; false: only a spanning tree of pairs, each "
         "camera also matched to the growing template by projection (a third of the pairs, "
         "about 2/3 of the points)")
-    min_view_overlap: float = _doc(0.15, "predicted shared-view fraction to try matching a pair")
+    min_view_overlap: float = _doc(0.15, "predicted shared-view fraction to try matching a pair",
+        bounds=(0, 1))
     depth_range: tuple[float, ...] = _doc(
-        (0.4, 2.5), "matches must triangulate within [near, far] x the camera's working depth"
+        (0.4, 2.5), "matches must triangulate within [near, far] x the camera's working depth",
+        bounds=(0, 1000)
     )
     working_distance_m: float = _doc(
-        0.05, "scene depth (m) assumed for a camera whose optical axis meets no other's"
+        0.05, "scene depth (m) assumed for a camera whose optical axis meets no other's",
+        bounds=(0, 10)
     )
 
     def __post_init__(self) -> None:
@@ -134,6 +147,7 @@ class TemplateConfig:
             "must be [near, far] with 0 < near < far",
         )
         _require(self.working_distance_m > 0, "template.working_distance_m", "must be > 0")
+        check_bounds(self, "template")
 
 
 @dataclass(frozen=True)
@@ -142,21 +156,26 @@ class TargetConfig:
 
     significance: float = _doc(
         0.001, "reprojection-error check: a noise-only residual fails the chi-square gate with "
-        "this probability (the gate is in units of the measured noise, not pixels)")
-    klt_window_px: int = _doc(21, "KLT window size (px)")
+        "this probability (the gate is in units of the measured noise, not pixels)",
+        bounds=(0, 0.5))
+    klt_window_px: int = _doc(21, "KLT window size (px)", bounds=(5, 255))
     klt_levels: int = _doc(
         3, "deepest KLT pyramid (levels above the image); a frame uses the depth its "
-        "measured motion needs, retrying failed tracks at this depth")
-    klt_fb_px: float = _doc(0.7, "largest forward-backward KLT disagreement (px)")
+        "measured motion needs, retrying failed tracks at this depth", bounds=(0, 10))
+    klt_fb_px: float = _doc(0.7, "largest forward-backward KLT disagreement (px)", bounds=(0, 1000))
     min_ncc: float = _doc(
         0.5, "smallest normalised cross-correlation of a tracked patch with the one it left "
-        "(photometric check against gross drift; median 0.96 on the sample; -1 = off)")
-    occlusion_depth_m: float = _doc(0.002, "depth tolerance of the visibility test (m)")
+        "(photometric check against gross drift; median 0.96 on the sample; -1 = off)",
+        bounds=(-1, 1))
+    occlusion_depth_m: float = _doc(0.002, "depth tolerance of the visibility test (m)",
+        bounds=(0, 1))
     new_points_every: int = _doc(
-        0, "triangulate new features into G (no id) every N frames (0 = off; ~3 s a frame)"
+        0, "triangulate new features into G (no id) every N frames (0 = off; ~3 s a frame)",
+        bounds=(0, 1_000_000)
     )
     new_point_spacing_mm: float = _doc(
-        1.0, "a new point closer than this to a tracked template point is not added (mm)"
+        1.0, "a new point closer than this to a tracked template point is not added (mm)",
+        bounds=(0, 1000)
     )
 
     def __post_init__(self) -> None:
@@ -164,6 +183,7 @@ class TargetConfig:
         _require(self.new_points_every >= 0, "target.new_points_every", "must be >= 0")
         _require(self.klt_window_px >= 5, "target.klt_window_px", "must be >= 5")
         _require(-1 <= self.min_ncc < 1, "target.min_ncc", "must be in [-1, 1)")
+        check_bounds(self, "target")
 
 
 @dataclass(frozen=True)
@@ -172,19 +192,19 @@ class ClassifyConfig:
 
     static_mm: float = _doc(
         1.0, "motion tolerance: a displacement below this (or below what the noise explains) "
-        "is static (mm; the spec's rule: 1.0)"
+        "is static (mm; the spec's rule: 1.0)", bounds=(0, 1000)
     )
     significance: float = _doc(
         0.01, "false-alarm probability of the noise tests (moved beyond the noise; departure "
-        "from one rigid motion beyond the noise): the main knob"
+        "from one rigid motion beyond the noise): the main knob", bounds=(0, 0.5)
     )
     max_sigma_mm: float = _doc(
         1.0, "a point whose registered position is less certain than this (RMS, mm) is "
-        "unknown (default: the clinical 1 mm accuracy requirement)"
+        "unknown (default: the clinical 1 mm accuracy requirement)", bounds=(0, 1000)
     )
     status_band_mm: float = _doc(
         0.0, "within this of static_mm the reprojection check decides: intra-camera inlier "
-        "static, inter-camera inlier dynamic (mm; 0 = displacement only)"
+        "static, inter-camera inlier dynamic (mm; 0 = displacement only)", bounds=(0, 1000)
     )
     measure: str = _doc(
         "rigid_rms", "shifting/deforming measure: 'rigid_rms' (RMS of the neighbourhood's best "
@@ -192,16 +212,19 @@ class ClassifyConfig:
     )
     deform_mm: float = _doc(
         0.25, "deformation tolerance: a significant departure from rigid motion whose "
-        "noise-debiased RMS reaches this is deforming (mm; the spec's rule: 0.25)"
+        "noise-debiased RMS reaches this is deforming (mm; the spec's rule: 0.25)", bounds=(0, 1000)
     )
     neighbour_percentile: float = _doc(
-        100.0, "transform_diff: percentile over the neighbours j (100 = max)"
+        100.0, "transform_diff: percentile over the neighbours j (100 = max)", bounds=(0, 100)
     )
-    neighbourhood_mm: float = _doc(5.0, "neighbours: template points within this at frame 0 (mm)")
-    min_neighbours: int = _doc(6, "fewer neighbours inside the radius: take this many nearest")
-    max_neighbours: int = _doc(128, "at most this many nearest neighbours inside the radius")
+    neighbourhood_mm: float = _doc(5.0, "neighbours: template points within this at frame 0 (mm)",
+        bounds=(0, 1000))
+    min_neighbours: int = _doc(6, "fewer neighbours inside the radius: take this many nearest",
+        bounds=(2, 1024))
+    max_neighbours: int = _doc(128, "at most this many nearest neighbours inside the radius",
+        bounds=(2, 4096))
     hysteresis_frames: int = _doc(
-        0, "a label run shorter than this many frames is undone (0 = off)"
+        0, "a label run shorter than this many frames is undone (0 = off)", bounds=(0, 1_000_000)
     )
 
     def __post_init__(self) -> None:
@@ -220,21 +243,24 @@ class ClassifyConfig:
         _require(self.max_neighbours >= self.min_neighbours, key + "max_neighbours",
                  "must be >= min_neighbours")
         _require(self.hysteresis_frames >= 0, key + "hysteresis_frames", "must be >= 0")
+        check_bounds(self, "classify")
 
 
 @dataclass(frozen=True)
 class LabelsConfig:
     """The spec's ground-truth label rule (section 6), shared by simulator and scoring."""
 
-    static_mm: float = _doc(1.0, "a vertex that moved less than this is static (mm)")
-    neighbourhood_mm: float = _doc(5.0, "neighbourhood radius at frame 0 (mm)")
+    static_mm: float = _doc(1.0, "a vertex that moved less than this is static (mm)",
+        bounds=(0, 1000))
+    neighbourhood_mm: float = _doc(5.0, "neighbourhood radius at frame 0 (mm)", bounds=(0, 1000))
     rigid_rms_mm: float = _doc(
-        0.25, "RMS residual of the best rigid fit above this: deforming (mm)"
+        0.25, "RMS residual of the best rigid fit above this: deforming (mm)", bounds=(0, 1000)
     )
 
     def __post_init__(self) -> None:
         for key in ("static_mm", "neighbourhood_mm", "rigid_rms_mm"):
             _require(getattr(self, key) > 0, f"labels.{key}", "must be > 0")
+        check_bounds(self, "labels")
 
 
 @dataclass(frozen=True)
@@ -244,9 +270,10 @@ class RunConfig:
 
     executor: str = _doc("serial", "'serial', 'processes' (local worker pool) or 'dask'")
     workers: int = _doc(
-        0, "worker processes for 'processes' or a Dask LocalCluster (0 = one per core)")
+        0, "worker processes for 'processes' or a Dask LocalCluster (0 = one per core)",
+        bounds=(0, 1024))
     scheduler: str = _doc("", "Dask scheduler address, e.g. tcp://host:8786 (empty = LocalCluster)")
-    retries: int = _doc(2, "Dask: reruns of a failed or lost task")
+    retries: int = _doc(2, "Dask: reruns of a failed or lost task", bounds=(0, 100))
 
     def __post_init__(self) -> None:
         _require(self.executor in ("serial", "processes", "dask"), "run.executor",
@@ -255,6 +282,7 @@ class RunConfig:
         _require(self.retries >= 0, "run.retries", "must be >= 0")
         _require(not self.scheduler or self.executor == "dask", "run.scheduler",
                  f"a scheduler address needs run.executor = 'dask', not {self.executor!r}")
+        check_bounds(self, "run")
 
 
 @dataclass(frozen=True)

@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..errors import InputError
+from ..errors import InputError, cut, quoted
 from .geometry import invert_pose, make_pose
 from .sync import PoseStream, poses_at, rate_hz, validate_pose_stream
 from .tf_samples import EdgeSamples, TransformSamples
@@ -79,9 +79,12 @@ class FrameSummary:
 
 @dataclass(frozen=True)
 class TfTree:
-    """Frames connected by edges (one per child frame); build with `build_tf_tree`."""
+    """Frames connected by edges (one per child frame); build with `build_tf_tree`.
+    `problems`: why the edge to a frame's parent was left out (by frame); a lookup that
+    needs that edge raises InputError with it."""
 
     edges: tuple[TfEdge, ...]
+    problems: dict[str, str] = field(default_factory=dict, compare=False)
     _by_child: dict[str, TfEdge] = field(init=False, repr=False, compare=False)
     _children: dict[str, tuple[str, ...]] = field(init=False, repr=False, compare=False)
 
@@ -95,7 +98,8 @@ class TfTree:
         object.__setattr__(self, "_by_child", by_child)
         object.__setattr__(self, "_children",
                            {p: tuple(sorted(c)) for p, c in children.items()})
-        _check_acyclic(by_child)
+        if _cycles(by_child):
+            raise ValueError("TfTree: the edges form a cycle")
 
     # -- structure -----------------------------------------------------------------------
     @property
@@ -138,15 +142,19 @@ class TfTree:
         Raises InputError naming both frames (and listing the frames) when a frame is unknown
         or the two are in different trees.
         """
-        self._check_frame(target_frame)
         self._check_frame(source_frame)
+        self._check_frame(target_frame)
         up_source = self._up(source_frame)
         up_target = self._up(target_frame)
+        for top in (up_source[-1], up_target[-1]):
+            if top in self.problems:  # the chain needs an edge that was left out
+                raise InputError(self.problems[top])
         if up_source[-1] != up_target[-1]:
             raise InputError(
-                f"TF frames {target_frame!r} and {source_frame!r} are not connected: "
-                f"{source_frame!r} is in the tree under {up_source[-1]!r}, {target_frame!r} "
-                f"under {up_target[-1]!r}; {self._listing()}")
+                f"TF frames {quoted(target_frame)} and {quoted(source_frame)} are not "
+                f"connected: {quoted(source_frame)} is in the tree under "
+                f"{quoted(up_source[-1])}, {quoted(target_frame)} under "
+                f"{quoted(up_target[-1])}; {self._listing()}")
         on_target_path = set(up_target)
         ancestor = next(f for f in up_source if f in on_target_path)
         source_edges = [self._by_child[f] for f in up_source[: up_source.index(ancestor)]]
@@ -197,12 +205,14 @@ class TfTree:
 
     def _check_frame(self, frame: str) -> None:
         if frame not in self._by_child and frame not in self._children:
-            raise InputError(f"TF frame {frame!r} is not in the TF tree; {self._listing()}")
+            raise InputError(self.problems.get(frame) or f"TF frame {quoted(frame)} is not in "
+                             f"the TF tree; {self._listing()}")
 
     def _listing(self) -> str:
         frames = self.frames
         more = f", ... ({len(frames) - _MAX_LISTED} more)" if len(frames) > _MAX_LISTED else ""
-        return f"frames in the tree: {', '.join(frames[:_MAX_LISTED]) or 'none'}{more}"
+        listed = ", ".join(cut(f) for f in frames[:_MAX_LISTED])
+        return f"frames in the tree: {listed or 'none'}{more}"
 
 
 def _compose(edges: list[TfEdge], query: np.ndarray, max_gap_ns: int) -> np.ndarray:
@@ -215,19 +225,25 @@ def _compose(edges: list[TfEdge], query: np.ndarray, max_gap_ns: int) -> np.ndar
 
 
 def build_tf_tree(samples: TransformSamples) -> TfTree:
-    """Group the samples' edges by child frame and check the tree.
+    """Group the samples' edges by child frame and check them.
 
-    Raises InputError when a child frame has two parents (naming the child and both parents),
-    when an edge is both static and dynamic, when the edges form a cycle, when a sample's
-    child is its own parent, and (naming the edge and stamp) on a non-finite value or a
-    non-unit quaternion.
+    As in tf2, a bad edge matters only to a lookup that needs it: an edge whose child has two
+    parents (naming the child and both parents), that is both static and dynamic, that
+    transforms a frame to itself, that lies on a cycle, or (naming the edge and stamp) that
+    has a non-finite value or a non-unit quaternion is left out of the tree, its message kept
+    in `TfTree.problems` under its child frame.
     """
     by_child: dict[str, list[EdgeSamples]] = {}
     for e in samples.edges:
-        if e.parent == e.child:
-            raise InputError(f"TF transform from frame {e.parent!r} to itself")
         by_child.setdefault(e.child, []).append(e)
-    return TfTree(tuple(_edge(child, by_child[child]) for child in sorted(by_child)))
+    edges, problems = {}, {}
+    for child in sorted(by_child):
+        try:
+            edges[child] = _edge(child, by_child[child])
+        except InputError as exc:
+            problems[child] = str(exc)
+    problems.update(_cycles(edges))
+    return TfTree(tuple(e for child, e in edges.items() if child not in problems), problems)
 
 
 def _edge(child: str, group: list[EdgeSamples]) -> TfEdge:
@@ -236,13 +252,15 @@ def _edge(child: str, group: list[EdgeSamples]) -> TfEdge:
     for e in group:
         counts[e.parent] = counts.get(e.parent, 0) + len(e.stamps_ns)
     if len(counts) > 1:
-        listed = ", ".join(f"{p!r} ({c} transform{'s' if c > 1 else ''})"
+        listed = ", ".join(f"{quoted(p)} ({c} transform{'s' if c > 1 else ''})"
                            for p, c in sorted(counts.items()))
         raise InputError(
-            f"TF frame {child!r} has {len(counts)} parents: {listed}; a frame has one parent in "
-            "a TF tree (fix the publishers, or drop one of the transforms)")
+            f"TF frame {quoted(child)} has {len(counts)} parents: {listed}; a frame has one "
+            "parent in a TF tree (fix the publishers, or drop one of the transforms)")
     e = group[0]
-    name = f"TF transform {e.parent!r} -> {child!r}"
+    if e.parent == child:
+        raise InputError(f"TF transform from frame {quoted(child)} to itself")
+    name = f"TF transform {quoted(e.parent)} -> {quoted(child)}"
     if len(group) > 1:
         static = sum(len(g.stamps_ns) for g in group if g.static)
         raise InputError(
@@ -255,10 +273,11 @@ def _edge(child: str, group: list[EdgeSamples]) -> TfEdge:
     return TfEdge(e.parent, child, e.static, stream, len(e.stamps_ns))
 
 
-def _check_acyclic(by_child: dict[str, TfEdge]) -> None:
-    """InputError naming the frames of a cycle, if the edges have one."""
+def _cycles(by_child: dict[str, TfEdge]) -> dict[str, str]:
+    """{frame: message naming the cycle's frames} for every frame on a cycle of the edges."""
     parent_of = {child: e.parent for child, e in by_child.items()}
     done: set[str] = set()
+    found: dict[str, str] = {}
     for start in parent_of:
         path: list[str] = []
         on_path: set[str] = set()
@@ -266,9 +285,11 @@ def _check_acyclic(by_child: dict[str, TfEdge]) -> None:
         while frame is not None and frame not in done:
             if frame in on_path:
                 cycle = [*path[path.index(frame):], frame][::-1]
-                raise InputError(f"TF transforms form a cycle: {' -> '.join(cycle)} (parent "
-                                 "-> child); a TF tree has no cycles")
+                found.update(dict.fromkeys(cycle, "TF transforms form a cycle: " + " -> ".join(
+                    cut(f) for f in cycle) + " (parent -> child); a TF tree has no cycles"))
+                break
             path.append(frame)
             on_path.add(frame)
             frame = parent_of.get(frame)
         done.update(path)
+    return found

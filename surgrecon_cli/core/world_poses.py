@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..errors import InputError
+from ..errors import InputError, quoted
 from .geometry import make_pose, matrix_to_quat
 from .sync import PoseStream, validate_pose_stream
 from .tf_tree import TfTree
@@ -54,9 +54,9 @@ def stream_to_world(stream: PoseStream, name: str, frame: str, tree: TfTree | No
         return stream
     if tree is None or not tree.is_connected(world_frame, frame):
         raise InputError(
-            f"{what}: poses on {name} are in frame {frame!r}, not in topics.world_frame "
-            f"= {world_frame!r}, and the log has no TF tree connecting the two; set "
-            f"topics.world_frame = {frame!r} if that frame is your world, or record the "
+            f"{what}: poses on {name} are in frame {quoted(frame)}, not in topics.world_frame "
+            f"= {quoted(world_frame)}, and the log has no TF tree connecting the two; set "
+            f"topics.world_frame = {quoted(frame)} if that frame is your world, or record the "
             "transform between them on /tf or /tf_static")
     poses = make_pose(stream.positions, stream.quats)
     world = tree.lookup(world_frame, frame, stream.stamps_ns, max_gap_ns) @ poses

@@ -8,6 +8,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import re
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -15,16 +16,28 @@ from typing import IO, Any
 
 import numpy as np
 
+from ..errors import WRITE_ERRNOS, OutputError
+
 _UMASK = os.umask(0)
 os.umask(_UMASK)
+# The temporary name of an interrupted write: `.NAME.` + mkstemp's 8 random characters + `.tmp`.
+_TEMPORARY_NAME = re.compile(r"\..+\.[a-z0-9_]{8}\.tmp")
+
+
+def is_temporary(name: str) -> bool:
+    """Whether a file name is one of `atomic_open`'s temporaries (not, e.g., `.draft.tmp`)."""
+    return _TEMPORARY_NAME.fullmatch(name) is not None
 
 
 @contextlib.contextmanager
 def atomic_open(path: Path | str, mode: str = "wb") -> Iterator[IO[Any]]:
     """Open a temporary sibling of `path` for writing; rename it over `path` on success."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    except OSError as exc:
+        raise _not_written(path, exc) from exc
     os.chmod(tmp, 0o666 & ~_UMASK)  # mkstemp creates 0600; final files get the usual mode
     try:
         with os.fdopen(fd, mode) as handle:
@@ -32,18 +45,26 @@ def atomic_open(path: Path | str, mode: str = "wb") -> Iterator[IO[Any]]:
             handle.flush()
             os.fsync(handle.fileno())
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as exc:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
+        if isinstance(exc, OSError) and exc.errno in WRITE_ERRNOS and exc.filename is None:
+            raise _not_written(path, exc) from exc  # a full disk while writing `path`
         raise
 
 
+def _not_written(path: Path, exc: OSError) -> OutputError:
+    return OutputError(f"{path}: cannot write ({exc.strerror or type(exc).__name__}); free "
+                       "space or choose a writable folder")
+
+
 def remove_leftovers(folder: Path | str) -> int:
-    """Delete the temporary files of killed writes (`.NAME.*.tmp`) anywhere under `folder`;
-    returns how many. Only for a folder no other process is writing to."""
+    """Delete the temporary files of killed writes (`.NAME.XXXXXXXX.tmp`) anywhere under
+    `folder`; returns how many. Only for a folder no other process is writing to (hold its
+    lock)."""
     removed = 0
     for tmp in Path(folder).rglob(".*.tmp"):
-        if tmp.is_file():
+        if is_temporary(tmp.name) and tmp.is_file() and not tmp.is_symlink():
             tmp.unlink(missing_ok=True)
             removed += 1
     return removed

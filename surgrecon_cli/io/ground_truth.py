@@ -42,7 +42,7 @@ class GroundTruth:
 
 def gt_path_beside(log_path: Path) -> Path:
     """`NAME.mcap` -> `NAME.gt.npz` in the same folder (where `surgrecon simulate` puts it)."""
-    log_path = Path(log_path)
+    log_path = Path(log_path).absolute()  # `.` (a bag folder) has no name of its own
     return log_path.with_name(log_path.name.removesuffix(".mcap") + ".gt.npz")
 
 

@@ -24,13 +24,15 @@ from typing import Literal
 import cv2
 import numpy as np
 
+from .. import IMAGE_PIXEL_LIMIT
 from .records import ImageRecord
 
 logger = logging.getLogger(__name__)
 
 _STDERR_LOCK = threading.Lock()
-MAX_IMAGE_PIXELS = 1 << 26
-"""Largest image accepted (67 Mpx; an 8K camera has 33 Mpx)."""
+MAX_IMAGE_PIXELS = IMAGE_PIXEL_LIMIT
+"""Largest image accepted (67 Mpx; an 8K camera has 33 Mpx); OpenCV's decoders refuse larger
+ones too (OPENCV_IO_MAX_IMAGE_PIXELS, set in surgrecon_cli/__init__.py)."""
 DECODE_FLAGS = cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION
 """How every image is decoded: 3-channel BGR, pixels as stored. An EXIF orientation tag is
 ignored, as ROS (cv_bridge) does: the calibration and the size in CameraInfo describe the
@@ -92,9 +94,14 @@ def prepare_image(record: ImageRecord) -> StoredImage:
     claimed = header_size(data)
     if claimed is not None:
         _check_pixels(*claimed)
-    with _native_stderr() as native:
-        bgr = cv2.imdecode(np.frombuffer(data, np.uint8), DECODE_FLAGS)
     kind = record.format or "compressed"
+    with _native_stderr() as native:
+        try:
+            bgr = cv2.imdecode(np.frombuffer(data, np.uint8), DECODE_FLAGS)
+        except cv2.error as exc:  # e.g. above OpenCV's pixel limit
+            raise ValueError(f"{kind} data ({len(data)} bytes) is refused by the decoder "
+                             f"(larger than the {MAX_IMAGE_PIXELS / 1e6:.0f} Mpx limit or "
+                             "damaged)") from exc
     if bgr is None:
         why = f" ({native[-1]})" if native else ""
         raise ValueError(f"{kind} data ({len(data)} bytes) does not decode{why}")
@@ -152,23 +159,44 @@ def _check_pixels(width: int, height: int) -> None:
 
 
 def header_size(data: bytes) -> tuple[int, int] | None:
-    """(width, height) from a PNG IHDR or a JPEG SOFn header, None for other data."""
-    if data.startswith(_PNG_MAGIC) and len(data) >= 24 and data[12:16] == b"IHDR":
+    """(width, height) from a PNG IHDR or a JPEG SOFn header, None for other data.
+    ValueError for a PNG or JPEG whose header gives no size (nothing is decoded then)."""
+    if data.startswith(_PNG_MAGIC):
+        if len(data) < 24 or data[12:16] != b"IHDR":
+            raise ValueError("PNG data without an IHDR header")
         width, height = struct.unpack(">II", data[16:24])
         return width, height
-    if not data.startswith(_JPEG_MAGIC):
-        return None
-    pos = 2
-    while pos + 9 <= len(data) and data[pos] == 0xFF:
-        marker = data[pos + 1]
-        if marker == 0xFF:  # fill byte
-            pos += 1
-        elif 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):  # start of frame
-            height, width = struct.unpack(">HH", data[pos + 5: pos + 9])
-            return width, height
-        else:
-            pos += 2 + struct.unpack(">H", data[pos + 2: pos + 4])[0]
+    if data.startswith(_JPEG_MAGIC):
+        return _jpeg_size(data)
     return None
+
+
+def _jpeg_size(data: bytes) -> tuple[int, int]:
+    """(width, height) of the JPEG's first start-of-frame marker, found as libjpeg finds
+    markers: bytes other than 0xFF before a marker skipped (libjpeg's "extraneous bytes"),
+    fill bytes (0xFF 0xFF...) skipped, standalone markers (TEM, RSTn, SOI) without a length,
+    every other segment skipped by its length. ValueError when the scan reaches the image
+    data (SOS), the end (EOI) or the end of the bytes without a frame size."""
+    pos, end = 2, len(data)
+    while True:
+        pos = data.find(b"\xff", pos)
+        while 0 <= pos < end - 1 and data[pos + 1] == 0xFF:
+            pos += 1
+        if pos < 0 or pos + 1 >= end:
+            break
+        marker = data[pos + 1]
+        pos += 2
+        if marker == 0x00 or marker == 0x01 or 0xD0 <= marker <= 0xD8:
+            continue  # a stuffed byte or a standalone marker
+        if marker in (0xD9, 0xDA) or pos + 2 > end:
+            break
+        if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):  # start of frame
+            if pos + 7 > end:
+                break
+            height, width = struct.unpack(">HH", data[pos + 3: pos + 7])
+            return width, height
+        pos += struct.unpack(">H", data[pos: pos + 2])[0]
+    raise ValueError("JPEG data without a readable frame size before its image data")
 
 
 @contextlib.contextmanager

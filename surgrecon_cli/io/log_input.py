@@ -15,10 +15,11 @@ from pathlib import Path
 
 import yaml
 
-from ..errors import InputError
+from ..errors import InputError, cut, quoted
 from .lfs import refuse_lfs_pointer
 
 METADATA = "metadata.yaml"
+MAX_METADATA_BYTES = 1 << 20  # a rosbag2 metadata.yaml is a few kB
 
 
 @dataclass(frozen=True)
@@ -36,7 +37,8 @@ class LogInput:
     @property
     def name(self) -> str:
         """The recording's name: the file name without `.mcap`, or the folder's name."""
-        return self.path.name.removesuffix(".mcap") if self.path.is_file() else self.path.name
+        name = self.path.absolute().name  # (`.` has no name of its own)
+        return name.removesuffix(".mcap") if self.path.is_file() else name
 
     def sha256(self) -> str:
         """SHA-256 of the files' bytes, concatenated in order, read in 1 MiB blocks."""
@@ -52,27 +54,50 @@ def _natural(name: str) -> list[object]:
     return [int(p) if p.isdigit() else p for p in re.split(r"(\d+)", name)]
 
 
+class _NoAliasLoader(yaml.SafeLoader):
+    """PyYAML's safe loader refusing aliases (`*name`): a few hundred bytes of nested aliases
+    (a "billion laughs") would otherwise expand to gigabytes when read."""
+
+    def compose_node(self, parent: yaml.Node | None, index: int) -> yaml.Node | None:
+        if self.check_event(yaml.AliasEvent):
+            event = self.peek_event()
+            raise yaml.composer.ComposerError(None, None, "YAML aliases are not accepted",
+                                              event.start_mark)
+        return super().compose_node(parent, index)
+
+
 def _from_metadata(folder: Path) -> tuple[Path, ...]:
     path = folder / METADATA
     try:
-        meta = yaml.safe_load(path.read_text(encoding="utf-8"))
+        if path.stat().st_size > MAX_METADATA_BYTES:
+            raise InputError(f"{path}: {path.stat().st_size} bytes, more than a rosbag2 "
+                             f"metadata file holds ({MAX_METADATA_BYTES} bytes at most)")
+        meta = yaml.load(path.read_text(encoding="utf-8-sig"), Loader=_NoAliasLoader)
         info = meta["rosbag2_bagfile_information"]
         storage = str(info.get("storage_identifier", "mcap"))
-        names = [str(n) for n in info.get("relative_file_paths") or []]
+        names = info.get("relative_file_paths") or []
     except (OSError, UnicodeDecodeError, yaml.YAMLError, KeyError, TypeError,
             AttributeError) as exc:
-        raise InputError(f"{path}: not a readable rosbag2 metadata file ({exc})") from exc
+        raise InputError(f"{path}: not a readable rosbag2 metadata file "
+                         f"({cut(str(exc).splitlines()[0] if str(exc) else type(exc).__name__)})"
+                         ) from exc
+    if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
+        raise InputError(f"{path}: relative_file_paths must be a list of file names")
     if storage != "mcap":
-        raise InputError(f"{folder}: a rosbag2 bag stored as {storage!r}; surgrecon reads MCAP: "
-                         f"convert it with `ros2 bag convert -i {folder} -o OUT.yaml` (storage_id "
-                         "mcap)")
+        raise InputError(f"{folder}: a rosbag2 bag stored as {quoted(storage)}; surgrecon reads "
+                         f"MCAP: convert it with `ros2 bag convert -i {folder} -o OUT.yaml` "
+                         "(storage_id mcap)")
     files = []
     for name in names:
-        file = (folder / name).resolve()
+        try:
+            file = (folder / name).resolve(strict=True)
+        except (OSError, RuntimeError) as exc:  # missing, or a symbolic link loop
+            why = "a symbolic link loop in" if "loop" in str(exc).lower() else "missing from"
+            raise InputError(f"{path} lists {quoted(name)}, which is {why} {folder}") from exc
         if folder.resolve() not in file.parents:
-            raise InputError(f"{path}: file {name!r} lies outside the bag folder")
+            raise InputError(f"{path}: file {quoted(name)} lies outside the bag folder")
         if not file.is_file():
-            raise InputError(f"{path} lists {name!r}, which is missing from {folder}")
+            raise InputError(f"{path} lists {quoted(name)}, which is not a file in {folder}")
         files.append(file)
     if not files:
         raise InputError(f"{path}: lists no files")

@@ -2,6 +2,7 @@
 
   RUN/run.json                   status of every stage (io/run_folder.py)
   RUN/config.toml                the effective config
+  RUN/.surgrecon.lock            held (OS file lock) by the command working on the folder
   RUN/ingest/cameras.json        camera ids, intrinsics, ingest report (io/ingest_store.py)
   RUN/ingest/frames.npz          per-frame stamps, poses, tool poses, joints
   RUN/ingest/images/CC/FFFFFF.*  image of camera index CC at frame FFFFFF, as recorded
@@ -36,12 +37,14 @@ the sorted id list.
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
-# Temporary names of interrupted writes (io/atomic.py) and of ingest's staging folder.
-TEMPORARY_SUFFIX = ".tmp"
+# Ingest's staging folder (`.ingest-` + 12 hex digits) and the ingest it replaces.
 INGEST_STAGING_PREFIX = ".ingest-"
+_STAGING_NAME = re.compile(r"\.ingest-(?:[0-9a-f]{12}|old-[0-9]+)")
+LOCK_NAME = ".surgrecon.lock"
 
 
 @dataclass(frozen=True)
@@ -61,6 +64,11 @@ class RunLayout:
     @property
     def config_toml(self) -> Path:
         return self.root / "config.toml"
+
+    @property
+    def lock_file(self) -> Path:
+        """Locked by the one command working on the folder; holds its pid, start, command."""
+        return self.root / LOCK_NAME
 
     # ingest
     @property
@@ -103,7 +111,14 @@ class RunLayout:
         return Path(ingest_dir) / "video" / f"{camera_index:02d}.npz"
 
     def ingest_staging(self, token: str) -> Path:
+        """Ingest's staging folder; `token` is 12 hex digits (or `old-PID`)."""
         return self.root / f"{INGEST_STAGING_PREFIX}{token}"
+
+    @staticmethod
+    def is_ingest_staging(path: Path) -> bool:
+        """Whether `path` is named like a staging folder of ingest (not, e.g., a user's
+        `.ingest-notes`)."""
+        return _STAGING_NAME.fullmatch(Path(path).name) is not None
 
     # template
     @property

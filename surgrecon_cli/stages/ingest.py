@@ -33,12 +33,13 @@ from ..core.sync import (
     poses_at,
     rate_hz,
 )
-from ..errors import InputError, RunFolderError, SurgReconError
+from ..errors import InputError, RunFolderError, SurgReconError, quoted
+from ..io.atomic import is_temporary
 from ..io.ingest_store import IngestedLog, save_ingested, save_pose_streams
 from ..io.log_input import resolve_log
 from ..io.mcap import LogReader
 from ..io.run_folder import RunFolder
-from ..io.run_layout import INGEST_STAGING_PREFIX, TEMPORARY_SUFFIX, RunLayout
+from ..io.run_layout import INGEST_STAGING_PREFIX, RunLayout
 from .common import recorded_config
 from .ingest_frames import check_clocks, log_span, world_poses
 from .ingest_streams import StreamCollector, video_report
@@ -83,7 +84,8 @@ def ingest(
     run, before = _prepare_run_folder(run_dir, log_path, config, force)
     layout = RunLayout(run_dir)
     for leftover in run_dir.glob(f"{INGEST_STAGING_PREFIX}*"):
-        shutil.rmtree(leftover, ignore_errors=True)
+        if RunLayout.is_ingest_staging(leftover) and not leftover.is_symlink():
+            shutil.rmtree(leftover, ignore_errors=True)
     staging = layout.ingest_staging(uuid.uuid4().hex[:12])
     staging.mkdir()  # (mkdtemp would make it 0700; this respects the umask)
     try:
@@ -148,17 +150,19 @@ def _prepare_run_folder(run_dir: Path, log_path: Path, config: Config,
         before = {k: str(v) for k, v in run.read().get("input", {}).items()
                   if k in ("path", "sha256") and v}
     elif run_dir.exists():
-        entries = list(run_dir.iterdir())
+        lock = RunLayout(run_dir).lock_file
+        entries = [p for p in run_dir.iterdir() if p != lock]
         others = [p for p in entries if not _leftover(p)]
         if others and force:
             before["folder"] = (f"wrote into {run_dir}, a folder that was not a run folder; "
                                 f"its {len(others)} other entries are kept")
             entries = []
         elif others:
-            raise RunFolderError(f"{run_dir} exists, is not empty and has no run.json; "
+            raise RunFolderError(f"{run_dir} exists, is not empty and has no run.json (it holds "
+                                 f"{quoted(others[0].name)}, which surgrecon did not write); "
                                  "use a new or empty folder")
         for path in entries:  # of a run killed before it wrote run.json
-            if path.is_dir():
+            if path.is_dir() and not path.is_symlink():
                 shutil.rmtree(path)
             else:
                 path.unlink()
@@ -169,8 +173,7 @@ def _prepare_run_folder(run_dir: Path, log_path: Path, config: Config,
 
 def _leftover(path: Path) -> bool:
     """A temporary file or staging folder of a run killed before it wrote run.json."""
-    return path.name.startswith(".") and (path.name.endswith(TEMPORARY_SUFFIX)
-                                          or path.name.startswith(INGEST_STAGING_PREFIX))
+    return is_temporary(path.name) or RunLayout.is_ingest_staging(path)
 
 
 def _swap_in(staging: Path, final: Path) -> None:

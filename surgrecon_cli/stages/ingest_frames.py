@@ -20,10 +20,12 @@ from ..core.sync import PoseStream, base_to_world_pose
 from ..core.tf_samples import concat_samples
 from ..core.tf_tree import TfTree, build_tf_tree
 from ..core.world_poses import chain_stream, stream_to_world, transformed
-from ..errors import InputError
+from ..errors import InputError, quoted
 from ..io.mcap import LogReader
 from ..io.mcap.transforms import read_transforms
 from .ingest_streams import CameraStreams, Poses, fmt_stamp
+
+logger = logging.getLogger(__name__)
 
 logger = logging.getLogger(__name__)
 
@@ -130,7 +132,12 @@ def _tree(reader: LogReader, config: Config, allow_truncated: bool) -> TfTree | 
     samples = concat_samples([
         read_transforms(path, config.ingest.time_source, allow_truncated).samples
         for path in reader.input.files])
-    return build_tf_tree(samples) if len(samples) else None
+    if not len(samples):
+        return None
+    tree = build_tf_tree(samples)
+    for frame, problem in tree.problems.items():  # an error only if a pose needs that edge
+        logger.warning("%s (TF frame %s left out of the tree)", problem, quoted(frame))
+    return tree
 
 
 def _chain(tree: TfTree | None, world: str, frame: str, span_ns: tuple[int, int],

@@ -14,7 +14,7 @@ from ..core.cameras import CameraModel
 from ..core.intrinsics import folds_before_corners, implausible_intrinsics
 from ..core.sync import PoseStream, validate_pose_stream
 from ..core.tf_samples import frame_id_problem
-from ..errors import GeometryError, InputError
+from ..errors import GeometryError, InputError, quoted
 from ..io.images import StoredImage, prepare_image
 from ..io.ingest_store import VideoPackets, save_video
 from ..io.mcap import LogItem
@@ -44,8 +44,8 @@ class Poses:
     def add(self, record: PoseRecord) -> None:
         if record.frame_id not in self.frames:
             if self.frames:
-                raise InputError(f"{self.name}: poses in frames {sorted(self.frames)[0]!r} and "
-                                 f"{record.frame_id!r} (at {fmt_stamp(record.stamp_ns)}); "
+                raise InputError(f"{self.name}: poses in frames {quoted(min(self.frames))} and "
+                                 f"{quoted(record.frame_id)} (at {fmt_stamp(record.stamp_ns)}); "
                                  "one pose topic must keep one frame")
             self.frames.add(record.frame_id)
         self.stamps.append(record.stamp_ns)
@@ -95,6 +95,7 @@ class StreamCollector:
         self.joint_topic = ""
         self.joint_stamps = array("q")
         self.joint_values = array("d")
+        self.empty_joint_states = 0
         self.videos: dict[str, tuple[str, VideoDecoder]] = {}  # topic -> camera, decoder
 
     def _camera(self, camera: str) -> CameraStreams:
@@ -224,6 +225,12 @@ class StreamCollector:
                            item.topic, fmt_stamp(record.stamp_ns))
 
     def _joints(self, item: LogItem, record: JointStateRecord) -> None:
+        if not record.names:  # carries no joint: skipped (said once per log)
+            if not self.empty_joint_states:
+                logger.warning("%s: a joint state without joints at stamp %s; such messages "
+                               "are skipped", item.topic, fmt_stamp(record.stamp_ns))
+            self.empty_joint_states += 1
+            return
         if not self.joint_names:
             self.joint_names = tuple(record.names)
             self.joint_topic = item.topic

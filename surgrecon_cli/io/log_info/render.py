@@ -127,7 +127,8 @@ def _tf_section(info: LogInfo) -> str:
         rows.append((name, s.parent, "static" if s.static else "dynamic", str(s.samples),
                      "" if s.static else _rate(s.rate_hz),
                      "" if s.static else f"{(s.last_ns - s.first_ns) * 1e-9:.2f}"))
-    return head + ":\n" + "\n".join("  " + line for line in _table(rows, {3, 4, 5}))
+    left_out = f"\n  left out: {info.tf_error}" if info.tf_error else ""
+    return head + ":\n" + "\n".join("  " + line for line in _table(rows, {3, 4, 5})) + left_out
 
 
 def _roles_section(info: LogInfo) -> str:

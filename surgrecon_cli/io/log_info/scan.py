@@ -12,7 +12,7 @@ from pathlib import Path
 
 from ...config import TopicsConfig
 from ...core.tf_tree import TfTree, build_tf_tree
-from ...errors import ConfigError, InputError
+from ...errors import ConfigError
 from ..log_input import METADATA, resolve_log
 from .channels import ChannelInfo, FileInfo, scan_channels
 from .poses import PosePlan, plan_poses, suggest_world
@@ -89,10 +89,8 @@ def scan_log(path: Path | str, time_source: str = "header") -> LogInfo:
     scanned = scan_channels(log.files, time_source)
     tree, tf_error = None, ""
     if scanned.transform_topics:
-        try:
-            tree = build_tf_tree(scanned.samples)
-        except InputError as exc:
-            tf_error = str(exc)
+        tree = build_tf_tree(scanned.samples)
+        tf_error = "; ".join(tree.problems.values())
     roles, topics = guess_roles(scanned.channels, tree)
     cameras = next(r.cameras for r in roles if r.role == "image")
     poses = None

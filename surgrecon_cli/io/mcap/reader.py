@@ -268,7 +268,7 @@ class LogReader:
                 f"does not decode as {info.schema_name} ({_one_line(exc)})") from exc
         for record in records:
             if self.use_log_time or record.stamp_ns <= 0:
-                self._note_log_time(info.topic)
+                self._note_log_time(info.topic, record.stamp_ns)
                 record = replace(record, stamp_ns=message.log_time)
             for role, camera in info.roles:
                 yield LogItem(role, camera, info.topic, message.log_time, record)
@@ -277,13 +277,14 @@ class LogReader:
         """Whether `role`'s topics carry transforms (its poses then come from the TF tree)."""
         return any(t in self.transform_topics for t in self._role_topics.get(role, ()))
 
-    def _note_log_time(self, topic: str) -> None:
+    def _note_log_time(self, topic: str, stamp_ns: int) -> None:
         count = self._log_time_stamps.get(topic, 0)
         self._log_time_stamps[topic] = count + 1
         if count == 0 and not self.use_log_time:
-            logger.warning("%s: %s has messages with a zero header stamp; they are placed at "
-                           "their log time (set ingest.time_source = \"log_time\" to use "
-                           "the log time for every message)", self.path, topic)
+            logger.warning("%s: %s has messages with a %s header stamp (first: %d ns); they are "
+                           "placed at their log time (set ingest.time_source = \"log_time\" to "
+                           "use the log time for every message)", self.path, topic,
+                           "negative" if stamp_ns < 0 else "zero", stamp_ns)
 
     def clock_of(self, topic: str) -> str:
         """Which clock stamped `topic`'s records: "header stamps", "log time", or a mix."""
