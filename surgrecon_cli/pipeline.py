@@ -36,8 +36,9 @@ from .io.artefacts import read_json
 from .io.atomic import remove_leftovers, write_text
 from .io.ground_truth import gt_path_beside
 from .io.log_input import resolve_log
-from .io.run_folder import RunFolder, file_sha256, plain, run_folder_lock
+from .io.run_folder import RunFolder, file_sha256, plain
 from .io.run_layout import RunLayout
+from .io.run_lock import run_folder_lock
 from .planning import Planner, seed_run
 from .stages import registry
 from .stages.registry import StageContext

@@ -257,7 +257,8 @@ def test_negative_stamp_is_called_negative(tmp_path: Path, capsys):
 
 
 def test_long_names_in_errors_are_cut():
-    from surgrecon_cli.core.tf_tree import build_tf_tree, make_samples
+    from surgrecon_cli.core.tf_samples import make_samples
+    from surgrecon_cli.core.tf_tree import build_tf_tree
     from surgrecon_cli.errors import NAME_LIMIT
 
     huge = "f" * 5_000_000

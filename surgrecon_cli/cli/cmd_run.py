@@ -66,7 +66,7 @@ def run_cmd(logs: tuple[Path, ...], run_dir: Path, gt_path: Path | None, allow_t
       surgrecon run logs/*.mcap -o runs/ --executor processes --workers 2
       surgrecon run logs/*.mcap -o runs/ --scheduler tcp://10.0.0.5:8786
     """
-    from ..io.run_folder import run_folder_lock
+    from ..io.run_lock import run_folder_lock
     from ..pipeline import open_executor, tagged
 
     if len(logs) > 1 and gt_path is not None:
