@@ -1,6 +1,7 @@
-"""What the user names as a log: one `.mcap` file, or a folder holding one recording split
-into several `.mcap` files (a rosbag2 bag folder with its `metadata.yaml`, or split files
-without one, taken in natural name order: rec_2 before rec_10).
+"""What the user names as a log: one `.mcap` file, a ROS 1 `.bag` or ROS 2 sqlite3 `.db3`
+file (read through rosbags: io/mcap/rosbag.py), or a folder holding one recording split into
+several files (a rosbag2 bag folder with its `metadata.yaml`, storage `mcap` or `sqlite3`, or
+split `.mcap` files without one, taken in natural name order: rec_2 before rec_10).
 
 A log's identity is the SHA-256 of its files' bytes concatenated in order (for one file,
 that file's SHA-256), so a run folder knows when it is handed another recording.
@@ -18,11 +19,14 @@ import yaml
 from ..errors import InputError
 
 METADATA = "metadata.yaml"
+STORAGE_SUFFIX = {"mcap": ".mcap", "sqlite3": ".db3"}
+"""rosbag2 storage identifier -> the suffix of its files."""
 
 
 @dataclass(frozen=True)
 class LogInput:
-    """path: what was named (file or folder); files: its MCAP files in recording order."""
+    """path: what was named (file or folder); files: its MCAP (or bag) files in recording
+    order."""
 
     path: Path
     files: tuple[Path, ...]
@@ -34,8 +38,8 @@ class LogInput:
 
     @property
     def name(self) -> str:
-        """The recording's name: the file name without `.mcap`, or the folder's name."""
-        return self.path.name.removesuffix(".mcap") if self.path.is_file() else self.path.name
+        """The recording's name: the file name without its suffix, or the folder's name."""
+        return self.path.stem if self.path.is_file() else self.path.name
 
     def sha256(self) -> str:
         """SHA-256 of the files' bytes, concatenated in order, read in 1 MiB blocks."""
@@ -61,15 +65,19 @@ def _from_metadata(folder: Path) -> tuple[Path, ...]:
     except (OSError, UnicodeDecodeError, yaml.YAMLError, KeyError, TypeError,
             AttributeError) as exc:
         raise InputError(f"{path}: not a readable rosbag2 metadata file ({exc})") from exc
-    if storage != "mcap":
-        raise InputError(f"{folder}: a rosbag2 bag stored as {storage!r}; surgrecon reads MCAP: "
-                         f"convert it with `ros2 bag convert -i {folder} -o OUT.yaml` (storage_id "
-                         "mcap)")
+    suffix = STORAGE_SUFFIX.get(storage)
+    if suffix is None:
+        raise InputError(f"{folder}: a rosbag2 bag stored as {storage!r}; surgrecon reads "
+                         f"storage {' or '.join(STORAGE_SUFFIX)}: convert it with `ros2 bag "
+                         f"convert -i {folder} -o OUT.yaml` (storage_id mcap)")
     files = []
     for name in names:
         file = (folder / name).resolve()
         if folder.resolve() not in file.parents:
             raise InputError(f"{path}: file {name!r} lies outside the bag folder")
+        if file.suffix != suffix:
+            raise InputError(f"{path}: storage {storage!r} but it lists {name!r}, not a "
+                             f"{suffix} file; fix the metadata or name the files themselves")
         if not file.is_file():
             raise InputError(f"{path} lists {name!r}, which is missing from {folder}")
         files.append(file)
