@@ -108,7 +108,12 @@ class TemplateConfig:
     max_sigma_mm: float = _doc(
         2.5, "largest 3D position uncertainty (RMS, from the measured pixel noise and the "
         "camera geometry) of a template point (mm)")
-    min_pair_matches: int = _doc(40, "verified matches for two cameras to be linked")
+    min_pair_matches: int = _doc(
+        15, "verified matches for two cameras to be linked, at least (the floor; the minimum "
+        "grows with the features: min_pair_match_fraction)")
+    min_pair_match_fraction: float = _doc(
+        0.01, "verified matches for two cameras to be linked, as a fraction of the features "
+        "of the poorer image (when above min_pair_matches)")
     match_all_pairs: bool = _doc(
         True, "match every candidate camera pair; false: only a spanning tree of pairs, each "
         "camera also matched to the growing template by projection (a third of the pairs, "
@@ -128,6 +133,9 @@ class TemplateConfig:
         _require(self.max_reprojection_px > 0, "template.max_reprojection_px", "must be > 0")
         _require(0 <= self.min_angle_deg < 90, "template.min_angle_deg", "must be in [0, 90)")
         _require(self.max_sigma_mm > 0, "template.max_sigma_mm", "must be > 0")
+        _require(self.min_pair_matches >= 1, "template.min_pair_matches", "must be >= 1")
+        _require(0 <= self.min_pair_match_fraction < 1, "template.min_pair_match_fraction",
+                 "must be in [0, 1)")
         _require(
             len(self.depth_range) == 2 and 0 < self.depth_range[0] < self.depth_range[1],
             "template.depth_range",

@@ -11,6 +11,7 @@ RUN/template/summary.json (counts, pair plan, pixel_noise_px).
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable
 from pathlib import Path
 
@@ -35,6 +36,7 @@ from .common import stage_run
 from .registry import StageContext
 
 STAGE = "build-template"
+logger = logging.getLogger(__name__)
 
 
 def run_build_template(
@@ -59,7 +61,14 @@ def run_build_template(
             on_step=on_step,
             map_calls=mapper(executor or SerialExecutor()),
             noise=noise_from_report(log.report, log.cameras, pixel_px=0.0),
+            names=log.cameras,
         )
+        for a, b, mm in result.stats["disagreeing_groups"]:
+            logger.warning("cameras %s and cameras %s are not linked by matches and their "
+                           "reconstructions disagree: depth differs by %.2f mm (median) where "
+                           "they see the same surface; check their calibrations / poses",
+                           " ".join(log.cameras[c] for c in a),
+                           " ".join(log.cameras[c] for c in b), mm)
         n = len(result.points)
         obs = result.observations
         sigma = covariance_sigma(result.covariance + result.pose_covariance) if n else np.zeros(0)
