@@ -64,10 +64,19 @@ class IngestConfig:
 
 @dataclass(frozen=True)
 class ToolConfig:
-    """Tool model: a shaft cylinder from the tip along the tool frame's +z axis."""
+    """Tool model: a shaft cylinder from the tip along the tool frame's +z axis (`shaft_axis`),
+    and a jaw/wrist part beyond the frame (core/tool.py)."""
 
     shaft_radius_m: float = _doc(0.004, "shaft radius (m)")
     shaft_length_m: float = _doc(0.15, "shaft length from the tip (m)")
+    shaft_axis: str = _doc(
+        "+z", "axis of the tool frame pointing from the kinematic point up the shaft: +z, -z, "
+        "+x, -x, +y or -y (-z for a frame whose z points out of the jaws)")
+    jaw_offset_m: float = _doc(
+        0.0, "start of the jaw/wrist part beyond the kinematic point, along the tool axis "
+        "away from the shaft (m)")
+    jaw_length_m: float = _doc(0.0, "length of the jaw/wrist part (m); 0 = none")
+    jaw_width_m: float = _doc(0.01, "width of the jaw/wrist part (m)")
     base_to_world: tuple[float, ...] = _doc(
         (), "robot base pose in the world: [x y z qx qy qz qw] (m); empty = tool pose is in world"
     )
@@ -85,6 +94,24 @@ class ToolConfig:
             "must be empty or [x, y, z, qx, qy, qz, qw]",
         )
         _require(self.mask_margin_px >= 0 and self.margin_m >= 0, "tool.margin_m", "must be >= 0")
+        _require(self.shaft_axis in ("+z", "-z", "+x", "-x", "+y", "-y"), "tool.shaft_axis",
+                 "must be one of +z -z +x -x +y -y")
+        _require(self.jaw_offset_m >= 0 and self.jaw_length_m >= 0 and self.jaw_width_m > 0,
+                 "tool.jaw_length_m", "jaw offset and length must be >= 0, width > 0")
+
+
+@dataclass(frozen=True)
+class ExtraToolConfig(ToolConfig):
+    """One more tool (a `[[tools]]` table; e.g. a dVRK's second arm): its pose topic and
+    geometry, masked and removed like the `[tool]` (`topics.tool_pose`) one."""
+
+    pose: str = _doc("", "this tool's pose topic (PoseStamped / TransformStamped, or a "
+                     "transforms topic with `frame`)")
+    frame: str = _doc("", "this tool's TF child frame, when `pose` carries transforms")
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        _require(bool(self.pose), "tools.pose", "every [[tools]] table needs a pose topic")
 
 
 @dataclass(frozen=True)
@@ -279,3 +306,8 @@ class Config:
     deformation: DeformationConfig = field(default_factory=DeformationConfig)
     labels: LabelsConfig = field(default_factory=LabelsConfig)
     run: RunConfig = field(default_factory=RunConfig)
+    tools: tuple[ExtraToolConfig, ...] = ()
+
+    def tool_configs(self) -> tuple[ToolConfig, ...]:
+        """Every tool's geometry: `[tool]`, then each `[[tools]]` (as tool poses stack)."""
+        return (self.tool, *self.tools)

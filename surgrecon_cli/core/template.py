@@ -13,7 +13,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from ..config import TemplateConfig, ToolConfig
+from ..config import TemplateConfig
 from ..errors import GeometryError
 from .cameras import CameraModel, project, view_distortion_jacobians
 from .features import detect_features, no_features
@@ -32,7 +32,7 @@ from .outliers import surface_outliers
 from .pairing import PairPlan, PairPrediction, candidate_pairs, predict_pairs
 from .sequencing import all_pairs, sequenced, track_observations
 from .template_gate import group_disagreements, pair_minimums, unlinked_message
-from .tool import points_near_tool, tool_image_mask
+from .tool import ToolConfigs, points_near_tool, tool_image_mask
 from .triangulate import Observations, reprojection_residuals, triangulate
 
 # ours: the tool mask casts a ray every 4 px of a 640 px wide image, the same angular
@@ -84,14 +84,15 @@ def build_template(
     poses: np.ndarray,
     tool_pose: np.ndarray,
     cfg: TemplateConfig,
-    tool_cfg: ToolConfig,
+    tool_cfg: ToolConfigs,
     on_step: Callable[[str], None] | None = None,
     map_calls: MapCalls = map_here,
     noise: NoiseModel | None = None,
     names: Sequence[str] | None = None,
 ) -> TemplateResult:
     """Build the template from one frame: images[c] (H, W, 3) uint8 RGB or None (unusable),
-    poses (C, 4, 4) camera-to-world, tool_pose (4, 4) tool tip in the world (NaN = unknown);
+    poses (C, 4, 4) camera-to-world, tool_pose (4, 4) tool tip in the world, or (K, 4, 4)
+    of several tools with a config each in `tool_cfg` (NaN = unknown);
     `noise` (the tracker's measured jitter and shared bodies) makes each view's variance at
     least what the pose error alone projects (`measured_covariances`) and adds a shared
     body's rigid error.

@@ -27,16 +27,18 @@ from .ingest_streams import CameraStreams, Poses
 @dataclass(frozen=True)
 class WorldPoses:
     """Camera-to-world pose streams (one per camera, sorted ids), the tool tip's (empty
-    without a robot), and for the report where each came from."""
+    without a robot), each `[[tools]]` tool's, and for the report where each came from."""
 
     cameras: list[PoseStream]
     tool: PoseStream
     sources: dict[str, str]
+    extra_tools: list[PoseStream]
 
 
 def world_poses(ids: Sequence[str], cams: Sequence[CameraStreams], tool: Poses,
                 reader: LogReader, config: Config, span_ns: tuple[int, int],
-                allow_truncated: bool) -> WorldPoses:
+                allow_truncated: bool, extra_tools: dict[int, Poses] | None = None
+                ) -> WorldPoses:
     """Every pose stream of the log in `topics.world_frame` (see the module docstring)."""
     topics = config.topics
     world = topics.world_frame
@@ -60,19 +62,39 @@ def world_poses(ids: Sequence[str], cams: Sequence[CameraStreams], tool: Poses,
         sources[cid] = _topic_text(cam.pose_topic, frame, world)
     if not topics.tool_pose:
         tool_stream = tool.validated()
-    elif reader.role_uses_transforms("tool_pose"):
-        tool_stream = _chain(tree, world, topics.tool_frame, span_ns, gap_ns,
-                             f"tool (topics.tool_frame = {topics.tool_frame!r})")
-        sources["tool"] = _chain_text(tree, world, topics.tool_frame)
-    elif config.tool.base_to_world:  # the tip in the robot's base frame
-        tool_stream = transformed(tool.validated(), base_to_world_pose(config.tool.base_to_world),
-                                  tool.name)
-        sources["tool"] = f"{tool.name} through tool.base_to_world"
     else:
-        tool_stream = stream_to_world(tool.validated(), tool.name, tool.frame, tree, world,
-                                      gap_ns, "tool")
-        sources["tool"] = _topic_text(tool.name, tool.frame, world)
-    return WorldPoses(streams, tool_stream, sources)
+        tool_stream, sources["tool"] = _tool_stream(
+            tool, reader.role_uses_transforms("tool_pose"), topics.tool_frame,
+            config.tool.base_to_world, tree, world, span_ns, gap_ns,
+            ("tool", "topics.tool_frame", "tool.base_to_world"))
+    extra = []
+    for k, cfg in enumerate(config.tools):
+        poses = (extra_tools or {}).get(k, Poses(f"{cfg.pose} (tools[{k}])"))
+        if not cfg.frame and not len(poses.stamps):
+            raise InputError(f"tools[{k}].pose = {cfg.pose!r}: no pose of this tool in the log")
+        stream, sources[f"tools[{k}]"] = _tool_stream(
+            poses, cfg.pose in reader.transform_topics, cfg.frame, cfg.base_to_world, tree,
+            world, span_ns, gap_ns,
+            (f"tool tools[{k}]", f"tools[{k}].frame", f"tools[{k}].base_to_world"))
+        extra.append(stream)
+    return WorldPoses(streams, tool_stream, sources, extra)
+
+
+def _tool_stream(tool: Poses, on_tf: bool, frame: str, base_to_world: tuple[float, ...],
+                 tree: TfTree | None, world: str, span_ns: tuple[int, int], gap_ns: int,
+                 keys: tuple[str, str, str]) -> tuple[PoseStream, str]:
+    """A tool's tip pose stream in the world and where it came from: the TF chain of its
+    frame (`on_tf`: its topic carries transforms), its topic through `base_to_world`, or its
+    topic moved into the world through the tree. keys: what, frame key, base key (messages)."""
+    what, frame_key, base_key = keys
+    if on_tf:
+        return (_chain(tree, world, frame, span_ns, gap_ns, f"{what} ({frame_key} = {frame!r})"),
+                _chain_text(tree, world, frame))
+    if base_to_world:  # the tip in the robot's base frame
+        return (transformed(tool.validated(), base_to_world_pose(base_to_world), tool.name),
+                f"{tool.name} through {base_key}")
+    return (stream_to_world(tool.validated(), tool.name, tool.frame, tree, world, gap_ns, what),
+            _topic_text(tool.name, tool.frame, world))
 
 
 def _tree(reader: LogReader, config: Config, allow_truncated: bool) -> TfTree | None:

@@ -72,17 +72,18 @@ class LogReader:
     After iteration: `sha256` (of the whole file), `size`, `valid_bytes`, `damage` (None or a
     one-line description), `last_log_time_ns`, `channels` {topic: "schema (encoding)"},
     `message_counts` {topic: n}; `check_roles()` raises `TopicError` for missing roles.
-    require_roles: fail before streaming when the summary shows a required role missing.
+    require_roles: fail before streaming when the summary shows a required role missing;
+    extra_tools: the pose topics of `[[tools]]` (role "extra_tool_pose", camera = index).
     """
 
     def __init__(self, path: Path, topics: TopicsConfig, time_source: str = "header",
                  allow_truncated: bool = False,
                  on_bytes: Callable[[int], None] | None = None,
-                 require_roles: bool = True) -> None:
+                 require_roles: bool = True, extra_tools: tuple[str, ...] = ()) -> None:
         self.input = resolve_log(path)
         self.path = self.input.path
         self.file = self.input.files[0]  # the file being read (named in damage messages)
-        self.roles = TopicRoles(topics)
+        self.roles = TopicRoles(topics, extra_tools)
         self.use_log_time = time_source == "log_time"
         self.allow_truncated = allow_truncated
         self.on_bytes = on_bytes

@@ -1,0 +1,120 @@
+"""Several tools, each with a shaft and a jaw/wrist part: `[[tools]]` poses are ingested,
+and every tool is masked in the images and removed from the template."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+import synth_log
+from scenes import render_frames
+from synth_log import MS, T0, SynthSpec
+
+from surgrecon_cli.cli.main import main
+from surgrecon_cli.config import Config, ToolConfig, load_config
+from surgrecon_cli.core.geometry import make_pose, point_to_segment_distance
+from surgrecon_cli.core.template import build_template
+from surgrecon_cli.core.tool import points_near_tool, tool_capsules, tool_pixel_mask
+from surgrecon_cli.errors import ConfigError
+from surgrecon_cli.io.ingest_store import load_ingested
+from surgrecon_cli.io.records import PoseRecord
+from surgrecon_cli.sim.scene import SimConfig
+
+TIP_DOWN = make_pose(np.zeros(3), np.array([1.0, 0, 0, 0]))  # z (shaft) points down: -z world
+JAW = ToolConfig(jaw_offset_m=0.002, jaw_length_m=0.01, jaw_width_m=0.006)
+
+
+def test_the_jaw_beyond_the_frame_is_part_of_the_tool():
+    # The shaft runs along the frame's z (here world -z); the jaw the other way (world +z),
+    # from 2 mm to 12 mm, 3 mm in radius.
+    on_jaw = np.array([[0, 0, 0.005], [0, 0, 0.011], [0.002, 0, 0.008]])
+    past_jaw = np.array([[0, 0, 0.018], [0.008, 0, 0.008]])
+    assert not points_near_tool(on_jaw, TIP_DOWN, ToolConfig()).any()
+    assert points_near_tool(on_jaw, TIP_DOWN, JAW).all()
+    assert not points_near_tool(past_jaw, TIP_DOWN, JAW).any()
+    # The frame's z pointing out of the jaws: shaft_axis = "-z" swaps the two sides.
+    flipped = replace(JAW, shaft_axis="-z")
+    assert points_near_tool(np.array([[0, 0, 0.05]]), TIP_DOWN, flipped).all()
+    assert not points_near_tool(np.array([[0, 0, 0.05]]), TIP_DOWN, JAW).any()
+
+
+def test_every_tool_is_masked_and_removed():
+    second = make_pose(np.array([0.02, 0, 0]), np.array([1.0, 0, 0, 0]))
+    both = np.stack([TIP_DOWN, second])
+    near_second = np.array([[0.02, 0, -0.03]])
+    assert not points_near_tool(near_second, TIP_DOWN, ToolConfig()).any()
+    assert points_near_tool(near_second, both, (ToolConfig(), JAW)).all()
+    unknown = np.stack([TIP_DOWN, np.full((4, 4), np.nan)])  # a tool not seen at this frame
+    assert len(tool_capsules(unknown, (ToolConfig(), JAW))) == 1
+    # A camera 10 cm above, looking down: the pixel of the second tool's axis is masked.
+    camera_pose = make_pose(np.array([0.0, 0, 0.1]), np.array([1.0, 0, 0, 0]))
+    from surgrecon_cli.core.cameras import CameraModel, project
+    model = CameraModel(np.array([[400.0, 0, 160], [0, 400.0, 120], [0, 0, 1]]), np.zeros(5),
+                        320, 240)
+    px, _ = project(np.array([[0.02, 0, 0.0]]), camera_pose, model)
+    assert not tool_pixel_mask(px, model, camera_pose, TIP_DOWN, ToolConfig()).any()
+    assert tool_pixel_mask(px, model, camera_pose, both, (ToolConfig(), JAW)).all()
+
+
+def test_tools_tables_are_read_checked_and_written(tmp_path: Path):
+    path = tmp_path / "dvrk.toml"
+    path.write_text('[topics]\ntool_pose = "/PSM1/measured_cp"\n[[tools]]\n'
+                    'pose = "/PSM2/measured_cp"\nshaft_radius_m = 0.003\njaw_length_m = 0.01\n')
+    config = load_config(path)
+    assert [t.pose for t in config.tools] == ["/PSM2/measured_cp"]
+    assert config.tool_configs()[1].shaft_radius_m == 0.003
+    path.write_text('[[tools]]\nshaft_radius_m = 0.003\n')
+    with pytest.raises(ConfigError, match=r"tools\.pose"):
+        load_config(path)
+    path.write_text('[[tools]]\npose = "/a"\nshaft_radius = 0.003\n')
+    with pytest.raises(ConfigError, match=r"tools\[0\].shaft_radius"):
+        load_config(path)
+
+
+def _second_arm(spec: SynthSpec, topic: str = "/PSM2/measured_cp") -> list:
+    return [(topic, t + MS, PoseRecord(t, "world", "", np.array([0.01 * k, 0.0, 0.02]),
+                                       np.array([0.0, 0, 0, 1])))
+            for k, t in enumerate(range(T0, spec.end(), 50 * MS))]
+
+
+def test_a_second_arm_is_ingested(tmp_path: Path, capsys):
+    spec = SynthSpec(frames=3)
+    spec.extra = _second_arm(spec)
+    log = synth_log.write(tmp_path / "log.mcap", spec)
+    cfg = tmp_path / "two.toml"
+    cfg.write_text('[[tools]]\npose = "/PSM2/measured_cp"\n')
+    assert main(["ingest", str(log), "-o", str(tmp_path / "run"), "-q", "--config",
+                 str(cfg)]) == 0
+    ingested = load_ingested(tmp_path / "run" / "ingest")
+    assert ingested.extra_tool_poses.shape == (3, 1, 4, 4)
+    want_x = 0.01 * (ingested.stamps_ns - T0) / (50 * MS)  # linear between the samples
+    np.testing.assert_allclose(ingested.extra_tool_poses[:, 0, 0, 3], want_x, atol=1e-9)
+    assert ingested.all_tool_poses(1).shape == (2, 4, 4)
+    cfg.write_text('[[tools]]\npose = "/PSM3/measured_cp"\n')
+    assert main(["ingest", str(log), "-o", str(tmp_path / "run3"), "-q", "--config",
+                 str(cfg)]) == 2
+    assert "PSM3" in capsys.readouterr().err
+
+
+def test_the_template_has_no_point_on_a_second_tool():
+    """A second tool laid across the tissue seen by the rig: without it the template has
+    points along its axis, with it none within its radius."""
+    scene = render_frames(SimConfig(cameras=4, frames=2, width=300, height=250, seed=3), [0])
+    cfg = Config()
+    plain = build_template(scene.images[0], scene.models, scene.poses[0], scene.tool_poses[0],
+                           cfg.template, cfg.tool)
+    median = np.median(plain.points, axis=0)
+    centre = plain.points[np.argmin(np.linalg.norm(plain.points - median, axis=1))]
+    across = make_pose(centre, np.array([0.0, np.sqrt(0.5), 0, np.sqrt(0.5)]))  # z along x
+    second = ToolConfig(shaft_radius_m=0.002, shaft_length_m=0.01, jaw_length_m=0.01,
+                        jaw_width_m=0.004)
+    a, b = tool_capsules(across, second)[0][:2]
+    assert (point_to_segment_distance(plain.points, a, b) < 0.002).sum() >= 2
+    both = build_template(scene.images[0], scene.models, scene.poses[0],
+                          np.stack([scene.tool_poses[0], across]), cfg.template,
+                          (cfg.tool, second))
+    for a, b, radius in tool_capsules(across, second):
+        assert (point_to_segment_distance(both.points, a, b) < radius).sum() == 0
+    assert sum(both.stats["features"]) < sum(plain.stats["features"])  # masked before SIFT
