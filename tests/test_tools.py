@@ -118,3 +118,28 @@ def test_the_template_has_no_point_on_a_second_tool():
     for a, b, radius in tool_capsules(across, second):
         assert (point_to_segment_distance(both.points, a, b) < radius).sum() == 0
     assert sum(both.stats["features"]) < sum(plain.stats["features"])  # masked before SIFT
+
+
+def test_info_proposes_every_dvrk_arm_and_its_config_runs(tmp_path: Path):
+    spec = SynthSpec(frames=3, tool_topic="/PSM1/measured_cp")
+    spec.extra = (_second_arm(spec, "/PSM2/measured_cp") + _second_arm(spec, "/ECM/measured_cp")
+                  + _second_arm(spec, "/PSM2/local/measured_cp"))
+    log = synth_log.write(tmp_path / "dvrk.mcap", spec)
+    cfg = tmp_path / "dvrk.toml"
+    assert main(["info", str(log), "--write-config", str(cfg)]) == 0
+    config = load_config(cfg)
+    assert config.topics.tool_pose == "/PSM1/measured_cp"
+    assert [t.pose for t in config.tools] == ["/PSM2/measured_cp"]
+    assert main(["ingest", str(log), "-o", str(tmp_path / "run"), "-q", "--config",
+                 str(cfg)]) == 0
+    assert load_ingested(tmp_path / "run" / "ingest").extra_tool_poses.shape == (3, 1, 4, 4)
+
+
+def test_dvrk_arm_topics_are_recognised():
+    from surgrecon_cli.io.log_info.dvrk import dvrk_arms
+    got = dvrk_arms(["/PSM1/local/measured_cp", "/PSM1/measured_cp", "/ECM/measured_cp",
+                     "/dvrk/PSM2/position_cartesian_current", "/jhu_daVinci/PSM3/measured_cp",
+                     "/PSM2/setpoint_cp", "/camera/left/pose", "/MTML/measured_cp"])
+    assert got == {"ECM": "/ECM/measured_cp", "PSM1": "/PSM1/measured_cp",
+                   "PSM2": "/dvrk/PSM2/position_cartesian_current",
+                   "PSM3": "/jhu_daVinci/PSM3/measured_cp"}
