@@ -63,12 +63,13 @@ def run_build_template(
             noise=noise_from_report(log.report, log.cameras, pixel_px=0.0),
             names=log.cameras,
         )
-        for a, b, mm in result.stats["disagreeing_groups"]:
-            logger.warning("cameras %s and cameras %s are not linked by matches and their "
-                           "reconstructions disagree: depth differs by %.2f mm (median) where "
-                           "they see the same surface; check their calibrations / poses",
+        for a, b, px in result.stats["disagreeing_groups"]:
+            logger.warning("cameras %s and cameras %s are not linked: their images match "
+                           "(matches found without the poses) but their poses put those "
+                           "matches %.1f px (median) off the epipolar lines; they reconstruct "
+                           "the surface apart: check their calibrations / poses",
                            " ".join(log.cameras[c] for c in a),
-                           " ".join(log.cameras[c] for c in b), mm)
+                           " ".join(log.cameras[c] for c in b), px)
         n = len(result.points)
         obs = result.observations
         sigma = covariance_sigma(result.covariance + result.pose_covariance) if n else np.zeros(0)
