@@ -27,6 +27,16 @@ Then `surgrecon run OUT/dlfd_N.mcap -o RUN --config OUT/dlfd_N.toml` and
 `python benchmarks/dlfd_mcap.py ... -o OUT --figure RUN` draws the template over one camera
 image with both arms' masks.
 
+Measured on trial 1 (3 frames, defaults): each stereo pair links (27, 23 and 17 verified
+matches of 250-300 features per image; the former fixed minimum of 40 refused them all),
+the pairs do not link to each other (0-4 matches) and pairs 2 and 3 are reported as
+disagreeing (their matches 33.6 px off their epipolar lines: the hand-eye results do not
+agree). With the conventions above the arms' models do NOT land on the instruments: arm 1's
+kinematic point projects ~100 px (of 310) right of its jaws in p2l, and arm 2's z axis ~70
+degrees off its shaft; so template points remain on both instruments although none is
+within 9.7 mm of either arm's model. Unresolved: the frame conventions of the published
+hand-eye and arm matrices, the videos' crop, or the timing of the robot samples.
+
 Writes OUT/dlfd_N.mcap (ROS 2: CompressedImage JPEG, CameraInfo, PoseStamped per camera on
 /{camera}/pose, arms on /PSM1/measured_cp and /PSM2/measured_cp) and OUT/dlfd_N.toml.
 """

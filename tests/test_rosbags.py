@@ -97,3 +97,15 @@ def test_a_damaged_bag_is_refused_in_one_line(logs: dict[str, Path], tmp_path: P
         assert main(["ingest", str(log), "-o", str(tmp_path / f"run_{log.stem}"), "-q"]) == 2
         err = capsys.readouterr().err.strip()
         assert len(err.splitlines()) == 1 and str(log) in err, err
+
+
+def test_a_db3_without_message_definitions_ingests_alike(logs: dict[str, Path], tmp_path: Path):
+    """rosbag2 before Iron stored no message definitions: they come from rosbags' types."""
+    import sqlite3
+
+    old = tmp_path / "sim_old"
+    shutil.copytree(logs["sim_db3"], old)
+    with sqlite3.connect(next(old.glob("*.db3"))) as db:
+        db.execute("DELETE FROM message_definitions")
+    reference = _ingest(logs["sim"], tmp_path / "mcap")
+    _assert_same(_ingest(old, tmp_path / "old"), reference)
