@@ -105,7 +105,8 @@ def scan_mcap(path: Path, select: Select, on_message: OnMessage) -> LogScan:
     size = path.stat().st_size
     if is_bag(path):
         check_bag_magic(path)
-        return _scan_records(path, size, Header("", "rosbags"), bag_records(path),
+        profile = "ros1" if path.suffix == ".bag" else "ros2"
+        return _scan_records(path, size, Header(profile, "rosbags"), bag_records(path),
                              lambda: size, select, on_message)
     with open(path, "rb") as raw:
         f = BoundedFile(raw, size)
