@@ -32,8 +32,15 @@ class TopicsConfig:
     world_frame: str = _doc(
         "world", "frame the reconstruction is in; poses in other frames go through the TF tree"
     )
+    camera_from_ecm: tuple[float, ...] = _doc(
+        (), "hand-eye: each camera's pose in the frame of the poses on camera_pose when that is "
+        "one topic for every camera (no {camera}; e.g. the dVRK ECM's /ECM/measured_cp): x y z "
+        "qx qy qz qw (m) per camera in sorted camera-id order, or 7 numbers for all; empty = "
+        "camera_pose is per camera")
 
     def __post_init__(self) -> None:
+        _require(len(self.camera_from_ecm) % 7 == 0, "topics.camera_from_ecm",
+                 "must be x y z qx qy qz qw per camera (a multiple of 7 numbers)")
         for key in ("image", "camera_info"):
             _require(
                 "{camera}" in getattr(self, key), f"topics.{key}", "needs a {camera} placeholder"

@@ -190,7 +190,8 @@ def _assemble(collector: StreamCollector, reader: LogReader, config: Config, sta
     orders = [np.argsort(np.array(cam.stamps, np.int64), kind="stable") for cam in cams]
     stamps = [np.array(cam.stamps, np.int64)[o] for cam, o in zip(cams, orders, strict=True)]
     poses_in_world = world_poses(ids, cams, collector.tool, reader, config, log_span(stamps),
-                                 allow_truncated, collector.extra_tools)
+                                 allow_truncated, collector.extra_tools,
+                                 collector.cameras[""].poses if "" in collector.cameras else None)
     pose_streams, tool = poses_in_world.cameras, poses_in_world.tool
     gap_ns = round(config.ingest.pose_gap_ms * 1e6)
 

@@ -15,9 +15,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..config import Config
+from ..core.geometry import make_pose
 from ..core.sync import PoseStream, base_to_world_pose
 from ..core.tf_tree import TfTree, build_tf_tree, concat_samples
-from ..core.world_poses import chain_stream, stream_to_world, transformed
+from ..core.world_poses import chain_stream, moved_by, stream_to_world, transformed
 from ..errors import InputError
 from ..io.mcap import LogReader
 from ..io.mcap.transforms import read_transforms
@@ -37,16 +38,26 @@ class WorldPoses:
 
 def world_poses(ids: Sequence[str], cams: Sequence[CameraStreams], tool: Poses,
                 reader: LogReader, config: Config, span_ns: tuple[int, int],
-                allow_truncated: bool, extra_tools: dict[int, Poses] | None = None
-                ) -> WorldPoses:
-    """Every pose stream of the log in `topics.world_frame` (see the module docstring)."""
+                allow_truncated: bool, extra_tools: dict[int, Poses] | None = None,
+                shared: Poses | None = None) -> WorldPoses:
+    """Every pose stream of the log in `topics.world_frame` (see the module docstring);
+    `shared`: the poses of one camera_pose topic without {camera} (`topics.camera_from_ecm`
+    places each camera on it)."""
     topics = config.topics
     world = topics.world_frame
     gap_ns = round(config.ingest.pose_gap_ms * 1e6)
     tree = _tree(reader, config, allow_truncated)
     streams, sources = [], {}
-    for cid, cam in zip(ids, cams, strict=True):
+    for index, (cid, cam) in enumerate(zip(ids, cams, strict=True)):
         what = f"camera {cid}"
+        if topics.camera_from_ecm and cam.poses is None and shared is not None:
+            hand_eye = _hand_eye(topics.camera_from_ecm, index, len(ids))
+            streams.append(moved_by(stream_to_world(
+                shared.validated(), shared.name, shared.frame, tree, world, gap_ns, what),
+                hand_eye, f"{shared.name} with topics.camera_from_ecm"))
+            sources[cid] = (f"{_topic_text(shared.name, shared.frame, world)}, then "
+                            f"topics.camera_from_ecm[{index}]")
+            continue
         if reader.role_uses_transforms("camera_pose"):
             frame = topics.camera_frame.replace("{camera}", cid)
             streams.append(_chain(tree, world, frame, span_ns, gap_ns,
@@ -78,6 +89,19 @@ def world_poses(ids: Sequence[str], cams: Sequence[CameraStreams], tool: Poses,
             (f"tool tools[{k}]", f"tools[{k}].frame", f"tools[{k}].base_to_world"))
         extra.append(stream)
     return WorldPoses(streams, tool_stream, sources, extra)
+
+
+def _hand_eye(values: Sequence[float], index: int, n_cameras: int) -> np.ndarray:
+    """Camera `index`'s pose (4, 4) in the shared pose frame from `topics.camera_from_ecm`."""
+    rows = np.asarray(values, float).reshape(-1, 7)
+    if len(rows) not in (1, n_cameras):
+        raise InputError(f"topics.camera_from_ecm holds {len(rows)} poses for {n_cameras} "
+                         "cameras: give one (x y z qx qy qz qw) per camera, or one for all")
+    row = rows[index if len(rows) > 1 else 0]
+    norm = np.linalg.norm(row[3:])
+    if not np.isfinite(row).all() or abs(norm - 1) > 1e-3:
+        raise InputError(f"topics.camera_from_ecm[{index}]: quaternion norm {norm:.6g} is not 1")
+    return make_pose(row[:3], row[3:] / norm)
 
 
 def _tool_stream(tool: Poses, on_tf: bool, frame: str, base_to_world: tuple[float, ...],

@@ -111,7 +111,8 @@ class LogReader:
             if decoder is None:
                 rejected.append(m.role)
                 continue
-            if m.role == "camera_pose" and decoder.kind == "pose" and not m.camera:
+            if (m.role == "camera_pose" and decoder.kind == "pose" and not m.camera
+                    and not self.roles.config.camera_from_ecm):
                 raise TopicError(
                     f"{self.path}: topics.camera_pose = {self.roles.patterns['camera_pose']!r} "
                     f"has no {{camera}} placeholder, so the poses on {topic} ({schema_name}) "
