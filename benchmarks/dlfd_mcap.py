@@ -31,11 +31,15 @@ Measured on trial 1 (3 frames, defaults): each stereo pair links (27, 23 and 17 
 matches of 250-300 features per image; the former fixed minimum of 40 refused them all),
 the pairs do not link to each other (0-4 matches) and pairs 2 and 3 are reported as
 disagreeing (their matches 33.6 px off their epipolar lines: the hand-eye results do not
-agree). With the conventions above the arms' models do NOT land on the instruments: arm 1's
-kinematic point projects ~100 px (of 310) right of its jaws in p2l, and arm 2's z axis ~70
-degrees off its shaft; so template points remain on both instruments although none is
-within 9.7 mm of either arm's model. Unresolved: the frame conventions of the published
-hand-eye and arm matrices, the videos' crop, or the timing of the robot samples.
+agree). Arm 2's kinematic point lands on the forceps' wrist in p2l (video frames 0, 124 and
+248 with samples 0, 80, 159), but its frame's z axis points ~70 degrees off the shaft (-y,
+used in the config, is the nearest axis and still 25-40 degrees off); arm 1's kinematic
+point projects ~100 px (of 310) right of its jaws in frame 0 and near them only at the end.
+So both models miss parts of their instruments and template points remain on both (jaw
+tips of arm 2, shaft of arm 1: see the PNG), although none is within 9.7 mm (arm 1) and
+11.8 mm (arm 2) of its arm's model. Unresolved: the frame conventions of the published arm
+matrices, the timing of the robot samples (logged from when a red cross appears, which
+this script does not detect), the videos' crop.
 
 Writes OUT/dlfd_N.mcap (ROS 2: CompressedImage JPEG, CameraInfo, PoseStamped per camera on
 /{camera}/pose, arms on /PSM1/measured_cp and /PSM2/measured_cp) and OUT/dlfd_N.toml.
@@ -85,6 +89,8 @@ jaw_width_m = {jaw_width}
 
 [[tools]]
 pose = "/PSM2/measured_cp"
+# arm 2's matrices: z does not follow the shaft in the images; -y is the nearest axis
+shaft_axis = "-y"
 shaft_radius_m = 0.004
 jaw_offset_m = 0.0
 jaw_length_m = {jaw_length}
@@ -191,7 +197,7 @@ def build(repo: Path, trial: int, frames: int, out: Path) -> tuple[Path, Path]:
     log = out / f"dlfd_{trial}.mcap"
     write_log(log, messages, "ros2")
     config = out / f"dlfd_{trial}.toml"
-    config.write_text(CONFIG.format(jaw_length=0.012, jaw_width=0.008))
+    config.write_text(CONFIG.format(jaw_length=0.015, jaw_width=0.008))
     return log, config
 
 
