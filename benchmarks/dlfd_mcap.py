@@ -27,11 +27,12 @@ Then `surgrecon run OUT/dlfd_N.mcap -o RUN --config OUT/dlfd_N.toml` and
 `python benchmarks/dlfd_mcap.py ... -o OUT --figure RUN` draws the template over one camera
 image with both arms' masks.
 
-Measured on trial 1 (3 frames, defaults): each stereo pair links (27, 23 and 17 verified
-matches of 250-300 features per image; the former fixed minimum of 40 refused them all),
-the pairs do not link to each other (0-4 matches) and pairs 2 and 3 are reported as
-disagreeing (their matches 33.6 px off their epipolar lines: the hand-eye results do not
-agree). Arm 2's kinematic point lands on the forceps' wrist in p2l (video frames 0, 124 and
+Measured on trial 1 (3 frames, defaults): each stereo pair links (27, 25 and 18 verified
+matches of 270-300 features per image; the former fixed minimum of 40 refused them all),
+the pairs do not link to each other (0-4 verified matches). With arm 2's shaft along z
+(the first try) pairs 2 and 3 were reported as disagreeing (their pose-free matches 33.6 px
+off the epipolar lines of their hand-eye poses); with the -y shaft below, which masks more,
+no group pair is reported. Arm 2's kinematic point lands on the forceps' wrist in p2l (video frames 0, 124 and
 248 with samples 0, 80, 159), but its frame's z axis points ~70 degrees off the shaft (-y,
 used in the config, is the nearest axis and still 25-40 degrees off); arm 1's kinematic
 point projects ~100 px (of 310) right of its jaws in frame 0 and near them only at the end.
