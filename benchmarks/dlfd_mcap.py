@@ -28,19 +28,19 @@ Then `surgrecon run OUT/dlfd_N.mcap -o RUN --config OUT/dlfd_N.toml` and
 image with both arms' masks.
 
 Measured on trial 1 (3 frames, defaults): each stereo pair links (27, 25 and 18 verified
-matches of 270-300 features per image; the former fixed minimum of 40 refused them all),
-the pairs do not link to each other (0-4 verified matches). With arm 2's shaft along z
-(the first try) pairs 2 and 3 were reported as disagreeing (their pose-free matches 33.6 px
-off the epipolar lines of their hand-eye poses); with the -y shaft below, which masks more,
-no group pair is reported. Arm 2's kinematic point lands on the forceps' wrist in p2l (video frames 0, 124 and
-248 with samples 0, 80, 159), but its frame's z axis points ~70 degrees off the shaft (-y,
-used in the config, is the nearest axis and still 25-40 degrees off); arm 1's kinematic
-point projects ~100 px (of 310) right of its jaws in frame 0 and near them only at the end.
-So both models miss parts of their instruments and template points remain on both (jaw
-tips of arm 2, shaft of arm 1: see the PNG), although none is within 9.7 mm (arm 1) and
-11.8 mm (arm 2) of its arm's model. Unresolved: the frame conventions of the published arm
-matrices, the timing of the robot samples (logged from when a red cross appears, which
-this script does not detect), the videos' crop.
+matches of 270-300 features per image; the former fixed minimum of 40 refused them all), the
+pairs do not link to each other (0-4 verified matches). With arm 2's shaft along z (the
+first try) pairs 2 and 3 were reported as disagreeing (their pose-free matches 33.6 px off
+the epipolar lines of their hand-eye poses); with the -y shaft below, which masks more, no
+group pair is reported. Arm 2's kinematic point lands on the forceps' wrist in p2l (video
+frames 0, 124 and 248 with samples 0, 80, 159), but its frame's z axis points ~70 degrees
+off the shaft (-y, used in the config, is the nearest axis and still 25-40 degrees off); arm
+1's kinematic point projects ~100 px (of 310) right of its jaws in frame 0 and near them
+only at the end. So both models miss parts of their instruments and template points remain
+on both (jaw tips of arm 2, shaft of arm 1: see the PNG), although none is within 9.7 mm
+(arm 1) and 11.8 mm (arm 2) of its arm's model. Unresolved: the frame conventions of the
+published arm matrices, the timing of the robot samples (logged from when a red cross
+appears, which this script does not detect), the videos' crop.
 
 Writes OUT/dlfd_N.mcap (ROS 2: CompressedImage JPEG, CameraInfo, PoseStamped per camera on
 /{camera}/pose, arms on /PSM1/measured_cp and /PSM2/measured_cp) and OUT/dlfd_N.toml.

@@ -173,3 +173,21 @@ def test_cameras_on_the_ecm_by_their_hand_eye_poses(tmp_path: Path):
         # camera 1's samples are interpolated after the lever arm moved them: their chord
         # misses the arc by |arm| x (turn between 40 ms samples)^2 / 8, well under 1 µm
         np.testing.assert_allclose(got.poses[k, 1], want, atol=1e-6)
+
+
+def test_contact_of_another_tool():
+    """A [[tools]] tool's contact: its shaft capsule within the contact tolerance of the
+    surface (a plane z = 0 here; the shaft along +z from the tip)."""
+    from surgrecon_cli.core.indentation import tool_contact
+
+    xs = np.linspace(-0.01, 0.01, 21)
+    plane = np.array([[x, y, 0.0] for x in xs for y in xs])
+    cfg, tool = Config().deformation, ToolConfig()
+    up = np.array([0.0, 0, 0, 1])  # identity: the shaft rises along +z from the tip
+    touching, clearance = tool_contact(plane, None, make_pose(np.zeros(3), up), tool, cfg)
+    assert touching and abs(clearance) < 1e-9
+    above, clearance = tool_contact(plane, None, make_pose(np.array([0, 0, 0.01]), up), tool,
+                                    cfg)
+    assert not above and clearance == pytest.approx(10.0)
+    unknown = tool_contact(plane, None, np.full((4, 4), np.nan), tool, cfg)
+    assert unknown[0] is False and np.isnan(unknown[1])
