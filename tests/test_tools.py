@@ -159,9 +159,12 @@ def test_cameras_on_the_ecm_by_their_hand_eye_poses(tmp_path: Path):
     log = synth_log.write(tmp_path / "ecm.mcap", spec)
     q = Rotation.from_euler("y", 10, degrees=True).as_quat()
     cfg = tmp_path / "ecm.toml"
-    cfg.write_text('[topics]\ncamera_pose = "/ECM/measured_cp"\n'
-                   f"camera_from_ecm = [0, 0, 0, 0, 0, 0, 1, 0.005, 0, 0, {q[0]}, {q[1]}, "
-                   f"{q[2]}, {q[3]}]\n")
+    assert main(["info", str(log), "--write-config", str(cfg)]) == 0  # proposes the ECM
+    written = cfg.read_text()
+    assert 'camera_pose = "/ECM/measured_cp"' in written and "# camera_from_ecm" in written
+    cfg.write_text(written.replace(
+        "# camera_from_ecm = [x, y, z, qx, qy, qz, qw, ...]",
+        f"camera_from_ecm = [0, 0, 0, 0, 0, 0, 1, 0.005, 0, 0, {q[0]}, {q[1]}, {q[2]}, {q[3]}]"))
     assert main(["ingest", str(log), "-o", str(tmp_path / "run"), "-q", "--config",
                  str(cfg)]) == 0
     got = load_ingested(tmp_path / "run" / "ingest")

@@ -102,6 +102,13 @@ def guess_roles(channels: Sequence[ChannelInfo], tree: TfTree | None
             topics["camera_pose"] = pose_pattern
             if frame_from_images:
                 topics["camera_frame"] = frame_from_images
+        elif "ECM" in dvrk_arms(pose_names):
+            ecm = dvrk_arms(pose_names)["ECM"]
+            roles["camera_pose"] = RoleGuess(
+                "camera_pose", tuple(pose_names), ecm, ids,
+                note="the dVRK ECM's pose: set each camera's hand-eye pose on it in "
+                     "topics.camera_from_ecm (x y z qx qy qz qw per camera, sorted ids)")
+            topics["camera_pose"] = ecm
 
     tool_names = [n for n in pose_names if n not in pose_caps]
     roles["tool_pose"], tool_keys = _tool(tool_names, poses, tree, tf_channels,

@@ -116,8 +116,9 @@ class LogReader:
                 raise TopicError(
                     f"{self.path}: topics.camera_pose = {self.roles.patterns['camera_pose']!r} "
                     f"has no {{camera}} placeholder, so the poses on {topic} ({schema_name}) "
-                    "belong to no camera; use a {camera} pattern, or transforms with "
-                    "topics.camera_frame")
+                    "belong to no camera; use a {camera} pattern, transforms with "
+                    "topics.camera_frame, or set each camera's pose on it in "
+                    "topics.camera_from_ecm (x y z qx qy qz qw per camera)")
             info.decoder = decoder
             info.roles.append((m.role, m.camera))
             if decoder.kind == "transforms":
