@@ -94,7 +94,7 @@ def test_bad_bag_folders_are_refused_in_one_line(recording, tmp_path: Path, caps
     _metadata(missing, split)
     empty = tmp_path / "empty"
     empty.mkdir()
-    for folder, message in ((sqlite, "ros2 bag convert"), (missing, "missing from"),
+    for folder, message in ((sqlite, "not a .db3 file"), (missing, "missing from"),
                             (empty, "without metadata.yaml")):
         assert main(["ingest", str(folder), "-o", str(tmp_path / f"run_{folder.name}"),
                      "-q"]) == 2

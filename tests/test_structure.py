@@ -90,7 +90,7 @@ def test_registry_outputs_are_layout_paths(tmp_path: Path):
 
 
 def test_config_keys_accumulate_along_the_pipeline():
-    assert registry.config_keys("ingest") == ("topics", "ingest", "tool.base_to_world")
+    assert registry.config_keys("ingest") == ("topics", "ingest", "tool.base_to_world", "tools")
     assert set(registry.config_keys("build-template")) >= {"topics", "tool", "template"}
     assert registry.upstream_config_keys("register") == registry.config_keys("build-template")
     assert "classify" not in registry.config_keys("register")

@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import ConfigError, cut
-from .schema import Config, _require
+from .schema import Config, ExtraToolConfig, _require
 
 logger = logging.getLogger(__name__)
 # Keys renamed so that each name carries its unit; the old names are still read.
@@ -58,7 +58,7 @@ def _section_types(section_cls: type) -> dict[str, Any]:
 def from_dict(data: dict[str, Any], base: Config | None = None) -> Config:
     """Merge a nested dict (as read from TOML) over `base` (default: the defaults)."""
     base = base or Config()
-    sections = {}
+    sections: dict[str, Any] = {}
     section_types = _section_types(Config)
     for name, values in data.items():
         _require(
@@ -66,6 +66,9 @@ def from_dict(data: dict[str, Any], base: Config | None = None) -> Config:
             name,
             f"unknown config section (known: {', '.join(section_types)})",
         )
+        if name == "tools":
+            sections[name] = _tools(values)
+            continue
         _require(isinstance(values, dict), name, "must be a table")
         cls = section_types[name]
         hints = _section_types(cls)
@@ -83,6 +86,20 @@ def from_dict(data: dict[str, Any], base: Config | None = None) -> Config:
             updates[key] = _coerce(value, hints[key], full)
         sections[name] = dataclasses.replace(current, **updates)
     return dataclasses.replace(base, **sections)
+
+
+def _tools(values: Any) -> tuple[ExtraToolConfig, ...]:
+    """`[[tools]]`: an array of tables, one per tool."""
+    _require(isinstance(values, list) and all(isinstance(v, dict) for v in values), "tools",
+             "must be an array of tables ([[tools]] with pose = ... and the [tool] keys)")
+    hints = _section_types(ExtraToolConfig)
+    tools = []
+    for k, table in enumerate(values):
+        for key in table:
+            _require(key in hints, f"tools[{k}].{key}", f"unknown key (known: {', '.join(hints)})")
+        tools.append(ExtraToolConfig(**{key: _coerce(v, hints[key], f"tools[{k}].{key}")
+                                        for key, v in table.items()}))
+    return tuple(tools)
 
 
 def parse_override(text: str) -> dict[str, Any]:

@@ -32,8 +32,15 @@ class TopicsConfig:
     world_frame: str = _doc(
         "world", "frame the reconstruction is in; poses in other frames go through the TF tree"
     )
+    camera_from_ecm: tuple[float, ...] = _doc(
+        (), "hand-eye: each camera's pose in the frame of the poses on camera_pose when that is "
+        "one topic for every camera (no {camera}; e.g. the dVRK ECM's /ECM/measured_cp): x y z "
+        "qx qy qz qw (m) per camera in sorted camera-id order, or 7 numbers for all; empty = "
+        "camera_pose is per camera")
 
     def __post_init__(self) -> None:
+        _require(len(self.camera_from_ecm) % 7 == 0, "topics.camera_from_ecm",
+                 "must be x y z qx qy qz qw per camera (a multiple of 7 numbers)")
         for key in ("image", "camera_info"):
             _require(
                 "{camera}" in getattr(self, key), f"topics.{key}", "needs a {camera} placeholder"
@@ -67,10 +74,20 @@ class IngestConfig:
 
 @dataclass(frozen=True)
 class ToolConfig:
-    """Tool model: a shaft cylinder from the tip along the tool frame's +z axis."""
+    """Tool model: a shaft cylinder from the tip along the tool frame's +z axis (`shaft_axis`),
+    and a jaw/wrist part beyond the frame (core/tool.py)."""
 
     shaft_radius_m: float = _doc(0.004, "shaft radius (m)", bounds=(0, 0.1))
     shaft_length_m: float = _doc(0.15, "shaft length from the tip (m)", bounds=(0, 2))
+    shaft_axis: str = _doc(
+        "+z", "axis of the tool frame pointing from the kinematic point up the shaft: +z, -z, "
+        "+x, -x, +y or -y (-z for a frame whose z points out of the jaws)")
+    jaw_offset_m: float = _doc(
+        0.0, "start of the jaw/wrist part beyond the kinematic point, along the tool axis "
+        "away from the shaft (m)", bounds=(0, 0.5))
+    jaw_length_m: float = _doc(0.0, "length of the jaw/wrist part (m); 0 = none",
+                               bounds=(0, 0.5))
+    jaw_width_m: float = _doc(0.01, "width of the jaw/wrist part (m)", bounds=(0, 0.2))
     base_to_world: tuple[float, ...] = _doc(
         (), "robot base pose in the world: [x y z qx qy qz qw] (m); empty = tool pose is in world",
         bounds=(-1000.0, 1000.0)
@@ -90,7 +107,25 @@ class ToolConfig:
             "must be empty or [x, y, z, qx, qy, qz, qw]",
         )
         _require(self.mask_margin_px >= 0 and self.margin_m >= 0, "tool.margin_m", "must be >= 0")
+        _require(self.shaft_axis in ("+z", "-z", "+x", "-x", "+y", "-y"), "tool.shaft_axis",
+                 "must be one of +z -z +x -x +y -y")
+        _require(self.jaw_offset_m >= 0 and self.jaw_length_m >= 0 and self.jaw_width_m > 0,
+                 "tool.jaw_length_m", "jaw offset and length must be >= 0, width > 0")
         check_bounds(self, "tool")
+
+
+@dataclass(frozen=True)
+class ExtraToolConfig(ToolConfig):
+    """One more tool (a `[[tools]]` table; e.g. a dVRK's second arm): its pose topic and
+    geometry, masked and removed like the `[tool]` (`topics.tool_pose`) one."""
+
+    pose: str = _doc("", "this tool's pose topic (PoseStamped / TransformStamped, or a "
+                     "transforms topic with `frame`)")
+    frame: str = _doc("", "this tool's TF child frame, when `pose` carries transforms")
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        _require(bool(self.pose), "tools.pose", "every [[tools]] table needs a pose topic")
 
 
 @dataclass(frozen=True)
@@ -117,8 +152,12 @@ class TemplateConfig:
     max_sigma_mm: float = _doc(
         2.5, "largest 3D position uncertainty (RMS, from the measured pixel noise and the "
         "camera geometry) of a template point (mm)", bounds=(0, 1000))
-    min_pair_matches: int = _doc(40, "verified matches for two cameras to be linked",
-        bounds=(0, 100_000))
+    min_pair_matches: int = _doc(
+        15, "verified matches for two cameras to be linked, at least (the floor; the minimum "
+        "grows with the features: min_pair_match_fraction)", bounds=(0, 100_000))
+    min_pair_match_fraction: float = _doc(
+        0.01, "verified matches for two cameras to be linked, as a fraction of the features "
+        "of the poorer image (when above min_pair_matches)", bounds=(0, 1))
     match_all_pairs: bool = _doc(
         True, "match every candidate camera pair; false: only a spanning tree of pairs, each "
         "camera also matched to the growing template by projection (a third of the pairs, "
@@ -141,6 +180,9 @@ class TemplateConfig:
         _require(self.max_reprojection_px > 0, "template.max_reprojection_px", "must be > 0")
         _require(0 <= self.min_angle_deg < 90, "template.min_angle_deg", "must be in [0, 90)")
         _require(self.max_sigma_mm > 0, "template.max_sigma_mm", "must be > 0")
+        _require(self.min_pair_matches >= 1, "template.min_pair_matches", "must be >= 1")
+        _require(0 <= self.min_pair_match_fraction < 1, "template.min_pair_match_fraction",
+                 "must be in [0, 1)")
         _require(
             len(self.depth_range) == 2 and 0 < self.depth_range[0] < self.depth_range[1],
             "template.depth_range",
@@ -299,3 +341,8 @@ class Config:
     deformation: DeformationConfig = field(default_factory=DeformationConfig)
     labels: LabelsConfig = field(default_factory=LabelsConfig)
     run: RunConfig = field(default_factory=RunConfig)
+    tools: tuple[ExtraToolConfig, ...] = ()
+
+    def tool_configs(self) -> tuple[ToolConfig, ...]:
+        """Every tool's geometry: `[tool]`, then each `[[tools]]` (as tool poses stack)."""
+        return (self.tool, *self.tools)

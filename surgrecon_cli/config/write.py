@@ -26,13 +26,15 @@ def to_toml(config: Config, with_docs: bool = True) -> str:
     lines: list[str] = []
     for section in dataclasses.fields(config):
         obj = getattr(config, section.name)
-        lines.append(f"[{section.name}]")
-        for f in dataclasses.fields(obj):
-            line = f"{f.name} = {_toml_value(getattr(obj, f.name))}"
-            if with_docs and f.metadata.get("doc"):
-                line = f"# {f.metadata['doc']}\n{line}"
-            lines.append(line)
-        lines.append("")
+        for table in obj if isinstance(obj, tuple) else (obj,):  # [[tools]]: one per tool
+            lines.append(f"[[{section.name}]]" if isinstance(obj, tuple) else
+                         f"[{section.name}]")
+            for f in dataclasses.fields(table):
+                line = f"{f.name} = {_toml_value(getattr(table, f.name))}"
+                if with_docs and f.metadata.get("doc"):
+                    line = f"# {f.metadata['doc']}\n{line}"
+                lines.append(line)
+            lines.append("")
     return "\n".join(lines)
 
 

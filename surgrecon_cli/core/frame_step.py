@@ -142,7 +142,7 @@ def register_with_contact(source: np.ndarray, source_rgb: np.ndarray, target_xyz
     guess = predicted_positions(source, target_xyz, target_ids,
                                 config.registration.interp_neighbors)
     without_data = weights == 0
-    inside, pushed = push_out_of_tool(guess, tool_pose, config.tool)
+    inside, pushed = push_out_of_tool(guess, tool_pose, config.tool_configs())
     predicted = inside & without_data
     contact = np.flatnonzero(predicted)
     result = register(source, np.concatenate([target_xyz, pushed[contact]]),
@@ -151,7 +151,7 @@ def register_with_contact(source: np.ndarray, source_rgb: np.ndarray, target_xyz
                       config=config.registration,
                       target_ids=np.concatenate([target_ids, contact]),
                       weights=np.where(predicted, 1.0, weights))
-    inside, pushed = push_out_of_tool(result.registered, tool_pose, config.tool)
+    inside, pushed = push_out_of_tool(result.registered, tool_pose, config.tool_configs())
     moved = inside & without_data
     transforms = result.transforms.copy()
     transforms[moved, :, 3] += pushed[moved] - result.registered[moved]
@@ -205,14 +205,15 @@ def register_frame_step(
     template_pose_cov from the cameras' pose errors); base_views / views: per camera the
     base's and this frame's images prepared for tracking (core/tracking.tracking_view;
     None where unusable); poses (C, 4, 4) camera-to-world, NaN where unusable; tool_pose
-    (4, 4) in the world (NaN = unknown); new_point_images: this frame's RGB images (H, W, 3)
+    (K, 4, 4) every tool's pose in the world, as `config.tool_configs()` lists them (NaN =
+    unknown); new_point_images: this frame's RGB images (H, W, 3)
     uint8 when new features are to be triangulated into the target (None: not this frame).
     Raises GeometryError when the frame cannot be registered (e.g. too few tracked
     points)."""
     start = time.perf_counter()
     target = build_target(template, template_cov, base.latest, base_views, views,
                           base_poses, poses, base.pixels, models, tool_pose, noise,
-                          config.target, config.tool, template_pose_cov)
+                          config.target, config.tool_configs(), template_pose_cov)
     has_target = (target.status == INTRA) | (target.status == INTER)
     ids = np.flatnonzero(has_target)
     target_xyz, target_rgb = target.positions[ids], template_rgb[ids]
@@ -256,7 +257,8 @@ def _new_points(images: list[np.ndarray | None], poses: np.ndarray, models: list
     """New features of the frame triangulated as in the template build, away from the
     tracked points: (M, 3) m and colours (M, 3) uint8."""
     try:
-        fresh = build_template(images, models, poses, tool_pose, config.template, config.tool)
+        fresh = build_template(images, models, poses, tool_pose, config.template,
+                               config.tool_configs())
     except GeometryError:
         return np.zeros((0, 3)), np.zeros((0, 3), np.uint8)
     return new_target_points(fresh.points, fresh.rgb, tracked,

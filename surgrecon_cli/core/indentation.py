@@ -165,6 +165,17 @@ def measure_frame(reference: np.ndarray, positions: np.ndarray, sigma: np.ndarra
     return fig, field
 
 
+def tool_contact(positions: np.ndarray, sigma: np.ndarray | None, pose: np.ndarray,
+                 tool: ToolConfig, cfg: DeformationConfig) -> tuple[bool, float]:
+    """Whether one more tool (a `[[tools]]` one; pose (4, 4), NaN: unknown) touches the
+    surface at positions (N, 3) m, and its clearance (mm, NaN: unknown), by the `[tool]`'s
+    contact test (module docstring)."""
+    fig = {"contact": 0.0, "clearance_mm": float("nan")}
+    if np.isfinite(pose).all():
+        _contact(fig, positions, sigma, np.asarray(pose, float), tool, cfg)
+    return bool(fig["contact"]), fig["clearance_mm"]
+
+
 def _contact(fig: dict[str, float], positions: np.ndarray, sigma: np.ndarray | None,
              pose: np.ndarray, tool: ToolConfig, cfg: DeformationConfig) -> None:
     """Fill clearance_mm, tolerance_mm and contact (module docstring)."""

@@ -61,9 +61,20 @@ def epipolar_candidates(
         found.append((ia + rows.start, jb))
     ia = np.concatenate([f[0] for f in found]) if found else np.zeros(0, int)
     jb = np.concatenate([f[1] for f in found]) if found else np.zeros(0, int)
-    exact = 0.5 * np.abs((lines_j[ia] * hj[jb]).sum(1)) * (f_j / nj[ia] + f_i / ni[jb])
-    keep = exact <= tol_px
+    keep = epipolar_distances_px(E, xi[ia], xj[jb], f_i, f_j) <= tol_px
     return ia[keep], jb[keep]
+
+
+def epipolar_distances_px(E: np.ndarray, xi: np.ndarray, xj: np.ndarray, f_i: float,
+                          f_j: float) -> np.ndarray:
+    """Symmetric epipolar distance (M,) px of matched normalised points xi, xj (M, 2): the
+    mean of each point's distance to the other's epipolar line, in its image's pixels."""
+    hi = np.column_stack([xi, np.ones(len(xi))])
+    hj = np.column_stack([xj, np.ones(len(xj))])
+    lines_j, lines_i = hi @ E.T, hj @ E
+    alg = np.abs((lines_j * hj).sum(1))
+    return 0.5 * alg * (f_j / np.linalg.norm(lines_j[:, :2], axis=1)
+                        + f_i / np.linalg.norm(lines_i[:, :2], axis=1))
 
 
 def _first_per_group(group: np.ndarray, value: np.ndarray, n_groups: int):

@@ -10,8 +10,9 @@ projection (a point gate, tighter than an epipolar segment), with the same ratio
 mutual tests as pair matching. So a new camera extends the multi-view tracks of every
 camera already joined, not only those of its tree partner, and the other pairs add little.
 
-A tree pair that fails verification (< min_pair_matches) is replaced by the camera's next
-best predicted link, the tree re-planned with the verified pairs preferred.
+A tree pair that fails verification (fewer verified matches than its `min_matches`) is
+replaced by the camera's next best predicted link, the tree re-planned with the verified
+pairs preferred.
 """
 
 from __future__ import annotations
@@ -118,41 +119,42 @@ MatchPairs = Callable[[list[tuple[int, int]]], list[np.ndarray]]
 class MatchPlan:
     """The merges building the tracks, in order; the pair plan; the matches (M, 2) of each
     verified pair; the number of pairs matched (verified or not) and of camera-to-template
-    matchings."""
+    matchings; `counts` the verified matches of every pair matched (linked or not)."""
 
     merges: list[Merge]
     plan: PairPlan
     verified: dict[tuple[int, int], np.ndarray]
     pairs_matched: int
     guided: int
+    counts: dict[tuple[int, int], int]
 
 
 def _verified_weights(found: dict[tuple[int, int], np.ndarray], conditioning: np.ndarray,
-                      min_pair_matches: int) -> np.ndarray:
+                      min_matches: np.ndarray) -> np.ndarray:
     """Edge weights (C, C): verified matches x conditioning of the pairs with at least
-    `min_pair_matches` matches, 0 elsewhere."""
+    `min_matches[i, j]` matches, 0 elsewhere."""
     w = np.zeros_like(conditioning)
     for (i, j), m in found.items():
-        if len(m) >= min_pair_matches:
+        if len(m) >= min_matches[i, j]:
             w[i, j] = w[j, i] = len(m) * conditioning[i, j]
     return w
 
 
 def all_pairs(pairs: list[tuple[int, int]], match_pairs: MatchPairs, conditioning: np.ndarray,
-              min_pair_matches: int) -> MatchPlan:
+              min_matches: np.ndarray) -> MatchPlan:
     """Every candidate pair matched; the verified ones merged in the order of `plan_pairs`
     (spanning tree of the verified weights, then the other pairs): the comparison."""
     found = dict(zip(pairs, match_pairs(pairs), strict=True))
-    weights = _verified_weights(found, conditioning, min_pair_matches)
+    weights = _verified_weights(found, conditioning, min_matches)
     plan = plan_pairs(weights)
     verified = {p: m for p, m in found.items() if weights[p] > 0}
     return MatchPlan([(i, j, verified[(i, j)]) for i, j in plan.pairs], plan, verified,
-                     len(found), 0)
+                     len(found), 0, {p: len(m) for p, m in found.items()})
 
 
 def sequenced(features: list[Features], poses: np.ndarray, models: list[CameraModel],
               pairs: list[tuple[int, int]], prediction: PairPrediction,
-              match_pairs: MatchPairs, min_pair_matches: int, ratio: float, epipolar_px: float,
+              match_pairs: MatchPairs, min_matches: np.ndarray, ratio: float, epipolar_px: float,
               pose_px: np.ndarray, max_reprojection_px: float) -> MatchPlan:
     """Only a spanning tree over the candidate `pairs` is matched (failed tree pairs
     replaced, re-planning with the verified pairs first); cameras join in the tree's order,
@@ -176,7 +178,7 @@ def sequenced(features: list[Features], poses: np.ndarray, models: list[CameraMo
         weights = candidate.copy()
         for (i, j), m in found.items():
             weights[i, j] = weights[j, i] = (1.0 + candidate[i, j]
-                                             if len(m) >= min_pair_matches else 0.0)
+                                             if len(m) >= min_matches[i, j] else 0.0)
         plan = plan_pairs(weights)
         trees = [seq[: len(g) - 1] for g, seq in zip(plan.groups, plan.sequences, strict=True)]
         todo = [e for tree in trees for e in tree if e not in found]
@@ -200,6 +202,7 @@ def sequenced(features: list[Features], poses: np.ndarray, models: list[CameraMo
         for camera in joined:  # closing pass: the tracks made after a camera joined
             merges += to_tracks(camera)
         guided += len(joined)
-    weights = _verified_weights(found, conditioning, min_pair_matches)
+    weights = _verified_weights(found, conditioning, min_matches)
     verified = {p: m for p, m in found.items() if weights[p] > 0}
-    return MatchPlan(merges, PairPlan(plan.groups, trees, weights), verified, len(found), guided)
+    return MatchPlan(merges, PairPlan(plan.groups, trees, weights), verified, len(found), guided,
+                     {p: len(m) for p, m in found.items()})

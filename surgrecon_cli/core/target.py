@@ -27,7 +27,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.stats import chi2
 
-from ..config import TargetConfig, ToolConfig
+from ..config import TargetConfig
 from .cameras import (
     CameraModel,
     in_image,
@@ -44,7 +44,7 @@ from .noise import (
     point_covariances,
     projection_jacobians,
 )
-from .tool import points_near_tool, tool_pixel_mask
+from .tool import ToolConfigs, points_near_tool, tool_pixel_mask
 from .tracking import TrackingView, expected_motion_px, track_adaptive
 from .triangulate import Observations, triangulate
 
@@ -232,7 +232,7 @@ def build_target(
     tool_pose: np.ndarray,
     noise: NoiseModel,
     cfg: TargetConfig,
-    tool_cfg: ToolConfig,
+    tool_cfg: ToolConfigs,
     template_pose_cov: np.ndarray | None = None,
 ) -> TargetCloud:
     """Target cloud of a frame for template points (N, 3) at frame 0 (covariances (N, 3, 3)

@@ -13,7 +13,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from ..config import TemplateConfig, ToolConfig
+from ..config import TemplateConfig
 from ..errors import GeometryError
 from .cameras import CameraModel, project, view_distortion_jacobians
 from .features import detect_features, no_features
@@ -31,7 +31,8 @@ from .noise import (
 from .outliers import surface_outliers
 from .pairing import PairPlan, PairPrediction, candidate_pairs, predict_pairs
 from .sequencing import all_pairs, sequenced, track_observations
-from .tool import points_near_tool, tool_image_mask
+from .template_gate import group_disagreements, pair_minimums, unlinked_message
+from .tool import ToolConfigs, points_near_tool, tool_image_mask
 from .triangulate import Observations, reprojection_residuals, triangulate
 
 # ours: the tool mask casts a ray every 4 px of a 640 px wide image, the same angular
@@ -83,20 +84,23 @@ def build_template(
     poses: np.ndarray,
     tool_pose: np.ndarray,
     cfg: TemplateConfig,
-    tool_cfg: ToolConfig,
+    tool_cfg: ToolConfigs,
     on_step: Callable[[str], None] | None = None,
     map_calls: MapCalls = map_here,
     noise: NoiseModel | None = None,
+    names: Sequence[str] | None = None,
 ) -> TemplateResult:
     """Build the template from one frame: images[c] (H, W, 3) uint8 RGB or None (unusable),
-    poses (C, 4, 4) camera-to-world, tool_pose (4, 4) tool tip in the world (NaN = unknown);
+    poses (C, 4, 4) camera-to-world, tool_pose (4, 4) tool tip in the world, or (K, 4, 4)
+    of several tools with a config each in `tool_cfg` (NaN = unknown);
     `noise` (the tracker's measured jitter and shared bodies) makes each view's variance at
     least what the pose error alone projects (`measured_covariances`) and adds a shared
     body's rigid error.
 
     The feature detection of each camera and the matching of each candidate pair are
     independent calls, made through `map_calls` (in parallel when it is an executor's).
-    `on_step(name)` is called as each of `STEPS` is done."""
+    `on_step(name)` is called as each of `STEPS` is done; `names` (C,) name the cameras in
+    messages (default: their indices)."""
     step = on_step or (lambda _name: None)
     usable = np.array(
         [im is not None and np.isfinite(p).all() for im, p in zip(images, poses, strict=True)]
@@ -110,6 +114,8 @@ def build_template(
               for c in np.flatnonzero(usable)]
     detected = iter(map_calls(detect_features, detect))
     features = [next(detected) if usable[c] else no_features() for c in range(len(images))]
+    minimums = pair_minimums([len(f) for f in features], cfg.min_pair_matches,
+                             cfg.min_pair_match_fraction)
     step("features")
     prediction = predict_pairs(
         models, np.where(usable[:, None, None], poses, np.eye(4)), usable, cfg.working_distance_m
@@ -125,18 +131,20 @@ def build_template(
             for i, j in todo])
 
     if cfg.match_all_pairs:
-        matched = all_pairs(pairs, match_pairs, prediction.conditioning, cfg.min_pair_matches)
+        matched = all_pairs(pairs, match_pairs, prediction.conditioning, minimums)
     else:
         pose_px = (np.zeros(len(models)) if noise is None else
                    np.sqrt(noise.pose_variance_px2(prediction.depth, np.array(focal))))
         matched = sequenced(features, poses, models, pairs, prediction, match_pairs,
-                            cfg.min_pair_matches, cfg.ratio, cfg.epipolar_px, pose_px,
+                            minimums, cfg.ratio, cfg.epipolar_px, pose_px,
                             cfg.max_reprojection_px)
     step("matches")
     plan = matched.plan
     track_ids, n_tracks = build_tracks([len(f) for f in features], matched.merges)
     if n_tracks == 0:
-        raise GeometryError("no feature tracks across cameras at frame 0: do the cameras overlap?")
+        raise GeometryError(unlinked_message(
+            matched.counts, minimums, [str(c) for c in names or range(len(images))],
+            cfg.min_pair_matches, cfg.min_pair_match_fraction))
     obs = track_observations(features, track_ids).observations
     tri = triangulate(obs, poses, models, n_tracks)
     # Drop single bad observations and re-triangulate what still has >= 2 views.
@@ -165,6 +173,8 @@ def build_template(
     off_surface[candidates] = surface_outliers(tri.points[candidates])
     keep = good & ~on_tool & ~off_surface
     obs_kept = obs.renumbered(keep)
+    disagree = group_disagreements(features, poses, np.array(focal), plan.groups, pairs,
+                                   cfg.min_pair_matches, cfg.epipolar_px)
     # Pose errors: per view (in `cov`), and a shared tracker body's, rigid for the body.
     pose_cov = cov[keep] - image_cov[keep]
     if noise is not None:
@@ -177,6 +187,9 @@ def build_template(
         "matched_to_template": matched.guided,
         "verified_pairs": len(matched.verified),
         "matches": {f"{i}-{j}": len(m) for (i, j), m in matched.verified.items()},
+        "pair_counts": {f"{i}-{j}": n for (i, j), n in matched.counts.items()},
+        "pair_minimums": {f"{i}-{j}": int(minimums[i, j]) for i, j in matched.counts},
+        "disagreeing_groups": [[a, b, mm] for a, b, mm in disagree],
         "tracks": n_tracks,
         "triangulated": n_points,
         "rejected_geometry": int((~good).sum() - imprecise.sum()),

@@ -44,6 +44,12 @@ def transformed(stream: PoseStream, pose: np.ndarray, name: str) -> PoseStream:
     return _stream(name, stream.stamps_ns, pose @ make_pose(stream.positions, stream.quats))
 
 
+def moved_by(stream: PoseStream, offset: np.ndarray, name: str) -> PoseStream:
+    """The stream `name` right-multiplied by a fixed pose (4, 4): the poses of a frame
+    rigidly attached to the stream's (e.g. a camera on the ECM, by its hand-eye pose)."""
+    return _stream(name, stream.stamps_ns, make_pose(stream.positions, stream.quats) @ offset)
+
+
 def stream_to_world(stream: PoseStream, name: str, frame: str, tree: TfTree | None,
                     world_frame: str, max_gap_ns: int, what: str) -> PoseStream:
     """A pose stream `name` (its topic) given in `frame`, in `world_frame`: unchanged when

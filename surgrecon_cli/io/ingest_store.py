@@ -33,6 +33,7 @@ class IngestedLog:
     poses (T, C, 4, 4) camera-to-world at each image's stamp, NaN where unusable;
     usable (T, C) bool: image present, decoded and pose interpolated within tolerance;
     tool_poses (T, 4, 4) tool tip in world at the frame stamp (NaN where unknown);
+    extra_tool_poses (T, K, 4, 4) the same of each `[[tools]]` tool (K = 0 without);
     joint_names (J,), joint_positions (T, J) (NaN where unknown);
     image_paths[t][c]: relative path of the stored image or "".
     """
@@ -49,10 +50,18 @@ class IngestedLog:
     joint_positions: np.ndarray
     image_paths: tuple[tuple[str, ...], ...]
     report: dict = field(default_factory=dict)
+    extra_tool_poses: np.ndarray = field(default_factory=lambda: np.zeros((0, 0, 4, 4)))
 
     @property
     def n_frames(self) -> int:
         return int(self.stamps_ns.shape[0])
+
+    def all_tool_poses(self, frame: int) -> np.ndarray:
+        """(K + 1, 4, 4): the `[tool]` pose then each `[[tools]]` pose at a frame, as
+        `Config.tool_configs()` lists their geometry."""
+        extra = (self.extra_tool_poses[frame] if len(self.extra_tool_poses)
+                 else np.zeros((0, 4, 4)))
+        return np.concatenate([self.tool_poses[frame][None], extra])
 
     def frame_images(self, frame: int) -> list[np.ndarray | None]:
         """Images of every camera at a frame (None where the camera is unusable)."""
@@ -119,6 +128,7 @@ def save_ingested(log: IngestedLog) -> None:
         poses=log.poses,
         usable=log.usable,
         tool_poses=log.tool_poses,
+        extra_tool_poses=log.extra_tool_poses,
         joint_names=np.array(log.joint_names, dtype=str),
         joint_positions=log.joint_positions,
         image_paths=np.array(log.image_paths, dtype=str).reshape(
@@ -172,6 +182,7 @@ def _load_ingested(root_name: str, _stamp: tuple[tuple[int, ...], ...]) -> Inges
         joint_positions=arrays["joint_positions"],
         image_paths=tuple(tuple(str(p) for p in row) for row in arrays["image_paths"]),
         report=meta.get("report", {}),
+        extra_tool_poses=arrays.get("extra_tool_poses", np.zeros((0, 0, 4, 4))),
     )
 
 

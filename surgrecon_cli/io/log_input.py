@@ -1,6 +1,7 @@
-"""What the user names as a log: one `.mcap` file, or a folder holding one recording split
-into several `.mcap` files (a rosbag2 bag folder with its `metadata.yaml`, or split files
-without one, taken in natural name order: rec_2 before rec_10).
+"""What the user names as a log: one `.mcap` file, a ROS 1 `.bag` or ROS 2 sqlite3 `.db3`
+file (read through rosbags: io/mcap/rosbag.py), or a folder holding one recording split into
+several files (a rosbag2 bag folder with its `metadata.yaml`, storage `mcap` or `sqlite3`, or
+split `.mcap` files without one, taken in natural name order: rec_2 before rec_10).
 
 A log's identity is the SHA-256 of its files' bytes concatenated in order (for one file,
 that file's SHA-256), so a run folder knows when it is handed another recording.
@@ -20,11 +21,14 @@ from .lfs import refuse_lfs_pointer
 
 METADATA = "metadata.yaml"
 MAX_METADATA_BYTES = 1 << 20  # a rosbag2 metadata.yaml is a few kB
+STORAGE_SUFFIX = {"mcap": ".mcap", "sqlite3": ".db3"}
+"""rosbag2 storage identifier -> the suffix of its files."""
 
 
 @dataclass(frozen=True)
 class LogInput:
-    """path: what was named (file or folder); files: its MCAP files in recording order."""
+    """path: what was named (file or folder); files: its MCAP (or bag) files in recording
+    order."""
 
     path: Path
     files: tuple[Path, ...]
@@ -36,9 +40,9 @@ class LogInput:
 
     @property
     def name(self) -> str:
-        """The recording's name: the file name without `.mcap`, or the folder's name."""
-        name = self.path.absolute().name  # (`.` has no name of its own)
-        return name.removesuffix(".mcap") if self.path.is_file() else name
+        """The recording's name: the file name without its suffix, or the folder's name."""
+        path = self.path.absolute()  # (`.` has no name of its own)
+        return path.stem if path.is_file() else path.name
 
     def sha256(self) -> str:
         """SHA-256 of the files' bytes, concatenated in order, read in 1 MiB blocks."""
@@ -83,10 +87,11 @@ def _from_metadata(folder: Path) -> tuple[Path, ...]:
                          ) from exc
     if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
         raise InputError(f"{path}: relative_file_paths must be a list of file names")
-    if storage != "mcap":
+    suffix = STORAGE_SUFFIX.get(storage)
+    if suffix is None:
         raise InputError(f"{folder}: a rosbag2 bag stored as {quoted(storage)}; surgrecon reads "
-                         f"MCAP: convert it with `ros2 bag convert -i {folder} -o OUT.yaml` "
-                         "(storage_id mcap)")
+                         f"storage {' or '.join(STORAGE_SUFFIX)}: convert it with `ros2 bag "
+                         f"convert -i {folder} -o OUT.yaml` (storage_id mcap)")
     files = []
     for name in names:
         try:
@@ -96,6 +101,9 @@ def _from_metadata(folder: Path) -> tuple[Path, ...]:
             raise InputError(f"{path} lists {quoted(name)}, which is {why} {folder}") from exc
         if folder.resolve() not in file.parents:
             raise InputError(f"{path}: file {quoted(name)} lies outside the bag folder")
+        if file.suffix != suffix:
+            raise InputError(f"{path}: storage {quoted(storage)} but it lists {quoted(name)}, "
+                             f"not a {suffix} file; fix the metadata or name the files themselves")
         if not file.is_file():
             raise InputError(f"{path} lists {quoted(name)}, which is not a file in {folder}")
         files.append(file)

@@ -78,7 +78,7 @@ def ingest(
     """
     log_path, run_dir = Path(log_path), Path(run_dir)
     reader = LogReader(log_path, config.topics, config.ingest.time_source, allow_truncated,
-                       on_bytes)
+                       on_bytes, extra_tools=tuple(t.pose for t in config.tools))
     start = time.perf_counter()
     reader.check_magic()
     run, before = _prepare_run_folder(run_dir, log_path, config, force)
@@ -211,7 +211,8 @@ def _assemble(collector: StreamCollector, reader: LogReader, config: Config, sta
     orders = [np.argsort(np.array(cam.stamps, np.int64), kind="stable") for cam in cams]
     stamps = [np.array(cam.stamps, np.int64)[o] for cam, o in zip(cams, orders, strict=True)]
     poses_in_world = world_poses(ids, cams, collector.tool, reader, config, log_span(stamps),
-                                 allow_truncated)
+                                 allow_truncated, collector.extra_tools,
+                                 collector.cameras[""].poses if "" in collector.cameras else None)
     pose_streams, tool = poses_in_world.cameras, poses_in_world.tool
     gap_ns = round(config.ingest.pose_gap_ms * 1e6)
 
@@ -238,6 +239,7 @@ def _assemble(collector: StreamCollector, reader: LogReader, config: Config, sta
 
     robot = bool(config.topics.tool_pose)
     tool_poses, tool_valid = poses_at(tool, frame_stamps, gap_ns)
+    extra = [poses_at(s, frame_stamps, gap_ns)[0] for s in poses_in_world.extra_tools]
     joint_stamps, joint_values = collector.joints()
     joint_positions = interpolate_values(joint_stamps, joint_values, frame_stamps, gap_ns)
 
@@ -271,6 +273,7 @@ def _assemble(collector: StreamCollector, reader: LogReader, config: Config, sta
         tool_poses=tool_poses, joint_names=collector.joint_names,
         joint_positions=joint_positions.reshape(T, len(collector.joint_names)),
         image_paths=image_paths, report=report,
+        extra_tool_poses=np.stack(extra, 1) if extra else np.zeros((T, 0, 4, 4)),
     )
     return log, report
 

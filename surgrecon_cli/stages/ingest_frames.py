@@ -16,10 +16,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..config import Config
+from ..core.geometry import make_pose
 from ..core.sync import PoseStream, base_to_world_pose
 from ..core.tf_samples import concat_samples
 from ..core.tf_tree import TfTree, build_tf_tree
-from ..core.world_poses import chain_stream, stream_to_world, transformed
+from ..core.world_poses import chain_stream, moved_by, stream_to_world, transformed
 from ..errors import InputError, quoted
 from ..io.mcap import LogReader
 from ..io.mcap.transforms import read_transforms
@@ -27,33 +28,44 @@ from .ingest_streams import CameraStreams, Poses, fmt_stamp
 
 logger = logging.getLogger(__name__)
 
-logger = logging.getLogger(__name__)
-
 
 @dataclass(frozen=True)
 class WorldPoses:
     """Camera-to-world pose streams (one per camera, sorted ids), the tool tip's (empty
-    without a robot), and for the report where each came from and how many stamps of
-    conflicting samples its topic or TF chain had (by camera id, and "tool")."""
+    without a robot), each `[[tools]]` tool's, and for the report where each came from and
+    how many stamps of conflicting samples its topic or TF chain had (by camera id, "tool"
+    and "tools[k]")."""
 
     cameras: list[PoseStream]
     tool: PoseStream
     sources: dict[str, str]
     conflicts: dict[str, int]
+    extra_tools: list[PoseStream]
 
 
 def world_poses(ids: Sequence[str], cams: Sequence[CameraStreams], tool: Poses,
                 reader: LogReader, config: Config, span_ns: tuple[int, int],
-                allow_truncated: bool) -> WorldPoses:
-    """Every pose stream of the log in `topics.world_frame` (see the module docstring)."""
+                allow_truncated: bool, extra_tools: dict[int, Poses] | None = None,
+                shared: Poses | None = None) -> WorldPoses:
+    """Every pose stream of the log in `topics.world_frame` (see the module docstring);
+    `shared`: the poses of one camera_pose topic without {camera} (`topics.camera_from_ecm`
+    places each camera on it)."""
     topics = config.topics
     world = topics.world_frame
     gap_ns = round(config.ingest.pose_gap_ms * 1e6)
     tree = _tree(reader, config, allow_truncated)
     conflicts = _Conflicts(tree, world)
     streams, sources = [], {}
-    for cid, cam in zip(ids, cams, strict=True):
+    for index, (cid, cam) in enumerate(zip(ids, cams, strict=True)):
         what = f"camera {cid}"
+        if topics.camera_from_ecm and cam.poses is None and shared is not None:
+            hand_eye = _hand_eye(topics.camera_from_ecm, index, len(ids))
+            streams.append(moved_by(stream_to_world(
+                shared.validated(), shared.name, shared.frame, tree, world, gap_ns, what),
+                hand_eye, f"{shared.name} with topics.camera_from_ecm"))
+            sources[cid] = (f"{_topic_text(shared.name, shared.frame, world)}, then "
+                            f"topics.camera_from_ecm[{index}]")
+            continue
         if reader.role_uses_transforms("camera_pose"):
             frame = topics.camera_frame.replace("{camera}", cid)
             streams.append(_chain(tree, world, frame, span_ns, gap_ns,
@@ -71,27 +83,27 @@ def world_poses(ids: Sequence[str], cams: Sequence[CameraStreams], tool: Poses,
         conflicts.chain(cid, frame)
     if not topics.tool_pose:
         tool_stream = tool.validated()
-    elif reader.role_uses_transforms("tool_pose"):
-        tool_stream = _chain(tree, world, topics.tool_frame, span_ns, gap_ns,
-                             f"tool (topics.tool_frame = {topics.tool_frame!r})")
-        sources["tool"] = _chain_text(tree, world, topics.tool_frame)
-        conflicts.chain("tool", topics.tool_frame)
-    elif config.tool.base_to_world:  # the tip in the robot's base frame
-        tool_stream = transformed(conflicts.topic("tool", tool),
-                                  base_to_world_pose(config.tool.base_to_world), tool.name)
-        sources["tool"] = f"{tool.name} through tool.base_to_world"
     else:
-        tool_stream = stream_to_world(conflicts.topic("tool", tool), tool.name, tool.frame, tree,
-                                      world, gap_ns, "tool")
-        sources["tool"] = _topic_text(tool.name, tool.frame, world)
-        conflicts.chain("tool", tool.frame)
-    return WorldPoses(streams, tool_stream, sources, conflicts.counts)
+        tool_stream, sources["tool"] = _tool_stream(
+            tool, reader.role_uses_transforms("tool_pose"), topics.tool_frame,
+            config.tool.base_to_world, conflicts, span_ns, gap_ns,
+            ("tool", "topics.tool_frame", "tool.base_to_world"))
+    extra = []
+    for k, cfg in enumerate(config.tools):
+        poses = (extra_tools or {}).get(k, Poses(f"{cfg.pose} (tools[{k}])"))
+        if not cfg.frame and not len(poses.stamps):
+            raise InputError(f"tools[{k}].pose = {cfg.pose!r}: no pose of this tool in the log")
+        stream, sources[f"tools[{k}]"] = _tool_stream(
+            poses, cfg.pose in reader.transform_topics, cfg.frame, cfg.base_to_world, conflicts,
+            span_ns, gap_ns, (f"tools[{k}]", f"tools[{k}].frame", f"tools[{k}].base_to_world"))
+        extra.append(stream)
+    return WorldPoses(streams, tool_stream, sources, conflicts.counts, extra)
 
 
 class _Conflicts:
     """Warns, once per stream, about the conflicting samples at one stamp that
     `sync.validate_pose_stream` dropped: on the pose topics and on the TF edges that the
-    poses go through; `counts` their stamps by user (camera id or "tool")."""
+    poses go through; `counts` their stamps by user (camera id, "tool" or "tools[k]")."""
 
     def __init__(self, tree: TfTree | None, world: str) -> None:
         self.tree, self.world = tree, world
@@ -125,6 +137,42 @@ class _Conflicts:
             "interpolated across %s", name, n, "s" if n > 1 else "",
             fmt_stamp(int(stream.conflict_stamps_ns[0])), metres * 1e3, np.degrees(radians),
             "those stamps are" if n > 1 else "that stamp is", "them" if n > 1 else "it")
+
+
+def _hand_eye(values: Sequence[float], index: int, n_cameras: int) -> np.ndarray:
+    """Camera `index`'s pose (4, 4) in the shared pose frame from `topics.camera_from_ecm`."""
+    rows = np.asarray(values, float).reshape(-1, 7)
+    if len(rows) not in (1, n_cameras):
+        raise InputError(f"topics.camera_from_ecm holds {len(rows)} poses for {n_cameras} "
+                         "cameras: give one (x y z qx qy qz qw) per camera, or one for all")
+    row = rows[index if len(rows) > 1 else 0]
+    norm = np.linalg.norm(row[3:])
+    if not np.isfinite(row).all() or abs(norm - 1) > 1e-3:
+        raise InputError(f"topics.camera_from_ecm[{index}]: quaternion norm {norm:.6g} is not 1")
+    return make_pose(row[:3], row[3:] / norm)
+
+
+def _tool_stream(tool: Poses, on_tf: bool, frame: str, base_to_world: tuple[float, ...],
+                 conflicts: _Conflicts, span_ns: tuple[int, int], gap_ns: int,
+                 keys: tuple[str, str, str]) -> tuple[PoseStream, str]:
+    """A tool's tip pose stream in the world and where it came from: the TF chain of its
+    frame (`on_tf`: its topic carries transforms), its topic through `base_to_world`, or its
+    topic moved into the world through the tree (conflicting samples warned about).
+    keys: the tool ("tool" or "tools[k]"), its frame key, its base key (for messages)."""
+    user, frame_key, base_key = keys
+    what = "tool" if user == "tool" else f"tool {user}"
+    tree, world = conflicts.tree, conflicts.world
+    if on_tf:
+        stream = _chain(tree, world, frame, span_ns, gap_ns, f"{what} ({frame_key} = {frame!r})")
+        conflicts.chain(user, frame)
+        return stream, _chain_text(tree, world, frame)
+    if base_to_world:  # the tip in the robot's base frame
+        return (transformed(conflicts.topic(user, tool), base_to_world_pose(base_to_world),
+                            tool.name), f"{tool.name} through {base_key}")
+    stream = stream_to_world(conflicts.topic(user, tool), tool.name, tool.frame, tree, world,
+                             gap_ns, what)
+    conflicts.chain(user, tool.frame)
+    return stream, _topic_text(tool.name, tool.frame, world)
 
 
 def _tree(reader: LogReader, config: Config, allow_truncated: bool) -> TfTree | None:

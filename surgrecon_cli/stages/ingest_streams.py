@@ -18,6 +18,7 @@ from ..errors import GeometryError, InputError, quoted
 from ..io.images import StoredImage, prepare_image
 from ..io.ingest_store import VideoPackets, save_video
 from ..io.mcap import LogItem
+from ..io.mcap.topics import EXTRA_TOOL_ROLE
 from ..io.records import CameraInfoRecord, ImageRecord, JointStateRecord, PoseRecord
 from ..io.run_layout import RunLayout
 from ..io.video import CODECS as VIDEO_CODECS
@@ -91,6 +92,7 @@ class StreamCollector:
         self.cameras: dict[str, CameraStreams] = {}
         self.tool = Poses("tool pose")
         self.tool_topic = ""
+        self.extra_tools: dict[int, Poses] = {}  # [[tools]] index -> its poses
         self.joint_names: tuple[str, ...] = ()
         self.joint_topic = ""
         self.joint_stamps = array("q")
@@ -127,6 +129,9 @@ class StreamCollector:
                 self.tool_topic = item.topic
                 self.tool.name = f"{item.topic}{frame}"
             self.tool.add(record)
+        elif item.role == EXTRA_TOOL_ROLE and isinstance(record, PoseRecord):
+            k = int(item.camera)
+            self.extra_tools.setdefault(k, Poses(f"{item.topic} (tools[{k}])")).add(record)
         elif item.role == "joint_states" and isinstance(record, JointStateRecord):
             self._joints(item, record)
 

@@ -34,6 +34,7 @@ from ..core.indentation import (
     measure_frame,
     series_of,
     summarise,
+    tool_contact,
     tool_known,
 )
 from ..core.noise import covariance_sigma
@@ -77,6 +78,7 @@ def run_measure(run_dir: Path, config: Config,
         template_sigma = covariance_sigma(obs.covariance + obs.pose_covariance)
         nb, rings, normals = geometry(template, log, config)
         figs = []
+        extra: list[list[tuple[bool, float]]] = [[] for _ in config.tools]  # per [[tools]]
         scratch = {key: layout.measure_dir / f".deformation.{key}.tmp" for key in FIELD_DTYPES}
         layout.measure_dir.mkdir(parents=True, exist_ok=True)
         field = {key: RowFile(path, (n_frames, n), FIELD_DTYPES[key], create=True)
@@ -91,11 +93,18 @@ def run_measure(run_dir: Path, config: Config,
                 fig, rows = measure_frame(template, positions, sigma, log.tool_poses[k], nb,
                                           rings, normals, config.deformation, config.tool)
                 figs.append(fig)
+                for t, (pose, tool) in enumerate(zip(log.all_tool_poses(k)[1:], config.tools,
+                                                     strict=True)):
+                    extra[t].append(tool_contact(positions, sigma, pose, tool,
+                                                 config.deformation))
                 for key, value in rows.items():
                     field[key].write(k, value)
                 step(k + 1, n_frames + 1)
             series = series_of(figs)
-            summary = finite_json(summarise(series, config.deformation, config.tool))
+            summary = finite_json({
+                **summarise(series, config.deformation, config.tool),
+                "extra_tools": [_extra_summary(tool.pose, frames)
+                                for tool, frames in zip(config.tools, extra, strict=True)]})
             write_npz_rows(layout.deformation, {**{k: getattr(series, k) for k in SERIES_KEYS},
                                                 **field})
         finally:
@@ -116,6 +125,14 @@ def run_measure(run_dir: Path, config: Config,
         logger.debug("contact frames %s, deepest %s mm", summary["contact_frames"],
                      summary["max_indentation_mm"])
     return summary
+
+
+def _extra_summary(pose_topic: str, frames: list[tuple[bool, float]]) -> dict[str, Any]:
+    """A `[[tools]]` tool over the sequence: its frames in contact, smallest clearance."""
+    clearance = np.array([c for _, c in frames], float)
+    return {"pose": pose_topic, "contact_frames": [k for k, (c, _) in enumerate(frames) if c],
+            "min_clearance_mm": (float(np.nanmin(clearance)) if np.isfinite(clearance).any()
+                                 else None)}
 
 
 def pipeline_step(ctx: StageContext, progress: Callable[[float], None]) -> None:

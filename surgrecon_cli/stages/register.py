@@ -112,7 +112,7 @@ def register_frame(run_dir: Path, frame: int, config: Config) -> dict:
         result = register_frame_step(
             template.points, template.rgb, obs.total_covariance, base,
             base_views, log.usable_poses(base.frame), views, log.usable_poses(frame), models,
-            log.tool_poses[frame],
+            log.all_tool_poses(frame),
             noise_from_report(log.report, log.cameras, obs.pixel_noise_px), config,
             new_point_images=(log.frame_images(frame) if new_every and frame % new_every == 0
                               else None),

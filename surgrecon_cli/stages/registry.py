@@ -50,7 +50,7 @@ class StageSpec:
 
 
 STAGES: tuple[StageSpec, ...] = (
-    StageSpec("ingest", ("topics", "ingest", "tool.base_to_world"), (), ("ingest_dir",),
+    StageSpec("ingest", ("topics", "ingest", "tool.base_to_world", "tools"), (), ("ingest_dir",),
               "ingest_dir", 10, "ingest:pipeline_step"),
     StageSpec("build-template", ("tool", "template"), ("ingest",),
               ("template_ply", "template_dir"), "template_ply", 20, "template:pipeline_step",

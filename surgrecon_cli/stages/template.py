@@ -11,6 +11,7 @@ RUN/template/summary.json (counts, pair plan, pixel_noise_px).
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable
 from pathlib import Path
 
@@ -35,6 +36,7 @@ from .common import stage_run
 from .registry import StageContext
 
 STAGE = "build-template"
+logger = logging.getLogger(__name__)
 
 
 def run_build_template(
@@ -53,13 +55,21 @@ def run_build_template(
             images,
             list(log.models),
             poses,
-            log.tool_poses[0],
+            log.all_tool_poses(0),
             config.template,
-            config.tool,
+            config.tool_configs(),
             on_step=on_step,
             map_calls=mapper(executor or SerialExecutor()),
             noise=noise_from_report(log.report, log.cameras, pixel_px=0.0),
+            names=log.cameras,
         )
+        for a, b, px in result.stats["disagreeing_groups"]:
+            logger.warning("cameras %s and cameras %s are not linked: their images match "
+                           "(matches found without the poses) but their poses put those "
+                           "matches %.1f px (median) off the epipolar lines; they reconstruct "
+                           "the surface apart: check their calibrations / poses",
+                           " ".join(log.cameras[c] for c in a),
+                           " ".join(log.cameras[c] for c in b), px)
         n = len(result.points)
         obs = result.observations
         sigma = covariance_sigma(result.covariance + result.pose_covariance) if n else np.zeros(0)

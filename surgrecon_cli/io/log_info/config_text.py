@@ -78,6 +78,16 @@ def topics_toml(info: LogInfo) -> str:
         elif key in ("image", "camera_info", "camera_pose"):
             lines.append(f"# {key}: no candidate found; set it by hand")
             lines.append(f"# {key} = \"\"")
+    if info.topics.get("camera_pose", "").endswith(("ECM/measured_cp",
+                                                     "ECM/position_cartesian_current")):
+        lines += _comment("each camera's pose in the ECM's frame (hand-eye), x y z qx qy qz "
+                          "qw per camera in sorted-id order: the log does not hold it")
+        lines.append("# camera_from_ecm = [x, y, z, qx, qy, qz, qw, ...]")
+    for topic in info.role("tool_pose").extra_tools:
+        lines += ["", *_comment(f"another tool: {topic}; its geometry as in [tool] (keys "
+                                "shaft_radius_m, shaft_length_m, jaw_offset_m, jaw_length_m, "
+                                "jaw_width_m, shaft_axis): check them for your instrument"),
+                  "[[tools]]", f"pose = {_quote(topic)}"]
     plan = info.poses
     world = info.world_frame
     for chain in plan.chains if plan is not None else ():

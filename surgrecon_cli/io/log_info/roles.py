@@ -15,6 +15,7 @@ from dataclasses import dataclass
 
 from ...core.tf_tree import TfTree
 from .channels import ChannelInfo
+from .dvrk import dvrk_arms, psm_topics
 from .patterns import camera_pattern, captures, sort_ids, word_score
 
 ROLE_NAMES = ("image", "camera_info", "camera_pose", "tool_pose", "joint_states", "tf")
@@ -41,6 +42,7 @@ class RoleGuess:
     frame_pattern: str = ""
     note: str = ""
     parent_frames: tuple[str, ...] = ()
+    extra_tools: tuple[str, ...] = ()  # tool_pose: more tools' topics (`[[tools]]`)
 
 
 def guess_roles(channels: Sequence[ChannelInfo], tree: TfTree | None
@@ -100,6 +102,13 @@ def guess_roles(channels: Sequence[ChannelInfo], tree: TfTree | None
             topics["camera_pose"] = pose_pattern
             if frame_from_images:
                 topics["camera_frame"] = frame_from_images
+        elif "ECM" in dvrk_arms(pose_names):
+            ecm = dvrk_arms(pose_names)["ECM"]
+            roles["camera_pose"] = RoleGuess(
+                "camera_pose", tuple(pose_names), ecm, ids,
+                note="the dVRK ECM's pose: set each camera's hand-eye pose on it in "
+                     "topics.camera_from_ecm (x y z qx qy qz qw per camera, sorted ids)")
+            topics["camera_pose"] = ecm
 
     tool_names = [n for n in pose_names if n not in pose_caps]
     roles["tool_pose"], tool_keys = _tool(tool_names, poses, tree, tf_channels,
@@ -170,6 +179,15 @@ def _tool(names: Sequence[str], poses: Sequence[ChannelInfo], tree: TfTree | Non
           tf_channels: Sequence[ChannelInfo], camera: RoleGuess
           ) -> tuple[RoleGuess, dict[str, str]]:
     scored = sorted(names, key=lambda n: (-word_score(n, _TOOL_WORDS), n))
+    arms = dvrk_arms(names)
+    psms = psm_topics(names)
+    if psms:
+        ecm = (f"; ECM on {arms['ECM']}: the endoscope's pose, the cameras' only with the "
+               "hand-eye transform" if "ECM" in arms else "")
+        note = (f"dVRK arms {' '.join(arms)}: {psms[0]} the tool, "
+                f"{' '.join(psms[1:]) or 'no other PSM'} as [[tools]]{ecm}")
+        return (RoleGuess("tool_pose", tuple(scored), psms[0], note=note,
+                          extra_tools=tuple(psms[1:])), {"tool_pose": psms[0]})
     if scored and (word_score(scored[0], _TOOL_WORDS) > 0 or len(scored) == 1):
         topic = scored[0]
         frame = next((c.frame_id for c in poses if c.topic == topic and c.frame_id), "")

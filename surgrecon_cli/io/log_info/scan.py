@@ -10,7 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from ...config import TopicsConfig
+from ...config import from_dict
 from ...core.tf_tree import TfTree, build_tf_tree
 from ...errors import ConfigError
 from ..log_input import METADATA, resolve_log
@@ -95,13 +95,14 @@ def scan_log(path: Path | str, time_source: str = "header") -> LogInfo:
     cameras = next(r.cameras for r in roles if r.role == "image")
     poses = None
     try:
-        suggested = TopicsConfig(**topics)
+        suggested = from_dict({"topics": dict(topics)}).topics
     except ConfigError:
         suggested = None
     if suggested is not None:
         world = suggest_world(scanned.channels, tree, suggested, cameras)
         topics["world_frame"] = world
-        poses = plan_poses(scanned.channels, tree, TopicsConfig(**topics), cameras)
+        poses = plan_poses(scanned.channels, tree, from_dict({"topics": dict(topics)}).topics,
+                           cameras)
     bag = log.path.is_dir() and (log.path / METADATA).is_file()
     return LogInfo(log.path, scanned.files, bag, scanned.profile, scanned.library,
                    scanned.channels, tree, tf_error, roles, topics, poses)

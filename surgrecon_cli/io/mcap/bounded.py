@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import io
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import IO, Any, Protocol, cast
 
 import zstandard
@@ -92,6 +92,15 @@ def chunk_records(chunk: Chunk) -> list[McapRecord]:
     if len(data) != size:
         raise McapError(f"a chunk claims {size} bytes uncompressed but holds {len(data)}")
     return breakup_chunk(dataclasses.replace(chunk, compression="", data=data), validate_crc=True)
+
+
+def expand_chunks(records: Iterator[McapRecord]) -> Iterator[McapRecord]:
+    """Top-level records with each chunk replaced by its records (bounded decompression)."""
+    for record in records:
+        if isinstance(record, Chunk):
+            yield from chunk_records(record)
+        else:
+            yield record
 
 
 def read_summary(f: BoundedFile) -> tuple[dict[int, Schema], dict[int, Channel]] | None:

@@ -1,6 +1,8 @@
 """Stream an MCAP log once, in file order, as role-tagged records, with bounded memory.
 
 A log is one file or a folder of split files (io/log_input.py), read one after the other.
+ROS 1 `.bag` and ROS 2 `.db3` files are read through rosbags as the same records
+(`rosbag.bag_records`), so every container goes through one decoding path.
 
 Reads top-level records sequentially (`mcap.stream_reader.StreamReader`, chunk CRCs checked),
 so it works on files without a summary or footer (recorder crashed). Damage (truncation,
@@ -16,12 +18,13 @@ import logging
 import struct
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field, replace
+from functools import partial
 from pathlib import Path
 from typing import Any
 
 import zstandard
 from mcap.exceptions import EndOfFile, InvalidMagic, McapError, RecordLengthLimitExceeded
-from mcap.records import Channel, Chunk, DataEnd, Footer, McapRecord, Message, Schema
+from mcap.records import Channel, DataEnd, Footer, McapRecord, Message, Schema
 from mcap.stream_reader import CRCValidationError, StreamReader
 
 from ...config import TopicsConfig
@@ -29,8 +32,9 @@ from ...errors import InputError, TopicError
 from ..log_input import resolve_log
 from ..records import Record
 from .base import SchemaDecoder
-from .bounded import BoundedFile, TrackedFile, as_stream, chunk_records, read_summary
+from .bounded import BoundedFile, TrackedFile, as_stream, expand_chunks, read_summary
 from .registry import DESERIALIZERS, find_decoder, no_images_message, supported
+from .rosbag import bag_records, check_bag_magic, is_bag, read_along
 from .topics import ROLE_KINDS, TopicRoles
 
 logger = logging.getLogger(__name__)
@@ -68,17 +72,18 @@ class LogReader:
     After iteration: `sha256` (of the whole file), `size`, `valid_bytes`, `damage` (None or a
     one-line description), `last_log_time_ns`, `channels` {topic: "schema (encoding)"},
     `message_counts` {topic: n}; `check_roles()` raises `TopicError` for missing roles.
-    require_roles: fail before streaming when the summary shows a required role missing.
+    require_roles: fail before streaming when the summary shows a required role missing;
+    extra_tools: the pose topics of `[[tools]]` (role "extra_tool_pose", camera = index).
     """
 
     def __init__(self, path: Path, topics: TopicsConfig, time_source: str = "header",
                  allow_truncated: bool = False,
                  on_bytes: Callable[[int], None] | None = None,
-                 require_roles: bool = True) -> None:
+                 require_roles: bool = True, extra_tools: tuple[str, ...] = ()) -> None:
         self.input = resolve_log(path)
         self.path = self.input.path
         self.file = self.input.files[0]  # the file being read (named in damage messages)
-        self.roles = TopicRoles(topics)
+        self.roles = TopicRoles(topics, extra_tools)
         self.use_log_time = time_source == "log_time"
         self.allow_truncated = allow_truncated
         self.on_bytes = on_bytes
@@ -110,12 +115,14 @@ class LogReader:
             if decoder is None:
                 rejected.append(m.role)
                 continue
-            if m.role == "camera_pose" and decoder.kind == "pose" and not m.camera:
+            if (m.role == "camera_pose" and decoder.kind == "pose" and not m.camera
+                    and not self.roles.config.camera_from_ecm):
                 raise TopicError(
                     f"{self.path}: topics.camera_pose = {self.roles.patterns['camera_pose']!r} "
                     f"has no {{camera}} placeholder, so the poses on {topic} ({schema_name}) "
-                    "belong to no camera; use a {camera} pattern, or transforms with "
-                    "topics.camera_frame")
+                    "belong to no camera; use a {camera} pattern, transforms with "
+                    "topics.camera_frame, or set each camera's pose on it in "
+                    "topics.camera_from_ecm (x y z qx qy qz qw per camera)")
             info.decoder = decoder
             info.roles.append((m.role, m.camera))
             if decoder.kind == "transforms":
@@ -177,8 +184,11 @@ class LogReader:
 
     # -- streaming -----------------------------------------------------------------------
     def check_magic(self) -> None:
-        """InputError unless every file starts with the MCAP magic bytes."""
+        """InputError unless every file starts with its format's magic bytes."""
         for path in self.input.files:
+            if is_bag(path):
+                check_bag_magic(path)
+                continue
             with open(path, "rb") as f:
                 head = f.read(len(MCAP_MAGIC))
             if head != MCAP_MAGIC:
@@ -195,7 +205,11 @@ class LogReader:
             size = path.stat().st_size
             with open(path, "rb") as raw:
                 tracked = TrackedFile(BoundedFile(raw, size), self.on_bytes, sha)
-                if self.damage is None:  # after damage, nothing later is used
+                if self.damage is None and is_bag(path):
+                    yield from self._records(read_along(bag_records(path), tracked, size),
+                                             partial(getattr, tracked, "pos"), size)
+                    self.valid_bytes = self._offset + size
+                elif self.damage is None:  # after damage, nothing later is used
                     yield from self._stream(tracked, size)
                 tracked.drain()  # the hash covers the whole log, damaged part included
             self._offset += size
@@ -204,7 +218,13 @@ class LogReader:
     def _stream(self, tracked: TrackedFile, size: int) -> Iterator[LogItem]:
         stream = StreamReader(as_stream(tracked), validate_crcs=True, emit_chunks=True,
                               record_size_limit=size)
-        records = _expand_chunks(stream.records)
+        yield from self._records(expand_chunks(stream.records), partial(getattr, tracked, "pos"),
+                                 size)
+
+    def _records(self, records: Iterator[McapRecord], pos: Callable[[], int], size: int
+                 ) -> Iterator[LogItem]:
+        """The role items of one file's records; `pos()` is the bytes read of the file (of
+        `size` bytes)."""
         schemas: dict[int, Schema] = {}
         channels: dict[int, _ChannelInfo] = {}
         data_complete = False
@@ -216,7 +236,7 @@ class LogReader:
             except _STREAM_ERRORS as exc:
                 self._on_damage(exc, data_complete)
                 return
-            self.valid_bytes = self._offset + tracked.pos
+            self.valid_bytes = self._offset + pos()
             if isinstance(record, Schema):
                 schemas[record.id] = record
             elif isinstance(record, Channel):
@@ -322,15 +342,6 @@ class LogReader:
         if not self.allow_truncated:
             raise InputError(f"{self.file}: {self.damage}; re-copy or repair the log, or pass "
                              "--allow-truncated to use the data before the damage") from exc
-
-
-def _expand_chunks(records: Iterator[McapRecord]) -> Iterator[McapRecord]:
-    """Top-level records with each chunk replaced by its records (bounded decompression)."""
-    for record in records:
-        if isinstance(record, Chunk):
-            yield from chunk_records(record)
-        else:
-            yield record
 
 
 def _one_line(exc: BaseException) -> str:

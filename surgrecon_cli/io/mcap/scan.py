@@ -34,7 +34,8 @@ from mcap.records import (
 from mcap.stream_reader import StreamReader
 
 from ...errors import InputError
-from .bounded import BoundedFile, as_stream, chunk_records
+from .bounded import BoundedFile, as_stream, chunk_records, expand_chunks
+from .rosbag import bag_records, check_bag_magic, is_bag
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 _FOOTER_AND_MAGIC = 9 + 20 + 8
@@ -102,6 +103,11 @@ def scan_mcap(path: Path, select: Select, on_message: OnMessage) -> LogScan:
     necessarily log-time order). Raises InputError when the file is not MCAP."""
     path = Path(path)
     size = path.stat().st_size
+    if is_bag(path):
+        check_bag_magic(path)
+        profile = "ros1" if path.suffix == ".bag" else "ros2"
+        return _scan_records(path, size, Header(profile, "rosbags"), bag_records(path),
+                             lambda: size, select, on_message)
     with open(path, "rb") as raw:
         f = BoundedFile(raw, size)
         if f.read(len(MCAP_MAGIC)) != MCAP_MAGIC:
@@ -118,7 +124,10 @@ def scan_mcap(path: Path, select: Select, on_message: OnMessage) -> LogScan:
         if summary is not None and chunks is not None:
             return _scan_indexed(path, f, header, summary, chunks, select, on_message)
         f.seek(0)
-        return _scan_stream(path, f, header, select, on_message)
+        records = StreamReader(as_stream(f), validate_crcs=True, emit_chunks=True,
+                               record_size_limit=size).records
+        return _scan_records(path, size, header, expand_chunks(records), lambda: f.pos, select,
+                             on_message)
 
 
 # -- indexed ---------------------------------------------------------------------------------
@@ -275,8 +284,10 @@ def _chunk_at(f: BoundedFile, ci: ChunkIndex) -> list:
 
 
 # -- streaming -------------------------------------------------------------------------------
-def _scan_stream(path: Path, f: BoundedFile, header: Header, select: Select,
-                 on_message: OnMessage) -> LogScan:
+def _scan_records(path: Path, size: int, header: Header, records: Iterator, pos: Callable[[], int],
+                  select: Select, on_message: OnMessage) -> LogScan:
+    """Scan a file's records (MCAP streamed, or a bag's) in file order; `pos()` is the bytes
+    read of its `size`."""
     schemas: dict[int, Schema] = {}
     channels: dict[int, Channel] = {}
     modes: dict[int, str] = {}
@@ -285,9 +296,6 @@ def _scan_stream(path: Path, f: BoundedFile, header: Header, select: Select,
     last: dict[int, int] = {}
     damage = None
     valid = 0
-    reader = StreamReader(as_stream(f), validate_crcs=True, emit_chunks=True,
-                          record_size_limit=f.size)
-    records = _expand(reader.records)
     while True:
         try:
             record = next(records)
@@ -296,10 +304,10 @@ def _scan_stream(path: Path, f: BoundedFile, header: Header, select: Select,
         except _ERRORS as exc:
             t = max(last.values(), default=None)
             when = f"log time {t / 1e9:.6f} s" if t is not None else "before any message"
-            damage = (f"valid data ends at byte {valid} of {f.size} ({when}): truncated or "
+            damage = (f"valid data ends at byte {valid} of {size} ({when}): truncated or "
                       f"corrupt ({_one_line(exc)})")
             break
-        valid = f.pos
+        valid = pos()
         if isinstance(record, Schema):
             schemas[record.id] = record
         elif isinstance(record, Channel):
@@ -322,15 +330,7 @@ def _scan_stream(path: Path, f: BoundedFile, header: Header, select: Select,
             break
     out = tuple(_channel_scan(ch, schemas, counts.get(cid, 0), first.get(cid, -1),
                               last.get(cid, -1)) for cid, ch in sorted(channels.items()))
-    return LogScan(path, f.size, header.profile, header.library, out, False, damage, schemas)
-
-
-def _expand(records: Iterator) -> Iterator:
-    for record in records:
-        if isinstance(record, Chunk):
-            yield from chunk_records(record)
-        else:
-            yield record
+    return LogScan(path, size, header.profile, header.library, out, False, damage, schemas)
 
 
 def _channel_scan(ch: Channel, schemas: dict[int, Schema], count: int, first: int,

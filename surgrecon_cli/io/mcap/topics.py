@@ -18,7 +18,10 @@ from ...config import TopicsConfig
 ROLES = ("image", "camera_info", "camera_pose", "tool_pose", "joint_states")
 REQUIRED_ROLES = ("image", "camera_info", "camera_pose")
 OPTIONAL_ROLES = ("tool_pose", "joint_states")
+EXTRA_TOOL_ROLE = "extra_tool_pose"
+"""The role of each `[[tools]]` pose topic; the item's `camera` is the tool's index."""
 ROLE_KINDS: dict[str, tuple[str, ...]] = {
+    EXTRA_TOOL_ROLE: ("pose", "transforms"),
     "image": ("image",),
     "camera_info": ("camera_info",),
     "camera_pose": ("pose", "transforms"),
@@ -46,14 +49,18 @@ class RoleMatch:
 
 
 class TopicRoles:
-    """Compiled `[topics]` patterns."""
+    """Compiled `[topics]` patterns, and the pose topics of `extra_tools` (`[[tools]]`)."""
 
-    def __init__(self, topics: TopicsConfig) -> None:
+    def __init__(self, topics: TopicsConfig, extra_tools: tuple[str, ...] = ()) -> None:
         self.config = topics
         self.patterns = {role: getattr(topics, role) for role in ROLES if getattr(topics, role)}
         self._topic_re = {role: pattern_regex(p) for role, p in self.patterns.items()}
+        self._extra_re = [pattern_regex(p) for p in extra_tools]
         # Every role the config names must be found in the log.
         self.required = (*REQUIRED_ROLES, *(r for r in OPTIONAL_ROLES if r in self.patterns))
+        if extra_tools:
+            self.patterns[EXTRA_TOOL_ROLE] = " ".join(extra_tools)
+            self.required = (*self.required, EXTRA_TOOL_ROLE)
         self._camera_frame = pattern_regex(topics.camera_frame)
         self._tool_frame = pattern_regex(topics.tool_frame)
 
@@ -64,6 +71,8 @@ class TopicRoles:
             m = regex.match(topic)
             if m:
                 out.append(RoleMatch(role, m.groupdict().get("camera") or ""))
+        out += [RoleMatch(EXTRA_TOOL_ROLE, str(k)) for k, regex in enumerate(self._extra_re)
+                if regex.match(topic)]
         return out
 
     def camera_of_frame(self, child_frame_id: str) -> str | None:
