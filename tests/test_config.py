@@ -7,6 +7,7 @@ from pathlib import Path
 import pytest
 
 from surgrecon_cli.config import Config, load_config, to_toml
+from surgrecon_cli.config.schema import ExtraToolConfig, ToolConfig
 from surgrecon_cli.errors import ConfigError
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -83,7 +84,11 @@ def test_values_that_would_fail_later_are_refused_at_load(override, key):
 def test_every_numeric_key_has_bounds_that_hold_its_default():
     import dataclasses
 
+    tool_tables = {f.name for f in dataclasses.fields(ExtraToolConfig)}
+    assert {f.name for f in dataclasses.fields(ToolConfig)} <= tool_tables  # bounded as [tool]
     for section in dataclasses.fields(Config):
+        if not dataclasses.is_dataclass(getattr(Config(), section.name)):
+            continue  # [[tools]]: a tuple of tables, each a ToolConfig (above)
         for f in dataclasses.fields(section.type if isinstance(section.type, type)
                                     else type(getattr(Config(), section.name))):
             default = getattr(getattr(Config(), section.name), f.name)

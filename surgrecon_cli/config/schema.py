@@ -36,9 +36,10 @@ class TopicsConfig:
         (), "hand-eye: each camera's pose in the frame of the poses on camera_pose when that is "
         "one topic for every camera (no {camera}; e.g. the dVRK ECM's /ECM/measured_cp): x y z "
         "qx qy qz qw (m) per camera in sorted camera-id order, or 7 numbers for all; empty = "
-        "camera_pose is per camera")
+        "camera_pose is per camera", bounds=(-1000.0, 1000.0))
 
     def __post_init__(self) -> None:
+        check_bounds(self, "topics")
         _require(len(self.camera_from_ecm) % 7 == 0, "topics.camera_from_ecm",
                  "must be x y z qx qy qz qw per camera (a multiple of 7 numbers)")
         for key in ("image", "camera_info"):

@@ -94,6 +94,9 @@ def _from_metadata(folder: Path) -> tuple[Path, ...]:
                          f"convert -i {folder} -o OUT.yaml` (storage_id mcap)")
     files = []
     for name in names:
+        if Path(name).suffix != suffix:
+            raise InputError(f"{path}: storage {quoted(storage)} but it lists {quoted(name)}, "
+                             f"not a {suffix} file; fix the metadata or name the files themselves")
         try:
             file = (folder / name).resolve(strict=True)
         except (OSError, RuntimeError) as exc:  # missing, or a symbolic link loop
@@ -101,9 +104,6 @@ def _from_metadata(folder: Path) -> tuple[Path, ...]:
             raise InputError(f"{path} lists {quoted(name)}, which is {why} {folder}") from exc
         if folder.resolve() not in file.parents:
             raise InputError(f"{path}: file {quoted(name)} lies outside the bag folder")
-        if file.suffix != suffix:
-            raise InputError(f"{path}: storage {quoted(storage)} but it lists {quoted(name)}, "
-                             f"not a {suffix} file; fix the metadata or name the files themselves")
         if not file.is_file():
             raise InputError(f"{path} lists {quoted(name)}, which is not a file in {folder}")
         files.append(file)

@@ -1,10 +1,8 @@
-"""The ingest stage: MCAP log -> `RUN/ingest/` (frames, poses, intrinsics, images) + run.json.
-
-Streams the log once (images written to disk as they arrive), then synchronises images into
+"""The ingest stage: log -> `RUN/ingest/` (frames, poses, intrinsics, images) + run.json.
+Streams the log once (images written to disk as they arrive), synchronises images into
 frames, interpolates tracker poses to each image stamp and the robot to each frame stamp
-(`core.sync`), and saves `IngestedLog`. Everything is built in a hidden staging folder that
-is renamed to `RUN/ingest` only when complete; run.json says `ingest: done` only after that.
-"""
+(`core.sync`), and saves `IngestedLog`, built in a hidden staging folder renamed to
+`RUN/ingest` only when complete (run.json says `ingest: done` only after that)."""
 
 from __future__ import annotations
 
