@@ -54,8 +54,20 @@ def test_pixel_noise_recovered_within_20_percent():
         obs = _observe(points, models, poses, sigma, rng)
         tri = triangulate(obs, poses, models, len(points))
         residual, _ = reprojection_residuals(tri.points, obs, poses, models)
-        estimate = pixel_noise_from_residuals(residual, tri.n_views[obs.point])
+        estimate = pixel_noise_from_residuals(residual, obs.point)
         assert abs(estimate - sigma) <= 0.2 * sigma, (sigma, estimate)
+
+
+def test_pixel_noise_of_two_views_counts_one_dof():
+    """Two views leave one dof per point (the residual across the epipolar line, none along
+    it): σ is still recovered, where pooling the four components would shrink it ~4x."""
+    rng = np.random.default_rng(6)
+    points = np.column_stack([rng.uniform(-0.01, 0.01, (1500, 2)), np.zeros(1500)])
+    models, poses = _rig(2)
+    obs = _observe(points, models, poses, 0.4, rng)
+    tri = triangulate(obs, poses, models, len(points))
+    residual, _ = reprojection_residuals(tri.points, obs, poses, models)
+    assert abs(pixel_noise_from_residuals(residual, obs.point) - 0.4) <= 0.1 * 0.4
 
 
 def test_covariance_predicts_triangulation_error():
