@@ -77,6 +77,11 @@ class SimConfig:
     sweep_deg: float = 0.0
     # Lens model of every camera: plumb_bob, rational_polynomial or equidistant (fisheye).
     lens: str = "plumb_bob"
+    # Real-image difficulty (sim/degrade.py); 0 = off.
+    warp_px: float = 0.0  # localisation error: RMS of a smooth random image warp (px)
+    blur_px: float = 0.0  # Gaussian blur sigma (px)
+    vignetting: float = 0.0  # share of brightness lost at the corners
+    interlace_px: float = 0.0  # horizontal shift of the odd rows (px)
 
     def __post_init__(self) -> None:
         if self.lens not in LENSES:
@@ -90,6 +95,8 @@ class SimConfig:
                              "at least 3 cameras")
         if self.tracker_noise_pos < 0 or self.tracker_noise_deg < 0:
             raise ValueError("tracker noise must be >= 0")
+        if min(self.warp_px, self.blur_px, self.vignetting) < 0 or self.vignetting > 1:
+            raise ValueError("warp_px and blur_px must be >= 0, vignetting within 0..1")
 
     @property
     def duration(self) -> float:
