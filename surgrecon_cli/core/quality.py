@@ -79,3 +79,19 @@ def frame_quality(frame: int, status: np.ndarray, labels: np.ndarray | None,
         outlier=float((status == OUTLIER).sum() / n), unknown=unknown,
         sigma_median_mm=sigma_median, residual_over_sigma=ratio, failed=failed,
         converged=converged, warnings=tuple(warnings))
+
+
+def unsupported_points(quality: FrameQuality, status: np.ndarray) -> np.ndarray:
+    """(N,) bool: points of a frame whose label its evidence does not support, to be
+    labelled unknown rather than static, shifting or deforming: every point when the
+    registration residuals are more than MAX_RESIDUAL_RATIO times what the measured noise
+    predicts (the positions are not what the data say); in a frame that observed less than
+    MIN_OBSERVED of the template, every point without its own target there (outliers and
+    unobserved points: their positions are extrapolated from a minority of the surface)."""
+    status = np.asarray(status)
+    if np.isfinite(quality.residual_over_sigma) and (quality.residual_over_sigma
+                                                     > MAX_RESIDUAL_RATIO):
+        return np.ones(len(status), bool)
+    if quality.observed < MIN_OBSERVED:
+        return ~np.isin(status, (INTRA, INTER))
+    return np.zeros(len(status), bool)
