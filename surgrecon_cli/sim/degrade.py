@@ -19,7 +19,10 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-WARP_CELL_PX = 24  # correlation length of the localisation error field (px)
+# Correlation length of the localisation error field (px): on the real SurgT clip the
+# across-epipolar residuals of template matches correlate 0.11 within 10 px and <= 0.03
+# beyond; 8 px cells (a compression block) give 0.1-0.2 within 10 px.
+WARP_CELL_PX = 8
 
 
 def degrade(image: np.ndarray, rng: np.random.Generator, warp_px: float = 0.0,
