@@ -15,7 +15,8 @@ Three sources, each estimated from data the run already has:
   over the KLT window, from the image's own noise σ_I (Immerkær 1996) and its texture at
   that point: a point on weak texture is known less well. (The forward-backward KLT
   disagreement does not measure it: tracking the same images back retraces the same path,
-  0.003 px on our simulator against 0.1-0.3 px of real error.)
+  0.003 px on our simulator against 0.1-0.3 px of real error.) The bound is a floor:
+  core/frame_noise.py adds what each frame's re-triangulated residuals show beyond it.
 
 Cameras on one tracked body (a stereo endoscope carries one marker) share their pose error:
 their relative pose does not jitter (`shared_bodies` finds them from the pose streams). For
