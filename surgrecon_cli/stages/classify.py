@@ -115,7 +115,7 @@ def classify_one_frame(run_dir: Path, frame: int, config: Config) -> int:
     quality = frame_quality(frame, reg.status, None, reg.sigma.astype(float),
                             reg.residual.astype(float), reg.target_sigma.astype(float),
                             bool(reg.failed), bool(reg.converged), reg.error)
-    classes.labels[unsupported_points(quality, reg.status)] = UNKNOWN
+    classes.labels[unsupported_points(quality, reg.status, classes.labels)] = UNKNOWN
     write_npz(layout.classified(frame), **_rows(classes, reg.status))
     return frame
 
