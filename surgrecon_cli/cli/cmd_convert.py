@@ -9,7 +9,7 @@ import click
 
 from .common import progress, quiet_options
 
-_EXISTING = click.Path(exists=True, dir_okay=False, path_type=Path)
+_FILE = click.Path(dir_okay=False, path_type=Path)  # missing: one line from convert
 
 
 def _frame_range(ctx: click.Context, param: click.Parameter, value: str | None) -> slice:
@@ -40,10 +40,11 @@ def _cameras(ctx: click.Context, param: click.Parameter,
 @click.option("-o", "--output", "out", required=True,
               type=click.Path(dir_okay=False, path_type=Path),
               help="MCAP log to write; the config goes beside it as OUT.toml.")
-@click.option("--calibration", "calibration", multiple=True, required=True, type=_EXISTING,
+@click.option("--calibration", "calibration", multiple=True, required=True, type=_FILE,
               help="Calibration file: OpenCV YAML/XML (M1 D1 M2 D2 R T, K1/K2, left/right), "
-              "JSON with the same fields, 'fx fy cx cy baseline' of a rectified pair, or one ROS "
-              "camera_info YAML per camera (repeat the option).")
+              "JSON with the same fields, 'fx fy cx cy baseline' of a rectified pair, a "
+              "'cameras' map for more cameras, or one ROS camera_info YAML per camera (repeat "
+              "the option).")
 @click.option("--left", help="Left image folder's name inside SRC (default: found).")
 @click.option("--right", help="Right image folder's name inside SRC.")
 @click.option("--camera", "cameras", multiple=True, metavar="NAME=PATH", callback=_cameras,
@@ -54,17 +55,21 @@ def _cameras(ctx: click.Context, param: click.Parameter,
 @click.option("--units", type=click.Choice(["mm", "m"]),
               help="Unit of the calibration's lengths (T, baseline). Default: millimetres when "
               "the largest camera offset is above 1, else metres.")
+@click.option("--scale-calibration", is_flag=True,
+              help="The images are the calibrated ones resized: scale each camera's intrinsics "
+              "from the calibration's width/height to its images' (instead of an error).")
 @click.option("--fps", type=click.FloatRange(min=0, min_open=True),
               help="Frame rate of the images (default: a video's own times, else 30).")
 @click.option("--start-time", default=1.0, show_default=True, type=float, metavar="SECONDS",
               help="Stamp of the first frame with --fps or a video's own times (not 0: ROS "
               "reads a zero stamp as unset).")
-@click.option("--stamps", type=_EXISTING,
+@click.option("--stamps", type=_FILE,
               help="Stamps file: one per source frame (seconds, or integer nanoseconds).")
-@click.option("--camera-poses", type=_EXISTING,
-              help="TUM file (t x y z qx qy qz qw; s, m) of the first camera in the world; "
-              "default: the rig is fixed in the world.")
-@click.option("--tool-poses", type=_EXISTING,
+@click.option("--camera-poses", type=_FILE,
+              help="TUM file (t x y z qx qy qz qw; s, m) of the rig in the world: the first "
+              "camera's optical frame (or the frame of a 'cameras' file's poses); default: the "
+              "rig is fixed in the world.")
+@click.option("--tool-poses", type=_FILE,
               help="TUM file of the tool tip in the world (the robot roles are off without).")
 @click.option("--image-format", default="jpeg", show_default=True,
               type=click.Choice(["jpeg", "png"]),
@@ -75,7 +80,8 @@ def _cameras(ctx: click.Context, param: click.Parameter,
 @quiet_options
 def convert_cmd(src: Path | None, out: Path, calibration: tuple[Path, ...], left: str | None,
                 right: str | None, cameras: tuple[tuple[str, Path], ...], layout: str,
-                units: str | None, fps: float | None, start_time: float, stamps: Path | None,
+                units: str | None, scale_calibration: bool, fps: float | None,
+                start_time: float, stamps: Path | None,
                 camera_poses: Path | None, tool_poses: Path | None, image_format: str,
                 frames: slice, quiet: bool) -> None:
     """Turn stereo (or per-camera) images or a stereo video plus a calibration file into a
@@ -98,7 +104,8 @@ def convert_cmd(src: Path | None, out: Path, calibration: tuple[Path, ...], left
                              left=left, right=right, layout=layout, units=units, fps=fps,
                              start_time=start_time, stamps=stamps,
                              camera_poses=camera_poses, tool_poses=tool_poses,
-                             image_format=image_format, frames=frames)
+                             image_format=image_format, frames=frames,
+                             scale_calibration=scale_calibration)
     result = convert(request, progress(quiet))
     click.echo(f"{result.log}: {result.frames} frames of cameras {', '.join(result.cameras)} "
                f"({result.source}; calibration lengths in {result.units})")

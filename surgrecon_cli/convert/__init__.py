@@ -7,4 +7,5 @@ calibration        those dicts -> a `Rig` (intrinsics + camera-to-rig poses in m
 sources            image folders and videos -> per-frame encoded images (bytes kept)
 stamps             frame stamps (--fps / a stamps file) and TUM pose files
 write              the messages (images, CameraInfo, /tf, /tf_static) and the config text
+run                the whole conversion: source + calibration -> OUT.mcap and OUT.toml
 """

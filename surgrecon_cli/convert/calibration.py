@@ -9,7 +9,8 @@ Layouts understood (key names case-sensitive, as the tools write them):
   in the `right` block. OpenCV's convention: a point x1 in the first camera is
   x2 = R x1 + T in the second.
 - `cameras`: a mapping name -> block (`K D`, optional `R T` in the same convention from the
-  first camera, optional `width height`), for more than two cameras.
+  first camera, or `pose`: the 4x4 camera-to-rig pose in any common frame, e.g. a robot base
+  from hand-eye calibration; optional `width height`), for more than two cameras.
 - ROS `camera_info` YAML, one file per camera (`camera_matrix`, `distortion_model`,
   `distortion_coefficients`, `rectification_matrix`, `projection_matrix`): the cameras are
   placed from the projection matrices (Tx = -fx' B) and rectification rotations.
@@ -17,14 +18,15 @@ Layouts understood (key names case-sensitive, as the tools write them):
   `baseline` to the right).
 
 Lengths (T, baseline, ROS Tx/fx') are in the file's unit: metres or millimetres. Unless told
-(`units`), the largest camera offset decides: above 1 it is millimetres (no stereo endoscope
-or surgical camera rig is a metre wide), else metres.
+(`units` given, or a `units: mm|m` key in the file), the largest camera offset decides:
+above 1 it is millimetres (no stereo endoscope or surgical camera rig is a metre wide), else
+metres.
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -47,7 +49,8 @@ _MIN_BASELINE_M = 1e-5
 @dataclass(frozen=True)
 class CameraCalibration:
     """One camera: K (3, 3) px, D coefficients of `model`, image size px (0 = not stated),
-    to_rig (4, 4): the camera-to-rig pose (optical frame, metres)."""
+    to_rig (4, 4): the camera-to-rig pose (optical frame, metres; file units while a file
+    is read)."""
 
     name: str
     K: np.ndarray
@@ -60,23 +63,11 @@ class CameraCalibration:
 
 @dataclass(frozen=True)
 class Rig:
-    """The calibrated cameras, in the file's order; `units` says how lengths were read."""
+    """The calibrated cameras, in the file's order; `units` says how lengths were read. The
+    rig frame is the first camera's optical frame, or the frame `cameras` poses are in."""
 
     cameras: tuple[CameraCalibration, ...]
     units: str
-
-
-@dataclass
-class _Raw:
-    """A camera before the unit is known: to_rig's translation in file units."""
-
-    name: str
-    K: np.ndarray
-    D: np.ndarray
-    model: str
-    width: int
-    height: int
-    to_rig: np.ndarray
 
 
 def load_rig(paths: Sequence[Path], units: str | None = None,
@@ -87,25 +78,25 @@ def load_rig(paths: Sequence[Path], units: str | None = None,
     if not paths:
         raise InputError("no calibration file given (--calibration FILE)")
     if len(paths) == 1:
-        raw = _cameras(read_calibration_file(paths[0]), paths[0])
+        d = read_calibration_file(paths[0])
+        raw = _cameras(d, paths[0])
+        if units is None and str(d.get("units", "")).strip() in UNITS:
+            units = str(d["units"]).strip()
     else:
         raw = []
         for i, path in enumerate(paths):
             d = read_calibration_file(path)
             fallback = names[i] if i < len(names) else str(d.get("camera_name") or f"cam{i}")
             raw.append(_single(d, path, fallback, ros_rig=True))
-        _relative_to_first(raw)
-    if names and len(names) == len(raw):
-        for cam, name in zip(raw, names, strict=True):
-            cam.name = name
-    return _scaled(raw, units, paths[0])
+        raw = _relative_to_first(raw)
+    return _in_metres(raw, units, paths[0])
 
 
-def _cameras(d: Mapping[str, Any], path: Path) -> list[_Raw]:
+def _cameras(d: Mapping[str, Any], path: Path) -> list[CameraCalibration]:
     if isinstance(d.get("cameras"), Mapping):
-        out = [_single(block, path, str(name)) for name, block in d["cameras"].items()]
-        for cam, block in zip(out, d["cameras"].values(), strict=True):
-            cam.to_rig = _extrinsic(block, path, required=False)
+        out = [replace(_single(block, path, str(name)),
+                       to_rig=_extrinsic(block, path, required=False))
+               for name, block in d["cameras"].items()]
         if not out:
             raise InputError(f"calibration file {path}: 'cameras' is empty")
         return out
@@ -115,8 +106,8 @@ def _cameras(d: Mapping[str, Any], path: Path) -> list[_Raw]:
         right = np.eye(4)
         right[0, 3] = baseline
         size = _size(d, path)
-        return [_Raw("left", K, np.zeros(5), "plumb_bob", *size, np.eye(4)),
-                _Raw("right", K.copy(), np.zeros(5), "plumb_bob", *size, right)]
+        return [CameraCalibration("left", K, np.zeros(5), "plumb_bob", *size, np.eye(4)),
+                CameraCalibration("right", K.copy(), np.zeros(5), "plumb_bob", *size, right)]
     blocks = _stereo_blocks(d)
     if blocks is None:
         if _find(d, _K_KEYS) is not None:
@@ -127,9 +118,8 @@ def _cameras(d: Mapping[str, Any], path: Path) -> list[_Raw]:
                          "M1 D1 M2 D2 R T, K1 K2, left/right blocks, 'cameras', or "
                          "fx fy cx cy baseline)")
     left, right, extr = blocks
-    cams = [_single(left, path, "left"), _single(right, path, "right")]
-    cams[1].to_rig = _extrinsic(extr, path, required=True)
-    return cams
+    return [_single(left, path, "left"),
+            replace(_single(right, path, "right"), to_rig=_extrinsic(extr, path, required=True))]
 
 
 def _stereo_blocks(d: Mapping[str, Any]) -> tuple[Any, Any, Any] | None:
@@ -156,7 +146,7 @@ def _size_keys(d: Mapping[str, Any], suffix: str) -> dict[str, Any]:
     return out
 
 
-def _single(d: Any, path: Path, name: str, ros_rig: bool = False) -> _Raw:
+def _single(d: Any, path: Path, name: str, ros_rig: bool = False) -> CameraCalibration:
     if not isinstance(d, Mapping):
         raise InputError(f"calibration file {path}: camera {name!r} is not a mapping")
     K_value = _find(d, _K_KEYS)
@@ -171,18 +161,18 @@ def _single(d: Any, path: Path, name: str, ros_rig: bool = False) -> _Raw:
     if model is None:
         raise InputError(f"calibration file {path}: camera {name!r} has distortion model "
                          f"{model_name!r}; supported: {', '.join(DISTORTION_MODELS)}")
-    D = _coefficients(D, model, name, path)
-    if not model_name and D.size == 8:
+    if not model_name and D.size > 5:
         model = "rational_polynomial"
+    D = _coefficients(D, model, name, path)
     to_rig = np.eye(4)
     if ros_rig and "projection_matrix" in d:
         to_rig = _ros_pose(d, path, name)
-    return _Raw(name, K, D, model, *_size(d, path), to_rig)
+    return CameraCalibration(name, K, D, model, *_size(d, path), to_rig)
 
 
 def _coefficients(D: np.ndarray, model: str, name: str, path: Path) -> np.ndarray:
     """Coefficients padded to the model's count; beyond it (thin prism, tilt) only zeros."""
-    n = 8 if model == "plumb_bob" and D.size > 5 else DISTORTION_MODELS[model]
+    n = DISTORTION_MODELS[model]
     if D.size > n and np.any(D[n:] != 0):
         raise InputError(f"calibration file {path}: camera {name!r} has {D.size} distortion "
                          f"coefficients; supported: plumb_bob (5), rational_polynomial (8), "
@@ -202,15 +192,21 @@ def _ros_pose(d: Mapping[str, Any], path: Path, name: str) -> np.ndarray:
     return pose
 
 
-def _relative_to_first(cams: list[_Raw]) -> None:
+def _relative_to_first(cams: list[CameraCalibration]) -> list[CameraCalibration]:
     """Re-base poses given in the first camera's rectified frame onto its raw frame."""
     to_first = invert_pose(cams[0].to_rig)
-    for cam in cams:
-        cam.to_rig = to_first @ cam.to_rig
+    return [replace(cam, to_rig=to_first @ cam.to_rig) for cam in cams]
 
 
 def _extrinsic(d: Any, path: Path, required: bool) -> np.ndarray:
-    """Camera-to-rig pose from OpenCV's R, T (x_cam = R x_rig + T), in file units."""
+    """Camera-to-rig pose from OpenCV's R, T (x_cam = R x_rig + T), or a `pose` (4, 4) that is
+    the camera-to-rig pose itself (e.g. a hand-eye result), in file units."""
+    if isinstance(d, Mapping) and "pose" in d:
+        pose = _shaped(d["pose"], (4, 4), "pose", path)
+        if not np.allclose(pose[3], [0, 0, 0, 1]):
+            raise InputError(f"calibration file {path}: a pose's last row must be 0 0 0 1")
+        pose[:3, :3] = nearest_rotation(pose[:3, :3])
+        return pose
     if not isinstance(d, Mapping) or ("R" not in d and "T" not in d):
         if required:
             raise InputError(f"calibration file {path}: no R and T between the cameras")
@@ -231,7 +227,7 @@ def _extrinsic(d: Any, path: Path, required: bool) -> np.ndarray:
     return invert_pose(pose)
 
 
-def _scaled(raw: list[_Raw], units: str | None, path: Path) -> Rig:
+def _in_metres(raw: list[CameraCalibration], units: str | None, path: Path) -> Rig:
     offsets = [float(np.linalg.norm(c.to_rig[:3, 3])) for c in raw]
     largest = max(offsets)
     unit = units or ("mm" if largest > 1.0 else "m")
@@ -241,8 +237,7 @@ def _scaled(raw: list[_Raw], units: str | None, path: Path) -> Rig:
     for cam in raw:
         pose = cam.to_rig.copy()
         pose[:3, 3] *= UNITS[unit]
-        cams.append(CameraCalibration(cam.name, cam.K, cam.D, cam.model, cam.width, cam.height,
-                                      pose))
+        cams.append(replace(cam, to_rig=pose))
     for i, a in enumerate(cams):
         for b in cams[i + 1:]:
             if np.linalg.norm(a.to_rig[:3, 3] - b.to_rig[:3, 3]) < _MIN_BASELINE_M:

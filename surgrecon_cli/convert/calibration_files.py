@@ -4,7 +4,7 @@ anything from the file.
 - OpenCV FileStorage (YAML `%YAML:1.0` with `!!opencv-matrix`, or XML): read by
   `cv2.FileStorage`, matrices as numpy arrays;
 - other YAML (ROS `camera_info` files, hand-written): `yaml.safe_load` (no Python tags);
-- JSON;
+- JSON (`.json`, or content starting with `{` that parses as JSON);
 - a text file of five numbers `fx fy cx cy baseline` (a rectified pair).
 """
 
@@ -35,13 +35,13 @@ def read_calibration_file(path: Path) -> dict[str, Any]:
     head = text.lstrip()[:200]
     if head.startswith(("%YAML:1", "<?xml", "<opencv_storage")) or "!!opencv-matrix" in text:
         data: Any = _filestorage(path)
-    elif path.suffix.lower() == ".json" or head.startswith("{"):
+    elif path.suffix.lower() == ".json":
         try:
             data = json.loads(text)
         except ValueError as exc:
             raise InputError(f"calibration file {path}: not valid JSON ({exc})") from None
-    else:
-        data = _numbers(text)
+    else:  # JSON by content, YAML, or five numbers
+        data = _json_or_none(text) if head.startswith("{") else _numbers(text)
         if data is None:
             try:
                 data = yaml.safe_load(text)
@@ -53,6 +53,13 @@ def read_calibration_file(path: Path) -> dict[str, Any]:
                          "named values, e.g. M1 D1 M2 D2 R T, or five numbers fx fy cx cy "
                          "baseline)")
     return data
+
+
+def _json_or_none(text: str) -> Any:
+    try:
+        return json.loads(text)
+    except ValueError:
+        return None  # e.g. a YAML flow mapping
 
 
 def _numbers(text: str) -> dict[str, Any] | None:
@@ -71,8 +78,8 @@ def _numbers(text: str) -> dict[str, Any] | None:
 def _filestorage(path: Path) -> dict[str, Any]:
     try:
         fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
-    except cv2.error as exc:
-        reason = str(exc).strip().splitlines()[-1]
+    except (cv2.error, SystemError) as exc:  # SystemError: a cv2.error raised in the binding
+        reason = str(exc.__cause__ or exc).strip().splitlines()[-1]
         raise InputError(f"calibration file {path}: OpenCV cannot parse it ({reason})") from None
     try:
         if not fs.isOpened():

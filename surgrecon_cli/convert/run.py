@@ -9,6 +9,8 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+from mcap.writer import CompressionType
+
 from ..errors import InputError
 from ..io.atomic import write_text
 from ..sim.log_writer import write_log
@@ -40,6 +42,7 @@ class ConvertRequest:
     image_format: str = "jpeg"
     frames: slice = field(default_factory=lambda: slice(None))
     start_time: float = 1.0
+    scale_calibration: bool = False
 
 
 @dataclass(frozen=True)
@@ -127,8 +130,9 @@ def convert(req: ConvertRequest,
     tool_poses = read_tum(req.tool_poses, "tool pose file") if req.tool_poses else None
     frames = progress(source.frames(indices), total=len(indices), desc="convert",
                       unit="frame")
-    write_log(req.out, messages(rig, frames, stamps, start_ns, camera_poses, tool_poses),
-              "ros2")
+    write_log(req.out, messages(rig, frames, stamps, start_ns, camera_poses, tool_poses,
+                                  req.scale_calibration),
+              "ros2", compression=CompressionType.NONE)  # images are compressed already
     poses = (f"rig poses from {req.camera_poses.name}" if req.camera_poses
              else "rig fixed in the world")
     config = req.out.with_suffix(".toml")

@@ -11,7 +11,9 @@ lossy already; a PNG of a 1280x1024 frame is ~10x larger) or as PNG (`image_form
 from __future__ import annotations
 
 import re
-from collections.abc import Iterator, Sequence
+from collections import deque
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from fractions import Fraction
 from pathlib import Path
@@ -53,6 +55,24 @@ class Frame:
     index: int
     stamp_ns: int | None
     images: tuple[EncodedImage, ...]
+
+
+def ordered_map(func: Callable[[Any], Any], items: Iterable[Any], workers: int = 4,
+                ahead: int = 8) -> Iterator[Any]:
+    """`map(func, items)` on a thread pool, in order, at most `ahead` items in flight (file
+    reads, JPEG/PNG coding and zstd release the GIL). Iteration stops at the first error."""
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        pending: deque[Future[Any]] = deque()
+        try:
+            for item in items:
+                pending.append(pool.submit(func, item))
+                if len(pending) >= ahead:
+                    yield pending.popleft().result()
+            while pending:
+                yield pending.popleft().result()
+        finally:
+            for future in pending:
+                future.cancel()
 
 
 def _natural_key(path: Path) -> list[Any]:
@@ -130,9 +150,11 @@ class FolderSource:
                              "every camera needs one image per frame")
         self.count = len(self.files[0])
 
+    def _frame(self, i: int) -> Frame:
+        return Frame(i, None, tuple(encode_file(files[i]) for files in self.files))
+
     def frames(self, indices: Sequence[int]) -> Iterator[Frame]:
-        for i in indices:
-            yield Frame(i, None, tuple(encode_file(files[i]) for files in self.files))
+        yield from ordered_map(self._frame, indices)
 
 
 def _import_av() -> Any:
@@ -181,6 +203,16 @@ class VideoSource:
             raise InputError(f"video {video}: decoding failed ({exc})") from None
 
     def frames(self, indices: Sequence[int]) -> Iterator[Frame]:
+        yield from ordered_map(self._encode, self._decoded_frames(indices))
+
+    def _encode(self, item: tuple[int, int | None, list[tuple[np.ndarray, str]]]) -> Frame:
+        i, stamp, views = item
+        return Frame(i, stamp, tuple(encode_array(img, self.image_format, origin)
+                                     for img, origin in views))
+
+    def _decoded_frames(self, indices: Sequence[int]
+                        ) -> Iterator[tuple[int, int | None, list[tuple[np.ndarray, str]]]]:
+        """(index, stamp, [(view, origin)]) of the wanted frames, views split per camera."""
         wanted = set(indices)
         last = max(wanted, default=-1)
         streams = [self._decoded(v) for v in self.videos]
@@ -200,8 +232,7 @@ class VideoSource:
                     halves.append((img, origin))
                 else:
                     halves += [(h, origin) for h in split_stereo(img, self.layout)]
-            yield Frame(i, decoded[0][0], tuple(encode_array(img, self.image_format, origin)
-                                        for img, origin in halves))
+            yield i, decoded[0][0], halves
 
 
 def split_stereo(img: np.ndarray, layout: str) -> tuple[np.ndarray, np.ndarray]:

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import heapq
 from collections.abc import Iterable, Iterator, Sequence
+from dataclasses import replace
 
 import numpy as np
 
@@ -41,29 +42,51 @@ def _track(track: PoseTrack, child: str) -> Iterator[Message]:
         yield TF, int(t), _tf(int(t), WORLD, child, p, q)
 
 
+def scaled(cam: CameraCalibration, width: int, height: int) -> CameraCalibration:
+    """The camera for images that are its calibrated ones resized to width x height px: pixel
+    centres map as u' = (u + 0.5) sx - 0.5, so fx' = sx fx and cx' = sx (cx + 0.5) - 0.5."""
+    sx, sy = width / cam.width, height / cam.height
+    K = cam.K.copy()
+    K[0, :] *= sx
+    K[1, :] *= sy
+    K[0, 2] += 0.5 * sx - 0.5
+    K[1, 2] += 0.5 * sy - 0.5
+    return replace(cam, K=K, width=width, height=height)
+
+
 class _Sizes:
     """Each camera's image size: the calibration's, else its first image's; any other size
-    is an error naming the image."""
+    is an error naming the image, unless `scale` (the first image of another size than the
+    calibration's rescales the camera's intrinsics to it)."""
 
-    def __init__(self, cameras: Sequence[CameraCalibration]) -> None:
-        self.cameras = cameras
+    def __init__(self, cameras: Sequence[CameraCalibration], scale: bool) -> None:
+        self.cameras = list(cameras)
         self.sizes = [(c.width, c.height) if c.width and c.height else None for c in cameras]
+        self.scale = scale
+        self.first = True
 
     def check(self, frame: Frame) -> None:
         for k, (cam, image) in enumerate(zip(self.cameras, frame.images, strict=True)):
             size = (image.width, image.height)
             if self.sizes[k] is None:
                 self.sizes[k] = size
+            elif self.first and self.scale and size != self.sizes[k]:
+                self.cameras[k] = scaled(cam, *size)
+                self.sizes[k] = size
             elif size != self.sizes[k]:
-                said = "the calibration says" if cam.width else "its first image is"
+                said = "the calibration says" if cam.width and self.first else \
+                    "its first image is"
                 w, h = self.sizes[k] or (0, 0)
+                hint = " (--scale-calibration if the images are resized)" if \
+                    self.first and not self.scale else ""
                 raise InputError(f"image {image.origin} is {size[0]}x{size[1]} px; camera "
-                                 f"{cam.name!r}: {said} {w}x{h} px")
+                                 f"{cam.name!r}: {said} {w}x{h} px{hint}")
+        self.first = False
 
 
 def _frame_messages(rig: Rig, frames: Iterable[Frame], stamps: np.ndarray | None,
-                    start_ns: int, fixed_rig: bool) -> Iterator[Message]:
-    sizes = _Sizes(rig.cameras)
+                    start_ns: int, fixed_rig: bool, scale: bool) -> Iterator[Message]:
+    sizes = _Sizes(rig.cameras, scale)
     last = None
     for k, frame in enumerate(frames):
         if len(frame.images) != len(rig.cameras):
@@ -82,7 +105,7 @@ def _frame_messages(rig: Rig, frames: Iterable[Frame], stamps: np.ndarray | None
         last = t
         if fixed_rig:
             yield TF, t, _tf(t, WORLD, RIG, np.zeros(3), _IDENTITY_Q)
-        for k_cam, (cam, image) in enumerate(zip(rig.cameras, frame.images, strict=True)):
+        for k_cam, (cam, image) in enumerate(zip(sizes.cameras, frame.images, strict=True)):
             frame_id = CAMERA_FRAME.format(camera=cam.name)
             w, h = sizes.sizes[k_cam] or (image.width, image.height)
             yield INFO_TOPIC.format(camera=cam.name), t, CameraInfoRecord(
@@ -93,10 +116,10 @@ def _frame_messages(rig: Rig, frames: Iterable[Frame], stamps: np.ndarray | None
 
 def messages(rig: Rig, frames: Iterable[Frame], stamps: np.ndarray | None,
              start_ns: int, camera_poses: PoseTrack | None = None,
-             tool_poses: PoseTrack | None = None) -> Iterator[Message]:
+             tool_poses: PoseTrack | None = None, scale: bool = False) -> Iterator[Message]:
     """Every message of the log, in log-time order (rules in the module docstring). Frame
     stamps: `stamps` (N,) ns, else the frames' own (video times) after `start_ns`."""
-    streams = [_frame_messages(rig, frames, stamps, start_ns, camera_poses is None)]
+    streams = [_frame_messages(rig, frames, stamps, start_ns, camera_poses is None, scale)]
     if camera_poses is not None:
         streams.append(_track(camera_poses, RIG))
     if tool_poses is not None:
@@ -131,4 +154,8 @@ def config_text(log_name: str, rig: Rig, poses: str, tool: bool) -> str:
         'joint_states = ""',
         f'world_frame = "{WORLD}"',
     ]
+    if tool:
+        lines += ["", "# The tool's shaft, masked and removed (defaults: 4 mm radius, 150 mm): set "
+                  "them for your instrument.", "# [tool]", "# shaft_radius_m = 0.004",
+                  "# shaft_length_m = 0.15"]
     return "\n".join(lines) + "\n"
