@@ -6,8 +6,10 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from surgrecon_cli.core.cameras import CameraModel, project, undistort_pixels
+from surgrecon_cli.core.frame_noise import tracking_excess_px2
 from surgrecon_cli.core.geometry import make_pose
 from surgrecon_cli.core.noise import (
+    NoiseModel,
     covariance_sigma,
     pixel_noise_from_residuals,
     point_covariances,
@@ -54,8 +56,20 @@ def test_pixel_noise_recovered_within_20_percent():
         obs = _observe(points, models, poses, sigma, rng)
         tri = triangulate(obs, poses, models, len(points))
         residual, _ = reprojection_residuals(tri.points, obs, poses, models)
-        estimate = pixel_noise_from_residuals(residual, tri.n_views[obs.point])
+        estimate = pixel_noise_from_residuals(residual, obs.point)
         assert abs(estimate - sigma) <= 0.2 * sigma, (sigma, estimate)
+
+
+def test_pixel_noise_of_two_views_counts_one_dof():
+    """Two views leave one dof per point (the residual across the epipolar line, none along
+    it): σ is still recovered, where pooling the four components would shrink it ~4x."""
+    rng = np.random.default_rng(6)
+    points = np.column_stack([rng.uniform(-0.01, 0.01, (1500, 2)), np.zeros(1500)])
+    models, poses = _rig(2)
+    obs = _observe(points, models, poses, 0.4, rng)
+    tri = triangulate(obs, poses, models, len(points))
+    residual, _ = reprojection_residuals(tri.points, obs, poses, models)
+    assert abs(pixel_noise_from_residuals(residual, obs.point) - 0.4) <= 0.1 * 0.4
 
 
 def test_covariance_predicts_triangulation_error():
@@ -120,3 +134,23 @@ def test_cameras_on_one_tracked_body_are_found():
             rel_pos = ri.inv().apply(streams[j] - streams[i])
             rel[(i, j)] = pose_jitter(stamps, rel_pos, (ri.inv() * rj).as_quat())
     assert shared_bodies(own, rel) == [[0, 1]]
+
+
+def test_frame_tracking_excess_measures_the_error_beyond_the_model():
+    """Tracked pixels with 0.4 px of error while the model says 0.1 px (pixel noise, a
+    tracking bound of 0): the frame's re-triangulated residuals give the 0.4 px back and the
+    excess variance is what the model lacks; a right model gets (nearly) none."""
+    rng = np.random.default_rng(7)
+    points = np.column_stack([rng.uniform(-0.01, 0.01, (1200, 2)), np.zeros(1200)])
+    models, poses = _rig(2)
+    obs = _observe(points, models, poses, 0.4, rng)
+    pixels = np.full((len(points), 2, 2), np.nan)
+    pixels[obs.point, obs.camera] = obs.pixels
+    found = np.isfinite(pixels).all(2)
+    zero = np.zeros(found.shape)
+    for model_px, expected in ((0.1, 0.4**2 - 0.1**2), (0.4, 0.0)):
+        noise = NoiseModel(pixel_px=model_px, tracking_px=0.0, tracker_position_m=0.0,
+                           tracker_rotation_rad=0.0)
+        excess, measured = tracking_excess_px2(found, pixels, zero, models, poses, noise)
+        assert abs(measured - 0.4) <= 0.05, measured
+        assert abs(excess - expected) <= 0.03, (model_px, excess)

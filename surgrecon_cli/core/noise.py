@@ -15,7 +15,8 @@ Three sources, each estimated from data the run already has:
   over the KLT window, from the image's own noise σ_I (Immerkær 1996) and its texture at
   that point: a point on weak texture is known less well. (The forward-backward KLT
   disagreement does not measure it: tracking the same images back retraces the same path,
-  0.003 px on our simulator against 0.1-0.3 px of real error.)
+  0.003 px on our simulator against 0.1-0.3 px of real error.) The bound is a floor:
+  core/frame_noise.py adds what each frame's re-triangulated residuals show beyond it.
 
 Cameras on one tracked body (a stereo endoscope carries one marker) share their pose error:
 their relative pose does not jitter (`shared_bodies` finds them from the pose streams). For
@@ -40,6 +41,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
+from scipy.stats import chi2
 
 MAD_TO_SIGMA = 1.4826  # σ of a Gaussian from its median absolute deviation
 
@@ -100,16 +102,28 @@ def robust_sigma(values: np.ndarray) -> float:
     return float(MAD_TO_SIGMA * np.median(v)) if v.size else float("nan")
 
 
-def pixel_noise_from_residuals(residuals_px: np.ndarray, views: np.ndarray) -> float:
+def pixel_noise_from_residuals(residuals_px: np.ndarray, point_index: np.ndarray) -> float:
     """σ_px (px, per axis) from reprojection residual vectors (M, 2) of triangulated points,
-    `views` (M,) the number of views of each residual's point (>= 2)."""
+    point_index (M,) the point of each residual.
+
+    A point seen in n views leaves d = 2n − 3 degrees of freedom in its 2n residual
+    components (two views: one, the error across the epipolar line; the components along it
+    are zero). Its sum of squared residuals is σ² χ²(d), so σ² is estimated robustly as the
+    median over the points of (sum / median of χ²(d)): every point counts once, with its
+    own dof, and components that triangulation forced to zero never pull σ down."""
     r = np.asarray(residuals_px, float).reshape(-1, 2)
-    n = np.asarray(views, float).reshape(-1)
-    ok = np.isfinite(r).all(1) & (n >= 2)
+    point = np.asarray(point_index, np.int64).reshape(-1)
+    ok = np.isfinite(r).all(1)
     if not ok.any():
         return float("nan")
-    dof_factor = float(np.mean((2 * n[ok] - 3) / (2 * n[ok])))
-    return robust_sigma(r[ok]) / np.sqrt(dof_factor)
+    n_points = int(point[ok].max()) + 1
+    squares = np.bincount(point[ok], (r[ok] ** 2).sum(1), minlength=n_points)
+    views = np.bincount(point[ok], minlength=n_points)
+    dof = 2 * views - 3
+    has = dof >= 1
+    if not has.any():
+        return float("nan")
+    return float(np.sqrt(np.median(squares[has] / chi2.median(dof[has]))))
 
 
 def image_noise_sigma(grey: np.ndarray) -> float:

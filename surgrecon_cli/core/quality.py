@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .labels import INTER, INTRA, OUTLIER, UNKNOWN, UNOBSERVED
+from .labels import DEFORMING, INTER, INTRA, OUTLIER, UNKNOWN, UNOBSERVED
 
 # Ours: when a frame is flagged (the figures are reported whatever they are).
 MIN_OBSERVED = 0.5  # less than half of the template observed
@@ -160,3 +160,19 @@ def verdict(residual_within_2sigma: float, residual_ratio: float,
                        f"allows, so the residuals say little about accuracy. {caution}")
     return Verdict(True, "residuals", f"{share}: the registration agrees with the data as "
                                       f"well as the noise allows. {caution}")
+def unsupported_points(quality: FrameQuality, status: np.ndarray,
+                       labels: np.ndarray) -> np.ndarray:
+    """(N,) bool: points of a frame whose label (N,) its evidence does not support, to be
+    labelled unknown instead: every point when the registration residuals are more than
+    MAX_RESIDUAL_RATIO times what the measured noise predicts (the positions are not what
+    the data say); in a frame that observed less than MIN_OBSERVED of the template, the
+    points called deforming without a target of their own there (outliers and unobserved
+    points: a dent there would be the registration's extrapolation from a minority of the
+    surface, not a measurement; static and shifting carry the motion last measured)."""
+    status = np.asarray(status)
+    if np.isfinite(quality.residual_over_sigma) and (quality.residual_over_sigma
+                                                     > MAX_RESIDUAL_RATIO):
+        return np.ones(len(status), bool)
+    if quality.observed < MIN_OBSERVED:
+        return ~np.isin(status, (INTRA, INTER)) & (np.asarray(labels) == DEFORMING)
+    return np.zeros(len(status), bool)

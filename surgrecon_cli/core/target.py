@@ -32,9 +32,9 @@ from .cameras import (
     CameraModel,
     in_image,
     project,
-    undistort_pixels,
     view_distortion_jacobians,
 )
+from .frame_noise import tracked_observations, tracking_excess_px2
 from .labels import INTER, INTRA, OUTLIER, STATUS_NAMES, UNOBSERVED
 from .noise import (
     NoiseModel,
@@ -46,7 +46,7 @@ from .noise import (
 )
 from .tool import ToolConfigs, points_near_tool, tool_pixel_mask
 from .tracking import TrackingView, expected_motion_px, track_adaptive
-from .triangulate import Observations, triangulate
+from .triangulate import triangulate
 
 
 @dataclass(frozen=True)
@@ -186,12 +186,8 @@ def reprojection_check(
         idx, use = candidates[keep], use[keep]
         if len(idx) == 0:
             break
-        rows, cams = np.nonzero(use)
-        px = pixels[idx[rows], cams]
-        normalized = np.zeros_like(px)
-        for c in np.unique(cams):
-            normalized[cams == c] = undistort_pixels(px[cams == c], models[c])
-        obs = Observations(rows, cams, px, normalized, np.zeros((len(rows), 3), np.uint8))
+        obs = tracked_observations(use, pixels[idx], models)
+        rows, cams = obs.point, obs.camera
         tri = triangulate(obs, poses, models, len(idx))
         at = np.nan_to_num(tri.points[rows])
         J, z = projection_jacobians(at, poses[cams], focal[cams],
@@ -274,6 +270,10 @@ def build_target(
         found[idx[ok], c] = True
         localisation[idx[ok], c] = localisation_variance_px2(
             cur.grey, tracked[ok], cfg.klt_window_px, cur.noise_sigma)
+    # The bound is a floor: what the frame's re-triangulated residuals show beyond the
+    # model is localisation error too (core/frame_noise.py).
+    excess, _ = tracking_excess_px2(found, pixels, localisation, models, cur_poses, noise)
+    localisation[found] += excess
     if found.any():
         noise = replace(noise, tracking_px=float(np.sqrt(np.median(localisation[found]))))
     status, positions, covariances, pose_part = reprojection_check(

@@ -231,9 +231,8 @@ def measured_covariances(points: np.ndarray, obs: Observations, poses: np.ndarra
     the cameras' pose errors into the points (measured: 0.25 mm of tracker noise left
     0.50 px of residuals and a template 3x less accurate than they implied)."""
     residual, _ = reprojection_residuals(points, obs, poses, models)
-    views = np.bincount(obs.point, minlength=len(points))
     sel = use[obs.point]
-    pixel_px = pixel_noise_from_residuals(residual[sel], views[obs.point[sel]])
+    pixel_px = pixel_noise_from_residuals(residual[sel], obs.point[sel])
     pixel_px = pixel_px if np.isfinite(pixel_px) and pixel_px > 0 else 1.0
     variance = np.full(len(obs.point), pixel_px**2)
     image_variance = variance.copy()

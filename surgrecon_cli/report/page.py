@@ -141,12 +141,14 @@ def _quality(data: RunData, frames: FrameFigures, metrics: Metrics,
     bodies = data.log.report.get("tracker_bodies", [])
     sec = rh.Section("quality", "Quality (no ground truth needed)")
     sec.add(rh.table(("measured noise (1σ per axis)", "value"), [
-        ("pixel noise at frame 0 (template residuals)", _fmt_num(noise.get("pixel_px"), "px")),
+        ("pixel noise at frame 0 (template residuals per degree of freedom)",
+         _fmt_num(noise.get("pixel_px"), "px")),
         ("tracker position jitter (median over cameras)",
          _fmt_num(float(np.median(jitter)) if jitter else None, "mm")),
         ("tracker rotation jitter (median over cameras)",
          _fmt_num(float(np.median(jitter_deg)) if jitter_deg else None, "°")),
-        ("tracking noise (Cramér-Rao bound of each tracked patch, median over frames)",
+        ("tracking noise (each tracked patch's Cramér-Rao bound plus what the frame's "
+         "re-triangulated residuals show beyond the model; median over frames)",
          _fmt_num(noise.get("tracking_px"), "px")),
         ("cameras sharing one tracked body (pose error rigid for the group)",
          "; ".join(", ".join(g) for g in bodies) or "none"),

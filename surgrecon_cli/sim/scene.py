@@ -80,6 +80,11 @@ class SimConfig:
     # The robot's kinematics (tool pose, joint states) in the log; False: a log without a
     # robot (the tool is still in the scene and the images, its pose is not recorded).
     robot: bool = True
+    # Real-image difficulty (sim/degrade.py); 0 = off.
+    warp_px: float = 0.0  # localisation error: RMS of a smooth random image warp (px)
+    blur_px: float = 0.0  # Gaussian blur sigma (px)
+    vignetting: float = 0.0  # share of brightness lost at the corners
+    interlace_px: float = 0.0  # horizontal shift of the odd rows (px)
 
     def __post_init__(self) -> None:
         if self.lens not in LENSES:
@@ -93,6 +98,8 @@ class SimConfig:
                              "at least 3 cameras")
         if self.tracker_noise_pos < 0 or self.tracker_noise_deg < 0:
             raise ValueError("tracker noise must be >= 0")
+        if min(self.warp_px, self.blur_px, self.vignetting) < 0 or self.vignetting > 1:
+            raise ValueError("warp_px and blur_px must be >= 0, vignetting within 0..1")
 
     @property
     def duration(self) -> float:

@@ -24,6 +24,7 @@ from ..core.labels import CLASS_NAMES, true_labels
 from ..io.atomic import write_npz
 from ..io.records import CameraInfoRecord, ImageRecord, JointStateRecord, PoseRecord
 from .conventions import CONVENTIONS
+from .degrade import degrade
 from .log_writer import write_log
 from .motion import Motion
 from .render import Renderer, tool_mesh
@@ -122,6 +123,7 @@ class LogBuilder:
             self.tracker_phase[1] = self.tracker_phase[0]
         self.noise_rng = np.random.default_rng(cfg.seed + 303)
         self.render_rng = np.random.default_rng(cfg.seed + 404)
+        self.degrade_rng = np.random.default_rng(cfg.seed + 606)
         self.texture = make_texture(cfg.seed)
         self.frame_times = np.arange(cfg.frames) / cfg.frame_rate
 
@@ -190,6 +192,8 @@ class LogBuilder:
                     mesh.material_xy,
                     tool,
                 )
+                rgb = degrade(rgb, self.degrade_rng, cfg.warp_px, cfg.blur_px, cfg.vignetting,
+                              cfg.interlace_px)
                 model = self.models[cam]
                 log_ns = _ns(stamp) + 3_000_000
                 frame_id = f"endoscope_{cam}_optical"

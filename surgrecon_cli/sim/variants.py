@@ -13,6 +13,10 @@ if TYPE_CHECKING:  # imported lazily: the CLI lists the presets without loading 
     from .scene import SimConfig
 
 STEREO_BASELINE = 0.005  # m: a 10 mm stereo laparoscope's two lenses sit ~5 mm apart
+# What a clinical endoscope's video adds to a clean rendering (sim/degrade.py): the
+# localisation error is the order of the real recordings' across-epipolar residuals.
+REAL_IMAGES: dict[str, Any] = {"warp_px": 0.25, "blur_px": 0.8, "vignetting": 0.35,
+                               "interlace_px": 0.3, "jpeg_quality": 80}
 
 
 @dataclass(frozen=True)
@@ -32,6 +36,18 @@ VARIANTS: dict[str, Variant] = {
             "stereo",
             "one tracked stereo endoscope alone (5 mm baseline, 30-80 mm away)",
             {"cameras": 2, "stereo_baseline": STEREO_BASELINE},
+        ),
+        Variant(
+            "stereo-real",
+            "the stereo endoscope alone with real-image difficulty: 0.25 px localisation "
+            "error, blur, vignetting, interlacing, JPEG quality 80",
+            {"cameras": 2, "stereo_baseline": STEREO_BASELINE, **REAL_IMAGES},
+        ),
+        Variant(
+            "stereo-sweep",
+            "stereo-real while the endoscope pans 30 deg (2-4 deg per frame over 12 frames)",
+            {"cameras": 2, "stereo_baseline": STEREO_BASELINE, "sweep_deg": 30.0,
+             **REAL_IMAGES},
         ),
         Variant(
             "stereo-plus",

@@ -1,7 +1,8 @@
 """Stage `classify`: label every template point at every frame (core/classify.py).
 
-Reads the template and every registered frame (io/artefacts.py), writes RUN/classify/
-labels.npz (`io/artefacts.FrameLabels`: labels after hysteresis, raw labels, the
+Reads the template and every registered frame (io/artefacts.py); a frame's points whose
+evidence does not support a label (core/quality.unsupported_points) are unknown. Writes
+RUN/classify/labels.npz (`io/artefacts.FrameLabels`: labels after hysteresis, raw labels, the
 displacement and deformation measures, reprojection status) and every frame's labelled
 cloud RUN/clouds/FFFFFF.ply, written once, here: positions, template colours, point_id,
 label, residual (m, NaN without a target), sigma (m) and the reprojection status and
@@ -31,6 +32,7 @@ from ..core.classify import (
 from ..core.hysteresis import HysteresisAhead, hysteresis_step
 from ..core.labels import CLASS_NAMES, INTRA, STATIC, UNKNOWN
 from ..core.noise import covariance_sigma
+from ..core.quality import frame_quality, unsupported_points
 from ..executors import Executor, Task
 from ..executors.serial import SerialExecutor
 from ..io.artefacts import (
@@ -110,6 +112,10 @@ def classify_one_frame(run_dir: Path, frame: int, config: Config) -> int:
     classes = classify_frame(template, registered, nb, cfg, transforms=transforms,
                              status=reg.status,
                              evidence=frame_evidence(reg, registered, template_noise))
+    quality = frame_quality(frame, reg.status, None, reg.sigma.astype(float),
+                            reg.residual.astype(float), reg.target_sigma.astype(float),
+                            bool(reg.failed), bool(reg.converged), reg.error)
+    classes.labels[unsupported_points(quality, reg.status, classes.labels)] = UNKNOWN
     write_npz(layout.classified(frame), **_rows(classes, reg.status))
     return frame
 

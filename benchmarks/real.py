@@ -1,0 +1,212 @@
+"""Real-footage benchmark: public real stereo clips and the simulator's real-image variants.
+
+    .venv/bin/python benchmarks/real.py [--real NAME=LOG.mcap[:CONFIG.toml] ...]
+        [--variants stereo stereo-real ...] [--seeds 201 ...] [--frames 12]
+        [--workdir /tmp/surgrecon-real] [--code SRC] [--fresh]
+
+Every log is run with `surgrecon run` (with `--code SRC`, the run uses the surgrecon source
+tree SRC instead of this checkout: e.g. `git archive main surgrecon_cli | tar -x -C SRC`
+for a before/after table; simulating, evaluating and these checks always use this
+checkout). One table, a row per log:
+- σ run: the pixel noise the run measured (metrics/summary.json noise.pixel_px);
+- σ NCC: an independent localisation check on the same images (benchmarks/real_reference:
+  NCC row offsets on the rectified frame-0 pair), and its ratio to σ run;
+- σ truth: simulator only, the localisation error against the true geometry;
+- tracked / outlier: mean share of template points observed / outliers, frames 1 on;
+- static / shifting / deforming / unknown: label shares over point-frames, frames 1 on;
+  "deform|lab" the share of labelled point-frames called deforming;
+- ref med / ref p95: labelled positions against a reference built from the images (DIS flow
+  on camera 0 + StereoSGBM depth), mm, frames 1 on;
+- macro-F1 and calib 2σ: simulator only (`surgrecon evaluate`).
+Cameras 0 and 1 of every log must be a stereo pair. The rows go to WORKDIR/real.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from real_reference import (
+    ground_truth_localisation_px,
+    ncc_localisation_px,
+    reference_positions,
+)
+
+from surgrecon_cli.core.labels import DEFORMING, SHIFTING, STATIC, UNKNOWN
+from surgrecon_cli.io.artefacts import read_observations, read_template
+from surgrecon_cli.io.ingest_store import load_ingested
+from surgrecon_cli.io.ply import read_ply
+from surgrecon_cli.io.run_layout import RunLayout
+
+DEFAULT_VARIANTS = ("stereo", "stereo-real", "stereo-sweep")
+DEFAULT_SEEDS = (201,)
+
+
+def surgrecon_command() -> list[str]:
+    beside = Path(sys.executable).with_name("surgrecon")
+    if not beside.exists():
+        sys.exit("surgrecon is not installed (run `make install`, then .venv/bin/python ...)")
+    return [str(beside)]
+
+
+def call(argv: list[str], log: Path, code: Path | None = None) -> None:
+    env = dict(os.environ)
+    if code is not None:
+        env["PYTHONPATH"] = str(code.absolute())
+    proc = subprocess.run(argv, capture_output=True, text=True, env=env)
+    with log.open("a") as f:
+        f.write(f"$ {' '.join(argv)}\n{proc.stdout}{proc.stderr}(exit {proc.returncode})\n")
+    if proc.returncode != 0:
+        lines = (proc.stderr or proc.stdout).strip().splitlines() or ["failed"]
+        raise RuntimeError(lines[-1])
+
+
+def label_shares(layout: RunLayout, n_frames: int) -> dict[str, float]:
+    counts = np.zeros(256)
+    for k in range(1, n_frames):
+        counts += np.bincount(read_ply(layout.cloud(k))["label"].astype(int), minlength=256)
+    total = max(counts.sum(), 1.0)
+    labelled = max(counts[[STATIC, SHIFTING, DEFORMING]].sum(), 1.0)
+    return {"static": counts[STATIC] / total, "shifting": counts[SHIFTING] / total,
+            "deforming": counts[DEFORMING] / total, "unknown": counts[UNKNOWN] / total,
+            "deform_of_labelled": counts[DEFORMING] / labelled}
+
+
+def reference_errors(layout: RunLayout, log: Any, obs: Any, n: int) -> tuple[float, float]:
+    """Median and p95 (mm) of labelled positions against the image reference, frames 1 on."""
+    cam0 = obs.camera == 0
+    ref = reference_positions(log, obs.pixels[cam0])
+    errors = []
+    for k in range(1, log.n_frames):
+        cloud = read_ply(layout.cloud(k))
+        xyz = np.full((n, 3), np.nan)
+        keep = cloud["label"] != UNKNOWN
+        xyz[cloud["point_id"][keep]] = np.column_stack(
+            [cloud[a][keep] for a in "xyz"]).astype(float)
+        e = np.linalg.norm(xyz[obs.point[cam0]] - ref[k], axis=1)
+        errors.append(e[np.isfinite(e)])
+    e = np.concatenate(errors) * 1e3 if errors else np.zeros(0)
+    if not e.size:
+        return float("nan"), float("nan")
+    return float(np.median(e)), float(np.percentile(e, 95))
+
+
+def truth_sigma(variant: str, seed: int, frames: int, obs: Any) -> float:
+    from surgrecon_cli.sim.simulate import LogBuilder
+    from surgrecon_cli.sim.variants import variant_config
+
+    builder = LogBuilder(variant_config(variant, seed=seed, frames=frames))
+    poses = np.stack([builder.motion.camera_pose(c, builder.image_stamp(0, c)) for c in (0, 1)])
+    both = np.full((int(obs.point.max()) + 1, 2, 2), np.nan)
+    for c in (0, 1):
+        both[obs.point[obs.camera == c], c] = obs.pixels[obs.camera == c]
+    both = both[np.isfinite(both).all((1, 2))]
+    return ground_truth_localisation_px(poses, builder.models, builder.motion.tissue_vertices(0.0),
+                                        builder.mesh.faces, both)
+
+
+def measure(name: str, run: Path, variant: str | None, seed: int | None,
+            frames: int) -> dict[str, Any]:
+    layout = RunLayout(run)
+    log = load_ingested(layout.ingest_dir)
+    n = len(read_template(layout).points)
+    obs = read_observations(layout, n)
+    summary = json.loads(layout.summary_json.read_text())
+    quality = summary.get("quality", {}).get("per_frame", [])
+    row: dict[str, Any] = {"name": name, "sigma_run": summary["noise"]["pixel_px"]}
+    row["sigma_ncc"] = ncc_localisation_px(log, obs.pixels[obs.camera == 0])
+    row["sigma_truth"] = (truth_sigma(variant, seed, frames, obs)
+                          if variant is not None and seed is not None else None)
+    row["tracked"] = float(np.mean([q["observed_fraction"] for q in quality]))
+    row["outlier"] = float(np.mean([q["outlier_fraction"] for q in quality]))
+    row.update(label_shares(layout, log.n_frames))
+    row["ref_median_mm"], row["ref_p95_mm"] = reference_errors(layout, log, obs, n)
+    if layout.evaluation_json.exists():
+        ev = json.loads(layout.evaluation_json.read_text())
+        row["macro_f1"] = ev["labels"]["overall"]["macro_f1"]
+        row["calib_2sigma"] = ev["labels"].get("calibration_2sigma")
+    return row
+
+
+COLUMNS = (("sigma_run", "σ run", ".3f"), ("sigma_ncc", "σ NCC", ".3f"),
+           ("ratio", "run/NCC", ".2f"), ("sigma_truth", "σ truth", ".3f"),
+           ("tracked", "tracked", ".1%"), ("outlier", "outlier", ".1%"),
+           ("static", "static", ".1%"), ("shifting", "shift", ".1%"),
+           ("deforming", "deform", ".1%"), ("unknown", "unknown", ".1%"),
+           ("deform_of_labelled", "deform|lab", ".1%"), ("ref_median_mm", "ref med", ".2f"),
+           ("ref_p95_mm", "ref p95", ".2f"), ("macro_f1", "macroF1", ".3f"),
+           ("calib_2sigma", "calib2σ", ".1%"))
+
+
+def _fmt(value: Any, spec: str) -> str:
+    try:
+        return format(float(value), spec) if value is not None else "-"
+    except (TypeError, ValueError):
+        return "-"
+
+
+def print_table(rows: list[dict[str, Any]]) -> None:
+    width = max(len(r["name"]) for r in rows) + 2
+    print(f"{'log':<{width}}" + "".join(f"{h:>11}" for _, h, _ in COLUMNS))
+    for r in rows:
+        if "error" in r:
+            print(f"{r['name']:<{width}}  failed: {r['error']}")
+            continue
+        r["ratio"] = (r["sigma_run"] / r["sigma_ncc"]
+                      if r.get("sigma_run") and r.get("sigma_ncc") else None)
+        print(f"{r['name']:<{width}}" + "".join(f"{_fmt(r.get(k), s):>11}" for k, _, s in COLUMNS))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--real", nargs="*", default=[], help="NAME=LOG.mcap[:CONFIG.toml]")
+    ap.add_argument("--variants", nargs="*", default=list(DEFAULT_VARIANTS))
+    ap.add_argument("--seeds", nargs="*", type=int, default=list(DEFAULT_SEEDS))
+    ap.add_argument("--frames", type=int, default=12)
+    ap.add_argument("--workdir", type=Path, default=Path("/tmp/surgrecon-real"))
+    ap.add_argument("--code", type=Path, default=None, help="surgrecon source tree for runs")
+    ap.add_argument("--fresh", action="store_true")
+    args = ap.parse_args()
+    exe = surgrecon_command()
+    work = args.workdir
+    (work / "logs").mkdir(parents=True, exist_ok=True)
+    jobs: list[tuple[str, Path, Path | None, str | None, int | None]] = []
+    for spec in args.real:
+        name, _, rest = spec.partition("=")
+        log, _, config = rest.partition(":")
+        jobs.append((name, Path(log), Path(config) if config else None, None, None))
+    for variant in args.variants:
+        for seed in args.seeds:
+            jobs.append((f"{variant}-s{seed}", work / "logs" / f"{variant}-s{seed}.mcap", None,
+                         variant, seed))
+    rows = []
+    for name, log, config, variant, seed in jobs:
+        run, log_file = work / "runs" / name, work / f"{name}.log"
+        try:
+            if variant is not None and (args.fresh or not log.exists()):
+                call([*exe, "simulate", str(log), "--variant", variant, "--seed", str(seed),
+                      "--frames", str(args.frames), "-q"], log_file)
+            if args.fresh and run.exists():
+                shutil.rmtree(run)
+            extra = ["--config", str(config)] if config else []
+            call([*exe, "run", str(log), "-o", str(run), "-q", *extra], log_file, args.code)
+            if variant is not None:
+                gt = log.with_name(f"{log.stem}.gt.npz")
+                call([*exe, "evaluate", str(run), "--ground-truth", str(gt), "-q"], log_file)
+            rows.append(measure(name, run, variant, seed, args.frames))
+        except (RuntimeError, OSError, KeyError, ValueError) as exc:
+            rows.append({"name": name, "error": str(exc)})
+        print(f"  {name}: done", file=sys.stderr)
+    print_table(rows)
+    (work / "real.json").write_text(json.dumps(rows, indent=1, default=float))
+
+
+if __name__ == "__main__":
+    main()

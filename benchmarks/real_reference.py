@@ -1,0 +1,178 @@
+"""Checks of a stereo run built from its images alone, as a user without ground truth would
+(used by benchmarks/real.py): the run's cameras 0 and 1 are rectified with the run's own
+calibration (intrinsics and the relative pose of the two cameras at each frame).
+
+- `ncc_localisation_px`: an independent localisation check. Every template point seen by
+  camera 0 is matched into the rectified right image by normalised cross-correlation
+  (cv2.matchTemplate, 11x11 patch, parabolic sub-pixel peak), a different method from the
+  pipeline's detector and tracker. On a rectified pair the true vertical disparity is 0, so
+  the matched row offset samples the two images' localisation errors: σ per image and axis
+  = 1.4826 median|dy| / √2 (about 0, not the median: a calibration's vertical offset is
+  error the pipeline's triangulation sees too; SurgT's is 0.36 px).
+- `ground_truth_localisation_px` (simulator only): the detected pixel in camera 0 cast onto
+  the true surface with the true pose, projected into camera 1 with its true pose, against
+  the pixel detected there: two localisation errors, σ = 1.4826 MAD / √2 per axis.
+- `reference_positions`: a dense reference of every template point over time: DIS optical
+  flow on camera 0 (frame to frame, kept where forward-backward agree within 0.5 px) and
+  StereoSGBM depth on each rectified pair, back in the world frame with camera 0's pose.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from surgrecon_cli.core.cameras import CameraModel, pixel_rays, project
+from surgrecon_cli.core.noise import MAD_TO_SIGMA
+from surgrecon_cli.io.ingest_store import IngestedLog
+
+PATCH = 11  # px, side of the NCC patch
+SEARCH = (4, 24)  # px searched around the expected match: rows, columns
+FB_PX = 0.5  # forward-backward flow disagreement beyond which a track is dropped (px)
+
+
+def _mad_sigma(values: np.ndarray, centre: bool = True) -> float:
+    """σ from the median absolute deviation, about the median (centre) or about 0."""
+    v = np.asarray(values, float)
+    v = v[np.isfinite(v)]
+    if not v.size:
+        return float("nan")
+    return float(MAD_TO_SIGMA * np.median(np.abs(v - (np.median(v) if centre else 0.0))))
+
+
+class Rectified:
+    """Rectification of cameras 0 and 1 of a run at one frame (their poses (2, 4, 4))."""
+
+    def __init__(self, models: tuple[CameraModel, ...], poses: np.ndarray) -> None:
+        m0, m1 = models[0], models[1]
+        rel = np.linalg.inv(poses[1]) @ poses[0]  # camera 0 -> camera 1
+        size = (m0.width, m0.height)
+        self.r0, self.r1, self.p0, self.p1, self.q, _, _ = cv2.stereoRectify(
+            m0.K, m0.dist, m1.K, m1.dist, size, rel[:3, :3], rel[:3, 3], alpha=0)
+        self.models, self.pose0 = (m0, m1), poses[0]
+        self.maps = [cv2.initUndistortRectifyMap(m.K, m.dist, r, p, size, cv2.CV_32FC1)
+                     for m, r, p in ((m0, self.r0, self.p0), (m1, self.r1, self.p1))]
+
+    def images(self, left: np.ndarray, right: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Rectified grey images of an RGB pair."""
+        return tuple(cv2.remap(cv2.cvtColor(im, cv2.COLOR_RGB2GRAY), mx, my, cv2.INTER_LINEAR)
+                     for im, (mx, my) in zip((left, right), self.maps, strict=True))
+
+    def left_pixels(self, pixels: np.ndarray) -> np.ndarray:
+        """Camera-0 pixels (M, 2) in the rectified left image."""
+        m = self.models[0]
+        pts = np.asarray(pixels, np.float64).reshape(-1, 1, 2)
+        return cv2.undistortPoints(pts, m.K, m.dist, R=self.r0, P=self.p0).reshape(-1, 2)
+
+    def world(self, rect_xy: np.ndarray, disparity: np.ndarray) -> np.ndarray:
+        """World points (M, 3) m of rectified left pixels (M, 2) with disparities (M,)."""
+        h = np.column_stack([rect_xy, disparity, np.ones(len(rect_xy))]) @ self.q.T
+        cam = (h[:, :3] / h[:, 3:4]) @ self.r0  # rectified camera 0 -> camera 0 (R0ᵀ x)
+        return cam @ self.pose0[:3, :3].T + self.pose0[:3, 3]
+
+
+def _sample(image: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """Bilinear samples (M, ...) of an image (H, W[, K]) at (M, 2) px (NaN outside)."""
+    img = np.asarray(image, np.float32)
+    h, w = img.shape[:2]
+    x, y = xy[:, 0], xy[:, 1]
+    ok = np.isfinite(xy).all(1) & (x >= 0) & (y >= 0) & (x <= w - 2) & (y <= h - 2)
+    out = np.full((len(xy), *img.shape[2:]), np.nan)
+    x0, y0 = np.floor(x[ok]).astype(int), np.floor(y[ok]).astype(int)
+    fx, fy = x[ok] - x0, y[ok] - y0
+    if img.ndim == 3:
+        fx, fy = fx[:, None], fy[:, None]
+    out[ok] = ((1 - fx) * (1 - fy) * img[y0, x0] + fx * (1 - fy) * img[y0, x0 + 1]
+               + (1 - fx) * fy * img[y0 + 1, x0] + fx * fy * img[y0 + 1, x0 + 1])
+    return out
+
+
+def _disparity(left: np.ndarray, right: np.ndarray, max_disp: int) -> np.ndarray:
+    n = int(np.ceil(max(max_disp, 16) / 16) * 16)
+    sgbm = cv2.StereoSGBM_create(minDisparity=0, numDisparities=n, blockSize=5,
+                                 P1=8 * 25, P2=32 * 25, uniquenessRatio=10,
+                                 mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY)
+    d = sgbm.compute(left, right).astype(np.float32) / 16.0
+    d[d <= 0] = np.nan
+    return d
+
+
+def ncc_localisation_px(log: IngestedLog, pixels0: np.ndarray, max_disp: int = 160) -> float:
+    """Independent localisation σ (px) on frame 0 from NCC row offsets (module docstring);
+    pixels0 (M, 2) camera-0 pixels of template points."""
+    rect = Rectified(log.models, log.poses[0, :2])
+    left, right = rect.images(*log.frame_images(0)[:2])
+    disparity = _disparity(left, right, max_disp)
+    xy = rect.left_pixels(pixels0)
+    d = _sample(disparity, xy)
+    half, (sr, sc) = PATCH // 2, SEARCH
+    offsets = []
+    for (x, y), dd in zip(xy, d, strict=True):
+        if not np.isfinite(dd):
+            continue
+        xi, yi, xr = round(float(x)), round(float(y)), round(float(x - dd))
+        if (min(xi, yi, xr) - half - sc < 0 or yi + half + sr >= left.shape[0]
+                or max(xi, xr) + half + sc >= left.shape[1]):
+            continue
+        patch = left[yi - half:yi + half + 1, xi - half:xi + half + 1]
+        window = right[yi - half - sr:yi + half + sr + 1, xr - half - sc:xr + half + sc + 1]
+        score = cv2.matchTemplate(window, patch, cv2.TM_CCOEFF_NORMED)
+        r, c = np.unravel_index(int(np.argmax(score)), score.shape)
+        if not (0 < r < score.shape[0] - 1) or score[r, c] < 0.8:
+            continue
+        a, b, e = score[r - 1, c], score[r, c], score[r + 1, c]
+        offsets.append(r - sr + 0.5 * (a - e) / (a - 2 * b + e) + (yi - y))
+    return _mad_sigma(np.array(offsets), centre=False) / np.sqrt(2.0)
+
+
+def ground_truth_localisation_px(true_poses: np.ndarray, models: list[CameraModel],
+                                 vertices: np.ndarray, faces: np.ndarray,
+                                 pixels: np.ndarray) -> float:
+    """Localisation σ (px) from the simulator's truth (module docstring): true poses (2, 4, 4)
+    of cameras 0 and 1 at frame 0, the true surface (V, 3) m / (F, 3), and pixels (M, 2, 2)
+    of points seen by both cameras."""
+    import open3d as o3d
+
+    scene = o3d.t.geometry.RaycastingScene()
+    mesh = o3d.t.geometry.TriangleMesh()
+    mesh.vertex.positions = o3d.core.Tensor(vertices.astype(np.float32))
+    mesh.triangle.indices = o3d.core.Tensor(faces.astype(np.int32))
+    scene.add_triangles(mesh)
+    origin, dirs = pixel_rays(pixels[:, 0], models[0], true_poses[0])
+    origin = np.broadcast_to(origin, dirs.shape)
+    rays = np.concatenate([origin, dirs], 1).astype(np.float32)
+    t = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy().astype(float)
+    hit = origin + dirs * t[:, None]
+    ok = np.isfinite(t)
+    uv, _ = project(hit[ok], true_poses[1], models[1])
+    err = uv - pixels[ok, 1]
+    return float(np.sqrt(np.mean([_mad_sigma(err[:, a], centre=False) ** 2 for a in (0, 1)])
+                         / 2.0))
+
+
+def reference_positions(log: IngestedLog, pixels0: np.ndarray,
+                        max_disp: int = 160) -> np.ndarray:
+    """Reference world positions (T, M, 3) m (NaN where flow or depth fail) of the points
+    seen at camera-0 pixels (M, 2) at frame 0 (module docstring)."""
+    dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
+    out = np.full((log.n_frames, len(pixels0), 3), np.nan)
+    xy, prev = None, None
+    for k in range(log.n_frames):
+        if not log.usable[k, :2].all():
+            xy = None
+            continue
+        rect = Rectified(log.models, log.poses[k, :2])
+        left, right = rect.images(*log.frame_images(k)[:2])
+        if xy is None and k == 0:
+            xy = rect.left_pixels(pixels0)
+        elif xy is not None and prev is not None:
+            forward = dis.calc(prev, left, None)
+            backward = dis.calc(left, prev, None)
+            moved = xy + _sample(forward, xy)
+            back = moved + _sample(backward, moved)
+            xy = np.where((np.linalg.norm(back - xy, axis=1) <= FB_PX)[:, None], moved, np.nan)
+        if xy is None:
+            continue
+        out[k] = rect.world(xy, _sample(_disparity(left, right, max_disp), xy))
+        prev = left
+    return out
