@@ -14,8 +14,9 @@ def test_top_level_help_lists_the_pipeline(capsys):
         assert command in out
 
 
-# Commands that read finished runs with the config they were made with take no new config.
-RUN_CONFIG_COMMANDS = {"export", "compare"}
+# Commands that take no config: export and compare read finished runs with the config they
+# were made with; convert writes the config that runs its log.
+NO_CONFIG_COMMANDS = {"export", "compare", "convert"}
 
 
 @pytest.mark.parametrize("command", sorted(cli.commands))
@@ -25,7 +26,7 @@ def test_every_subcommand_has_help_with_an_example(command, capsys):
     assert "Example" in out
     assert "surgrecon " + command in out
     assert "--quiet" in out and "--debug" in out
-    if command not in RUN_CONFIG_COMMANDS:
+    if command not in NO_CONFIG_COMMANDS:
         assert "--config" in out and "--set" in out
 
 

@@ -114,7 +114,10 @@ def encode_file(path: Path) -> EncodedImage:
     except OSError as exc:
         raise InputError(f"image {path}: cannot be read ({exc.strerror or exc})") from None
     if data.startswith((_JPEG_MAGIC, _PNG_MAGIC)):
-        size = header_size(data)
+        try:
+            size = header_size(data)
+        except ValueError:
+            size = None
         if size is None:
             raise InputError(f"image {path}: truncated or corrupt header")
         return EncodedImage(data, "jpeg" if data.startswith(_JPEG_MAGIC) else "png", *size,
