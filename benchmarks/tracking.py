@@ -1,0 +1,115 @@
+"""Tracking benchmark: real camera motion without a tracker (issue 24, items 2-3).
+
+    .venv/bin/python benchmarks/tracking.py [--seeds 301 302] [--frames 12]
+        [--variant rig-sweep] [--workdir /tmp/surgrecon-tracking] [--surgrecon EXE]
+        [--set section.key=value ...]
+
+For every seed: `surgrecon simulate --variant rig-sweep` (an untracked stereo endoscope
+sweeping 2-4 deg a frame over still tissue: the scene moves rigidly in the rig frame, the
+truth is that rigid motion), `surgrecon run`, `surgrecon evaluate`; then per frame:
+- tracked: share of the template points visible in >= 2 cameras at their true position
+  (in front, inside the image) that have a target (intra or inter);
+- labelled: share of points with a label (not unknown); deforming: share of the labelled
+  points called deforming (the truth has none);
+- p95: 95th percentile (mm) of the labelled points' distance from their true position,
+  i.e. from the scene's rigid motion.
+Goals (issue 24): tracked >= 80 %, deforming <= 5 %, labelled >= 50 % of point-frames,
+p95 <= 2 mm. `--surgrecon` runs another installation (e.g. main's, for "before").
+"""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from surgrecon_cli.core.cameras import in_image, project
+from surgrecon_cli.core.labels import DEFORMING, INTER, INTRA, UNKNOWN
+from surgrecon_cli.core.scoring import map_to_surface
+from surgrecon_cli.io.artefacts import read_labels, read_registration, read_template
+from surgrecon_cli.io.ground_truth import load_ground_truth
+from surgrecon_cli.io.ingest_store import load_ingested
+from surgrecon_cli.io.run_layout import RunLayout
+
+
+def run(argv: list[str]) -> None:
+    proc = subprocess.run(argv, capture_output=True, text=True)
+    if proc.returncode != 0:
+        sys.exit(f"{' '.join(argv)} failed: {proc.stderr.strip().splitlines()[-1:]}")
+
+
+def frame_table(run_dir: Path, gt_path: Path) -> list[dict[str, float]]:
+    """Per frame k >= 1: tracked, labelled, deforming shares and the labelled p95 (mm)."""
+    layout = RunLayout(run_dir)
+    log, gt = load_ingested(layout.ingest_dir), load_ground_truth(gt_path)
+    template = read_template(layout).points
+    n = len(template)
+    mapping = map_to_surface(template, gt.vertices[0], gt.faces)
+    labels = read_labels(layout, (log.n_frames, n)).labels
+    rows = []
+    for k in range(1, log.n_frames):
+        true = mapping.follow(gt.vertices[k], gt.faces)
+        poses = log.usable_poses(k)
+        seen = np.zeros(n, int)
+        for c, model in enumerate(log.models):
+            if np.isfinite(poses[c]).all():
+                uv, z = project(true, poses[c], model)
+                seen += (z > 0) & in_image(uv, model, 8.0)
+        visible = seen >= 2
+        reg = read_registration(layout, k, n)
+        has = (reg.status == INTRA) | (reg.status == INTER)
+        lab = labels[k] != UNKNOWN
+        error = np.linalg.norm(reg.registered - true, axis=1)[lab] * 1e3
+        rows.append({
+            "frame": k,
+            "visible": int(visible.sum()),
+            "tracked": float((has & visible).sum() / max(visible.sum(), 1)),
+            "labelled": float(lab.mean()),
+            "deforming": float((labels[k] == DEFORMING).sum() / max(lab.sum(), 1)),
+            "p95_mm": float(np.percentile(error, 95)) if len(error) else float("nan"),
+            "errors": error,
+        })
+    return rows
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seeds", type=int, nargs="+", default=[301, 302])
+    parser.add_argument("--frames", type=int, default=12)
+    parser.add_argument("--variant", default="rig-sweep")
+    parser.add_argument("--workdir", type=Path, default=Path("/tmp/surgrecon-tracking"))
+    parser.add_argument("--surgrecon", default=str(Path(sys.executable).with_name("surgrecon")))
+    parser.add_argument("--set", action="append", default=[], dest="overrides")
+    args = parser.parse_args()
+    args.workdir.mkdir(parents=True, exist_ok=True)
+    sets = [a for o in args.overrides for a in ("--set", o)]
+    own = str(Path(sys.executable).with_name("surgrecon"))  # the variant is this branch's
+    print(f"{'seed':>5} {'frame':>5} {'visible':>7} {'tracked':>7} {'labelled':>8} "
+          f"{'deform':>6} {'p95 mm':>7}")
+    for seed in args.seeds:
+        log = args.workdir / f"{args.variant}-{seed}.mcap"
+        run_dir = args.workdir / f"run-{args.variant}-{seed}"
+        if not log.exists():
+            run([own, "simulate", str(log), "--variant", args.variant, "--seed",
+                 str(seed), "--frames", str(args.frames)])
+        gt = log.with_name(log.name.removesuffix(".mcap") + ".gt.npz")
+        run([args.surgrecon, "run", str(log), "-o", str(run_dir), *sets])
+        run([args.surgrecon, "evaluate", str(run_dir), "--ground-truth", str(gt)])
+        rows = frame_table(run_dir, gt)
+        for r in rows:
+            print(f"{seed:>5} {r['frame']:>5} {r['visible']:>7} {r['tracked']:>7.1%} "
+                  f"{r['labelled']:>8.1%} {r['deforming']:>6.1%} {r['p95_mm']:>7.2f}")
+        errors = np.concatenate([r["errors"] for r in rows])
+        labelled = np.array([r["labelled"] for r in rows])
+        deforming = np.array([r["deforming"] for r in rows]) @ labelled / max(labelled.sum(), 1e-9)
+        tracked = [r["tracked"] for r in rows]
+        p95 = np.percentile(errors, 95) if len(errors) else float("nan")
+        print(f"{seed:>5}   all {'':>7} {np.mean(tracked):>7.1%} {labelled.mean():>8.1%} "
+              f"{deforming:>6.1%} {p95:>7.2f}   (min tracked {min(tracked):.1%})")
+
+
+if __name__ == "__main__":
+    main()
