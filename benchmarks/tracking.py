@@ -8,7 +8,8 @@ For every seed: `surgrecon simulate --variant rig-sweep` (an untracked stereo en
 sweeping 2-4 deg a frame over still tissue: the scene moves rigidly in the rig frame, the
 truth is that rigid motion), `surgrecon run`, `surgrecon evaluate`; then per frame:
 - tracked: share of the template points visible in >= 2 cameras at their true position
-  (in front, inside the image) that have a target (intra or inter);
+  (in front, inside the image) that the tracker found in >= 2 cameras; target: ... that
+  also passed the reprojection check (intra or inter: a target for the registration);
 - labelled: share of points with a label (not unknown); deforming: share of the labelled
   points called deforming (the truth has none);
 - p95: 95th percentile (mm) of the labelled points' distance from their true position,
@@ -61,12 +62,14 @@ def frame_table(run_dir: Path, gt_path: Path) -> list[dict[str, float]]:
         visible = seen >= 2
         reg = read_registration(layout, k, n)
         has = (reg.status == INTRA) | (reg.status == INTER)
+        found = np.isfinite(reg.pixels).all(2).sum(1) >= 2
         lab = labels[k] != UNKNOWN
         error = np.linalg.norm(reg.registered - true, axis=1)[lab] * 1e3
         rows.append({
             "frame": k,
             "visible": int(visible.sum()),
-            "tracked": float((has & visible).sum() / max(visible.sum(), 1)),
+            "tracked": float((found & visible).sum() / max(visible.sum(), 1)),
+            "target": float((has & visible).sum() / max(visible.sum(), 1)),
             "labelled": float(lab.mean()),
             "deforming": float((labels[k] == DEFORMING).sum() / max(lab.sum(), 1)),
             "p95_mm": float(np.percentile(error, 95)) if len(error) else float("nan"),
@@ -87,7 +90,7 @@ def main() -> None:
     args.workdir.mkdir(parents=True, exist_ok=True)
     sets = [a for o in args.overrides for a in ("--set", o)]
     own = str(Path(sys.executable).with_name("surgrecon"))  # the variant is this branch's
-    print(f"{'seed':>5} {'frame':>5} {'visible':>7} {'tracked':>7} {'labelled':>8} "
+    print(f"{'seed':>5} {'frame':>5} {'visible':>7} {'tracked':>7} {'target':>7} {'labelled':>8} "
           f"{'deform':>6} {'p95 mm':>7}")
     for seed in args.seeds:
         log = args.workdir / f"{args.variant}-{seed}.mcap"
@@ -101,13 +104,16 @@ def main() -> None:
         rows = frame_table(run_dir, gt)
         for r in rows:
             print(f"{seed:>5} {r['frame']:>5} {r['visible']:>7} {r['tracked']:>7.1%} "
+                  f"{r['target']:>7.1%} "
                   f"{r['labelled']:>8.1%} {r['deforming']:>6.1%} {r['p95_mm']:>7.2f}")
         errors = np.concatenate([r["errors"] for r in rows])
         labelled = np.array([r["labelled"] for r in rows])
         deforming = np.array([r["deforming"] for r in rows]) @ labelled / max(labelled.sum(), 1e-9)
         tracked = [r["tracked"] for r in rows]
+        target = np.mean([r["target"] for r in rows])
         p95 = np.percentile(errors, 95) if len(errors) else float("nan")
-        print(f"{seed:>5}   all {'':>7} {np.mean(tracked):>7.1%} {labelled.mean():>8.1%} "
+        print(f"{seed:>5}   all {'':>7} {np.mean(tracked):>7.1%} {target:>7.1%} "
+              f"{labelled.mean():>8.1%} "
               f"{deforming:>6.1%} {p95:>7.2f}   (min tracked {min(tracked):.1%})")
 
 
