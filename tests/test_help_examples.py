@@ -168,6 +168,9 @@ def _prepare(argv: list[str], world: dict[str, Path], scheduler) -> list[str]:
         if option == "--config" and not Path(value).exists():
             text = _sections(["topics", "tool"])
             Path(value).write_text(text, encoding="utf-8")
+        if name == "convert" and (option == "--calibration" or option is None) \
+                and not value.startswith("-") and not Path(value).exists():
+            _convert_input(Path(value), option)
         if option == "--landmarks" and not Path(value).exists():
             _write_landmarks(Path(value), world)
         if option == "--pairs" and not Path(value).exists():
@@ -212,6 +215,29 @@ def _prepare(argv: list[str], world: dict[str, Path], scheduler) -> list[str]:
     if name == "simulate":
         out += SMALL_SIMULATION
     return out
+
+
+SURGT = Path(__file__).parent / "data" / "surgt"
+
+
+def _convert_input(path: Path, option: str | None) -> None:
+    """What a `convert` example reads: the SurgT calibration, its stereo video, or two of its
+    frames as a stereo image folder (left/, right/)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if option == "--calibration":
+        shutil.copy(SURGT / "calibration.yaml", path)
+    elif path.suffix:
+        shutil.copy(SURGT / "video.mp4", path)
+    else:
+        import av
+        import cv2
+
+        with av.open(str(SURGT / "video.mp4")) as container:
+            for i, frame in zip(range(2), container.decode(video=0), strict=False):
+                img = frame.to_ndarray(format="bgr24")
+                for side, view in (("left", img[:, :1280]), ("right", img[:, 1280:])):
+                    (path / side).mkdir(parents=True, exist_ok=True)
+                    cv2.imwrite(str(path / side / f"{i:06d}.jpg"), view)
 
 
 def _sections(names: list[str]) -> str:

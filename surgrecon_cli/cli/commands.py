@@ -6,6 +6,7 @@ from .cmd_build_template import build_template_cmd
 from .cmd_classify import classify_cmd
 from .cmd_compare import compare_cmd
 from .cmd_config import config_cmd
+from .cmd_convert import convert_cmd
 from .cmd_evaluate import evaluate_cmd
 from .cmd_export import export_cmd
 from .cmd_info import info_cmd
@@ -17,6 +18,6 @@ from .cmd_report import report_cmd
 from .cmd_run import run_cmd
 from .cmd_simulate import simulate_cmd
 
-ALL = [build_template_cmd, classify_cmd, compare_cmd, config_cmd, evaluate_cmd, export_cmd,
-       info_cmd, ingest_cmd, measure_cmd, register_cmd, register_pair_cmd, report_cmd, run_cmd,
-       simulate_cmd]
+ALL = [build_template_cmd, classify_cmd, compare_cmd, config_cmd, convert_cmd, evaluate_cmd,
+       export_cmd, info_cmd, ingest_cmd, measure_cmd, register_cmd, register_pair_cmd, report_cmd,
+       run_cmd, simulate_cmd]

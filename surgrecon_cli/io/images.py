@@ -85,7 +85,7 @@ def prepare_image(record: ImageRecord) -> StoredImage:
     data = bytes(record.data)
     if not data:
         raise ValueError("empty image data")
-    claimed = _header_size(data)
+    claimed = header_size(data)
     if claimed is not None:
         _check_pixels(*claimed)
     with _native_stderr() as native:
@@ -147,7 +147,7 @@ def _check_pixels(width: int, height: int) -> None:
                          f"{MAX_IMAGE_PIXELS / 1e6:.0f} Mpx limit")
 
 
-def _header_size(data: bytes) -> tuple[int, int] | None:
+def header_size(data: bytes) -> tuple[int, int] | None:
     """(width, height) from a PNG IHDR or a JPEG SOFn header, None for other data."""
     if data.startswith(_PNG_MAGIC) and len(data) >= 24 and data[12:16] == b"IHDR":
         width, height = struct.unpack(">II", data[16:24])

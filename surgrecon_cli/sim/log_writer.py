@@ -43,8 +43,8 @@ class _Sink:
     profile = ""
     message_encoding = ""
 
-    def __init__(self, stream: IO[bytes], chunk_size: int) -> None:
-        self.writer = McapWriter(stream, chunk_size=chunk_size, compression=CompressionType.ZSTD)
+    def __init__(self, stream: IO[bytes], chunk_size: int, compression: CompressionType) -> None:
+        self.writer = McapWriter(stream, chunk_size=chunk_size, compression=compression)
         self.writer.start(profile=self.profile, library=_LIBRARY)
         self.schemas: dict[str, int] = {}
         self.channels: dict[str, tuple[int, str]] = {}
@@ -98,8 +98,8 @@ class _Ros1Sink(_Sink):
 class _Ros2Sink:
     """ROS 2 through `mcap_ros2`'s writer (CDR serialisation from the message definitions)."""
 
-    def __init__(self, stream: IO[bytes], chunk_size: int) -> None:
-        self.writer = Ros2Writer(stream, chunk_size=chunk_size, compression=CompressionType.ZSTD)
+    def __init__(self, stream: IO[bytes], chunk_size: int, compression: CompressionType) -> None:
+        self.writer = Ros2Writer(stream, chunk_size=chunk_size, compression=compression)
         self.schemas: dict[str, Any] = {}
         self.sequence: dict[str, int] = {}
         self.topic_types: dict[str, str] = {}
@@ -144,7 +144,7 @@ class _JsonSink(_Sink):
         return self.writer.register_schema(schema_name, "jsonschema", json_schema(schema_name))
 
 
-_SINKS: dict[str, Callable[[IO[bytes], int], Any]] = {
+_SINKS: dict[str, Callable[[IO[bytes], int, CompressionType], Any]] = {
     "ros2": _Ros2Sink,
     "ros1": _Ros1Sink,
     "foxglove-protobuf": _ProtobufSink,
@@ -157,18 +157,20 @@ def write_log(
     messages: Iterable[tuple[str, int, Record]],
     encoding: str,
     chunk_size: int = DEFAULT_CHUNK_SIZE,
+    compression: CompressionType = CompressionType.ZSTD,
 ) -> None:
     """Write `(topic, log_time_ns, record)` messages, in log-time order, to an MCAP file.
 
     encoding: one of `ENCODINGS` ("ros2", "ros1", "foxglove-protobuf", "foxglove-json").
     chunk_size: uncompressed bytes per chunk (fixed, for reproducible output).
+    compression: of the chunks (zstd; none for data compressed already, e.g. JPEG images).
     Raises ValueError on an unknown encoding, decreasing log times or a topic whose record
     type changes. Nothing is left under `path` if writing fails.
     """
     if encoding not in _SINKS:
         raise ValueError(f"unknown log encoding {encoding!r} (known: {', '.join(ENCODINGS)})")
     with atomic_open(Path(path), "wb") as stream:
-        sink = _SINKS[encoding](stream, chunk_size)
+        sink = _SINKS[encoding](stream, chunk_size, compression)
         last = None
         for topic, log_time_ns, record in messages:
             if last is not None and log_time_ns < last:

@@ -1,0 +1,134 @@
+"""The messages `convert` writes, and the config that ingests them.
+
+Per frame (stamp t): on `/tf` world -> rig (identity when the rig is fixed; from the camera
+pose file otherwise, at that file's stamps), then per camera its `sensor_msgs/CameraInfo`
+and `sensor_msgs/CompressedImage`. Once, first: `/tf_static` rig -> each camera's optical
+frame (the calibration's extrinsics). The rig frame is the first camera's optical frame.
+A tool pose file becomes `/tf` world -> tool_tip at its own stamps.
+"""
+
+from __future__ import annotations
+
+import heapq
+from collections.abc import Iterable, Iterator, Sequence
+
+import numpy as np
+
+from ..core.geometry import matrix_to_quat
+from ..errors import InputError
+from ..io.records import CameraInfoRecord, ImageRecord, PoseRecord, Record
+from .calibration import CameraCalibration, Rig
+from .sources import Frame
+from .stamps import PoseTrack
+
+Message = tuple[str, int, Record]
+IMAGE_TOPIC = "/camera/{camera}/image/compressed"
+INFO_TOPIC = "/camera/{camera}/camera_info"
+CAMERA_FRAME = "{camera}_optical_frame"
+TF, TF_STATIC = "/tf", "/tf_static"
+WORLD, RIG, TOOL = "world", "rig", "tool_tip"
+_IDENTITY_Q = np.array([0.0, 0.0, 0.0, 1.0])
+
+
+def _tf(stamp_ns: int, parent: str, child: str, position: np.ndarray,
+        orientation: np.ndarray) -> PoseRecord:
+    return PoseRecord(int(stamp_ns), parent, child, np.asarray(position, float),
+                      np.asarray(orientation, float))
+
+
+def _track(track: PoseTrack, child: str) -> Iterator[Message]:
+    for t, p, q in zip(track.stamps_ns, track.positions, track.orientations, strict=True):
+        yield TF, int(t), _tf(int(t), WORLD, child, p, q)
+
+
+class _Sizes:
+    """Each camera's image size: the calibration's, else its first image's; any other size
+    is an error naming the image."""
+
+    def __init__(self, cameras: Sequence[CameraCalibration]) -> None:
+        self.cameras = cameras
+        self.sizes = [(c.width, c.height) if c.width and c.height else None for c in cameras]
+
+    def check(self, frame: Frame) -> None:
+        for k, (cam, image) in enumerate(zip(self.cameras, frame.images, strict=True)):
+            size = (image.width, image.height)
+            if self.sizes[k] is None:
+                self.sizes[k] = size
+            elif size != self.sizes[k]:
+                said = "the calibration says" if cam.width else "its first image is"
+                w, h = self.sizes[k] or (0, 0)
+                raise InputError(f"image {image.origin} is {size[0]}x{size[1]} px; camera "
+                                 f"{cam.name!r}: {said} {w}x{h} px")
+
+
+def _frame_messages(rig: Rig, frames: Iterable[Frame], stamps: np.ndarray | None,
+                    start_ns: int, fixed_rig: bool) -> Iterator[Message]:
+    sizes = _Sizes(rig.cameras)
+    last = None
+    for k, frame in enumerate(frames):
+        if len(frame.images) != len(rig.cameras):
+            raise InputError(f"frame {frame.index} has {len(frame.images)} images, the "
+                             f"calibration {len(rig.cameras)} cameras")
+        sizes.check(frame)
+        if stamps is not None:
+            t = int(stamps[k])
+        elif frame.stamp_ns is not None:
+            t = start_ns + frame.stamp_ns
+        else:
+            raise InputError(f"{frame.images[0].origin} has no time stamp; give --fps")
+        if last is not None and t <= last:
+            raise InputError(f"{frame.images[0].origin}: stamp {t} ns is not after the frame "
+                             f"before ({last} ns); give --fps or a stamps file")
+        last = t
+        if fixed_rig:
+            yield TF, t, _tf(t, WORLD, RIG, np.zeros(3), _IDENTITY_Q)
+        for k_cam, (cam, image) in enumerate(zip(rig.cameras, frame.images, strict=True)):
+            frame_id = CAMERA_FRAME.format(camera=cam.name)
+            w, h = sizes.sizes[k_cam] or (image.width, image.height)
+            yield INFO_TOPIC.format(camera=cam.name), t, CameraInfoRecord(
+                t, frame_id, w, h, cam.K, cam.D, cam.model)
+            yield IMAGE_TOPIC.format(camera=cam.name), t, ImageRecord(
+                t, frame_id, image.format, image.data)
+
+
+def messages(rig: Rig, frames: Iterable[Frame], stamps: np.ndarray | None,
+             start_ns: int, camera_poses: PoseTrack | None = None,
+             tool_poses: PoseTrack | None = None) -> Iterator[Message]:
+    """Every message of the log, in log-time order (rules in the module docstring). Frame
+    stamps: `stamps` (N,) ns, else the frames' own (video times) after `start_ns`."""
+    streams = [_frame_messages(rig, frames, stamps, start_ns, camera_poses is None)]
+    if camera_poses is not None:
+        streams.append(_track(camera_poses, RIG))
+    if tool_poses is not None:
+        streams.append(_track(tool_poses, TOOL))
+    merged = heapq.merge(*streams, key=lambda m: m[1])
+    first = next(merged, None)
+    if first is None:
+        return
+    t0 = first[1]
+    for cam in rig.cameras:
+        yield TF_STATIC, t0, _tf(t0, RIG, CAMERA_FRAME.format(camera=cam.name),
+                                 cam.to_rig[:3, 3], matrix_to_quat(cam.to_rig[:3, :3]))
+    yield first
+    yield from merged
+
+
+def config_text(log_name: str, rig: Rig, poses: str, tool: bool) -> str:
+    """The TOML that runs the written log as it is (`[topics]` only; the rest defaults)."""
+    names = ", ".join(c.name for c in rig.cameras)
+    base = log_name.removesuffix(".mcap")
+    lines = [
+        f"# Written by `surgrecon convert` for {log_name}; run it with",
+        f"#   surgrecon run {log_name} -o runs/{base} --config {base}.toml",
+        f"# Cameras {names}; {poses}; calibration lengths read as {rig.units}.",
+        "[topics]",
+        f'image = "{IMAGE_TOPIC}"',
+        f'camera_info = "{INFO_TOPIC}"',
+        f'camera_pose = "{TF}"',
+        f'camera_frame = "{CAMERA_FRAME}"',
+        f'tool_pose = "{TF if tool else ""}"',
+        f'tool_frame = "{TOOL}"',
+        'joint_states = ""',
+        f'world_frame = "{WORLD}"',
+    ]
+    return "\n".join(lines) + "\n"

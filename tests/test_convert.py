@@ -1,0 +1,185 @@
+"""`surgrecon convert`: generated stereo folders (PNG, JPEG, 16-bit, BMP/TIFF) and videos become
+a ROS 2 MCAP whose images, intrinsics, stamps and transforms are what went in (read back by
+mcap_ros2, not by surgrecon), and the written config ingests it as written."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from convert_inputs import (
+    D_LEFT,
+    K_LEFT,
+    K_RIGHT,
+    opencv_calibration,
+    read_log,
+    right_in_left_m,
+    static_pose,
+    stereo_folder,
+    stereo_video,
+)
+
+from surgrecon_cli.cli.main import main
+
+IMAGE = "/camera/{}/image/compressed"
+INFO = "/camera/{}/camera_info"
+
+
+def _convert(*args: object) -> int:
+    return main(["convert", *(str(a) for a in args), "-q"])
+
+
+def _stamps(log, topic: str) -> list[int]:
+    return [m.header.stamp.sec * 10**9 + m.header.stamp.nanosec for _, m in log[topic]]
+
+
+@pytest.mark.parametrize("ext", [".jpg", ".png"])
+def test_jpeg_and_png_bytes_are_copied(tmp_path: Path, ext: str):
+    files = stereo_folder(tmp_path / "rec", frames=3, ext=ext)
+    opencv_calibration(tmp_path / "calib.yaml")
+    out = tmp_path / "out.mcap"
+    assert _convert(tmp_path / "rec", "-o", out, "--calibration", tmp_path / "calib.yaml",
+                    "--fps", 20) == 0
+    log = read_log(out)
+    for side in ("left", "right"):
+        msgs = [m for _, m in log[IMAGE.format(side)]]
+        assert [bytes(m.data) for m in msgs] == [p.read_bytes() for p in files[side]]
+        assert {m.format for m in msgs} == {"jpeg" if ext == ".jpg" else "png"}
+        assert {m.header.frame_id for m in msgs} == {f"{side}_optical_frame"}
+        # frame i at the default start (1 s) + i / fps
+        assert _stamps(log, IMAGE.format(side)) == [10**9, 10**9 + 5 * 10**7, 10**9 + 10**8]
+    info = log[INFO.format("left")][0][1]
+    np.testing.assert_allclose(np.reshape(info.k, (3, 3)), K_LEFT)
+    np.testing.assert_allclose(info.d, D_LEFT)
+    assert (info.width, info.height, info.distortion_model) == (320, 240, "plumb_bob")
+    np.testing.assert_allclose(np.reshape(log[INFO.format("right")][0][1].k, (3, 3)), K_RIGHT)
+    rot, pos = static_pose(log, "right_optical_frame")
+    want_rot, want_pos = right_in_left_m()
+    np.testing.assert_allclose(rot, want_rot, atol=1e-9)
+    np.testing.assert_allclose(pos, want_pos, atol=1e-12)
+    assert len(log["/tf"]) == 3  # world -> rig, once per frame
+    text = out.with_suffix(".toml").read_text(encoding="utf-8")
+    assert 'tool_pose = ""' in text and 'camera_pose = "/tf"' in text
+
+
+def test_16_bit_png_stays_16_bit_and_tiff_bmp_become_lossless_png(tmp_path: Path):
+    png16 = stereo_folder(tmp_path / "a", frames=2, ext=".png", depth16=True)
+    tiff = stereo_folder(tmp_path / "b", frames=2, ext=".tiff", depth16=True,
+                         names=("image_0", "image_1"))
+    bmp = stereo_folder(tmp_path / "c", frames=2, ext=".bmp", names=("cam0", "cam1"))
+    opencv_calibration(tmp_path / "calib.yaml")
+    for src, files in (("a", png16), ("b", tiff), ("c", bmp)):
+        out = tmp_path / f"{src}.mcap"
+        assert _convert(tmp_path / src, "-o", out, "--calibration", tmp_path / "calib.yaml") == 0
+        log = read_log(out)
+        first = sorted(files)[0]
+        for msg, path in zip([m for _, m in log[IMAGE.format("left")]], files[first],
+                             strict=True):
+            assert msg.format == "png"
+            decoded = cv2.imdecode(np.frombuffer(bytes(msg.data), np.uint8),
+                                   cv2.IMREAD_UNCHANGED)
+            original = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+            assert decoded.dtype == original.dtype
+            np.testing.assert_array_equal(decoded, original)
+
+
+@pytest.mark.parametrize("layout", ["side-by-side", "top-bottom"])
+def test_stereo_video_is_split_and_keeps_its_times(tmp_path: Path, layout: str):
+    views = stereo_video(tmp_path / "v.mkv", frames=3, layout=layout, fps=25)
+    opencv_calibration(tmp_path / "calib.yaml", size=(320, 240))  # auto layout from the size
+    out = tmp_path / "v.mcap"
+    assert _convert(tmp_path / "v.mkv", "-o", out, "--calibration", tmp_path / "calib.yaml",
+                    "--image-format", "png") == 0
+    log = read_log(out)
+    for k, side in enumerate(("left", "right")):
+        for (_, msg), frame in zip(log[IMAGE.format(side)], views, strict=True):
+            decoded = cv2.imdecode(np.frombuffer(bytes(msg.data), np.uint8), cv2.IMREAD_COLOR)
+            np.testing.assert_array_equal(decoded, frame[k])  # FFV1 + PNG: lossless
+        assert _stamps(log, IMAGE.format(side)) == [10**9, 10**9 + 4 * 10**7,
+                                                    10**9 + 8 * 10**7]
+
+
+def test_video_frames_default_to_jpeg_quality_95(tmp_path: Path):
+    views = stereo_video(tmp_path / "v.mkv", frames=2)
+    opencv_calibration(tmp_path / "calib.yaml")
+    out = tmp_path / "v.mcap"
+    assert _convert(tmp_path / "v.mkv", "-o", out, "--calibration", tmp_path / "calib.yaml",
+                    "--frames", "1:") == 0
+    msgs = [m for _, m in read_log(out)[IMAGE.format("right")]]
+    assert [m.format for m in msgs] == ["jpeg"]
+    decoded = cv2.imdecode(np.frombuffer(bytes(msgs[0].data), np.uint8), cv2.IMREAD_COLOR)
+    assert np.abs(decoded.astype(int) - views[1][1]).mean() < 4.0  # 4:2:0 chroma of a
+    # saturated random texture; lossless would be 0
+
+
+def test_the_written_config_ingests_the_log_with_its_geometry(tmp_path: Path):
+    stereo_folder(tmp_path / "rec", frames=3, ext=".jpg", names=("Left", "Right"))
+    opencv_calibration(tmp_path / "calib.yaml")
+    out = tmp_path / "rec.mcap"
+    assert _convert(tmp_path / "rec", "-o", out, "--calibration", tmp_path / "calib.yaml") == 0
+    run = tmp_path / "run"
+    assert main(["ingest", str(out), "-o", str(run), "--config", str(out.with_suffix(".toml")),
+                 "-q"]) == 0
+    from surgrecon_cli.io.ingest_store import load_ingested
+
+    ingested = load_ingested(run / "ingest")
+    assert ingested.cameras == ("left", "right") and ingested.n_frames == 3
+    assert ingested.usable.all()
+    want_rot, want_pos = right_in_left_m()
+    np.testing.assert_allclose(ingested.poses[:, 0], np.broadcast_to(np.eye(4), (3, 4, 4)),
+                               atol=1e-12)
+    np.testing.assert_allclose(ingested.poses[:, 1, :3, :3], np.broadcast_to(want_rot, (3, 3, 3)),
+                               atol=1e-9)
+    np.testing.assert_allclose(ingested.poses[:, 1, :3, 3], np.broadcast_to(want_pos, (3, 3)),
+                               atol=1e-12)
+    np.testing.assert_allclose(ingested.models[1].K, K_RIGHT)
+
+
+def test_tum_poses_and_stamps_file(tmp_path: Path):
+    """The rig moves as the camera pose file says, the tool as the tool file says, and the
+    frames take the stamps file's times."""
+    from scipy.spatial.transform import Rotation
+
+    stereo_folder(tmp_path / "rec", frames=3, ext=".png")
+    opencv_calibration(tmp_path / "calib.yaml")
+    (tmp_path / "stamps.txt").write_text("# t [s]\n100.0\n100.1\n100.25\n", encoding="utf-8")
+    quats = Rotation.from_euler("z", [[0], [10], [20], [30]], degrees=True).as_quat()
+    rows = [f"{t} {0.01 * k} 0.0 0.1 {' '.join(map(str, q))}"
+            for k, (t, q) in enumerate(zip([99.9, 100.1, 100.2, 100.3], quats, strict=True))]
+    (tmp_path / "cam.tum").write_text("\n".join(rows) + "\n", encoding="utf-8")
+    (tmp_path / "tool.tum").write_text("100.0 0 0 0.05 0 0 0 1\n100.3 0.01 0 0.05 0 0 0 1\n",
+                                       encoding="utf-8")
+    out = tmp_path / "rec.mcap"
+    assert _convert(tmp_path / "rec", "-o", out, "--calibration", tmp_path / "calib.yaml",
+                    "--stamps", tmp_path / "stamps.txt", "--camera-poses", tmp_path / "cam.tum",
+                    "--tool-poses", tmp_path / "tool.tum") == 0
+    log = read_log(out)
+    assert _stamps(log, IMAGE.format("left")) == [100 * 10**9, 100_100_000_000, 100_250_000_000]
+    tf = [(t.header.stamp.sec * 10**9 + t.header.stamp.nanosec, t.child_frame_id)
+          for _, m in log["/tf"] for t in m.transforms]
+    assert [t for t, child in tf if child == "rig"] == [99_900_000_000, 100_100_000_000,
+                                                        100_200_000_000, 100_300_000_000]
+    assert [t for t, child in tf if child == "tool_tip"] == [100 * 10**9, 100_300_000_000]
+    assert 'tool_pose = "/tf"' in out.with_suffix(".toml").read_text(encoding="utf-8")
+
+
+def test_one_folder_per_camera(tmp_path: Path):
+    import json
+
+    for name in ("a", "b", "c"):
+        stereo_folder(tmp_path / name, frames=2, ext=".jpg", names=("img",))
+    (tmp_path / "rig.json").write_text(json.dumps({"cameras": {
+        "c": {"K": K_LEFT.tolist(), "D": [], "R": np.eye(3).tolist(), "T": [0, 0, 0]},
+        "a": {"K": K_RIGHT.tolist(), "D": [], "R": np.eye(3).tolist(), "T": [-5, 0, 0]},
+        "b": {"K": K_RIGHT.tolist(), "D": [], "R": np.eye(3).tolist(), "T": [0, -5, 0]},
+    }}), encoding="utf-8")
+    out = tmp_path / "three.mcap"
+    assert _convert("-o", out, "--calibration", tmp_path / "rig.json",
+                    *[x for n in "abc" for x in ("--camera", f"{n}={tmp_path / n / 'img'}")]) == 0
+    log = read_log(out)
+    assert {t for t in log if t.startswith("/camera/")} == {
+        IMAGE.format(n) for n in "abc"} | {INFO.format(n) for n in "abc"}
+    np.testing.assert_allclose(static_pose(log, "a_optical_frame")[1], [0.005, 0, 0])
+    np.testing.assert_allclose(static_pose(log, "b_optical_frame")[1], [0, 0.005, 0])
