@@ -5,6 +5,7 @@ the chain are re-acquired from the template's images."""
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 from scenes import render_frames
@@ -14,7 +15,7 @@ from surgrecon_cli.core.cameras import project
 from surgrecon_cli.core.noise import NoiseModel
 from surgrecon_cli.core.target import build_target
 from surgrecon_cli.core.track_points import find_points, visible_points
-from surgrecon_cli.core.tracking import tracking_view
+from surgrecon_cli.core.tracking import klt_track, specular_mask, tracking_view
 from surgrecon_cli.sim.variants import variant_config
 
 
@@ -87,3 +88,28 @@ def test_points_lost_by_the_chain_are_reacquired_from_the_template_images(sweep)
     assert np.percentile(error[~lost[:, None] & found & seen], 95) < 1.0  # chained
     # Re-acquired after 4 frames (~12 deg) of changed perspective: within a pixel or so.
     assert np.percentile(error[lost[:, None] & found & seen], 95) < 1.5
+
+
+def test_tracks_on_a_specular_highlight_are_refused():
+    # A white, colourless highlight that moves with the light, not with the tissue: the
+    # texture stays put, the highlight slides 6 px. Points under it are refused; the rest
+    # are tracked where they were.
+    rng = np.random.default_rng(4)
+    base = cv2.GaussianBlur(rng.uniform(40, 200, (160, 160, 3)).astype(np.float32), (0, 0), 2)
+    base = np.clip(base, 0, 200).astype(np.uint8)
+    first, second = base.copy(), base.copy()
+    cv2.circle(first, (80, 80), 9, (255, 255, 255), -1)
+    cv2.circle(second, (86, 80), 9, (255, 255, 255), -1)
+    assert specular_mask(first)[80, 80] and not specular_mask(base).any()
+    g = np.arange(20.0, 141.0, 6.0)
+    start = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
+    tracked, ok = klt_track(tracking_view(first), tracking_view(second), start, start.copy(),
+                            Config().target, 2)
+    near = np.minimum(np.linalg.norm(start - [80.0, 80.0], axis=1),
+                      np.linalg.norm(start - [86.0, 80.0], axis=1)) < 11.0
+    assert near.sum() >= 8
+    assert not ok[near].any()
+    far = np.linalg.norm(start - [83.0, 80.0], axis=1) > 30.0
+    assert ok[far].mean() > 0.9
+    error = np.linalg.norm(tracked[far & ok] - start[far & ok], axis=1)
+    assert np.percentile(error, 90) < 0.1
