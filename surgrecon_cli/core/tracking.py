@@ -55,18 +55,24 @@ def specular_mask(image: np.ndarray) -> np.ndarray:
     return (top >= SPECULAR_VALUE) & (top - image.min(axis=2) <= SPECULAR_CHROMA)
 
 
+def specular_zone(highlight: np.ndarray) -> np.ndarray:
+    """Highlights (H, W) bool grown by SPECULAR_MARGIN_PX: where a feature or track is not
+    trusted (its window is dominated by the highlight's edges)."""
+    side = 2 * SPECULAR_MARGIN_PX + 1
+    return cv2.dilate(highlight.astype(np.uint8), np.ones((side, side), np.uint8)) > 0
+
+
 def tracking_view(image: np.ndarray) -> TrackingView:
     """The `TrackingView` of an RGB image (H, W, 3) uint8: highlights (`specular_mask`) are
     set to the neutral grey 128 of `tracking_image`, and `specular` (H, W) bool marks them
-    grown by SPECULAR_MARGIN_PX, where tracks are refused."""
+    grown (`specular_zone`), where tracks are refused."""
     grey = tracking_image(image)
     highlight = specular_mask(image)
     grey[highlight] = 128
     grey.flags.writeable = False  # shared by every frame tracked from this image
     grey_f32 = grey.astype(np.float32)
     grey_f32.flags.writeable = False
-    side = 2 * SPECULAR_MARGIN_PX + 1
-    grown = cv2.dilate(highlight.astype(np.uint8), np.ones((side, side), np.uint8)) > 0
+    grown = specular_zone(highlight)
     grown.flags.writeable = False
     return TrackingView(grey, grey_f32, image_noise_sigma(grey), grown)
 
