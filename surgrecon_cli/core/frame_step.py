@@ -1,6 +1,7 @@
 """One frame of the registration pipeline as a pure function (Su et al. 2019, Fig. 2):
-target cloud -> data weights -> non-rigid registration with the tool-contact constraint ->
-composition with the base's transforms -> per-point uncertainty of the result.
+target cloud -> data weights -> the scene's robust rigid motion, then the non-rigid
+remainder with the tool-contact constraint -> composition with the base's transforms ->
+per-point uncertainty of the result.
 
 The stage (stages/register.py) only loads the inputs and writes the outputs.
 

@@ -1,8 +1,8 @@
 """Stage `register`: target cloud and non-rigid registration of every frame k >= 1.
 
 Per frame k, one task (`register_frame`): the frame step of core/frame_step.py (target
-cloud G_k from the base frame's images, corrected against the template's frame-0 images,
-gated by the run's measured noise; registration of
+cloud G_k tracked from the base frame's images, points lost there re-acquired from the
+template's frame-0 images, gated by the run's measured noise; registration of
 the base's cloud to G_k; per-point uncertainty). The base is frame 0, or with re-basing
 every N_T frames the last multiple of N_T before k: frames depend on their base only, so
 they run in parallel on an executor, as a dependency chain over the bases. A frame that
