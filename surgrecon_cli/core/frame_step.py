@@ -37,6 +37,8 @@ from .template import build_template
 from .tool import push_out_of_tool
 from .tracking import TrackingView
 
+FOLLOW_FROM_M = 3e-3  # ours: points without data this far from the data start to follow ...
+FOLLOW_FULL_M = 8e-3  # ... the blend of the data's displacements, fully from this far
 RIGID_INLIER_SIGMAS = 3.0  # ours: a target within 3 σ of the rigid motion follows it
 RIGID_INLIER_FLOOR_M = 0.5e-3  # ... or within 0.5 mm (σ may be under-estimated)
 
@@ -141,9 +143,11 @@ def register_with_contact(source: np.ndarray, source_rgb: np.ndarray, target_xyz
     it) predicted inside the tool's capsule (`predicted_positions`: moved with their tracked
     neighbours) get a target on the capsule's surface, pushed along the shaft, so that the
     field around the tool follows the contact; after the solve, the other points without
-    data take the inverse-distance blend of their nearest data points' displacements
-    (`predicted_positions` on the registered positions: the solve's affine field, fitted to
-    the data's noise, would amplify it with distance), and every point without data still
+    data farther than FOLLOW_FROM_M from any data point move towards the inverse-distance
+    blend of their nearest data points' displacements (`predicted_positions` on the
+    registered positions), fully from FOLLOW_FULL_M on: far from its support, the solve's
+    affine field, fitted to the data's noise, would amplify it with distance; near it,
+    the field follows a dent better than a blend. Every point without data still
     inside the capsule (the l1 fit leaves a contact target a little short of it, and the
     prediction can miss a point) is moved onto the surface, its transform translated by
     the same push. Returns the result and the number of points in contact."""
@@ -160,10 +164,14 @@ def register_with_contact(source: np.ndarray, source_rgb: np.ndarray, target_xyz
                       target_ids=np.concatenate([target_ids, contact]),
                       weights=np.where(predicted, 1.0, weights))
     data = np.flatnonzero(~without_data)
-    follow = predicted_positions(source, result.registered[data], data,
-                                 config.registration.interp_neighbors)
-    free = without_data & ~predicted
-    registered = np.where(free[:, None], follow, result.registered)
+    free = np.flatnonzero(without_data & ~predicted)
+    registered = result.registered.copy()
+    if len(data) and len(free):
+        follow = predicted_positions(source, result.registered[data], data,
+                                     config.registration.interp_neighbors)
+        distance, _ = cKDTree(source[data]).query(source[free])
+        share = np.clip((distance - FOLLOW_FROM_M) / (FOLLOW_FULL_M - FOLLOW_FROM_M), 0, 1)
+        registered[free] += share[:, None] * (follow[free] - registered[free])
     inside, pushed = push_out_of_tool(registered, tool_pose, config.tool)
     moved = inside & without_data
     registered = np.where(moved[:, None], pushed, registered)
