@@ -4,10 +4,11 @@ lost there re-acquired from the template's own images. Pure OpenCV/numpy on arra
 
 Per camera:
 1. chain: the points visible at their latest positions are tracked from the previous
-   image (where they were found there, else their projection), starting where they were
-   moved by the camera's image motion measured on a pilot sample (core/tracking.
-   track_adaptive), so that a camera or scene moving 6-15 px a frame is followed whether
-   or not the poses say so;
+   image (where they were found there, else their projection), starting at their latest
+   position projected now or where they were (the prior whose pilot sample tracks more
+   points), moved by the camera's image motion measured on that pilot sample (core/
+   tracking.track_adaptive), so that a camera or scene moving 6-15 px a frame is followed
+   whether or not the poses say so;
 2. anchor: the points not found so (lost in the previous frame, newly back in view, or
    failed) are tracked from the template's image of that camera, starting at their
    template pixel moved by the template-to-now image motion fitted on the chained tracks:
@@ -58,17 +59,18 @@ def _chain(latest: np.ndarray, prev: TrackingView, cur: TrackingView, prev_pose:
            cfg: TargetConfig) -> tuple[np.ndarray, np.ndarray]:
     """Step 1 for one camera: pixels (N, 2) (NaN = not found) and found (N,)."""
     n = len(latest)
-    _, visible = visible_points(latest, model, cur_pose, cfg.occlusion_depth_m)
+    guess, visible = visible_points(latest, model, cur_pose, cfg.occlusion_depth_m)
     start = prev_pixels.copy()
     missing = ~np.isfinite(start).all(1)
     if missing.any() and np.isfinite(prev_pose).all():
         start[missing] = project(latest[missing], prev_pose, model)[0]
     visible &= np.isfinite(start).all(1) & in_image(start, model, KLT_BORDER_PX)
     idx = np.flatnonzero(visible)
-    # The motion since the previous image is small: each point starts where it was, moved
-    # by the image motion the pilot tracks measure (not at its latest position projected
-    # now, which is stale where the registration lagged or the poses miss the motion).
-    tracked, ok, _ = track_adaptive(prev, cur, start[idx], start[idx], cfg, float("nan"))
+    # Two priors, piloted: the latest position projected with the current pose (the poses
+    # know how the camera moved), or where the point was (its latest position is stale
+    # where the registration lagged, or the poses miss the motion: an untracked camera).
+    tracked, ok, _ = track_adaptive(prev, cur, start[idx], guess[idx], cfg, float("nan"),
+                                    alternative=start[idx])
     pixels = np.full((n, 2), np.nan)
     pixels[idx[ok]] = tracked[ok]
     return pixels, np.isfinite(pixels).all(1)

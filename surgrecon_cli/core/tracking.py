@@ -159,20 +159,27 @@ def apply_motion(motion: np.ndarray, pixels: np.ndarray) -> np.ndarray:
 
 
 def track_adaptive(prev: TrackingView, cur: TrackingView, start: np.ndarray,
-                   guess: np.ndarray, cfg: TargetConfig,
-                   motion_px: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                   guess: np.ndarray, cfg: TargetConfig, motion_px: float,
+                   alternative: np.ndarray | None = None,
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """`klt_track` with the pyramid depth chosen for an expected motion `motion_px` px
     (`klt_levels_for`), and a safe fallback: the tracks that failed, or that moved from
     their guess farther than the chosen depth reaches, are tracked again at the full depth.
     An unknown motion (NaN) is measured first on every PILOT_STRIDE-th point, tracked at
     the full depth: the guesses are corrected by the image motion those pilot tracks show
     (`image_motion`: a camera or scene that moved without the poses saying so), and the
-    motion left is the expected one (`expected_motion_px`). Returns tracked (M, 2), ok (M,)
-    and each track's distance from its (corrected) guess (M,) px (NaN where not ok)."""
+    motion left is the expected one (`expected_motion_px`). `alternative` (M, 2): other
+    guesses (e.g. no motion, where `guess` comes from the poses), piloted too; the one whose
+    pilot tracks more points is used. Returns tracked (M, 2), ok (M,) and each track's
+    distance from its (corrected) guess (M,) px (NaN where not ok)."""
     full = cfg.klt_levels
     if not np.isfinite(motion_px) and len(start) >= 2 * PILOT_STRIDE:
         pilot = slice(None, None, PILOT_STRIDE)
         sample, ok = klt_track(prev, cur, start[pilot], guess[pilot], cfg, full)
+        if alternative is not None:
+            other, other_ok = klt_track(prev, cur, start[pilot], alternative[pilot], cfg, full)
+            if other_ok.sum() > ok.sum():
+                guess, sample, ok = alternative, other, other_ok
         motion = image_motion(guess[pilot][ok], sample[ok])
         if motion is not None:
             guess = apply_motion(motion, guess)
