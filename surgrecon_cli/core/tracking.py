@@ -14,7 +14,8 @@ from ..config import TargetConfig
 from .noise import image_noise_sigma
 
 NCC_PATCH_PX = 9  # ours: side of the patch compared after tracking (px)
-PILOT_STRIDE = 8  # ours: an unknown motion is measured on every 8th point (~12 %)
+PILOT_STRIDE = 8  # ours: an unknown motion is measured on every 8th point (~12 %) ...
+PILOT_EXTRA_LEVELS = 1  # ... one pyramid level deeper than the tracks (twice the reach)
 SHADING_SIGMA_PX = 6.0  # ours: shading scale removed before tracking (px), ~ half a KLT window
 SPECULAR_VALUE = 235  # ours: a pixel this bright (max of RGB, of 255) ...
 SPECULAR_CHROMA = 40  # ... with max - min of RGB at most this is a saturated highlight
@@ -165,19 +166,21 @@ def track_adaptive(prev: TrackingView, cur: TrackingView, start: np.ndarray,
     """`klt_track` with the pyramid depth chosen for an expected motion `motion_px` px
     (`klt_levels_for`), and a safe fallback: the tracks that failed, or that moved from
     their guess farther than the chosen depth reaches, are tracked again at the full depth.
-    An unknown motion (NaN) is measured first on every PILOT_STRIDE-th point, tracked at
-    the full depth: the guesses are corrected by the image motion those pilot tracks show
-    (`image_motion`: a camera or scene that moved without the poses saying so), and the
-    motion left is the expected one (`expected_motion_px`). `alternative` (M, 2): other
+    An unknown motion (NaN) is measured first on every PILOT_STRIDE-th point, tracked
+    PILOT_EXTRA_LEVELS deeper than the full depth: the guesses are corrected by the image
+    motion those pilot tracks show (`image_motion`: a camera or scene that moved without
+    the poses saying so), and the motion left is the expected one (`expected_motion_px`).
+    `alternative` (M, 2): other
     guesses (e.g. no motion, where `guess` comes from the poses), piloted too; the one whose
     pilot tracks more points is used. Returns tracked (M, 2), ok (M,) and each track's
     distance from its (corrected) guess (M,) px (NaN where not ok)."""
     full = cfg.klt_levels
     if not np.isfinite(motion_px) and len(start) >= 2 * PILOT_STRIDE:
         pilot = slice(None, None, PILOT_STRIDE)
-        sample, ok = klt_track(prev, cur, start[pilot], guess[pilot], cfg, full)
+        deep = full + PILOT_EXTRA_LEVELS
+        sample, ok = klt_track(prev, cur, start[pilot], guess[pilot], cfg, deep)
         if alternative is not None:
-            other, other_ok = klt_track(prev, cur, start[pilot], alternative[pilot], cfg, full)
+            other, other_ok = klt_track(prev, cur, start[pilot], alternative[pilot], cfg, deep)
             if other_ok.sum() > ok.sum():
                 guess, sample, ok = alternative, other, other_ok
         motion = image_motion(guess[pilot][ok], sample[ok])
