@@ -57,6 +57,22 @@ def test_a_motion_beyond_the_chosen_depth_is_found_by_the_full_depth_retry():
     assert np.nanmedian(moved) > 13.0
 
 
+def test_of_two_priors_the_one_whose_pilot_tracks_more_points_is_used():
+    # The image moved 14 px; one prior (a stale projection) is 74 px off, beyond the
+    # pyramid's reach; the other (no motion) is 14 px off: the tracks start from it.
+    cfg = Config().target
+    prev, cur = tracking_view(_texture(0.0)), tracking_view(_texture(14.0))
+    g = np.arange(50.0, 150.0, 8.0)
+    start = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
+    stale = start - [60.0, 0.0]
+    _, ok_stale, _ = track_adaptive(prev, cur, start, stale, cfg, float("nan"))
+    assert ok_stale.mean() < 0.5
+    tracked, ok, _ = track_adaptive(prev, cur, start, stale, cfg, float("nan"),
+                                    alternative=start.copy())
+    assert ok.mean() > 0.9
+    assert np.median(np.abs(tracked[ok] - (start[ok] + [14.0, 0.0]))) < 0.05
+
+
 def test_the_chosen_depth_tracks_as_the_full_depth_on_a_simulated_frame_pair():
     sim = SimConfig(cameras=1, frames=20, width=320, height=256, seed=5)
     scene = render_frames(sim, [5, 6])

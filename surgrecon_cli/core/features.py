@@ -8,6 +8,7 @@ import cv2
 import numpy as np
 
 from .cameras import CameraModel, undistort_pixels
+from .tracking import specular_mask, specular_zone
 
 
 @dataclass(frozen=True)
@@ -53,13 +54,17 @@ def detect_features(
     contrast_threshold: float,
     exclude: np.ndarray | None = None,
 ) -> Features:
-    """SIFT on an RGB image (H, W, 3) uint8; `exclude` (H, W) bool masks pixels out (tool).
+    """SIFT on an RGB image (H, W, 3) uint8; `exclude` (H, W) bool masks pixels out (tool),
+    and so do saturated specular highlights (core/tracking.specular_zone): they move with
+    the light, so a feature there triangulates to no point of the tissue and is not tracked.
 
     The contrast threshold is half OpenCV's default: endoscopic tissue is low-contrast and we
     want hundreds to thousands of features per image (our choice, not the paper's).
     """
     gray = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
-    mask = None if exclude is None else (~exclude).astype(np.uint8) * 255
+    highlight = specular_zone(specular_mask(image))
+    exclude = highlight if exclude is None else exclude | highlight
+    mask = (~exclude).astype(np.uint8) * 255
     sift = cv2.SIFT.create(nfeatures=max_features, contrastThreshold=contrast_threshold)
     keypoints, descriptors = sift.detectAndCompute(gray, mask)
     if not keypoints:

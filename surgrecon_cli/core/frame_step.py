@@ -1,6 +1,7 @@
 """One frame of the registration pipeline as a pure function (Su et al. 2019, Fig. 2):
-target cloud -> data weights -> non-rigid registration with the tool-contact constraint ->
-composition with the base's transforms -> per-point uncertainty of the result.
+target cloud -> data weights -> the scene's robust rigid motion, then the non-rigid
+remainder with the tool-contact constraint -> composition with the base's transforms ->
+per-point uncertainty of the result.
 
 The stage (stages/register.py) only loads the inputs and writes the outputs.
 
@@ -30,10 +31,16 @@ from .cameras import CameraModel
 from .labels import INTER, INTRA, OUTLIER, UNOBSERVED
 from .noise import NoiseModel, covariance_sigma
 from .registration import RegistrationResult, register
+from .rigid_fit import robust_rigid
 from .target import TargetCloud, build_target, new_target_points
 from .template import build_template
 from .tool import push_out_of_tool
 from .tracking import TrackingView
+
+FOLLOW_FROM_M = 3e-3  # ours: points without data this far from the data start to follow ...
+FOLLOW_FULL_M = 8e-3  # ... the blend of the data's displacements, fully from this far
+RIGID_INLIER_SIGMAS = 3.0  # ours: a target within 3 σ of the rigid motion follows it
+RIGID_INLIER_FLOOR_M = 0.5e-3  # ... or within 0.5 mm (σ may be under-estimated)
 
 
 @dataclass(frozen=True)
@@ -135,10 +142,15 @@ def register_with_contact(source: np.ndarray, source_rgb: np.ndarray, target_xyz
     section II.C), in one solve: points without data (weight 0: under the tool, hidden by
     it) predicted inside the tool's capsule (`predicted_positions`: moved with their tracked
     neighbours) get a target on the capsule's surface, pushed along the shaft, so that the
-    field around the tool follows the contact; after the solve, every point without data
-    still inside the capsule (the l1 fit leaves a contact target a little short of it, and
-    the prediction can miss a point) is moved onto the surface, its transform translated
-    by the same push. Returns the result and the number of points in contact."""
+    field around the tool follows the contact; after the solve, the other points without
+    data farther than FOLLOW_FROM_M from any data point move towards the inverse-distance
+    blend of their nearest data points' displacements (`predicted_positions` on the
+    registered positions), fully from FOLLOW_FULL_M on: far from its support, the solve's
+    affine field, fitted to the data's noise, would amplify it with distance; near it,
+    the field follows a dent better than a blend. Every point without data still
+    inside the capsule (the l1 fit leaves a contact target a little short of it, and the
+    prediction can miss a point) is moved onto the surface, its transform translated by
+    the same push. Returns the result and the number of points in contact."""
     guess = predicted_positions(source, target_xyz, target_ids,
                                 config.registration.interp_neighbors)
     without_data = weights == 0
@@ -151,13 +163,51 @@ def register_with_contact(source: np.ndarray, source_rgb: np.ndarray, target_xyz
                       config=config.registration,
                       target_ids=np.concatenate([target_ids, contact]),
                       weights=np.where(predicted, 1.0, weights))
-    inside, pushed = push_out_of_tool(result.registered, tool_pose, config.tool_configs())
+    data = np.flatnonzero(~without_data)
+    free = np.flatnonzero(without_data & ~predicted)
+    registered = result.registered.copy()
+    if len(data) and len(free):
+        follow = predicted_positions(source, result.registered[data], data,
+                                     config.registration.interp_neighbors)
+        distance, _ = cKDTree(source[data]).query(source[free])
+        share = np.clip((distance - FOLLOW_FROM_M) / (FOLLOW_FULL_M - FOLLOW_FROM_M), 0, 1)
+        registered[free] += share[:, None] * (follow[free] - registered[free])
+    inside, pushed = push_out_of_tool(registered, tool_pose, config.tool_configs())
     moved = inside & without_data
+    registered = np.where(moved[:, None], pushed, registered)
     transforms = result.transforms.copy()
-    transforms[moved, :, 3] += pushed[moved] - result.registered[moved]
-    registered = np.where(moved[:, None], pushed, result.registered)
+    transforms[:, :, 3] += registered - result.registered
     return (replace(result, transforms=transforms, registered=registered),
             int((moved | predicted).sum()))
+
+
+def rigid_start(source: np.ndarray, target: TargetCloud) -> np.ndarray:
+    """The scene's rigid motion (3, 4) from the base's cloud source (N, 3) m to the frame's
+    target: a robust fit (core/rigid_fit.robust_rigid) on the points with a target, inliers
+    within RIGID_INLIER_SIGMAS of their median σ (at least RIGID_INLIER_FLOOR_M). The
+    registration then only solves what is not rigid, and points without data follow the
+    rigid motion (with their neighbours' remainder) instead of staying behind."""
+    has = ((target.status == INTRA) | (target.status == INTER)) & np.isfinite(target.sigma)
+    scale = float(np.median(target.sigma[has])) if has.any() else 0.0
+    R, t, _ = robust_rigid(source[has], target.positions[has],
+                           max(RIGID_INLIER_SIGMAS * scale, RIGID_INLIER_FLOOR_M))
+    return np.concatenate([R, t[:, None]], axis=1)
+
+
+def register_rigid_first(source: np.ndarray, source_rgb: np.ndarray, target: TargetCloud,
+                         target_xyz: np.ndarray, target_rgb: np.ndarray, target_ids: np.ndarray,
+                         weights: np.ndarray, tool_pose: np.ndarray,
+                         config: Config) -> tuple[RegistrationResult, int]:
+    """`register_with_contact` of source (N, 3) m moved first by the scene's rigid motion to
+    `target` (`rigid_start`): the non-rigid registration solves the remainder, and points
+    without data follow the rigid motion plus their neighbours' remainder. The result's
+    transforms (N, 3, 4) include the rigid motion (source -> registered)."""
+    rigid = rigid_start(source, target)
+    moved = source @ rigid[:, :3].T + rigid[:, 3]
+    result, n_contact = register_with_contact(moved, source_rgb, target_xyz, target_rgb,
+                                              target_ids, weights, tool_pose, config)
+    transforms = compose(result.transforms, np.broadcast_to(rigid, result.transforms.shape))
+    return replace(result, transforms=transforms), n_contact
 
 
 def registered_sigma(template: np.ndarray, template_sigma: np.ndarray, registered: np.ndarray,
@@ -198,6 +248,8 @@ def register_frame_step(
     config: Config,
     new_point_images: list[np.ndarray | None] | None = None,
     template_pose_cov: np.ndarray | None = None,
+    anchor_views: list[TrackingView | None] | None = None,
+    anchor_pixels: np.ndarray | None = None,
 ) -> FrameResult:
     """Target cloud and registration of one frame against its base.
 
@@ -207,13 +259,18 @@ def register_frame_step(
     None where unusable); poses (C, 4, 4) camera-to-world, NaN where unusable; tool_pose
     (K, 4, 4) every tool's pose in the world, as `config.tool_configs()` lists them (NaN =
     unknown); new_point_images: this frame's RGB images (H, W, 3)
-    uint8 when new features are to be triangulated into the target (None: not this frame).
+    uint8 when new features are to be triangulated into the target (None: not this frame);
+    anchor_views / anchor_pixels (N, C, 2): the template's images and pixels, against
+    which tracks are corrected and lost points re-acquired (core/track_points.py).
+    The base's cloud is first moved by the scene's robust rigid motion to the target
+    (`rigid_start`); the registration solves the non-rigid remainder.
     Raises GeometryError when the frame cannot be registered (e.g. too few tracked
     points)."""
     start = time.perf_counter()
     target = build_target(template, template_cov, base.latest, base_views, views,
                           base_poses, poses, base.pixels, models, tool_pose, noise,
-                          config.target, config.tool_configs(), template_pose_cov)
+                          config.target, config.tool_configs(), template_pose_cov, anchor_views,
+                          anchor_pixels)
     has_target = (target.status == INTRA) | (target.status == INTER)
     ids = np.flatnonzero(has_target)
     target_xyz, target_rgb = target.positions[ids], template_rgb[ids]
@@ -230,8 +287,8 @@ def register_frame_step(
                             f"({target.counts()}); need >= 3")
     seconds_target = time.perf_counter() - start
     start = time.perf_counter()
-    result, n_contact = register_with_contact(
-        base.source, template_rgb, target_xyz, target_rgb, ids,
+    result, n_contact = register_rigid_first(
+        base.source, template_rgb, target, target_xyz, target_rgb, ids,
         data_weights(target, has_new=n_new > 0), tool_pose, config)
     seconds_register = time.perf_counter() - start
     sigma, residual, support = registered_sigma(

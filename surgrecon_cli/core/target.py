@@ -30,7 +30,6 @@ from scipy.stats import chi2
 from ..config import TargetConfig
 from .cameras import (
     CameraModel,
-    in_image,
     project,
     view_distortion_jacobians,
 )
@@ -40,12 +39,12 @@ from .noise import (
     NoiseModel,
     body_pose_covariance,
     covariance_sigma,
-    localisation_variance_px2,
     point_covariances,
     projection_jacobians,
 )
-from .tool import ToolConfigs, points_near_tool, tool_pixel_mask
-from .tracking import TrackingView, expected_motion_px, track_adaptive
+from .tool import ToolConfigs, points_near_tool
+from .track_points import find_points
+from .tracking import TrackingView
 from .triangulate import triangulate
 
 
@@ -71,28 +70,6 @@ class TargetCloud:
 
     def counts(self) -> dict[str, int]:
         return {name: int((self.status == code).sum()) for code, name in STATUS_NAMES.items()}
-
-
-def visible_points(
-    points: np.ndarray,
-    camera: CameraModel,
-    pose: np.ndarray,
-    occlusion_depth_m: float,
-    cell_px: int = 8,
-    border: float = 8.0,
-):
-    """Predicted pixels (N, 2) and visibility (N,) of points in one camera: in front, inside
-    the image (with a KLT border), and not behind other points of the cloud (a z-buffer on
-    `cell_px` cells, tolerance `occlusion_depth_m` m)."""
-    uv, z = project(points, pose, camera)
-    ok = (z > 0) & in_image(uv, camera, border) & np.isfinite(points).all(1)
-    cells_x = camera.width // cell_px + 1
-    cell = np.full(len(points), -1)
-    cell[ok] = (uv[ok, 1] // cell_px).astype(int) * cells_x + (uv[ok, 0] // cell_px).astype(int)
-    zbuf = np.full(cells_x * (camera.height // cell_px + 1), np.inf)
-    np.minimum.at(zbuf, cell[ok], z[ok])
-    ok[ok] &= z[ok] <= zbuf[cell[ok]] + occlusion_depth_m
-    return uv, ok
 
 
 def gate_chi2(significance: float, dof: int = 2) -> float:
@@ -230,6 +207,8 @@ def build_target(
     cfg: TargetConfig,
     tool_cfg: ToolConfigs,
     template_pose_cov: np.ndarray | None = None,
+    anchor_views: list[TrackingView | None] | None = None,
+    anchor_pixels: np.ndarray | None = None,
 ) -> TargetCloud:
     """Target cloud of a frame for template points (N, 3) at frame 0 (covariances (N, 3, 3)
     m², of which template_pose_cov from pose errors) and latest positions, gated with the
@@ -241,35 +220,14 @@ def build_target(
     pipeline passes the template base, whose views it builds once per process); poses (C, 4, 4)
     with NaN where unusable; prev_pixels (N, C, 2): where each point was found in that frame
     (NaN = not found; then its projection is tracked instead); latest (N, 3) m: positions
-    at that frame.
+    at that frame; anchor_views / anchor_pixels (N, C, 2): the template's images and
+    pixels, against which the tracks are corrected and lost points re-acquired
+    (core/track_points.find_points; None: tracks from prev only).
     """
-    n, n_cams = len(template), len(models)
-    pixels = np.full((n, n_cams, 2), np.nan)
-    found = np.zeros((n, n_cams), bool)
-    localisation = np.full((n, n_cams), np.inf)
-    moved = np.zeros(0)  # distances of the tracks from their guesses so far (px)
-    for c in range(n_cams):
-        cur, prev = cur_views[c], prev_views[c]
-        if cur is None or prev is None:
-            continue
-        guess, visible = visible_points(latest, models[c], cur_poses[c], cfg.occlusion_depth_m)
-        start = prev_pixels[:, c].copy()
-        missing = ~np.isfinite(start).all(1)
-        if missing.any() and np.isfinite(prev_poses[c]).all():
-            start[missing] = project(latest[missing], prev_poses[c], models[c])[0]
-        visible &= np.isfinite(start).all(1) & in_image(start, models[c], 8.0)
-        idx = np.flatnonzero(visible)
-        # The pyramid's depth follows the motion measured in the cameras tracked before
-        # (for the first, on a sample of its points), with a full-depth retry.
-        tracked, ok, distance = track_adaptive(prev, cur, start[idx], guess[idx], cfg,
-                                               expected_motion_px(moved))
-        moved = np.concatenate([moved, distance[ok]])
-        ok &= in_image(tracked, models[c], 2.0)
-        ok &= ~tool_pixel_mask(tracked, models[c], cur_poses[c], tool_pose, tool_cfg)
-        pixels[idx[ok], c] = tracked[ok]
-        found[idx[ok], c] = True
-        localisation[idx[ok], c] = localisation_variance_px2(
-            cur.grey, tracked[ok], cfg.klt_window_px, cur.noise_sigma)
+    n = len(template)
+    pixels, found, localisation = find_points(
+        latest, prev_views, cur_views, prev_poses, cur_poses, prev_pixels, models, tool_pose,
+        cfg, tool_cfg, anchor_views, anchor_pixels)
     # The bound is a floor: what the frame's re-triangulated residuals show beyond the
     # model is localisation error too (core/frame_noise.py).
     excess, _ = tracking_excess_px2(found, pixels, localisation, models, cur_poses, noise)

@@ -14,8 +14,13 @@ from ..config import TargetConfig
 from .noise import image_noise_sigma
 
 NCC_PATCH_PX = 9  # ours: side of the patch compared after tracking (px)
-PILOT_STRIDE = 8  # ours: an unknown motion is measured on every 8th point (~12 %)
+PILOT_STRIDE = 8  # ours: an unknown motion is measured on every 8th point (~12 %) ...
+PILOT_EXTRA_LEVELS = 1  # ... one pyramid level deeper than the tracks (twice the reach)
 SHADING_SIGMA_PX = 6.0  # ours: shading scale removed before tracking (px), ~ half a KLT window
+SPECULAR_VALUE = 235  # ours: a pixel this bright (max of RGB, of 255) ...
+SPECULAR_CHROMA = 40  # ... with max - min of RGB at most this is a saturated highlight
+SPECULAR_MARGIN_PX = 4  # ours: a track this close to a highlight is not trusted (px)
+MIN_MOTION_FIT = 6  # pilot tracks needed to fit the image motion (a 2D similarity)
 
 
 def tracking_image(image: np.ndarray) -> np.ndarray:
@@ -39,15 +44,46 @@ class TrackingView:
     grey: np.ndarray
     grey_f32: np.ndarray
     noise_sigma: float
+    specular: np.ndarray
+
+
+def specular_mask(image: np.ndarray) -> np.ndarray:
+    """Saturated specular highlights of an RGB image (H, W, 3) uint8: near-white pixels of
+    low chroma (max of RGB >= SPECULAR_VALUE, max - min <= SPECULAR_CHROMA), (H, W) bool.
+    A highlight moves with the light, not with the tissue: a KLT window on it follows the
+    light."""
+    top = image.max(axis=2)
+    return (top >= SPECULAR_VALUE) & (top - image.min(axis=2) <= SPECULAR_CHROMA)
+
+
+def specular_zone(highlight: np.ndarray) -> np.ndarray:
+    """Highlights (H, W) bool grown by SPECULAR_MARGIN_PX: where a feature or track is not
+    trusted (its window is dominated by the highlight's edges)."""
+    side = 2 * SPECULAR_MARGIN_PX + 1
+    return cv2.dilate(highlight.astype(np.uint8), np.ones((side, side), np.uint8)) > 0
 
 
 def tracking_view(image: np.ndarray) -> TrackingView:
-    """The `TrackingView` of an RGB image (H, W, 3) uint8."""
+    """The `TrackingView` of an RGB image (H, W, 3) uint8: highlights (`specular_mask`) are
+    set to the neutral grey 128 of `tracking_image`, and `specular` (H, W) bool marks them
+    grown (`specular_zone`), where tracks are refused."""
     grey = tracking_image(image)
+    highlight = specular_mask(image)
+    grey[highlight] = 128
     grey.flags.writeable = False  # shared by every frame tracked from this image
     grey_f32 = grey.astype(np.float32)
     grey_f32.flags.writeable = False
-    return TrackingView(grey, grey_f32, image_noise_sigma(grey))
+    grown = specular_zone(highlight)
+    grown.flags.writeable = False
+    return TrackingView(grey, grey_f32, image_noise_sigma(grey), grown)
+
+
+def on_specular(view: TrackingView, pixels: np.ndarray) -> np.ndarray:
+    """Whether pixels (M, 2) (finite) lie on or next to a highlight of `view`, (M,) bool."""
+    h, w = view.specular.shape
+    col = np.clip(np.rint(pixels[:, 0]).astype(int), 0, w - 1)
+    row = np.clip(np.rint(pixels[:, 1]).astype(int), 0, h - 1)
+    return view.specular[row, col]
 
 
 def klt_levels_for(motion_px: float, window_px: int, max_levels: int) -> int:
@@ -90,6 +126,7 @@ def klt_track(
     fb = np.linalg.norm((back - p0).reshape(-1, 2), axis=1)
     tracked = p1.reshape(-1, 2).astype(np.float64)
     ok = (st1.ravel() == 1) & (st2.ravel() == 1) & (fb <= cfg.klt_fb_px)
+    ok[ok] &= ~on_specular(prev, start[ok]) & ~on_specular(cur, tracked[ok])
     ok[ok] &= patch_ncc(prev.grey_f32, start[ok], cur.grey_f32, tracked[ok],
                         NCC_PATCH_PX) >= cfg.min_ncc
     return tracked, ok
@@ -102,20 +139,53 @@ def expected_motion_px(moved: np.ndarray) -> float:
     return float(2.0 * np.percentile(moved, 95)) if len(moved) else float("nan")
 
 
+def image_motion(source: np.ndarray, moved: np.ndarray) -> np.ndarray | None:
+    """The image motion of a camera as a 2D similarity (2, 3) fitted robustly (RANSAC,
+    2 px) to pixels source (K, 2) found at moved (K, 2); None with fewer than
+    MIN_MOTION_FIT pairs or no fit. A camera sweeping over a distant surface moves its
+    image nearly as one similarity; the fit predicts where the other points went."""
+    if len(source) < MIN_MOTION_FIT:
+        return None
+    fit, inliers = cv2.estimateAffinePartial2D(
+        source.astype(np.float32), moved.astype(np.float32), method=cv2.RANSAC,
+        ransacReprojThreshold=2.0)
+    if fit is None or inliers is None or int(inliers.sum()) < MIN_MOTION_FIT:
+        return None
+    return np.asarray(fit, float)
+
+
+def apply_motion(motion: np.ndarray, pixels: np.ndarray) -> np.ndarray:
+    """Pixels (M, 2) moved by an image motion (2, 3) (`image_motion`)."""
+    return pixels @ motion[:, :2].T + motion[:, 2]
+
+
 def track_adaptive(prev: TrackingView, cur: TrackingView, start: np.ndarray,
-                   guess: np.ndarray, cfg: TargetConfig,
-                   motion_px: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                   guess: np.ndarray, cfg: TargetConfig, motion_px: float,
+                   alternative: np.ndarray | None = None,
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """`klt_track` with the pyramid depth chosen for an expected motion `motion_px` px
     (`klt_levels_for`), and a safe fallback: the tracks that failed, or that moved from
     their guess farther than the chosen depth reaches, are tracked again at the full depth.
-    An unknown motion (NaN) is measured first on every PILOT_STRIDE-th point, tracked at
-    the full depth (`expected_motion_px`). Returns tracked (M, 2), ok (M,) and each track's
-    distance from its guess (M,) px (NaN where not ok), the measured motion for the next
-    camera."""
+    An unknown motion (NaN) is measured first on every PILOT_STRIDE-th point, tracked
+    PILOT_EXTRA_LEVELS deeper than the full depth: the guesses are corrected by the image
+    motion those pilot tracks show (`image_motion`: a camera or scene that moved without
+    the poses saying so), and the motion left is the expected one (`expected_motion_px`).
+    `alternative` (M, 2): other
+    guesses (e.g. no motion, where `guess` comes from the poses), piloted too; the one whose
+    pilot tracks more points is used. Returns tracked (M, 2), ok (M,) and each track's
+    distance from its (corrected) guess (M,) px (NaN where not ok)."""
     full = cfg.klt_levels
     if not np.isfinite(motion_px) and len(start) >= 2 * PILOT_STRIDE:
         pilot = slice(None, None, PILOT_STRIDE)
-        sample, ok = klt_track(prev, cur, start[pilot], guess[pilot], cfg, full)
+        deep = full + PILOT_EXTRA_LEVELS
+        sample, ok = klt_track(prev, cur, start[pilot], guess[pilot], cfg, deep)
+        if alternative is not None:
+            other, other_ok = klt_track(prev, cur, start[pilot], alternative[pilot], cfg, deep)
+            if other_ok.sum() > ok.sum():
+                guess, sample, ok = alternative, other, other_ok
+        motion = image_motion(guess[pilot][ok], sample[ok])
+        if motion is not None:
+            guess = apply_motion(motion, guess)
         motion_px = expected_motion_px(np.linalg.norm(sample - guess[pilot], axis=1)[ok])
     levels = klt_levels_for(motion_px, cfg.klt_window_px, full)
     tracked, ok = klt_track(prev, cur, start, guess, cfg, levels)

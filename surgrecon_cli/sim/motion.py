@@ -60,6 +60,8 @@ class Motion:
             self.rigid_axis = axis / np.linalg.norm(axis)
             direction = r.normal(size=3)
             self.rigid_direction = direction / np.linalg.norm(direction)
+        if cfg.rig_sweep_deg > 0:
+            self._plan_rig_sweep(np.random.default_rng(cfg.seed + 808))
         self.sweep_axes: np.ndarray | None = None
         if cfg.sweep_deg > 0:
             self._plan_sweep(np.random.default_rng(cfg.seed + 707))
@@ -101,10 +103,25 @@ class Motion:
             axes.append(axis / np.linalg.norm(axis))
         self.sweep_axes = np.array(axes)
 
+    def _plan_rig_sweep(self, rng: np.random.Generator) -> None:
+        """The untracked sweep: cameras hold still (their logged pose is the rig's), the
+        tissue turns about a pivot on camera 0's axis, half-way to the tissue, about camera
+        0's y axis tilted up to 30 deg towards its x axis, at a rate drawn per seed."""
+        self.drift_amp = np.zeros_like(self.drift_amp)
+        pose = self._drifting_pose(0, 0.0)
+        self.rig_pivot = pose[:3, 3] + 0.5 * self.cfg.stereo_distance * pose[:3, 2]
+        tilt = np.radians(rng.uniform(-30.0, 30.0))
+        self.rig_axis = np.cos(tilt) * pose[:3, 1] + np.sin(tilt) * pose[:3, 0]
+        self.rig_rate = np.radians(self.cfg.rig_sweep_deg) * rng.uniform(2 / 3, 4 / 3)
+
     def rigid_motion(self, t: float) -> tuple[np.ndarray, np.ndarray]:
         """Rigid scene: tissue rotation (3, 3) about the dome's base centre and translation (3,)
-        at time t (identity at t <= 0, full at the last frame)."""
+        at time t (identity at t <= 0, full at the last frame); with an untracked rig sweep,
+        the rotation about the pivot at a constant rate."""
         cfg = self.cfg
+        if cfg.rig_sweep_deg > 0:
+            R = _rotation(self.rig_axis * self.rig_rate * t * cfg.frame_rate)
+            return R, self.rig_pivot - R @ self.rig_pivot
         s = float(smoothstep(np.asarray(t / cfg.duration)))
         R = _rotation(self.rigid_axis * np.radians(cfg.rigid_rotation_deg) * s)
         return R, s * cfg.rigid_translation * self.rigid_direction

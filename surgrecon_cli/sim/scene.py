@@ -19,7 +19,11 @@ Rig and scene variants (all off by default; `sim/variants.py` names presets of t
   indentation, the tool hovers well above the tissue;
 - `sweep_deg` > 0: every camera pans (rotation about an axis through its centre) by up to
   this angle over the log, all views sliding the same way, so that much of the frame-0
-  tissue leaves every view.
+  tissue leaves every view;
+- `rig_sweep_deg` > 0 (with `rigid_scene` and a stereo head): the head sweeps about a pivot
+  half-way to the tissue by 2/3-4/3 of this many degrees a frame while its logged pose
+  stays fixed (no tracker), i.e. the tissue moves rigidly about that pivot in the rig's
+  frame (the truth is written in that frame) and slides through the view.
 """
 
 from __future__ import annotations
@@ -75,6 +79,8 @@ class SimConfig:
     rigid_tool_hover: float = 0.025  # tool tip height above the contact point, at least (m)
     # Sweeping cameras: pan angle reached at the last frame (deg); 0 = off.
     sweep_deg: float = 0.0
+    # Untracked sweep of the stereo head: rotation per frame (deg, mean; 0 = off), see below.
+    rig_sweep_deg: float = 0.0
     # Lens model of every camera: plumb_bob, rational_polynomial or equidistant (fisheye).
     lens: str = "plumb_bob"
     # The robot's kinematics (tool pose, joint states) in the log; False: a log without a

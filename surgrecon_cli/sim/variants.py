@@ -65,6 +65,13 @@ VARIANTS: dict[str, Variant] = {
             {"sweep_deg": 35.0},
         ),
         Variant(
+            "rig-sweep",
+            "an untracked stereo endoscope sweeping 2-4 deg a frame over still tissue: the "
+            "logged rig pose is fixed, the scene moves rigidly in its frame",
+            {"cameras": 2, "stereo_baseline": STEREO_BASELINE, "rigid_scene": True,
+             "rig_sweep_deg": 3.0, "tracker_noise_pos": 0.0, "tracker_noise_deg": 0.0},
+        ),
+        Variant(
             "press-release",
             "the tool presses, releases the dent fully and lifts off before the end",
             {"release": 1.0},

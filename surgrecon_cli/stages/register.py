@@ -1,7 +1,8 @@
 """Stage `register`: target cloud and non-rigid registration of every frame k >= 1.
 
 Per frame k, one task (`register_frame`): the frame step of core/frame_step.py (target
-cloud G_k from the base frame's images, gated by the run's measured noise; registration of
+cloud G_k tracked from the base frame's images, points lost there re-acquired from the
+template's frame-0 images, gated by the run's measured noise; registration of
 the base's cloud to G_k; per-point uncertainty). The base is frame 0, or with re-basing
 every N_T frames the last multiple of N_T before k: frames depend on their base only, so
 they run in parallel on an executor, as a dependency chain over the bases. A frame that
@@ -73,7 +74,7 @@ def _load_base(layout: RunLayout, frame: int, update_every: int, template: np.nd
 
 _VIEWS: OrderedDict[tuple, tuple[TrackingView | None, ...]] = OrderedDict()
 _VIEWS_LOCK = threading.Lock()
-VIEW_FRAMES = 2  # frames whose views a process keeps: the base and the frame registered
+VIEW_FRAMES = 3  # frames whose views a process keeps: the template's, the base's and the frame's
 
 
 def frame_views(log: IngestedLog, frame: int) -> list[TrackingView | None]:
@@ -102,10 +103,11 @@ def register_frame(run_dir: Path, frame: int, config: Config) -> dict:
     n, models = len(template.points), list(log.models)
     obs = read_observations(layout, n)
     every = config.registration.template_update_every
-    base = _load_base(layout, base_frame(frame, every), every, template.points,
-                      obs.pixels_by_camera(n, len(models)))
+    pixels0 = obs.pixels_by_camera(n, len(models))
+    base = _load_base(layout, base_frame(frame, every), every, template.points, pixels0)
     new_every = config.target.new_points_every
     start = time.perf_counter()
+    anchor_views = frame_views(log, 0)
     base_views, views = frame_views(log, base.frame), frame_views(log, frame)
     seconds_views = time.perf_counter() - start  # counted with the target: its images
     try:
@@ -116,7 +118,8 @@ def register_frame(run_dir: Path, frame: int, config: Config) -> dict:
             noise_from_report(log.report, log.cameras, obs.pixel_noise_px), config,
             new_point_images=(log.frame_images(frame) if new_every and frame % new_every == 0
                               else None),
-            template_pose_cov=obs.pose_covariance)
+            template_pose_cov=obs.pose_covariance, anchor_views=anchor_views,
+            anchor_pixels=pixels0)
     except GeometryError as exc:
         write_registration(layout, frame, _artefact(unregistered(n, len(models)), base.frame,
                                                     str(exc)))
