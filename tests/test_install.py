@@ -5,6 +5,7 @@ extra at a version the project accepts, and `make test` leaves out the slow test
 
 from __future__ import annotations
 
+import os
 import re
 import shutil
 import subprocess
@@ -44,11 +45,13 @@ def test_constraints_pin_every_dependency_at_an_accepted_version():
 
 
 def _make(*args: str) -> str:
-    """What `make -n ARGS` prints (-n: nothing is run)."""
+    """What `make -n ARGS` prints (-n: nothing is run), also when the suite runs under make
+    (`make test`: no inherited flags, no "Entering directory" lines)."""
     if shutil.which("make") is None:
         pytest.skip("make is not installed")
-    return subprocess.run(["make", "-n", *args], cwd=ROOT, capture_output=True, text=True,
-                          check=False).stdout
+    env = {k: v for k, v in os.environ.items() if k not in ("MAKEFLAGS", "MFLAGS", "MAKELEVEL")}
+    return subprocess.run(["make", "-n", "--no-print-directory", *args], cwd=ROOT, env=env,
+                          capture_output=True, text=True, check=False).stdout
 
 
 def test_make_installs_the_constraints_and_tests_without_the_slow_ones():
