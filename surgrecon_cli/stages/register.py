@@ -30,7 +30,7 @@ from ..config import Config
 from ..core.frame_step import BaseState, FrameResult, register_frame_step, unregistered
 from ..core.noise import noise_from_report
 from ..core.tracking import TrackingView, tracking_view
-from ..errors import GeometryError, RunFolderError
+from ..errors import GeometryError
 from ..executors import Executor, Task
 from ..executors.serial import SerialExecutor
 from ..io.artefacts import (
@@ -252,10 +252,3 @@ def _warn_failed(failed: dict[str, str], resumed: bool) -> None:
     for key in sorted(failed, key=int):
         when = "failed in an earlier run (same config, not retried)" if resumed else "failed"
         logger.warning("frame %s %s: %s; its points are unknown", key, when, failed[key])
-
-
-def require_registered(run_dir: Path) -> None:
-    if not RunFolder(run_dir).is_done(STAGE):
-        raise RunFolderError(
-            f"{run_dir}: frames are not registered; run `surgrecon register {run_dir}`"
-        )

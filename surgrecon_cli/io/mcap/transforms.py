@@ -16,16 +16,14 @@ time when that is zero or `time_source` is "log_time" (as `reader.LogReader` doe
 from __future__ import annotations
 
 import re
-from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from mcap.records import Channel, Message, Schema
 
-from ...core.tf_samples import SampleCollector, TransformSamples, frame_id_problem, make_samples
+from ...core.tf_samples import SampleCollector, TransformSamples, frame_id_problem
 from ...errors import InputError
-from ..records import PoseRecord
 from .registry import DESERIALIZERS, find_decoder
 from .scan import ALL, SKIP, LogScan, scan_mcap
 
@@ -45,15 +43,6 @@ def is_static_channel(topic: str, metadata: dict[str, str] | None = None) -> boo
     if str(meta.get("latching", "")).strip() in ("1", "true", "True"):
         return True
     return bool(_TRANSIENT_LOCAL.search(meta.get("offered_qos_profiles", "")))
-
-
-def samples_from_records(records: Iterable[PoseRecord], static: bool) -> TransformSamples:
-    """Transform records (`PoseRecord`s with a child frame, stamps already chosen) ->
-    samples; for callers that decode the log themselves (e.g. while streaming it)."""
-    recs = list(records)
-    return make_samples([r.frame_id for r in recs], [r.child_frame_id for r in recs],
-                        [r.stamp_ns for r in recs], [r.position for r in recs],
-                        [r.orientation for r in recs], static)
 
 
 @dataclass(frozen=True)
