@@ -135,7 +135,7 @@ def validate_pose_stream(
     if bad.any():
         k = int(np.argmax(bad))
         raise InputError(
-            f"{name}: pose at stamp {_fmt_stamp(stamps[k])} has non-finite values "
+            f"{name}: pose at stamp {fmt_stamp(stamps[k])} has non-finite values "
             f"(position {pos[k].tolist()}, orientation {q[k].tolist()})"
         )
     norms = np.linalg.norm(q, axis=1)
@@ -143,7 +143,7 @@ def validate_pose_stream(
     if off.any():
         k = int(np.argmax(off))
         raise InputError(
-            f"{name}: pose at stamp {_fmt_stamp(stamps[k])} has a non-unit quaternion "
+            f"{name}: pose at stamp {fmt_stamp(stamps[k])} has a non-unit quaternion "
             f"(|q| = {norms[k]:.6g}, expected 1 within {QUAT_NORM_TOLERANCE:g})"
         )
     q = q / norms[:, None]
@@ -255,6 +255,7 @@ def _median_ns(stamps: np.ndarray) -> int:
     return lo + (hi - lo) // 2
 
 
-def _fmt_stamp(stamp_ns: int | np.integer) -> str:
+def fmt_stamp(stamp_ns: int | np.integer) -> str:
+    """ns -> 'S.NNNNNNNNN s' (exact: no float rounding)."""
     stamp = int(stamp_ns)
     return f"{stamp // 1_000_000_000}.{stamp % 1_000_000_000:09d} s"

@@ -26,10 +26,11 @@ from typing import Any
 import cv2
 import numpy as np
 
+from ..core.sync import fmt_stamp
 from ..errors import InputError
 from .images import MAX_IMAGE_PIXELS, StoredImage
 from .records import ImageRecord
-from .video_checks import StreamCheck, VideoProblem, fmt_stamp, nal_units
+from .video_checks import StreamCheck, VideoProblem, nal_units
 
 logger = logging.getLogger(__name__)
 

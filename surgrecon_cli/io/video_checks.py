@@ -235,8 +235,3 @@ class StreamCheck:
         if period is None or step <= GAP_FACTOR * period:
             return None
         return f"stamp step {step / 1e6:g} ms, the stream's is {period / 1e6:g} ms"
-
-
-def fmt_stamp(stamp_ns: int) -> str:
-    """ns -> 'S.NNNNNNNNN s'."""
-    return f"{int(stamp_ns) // 1_000_000_000}.{int(stamp_ns) % 1_000_000_000:09d} s"

@@ -17,14 +17,14 @@ import numpy as np
 
 from ..config import Config
 from ..core.geometry import make_pose
-from ..core.sync import PoseStream, base_to_world_pose
+from ..core.sync import PoseStream, base_to_world_pose, fmt_stamp
 from ..core.tf_samples import concat_samples
 from ..core.tf_tree import TfTree, build_tf_tree
 from ..core.world_poses import chain_stream, moved_by, stream_to_world, transformed
 from ..errors import InputError, quoted
 from ..io.mcap import LogReader
 from ..io.mcap.transforms import read_transforms
-from .ingest_streams import CameraStreams, Poses, fmt_stamp
+from .ingest_streams import CameraStreams, Poses
 
 logger = logging.getLogger(__name__)
 

@@ -12,7 +12,7 @@ import numpy as np
 
 from ..core.cameras import CameraModel
 from ..core.intrinsics import folds_before_corners, implausible_intrinsics
-from ..core.sync import PoseStream, validate_pose_stream
+from ..core.sync import PoseStream, fmt_stamp, validate_pose_stream
 from ..core.tf_samples import frame_id_problem
 from ..errors import GeometryError, InputError, quoted
 from ..io.images import StoredImage, prepare_image
@@ -26,12 +26,6 @@ from ..io.video import VideoDecoder
 from ..io.video_checks import VideoProblem
 
 logger = logging.getLogger(__name__)
-
-def fmt_stamp(stamp_ns: int) -> str:
-    """ns -> 'S.NNNNNNNNN s'."""
-    stamp = int(stamp_ns)
-    return f"{stamp // 1_000_000_000}.{stamp % 1_000_000_000:09d} s"
-
 
 @dataclass
 class Poses:
