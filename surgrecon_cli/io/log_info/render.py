@@ -8,6 +8,7 @@ import textwrap
 from collections.abc import Sequence
 
 from ...config import TopicsConfig
+from ...core.sync import fmt_stamp
 from ..mcap.registry import no_images_message
 from .config_text import check_topics
 from .patterns import captures
@@ -38,7 +39,7 @@ def format_info(info: LogInfo, topics: TopicsConfig | None = None,
 
 def _header(info: LogInfo) -> str:
     span = (info.end_ns - info.start_ns) * 1e-9 if info.message_count else 0.0
-    start = _stamp(info.start_ns) if info.message_count else "-"
+    start = fmt_stamp(info.start_ns) if info.message_count else "-"
     n = len(info.files)
     what = ""
     if info.path.is_dir():
@@ -67,7 +68,7 @@ def _files(info: LogInfo) -> str:
     rows = [("file", "size", "messages", "log time from", "span s")]
     for f in info.files[:_MAX_FILES]:
         rows.append((f.path.name, _size(f.size), str(f.messages),
-                     _stamp(f.first_ns) if f.messages else "-",
+                     fmt_stamp(f.first_ns) if f.messages else "-",
                      f"{(f.last_ns - f.first_ns) * 1e-9:.2f}" if f.messages else "-"))
     more = len(info.files) - _MAX_FILES
     tail = [f"  ... and {more} more"] if more > 0 else []
@@ -77,10 +78,6 @@ def _files(info: LogInfo) -> str:
 
 def _size(n: int) -> str:
     return f"{n / 1e6:.1f} MB" if n >= 1e6 else f"{n / 1e3:.1f} kB"
-
-
-def _stamp(ns: int) -> str:
-    return f"{ns // 1_000_000_000}.{ns % 1_000_000_000:09d} s"
 
 
 def _rate(rate_hz: float) -> str:
