@@ -32,7 +32,7 @@ def degrade(image: np.ndarray, rng: np.random.Generator, warp_px: float = 0.0,
     random draw, when all are 0)."""
     if not (warp_px > 0 or blur_px > 0 or vignetting > 0 or interlace_px != 0):
         return image
-    out = image.astype(np.float32)
+    out: np.ndarray = image.astype(np.float32)
     h, w = out.shape[:2]
     if warp_px > 0:
         coarse = rng.normal(0.0, warp_px, (2, h // WARP_CELL_PX + 2, w // WARP_CELL_PX + 2))
@@ -46,7 +46,7 @@ def degrade(image: np.ndarray, rng: np.random.Generator, warp_px: float = 0.0,
     if blur_px > 0:
         out = cv2.GaussianBlur(out, (0, 0), blur_px)
     if interlace_px != 0:
-        shift = np.float32([[1, 0, interlace_px], [0, 1, 0]])
+        shift = np.array([[1, 0, interlace_px], [0, 1, 0]], np.float32)
         moved = cv2.warpAffine(out, shift, (w, h), flags=cv2.INTER_LINEAR,
                                borderMode=cv2.BORDER_REFLECT)
         out[1::2] = moved[1::2]

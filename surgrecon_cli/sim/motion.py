@@ -53,7 +53,8 @@ class Motion:
         self.stereo_offset: np.ndarray | None = None
         if cfg.stereo_baseline > 0:
             self._place_stereo_head(np.random.default_rng(cfg.seed + 505))
-        self.rigid_axis = self.rigid_direction = None
+        # The rigid scene's rotation axis and translation direction, unit (3,); zero otherwise.
+        self.rigid_axis, self.rigid_direction = np.zeros(3), np.zeros(3)
         if cfg.rigid_scene:
             r = np.random.default_rng(cfg.seed + 606)
             axis = r.normal(size=3)

@@ -15,6 +15,23 @@ from ..core.cameras import CameraModel, pixel_rays
 from .texture import Texture
 
 TISSUE, TOOL = 0, 1
+CPU = o3d.core.Device("CPU:0")
+
+
+def mesh_scene(vertices: np.ndarray, faces: np.ndarray) -> o3d.t.geometry.RaycastingScene:
+    """A ray-casting scene holding one triangle mesh: vertices (V, 3) m, faces (F, 3)."""
+    mesh = o3d.t.geometry.TriangleMesh()
+    mesh.vertex.positions = o3d.core.Tensor(vertices.astype(np.float32), o3d.core.float32, CPU)
+    mesh.triangle.indices = o3d.core.Tensor(faces.astype(np.int32), o3d.core.int32, CPU)
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(mesh)
+    return scene
+
+
+def cast_rays(scene: o3d.t.geometry.RaycastingScene, rays: np.ndarray
+              ) -> dict[str, o3d.core.Tensor]:
+    """The scene's hits (open3d's `cast_rays` result) for rays (N, 6): origin, unit direction."""
+    return scene.cast_rays(o3d.core.Tensor(rays.astype(np.float32), o3d.core.float32, CPU))
 
 
 def pixel_grid(camera: CameraModel) -> np.ndarray:
@@ -71,17 +88,12 @@ class Renderer:
         tool: o3d.t.geometry.TriangleMesh | None,
     ) -> np.ndarray:
         """RGB uint8 image (H, W, 3)."""
-        scene = o3d.t.geometry.RaycastingScene()
-        tissue = o3d.t.geometry.TriangleMesh()
-        tissue.vertex.positions = o3d.core.Tensor(vertices.astype(np.float32))
-        tissue.triangle.indices = o3d.core.Tensor(faces.astype(np.int32))
-        scene.add_triangles(tissue)
+        scene = mesh_scene(vertices, faces)
         if tool is not None:
             scene.add_triangles(tool)
         origin = cam_to_world[:3, 3]
         dirs = self._camera_rays(key, camera) @ cam_to_world[:3, :3].T
-        rays = np.concatenate([np.broadcast_to(origin, dirs.shape), dirs], 1).astype(np.float32)
-        hit = scene.cast_rays(o3d.core.Tensor(rays))
+        hit = cast_rays(scene, np.concatenate([np.broadcast_to(origin, dirs.shape), dirs], 1))
         t_hit = hit["t_hit"].numpy()
         geom = hit["geometry_ids"].numpy()
         prim = hit["primitive_ids"].numpy()

@@ -29,6 +29,7 @@ Rig and scene variants (all off by default; `sim/variants.py` names presets of t
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import overload
 
 import numpy as np
 
@@ -113,7 +114,12 @@ class SimConfig:
         return max((self.frames - 1) / self.frame_rate, 1e-6)
 
 
-def smoothstep(x: np.ndarray) -> np.ndarray:
+@overload
+def smoothstep(x: float) -> float: ...
+@overload
+def smoothstep(x: np.ndarray) -> np.ndarray: ...
+def smoothstep(x: float | np.ndarray) -> float | np.ndarray:
+    """3 x^2 - 2 x^3 of x clipped to [0, 1] (a float, or an array of x's shape)."""
     x = np.clip(x, 0.0, 1.0)
     return x * x * (3 - 2 * x)
 

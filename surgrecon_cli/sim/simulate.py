@@ -23,7 +23,7 @@ from ..core.geometry import make_pose, matrix_to_quat, quat_to_matrix
 from ..core.labels import CLASS_NAMES, true_labels
 from ..io.atomic import write_npz
 from ..io.records import CameraInfoRecord, ImageRecord, JointStateRecord, PoseRecord
-from .conventions import CONVENTIONS
+from .conventions import CONVENTIONS, Message
 from .degrade import degrade
 from .log_writer import write_log
 from .motion import Motion
@@ -35,7 +35,6 @@ from .video import VideoEncoder
 T0_NS = 1_700_000_000_000_000_000  # fixed epoch so that logs are bit-for-bit reproducible
 WORLD = "world"
 JOINTS = ("shoulder", "elbow", "insertion", "tool_roll", "wrist", "grasp1", "grasp2")
-Message = tuple[str, int, object]
 
 
 @dataclass(frozen=True)
@@ -179,7 +178,7 @@ class LogBuilder:
             normals = vertex_normals(vertices, mesh.faces)
             tip, quat = motion.tool_pose(t)
             tool = tool_mesh(tip, quat_to_matrix(quat)[:, 2], cfg.tool_radius, cfg.tool_length)
-            batch = []
+            batch: list[Message] = []
             for cam in range(cfg.cameras):
                 stamp = self.image_stamp(frame, cam)
                 rgb = renderer.render(
@@ -198,7 +197,7 @@ class LogBuilder:
                 log_ns = _ns(stamp) + 3_000_000
                 frame_id = f"endoscope_{cam}_optical"
                 if encoders is not None:
-                    image = ImageRecord(_ns(stamp), frame_id, self.video,
+                    image = ImageRecord(_ns(stamp), frame_id, encoders[cam].codec,
                                         encoders[cam].encode(rgb))
                 else:
                     ok, jpeg = cv2.imencode(

@@ -27,7 +27,7 @@ class Texture:
         if n == 0:  # a camera that sees no tissue
             return np.zeros((0, 3), self.image.dtype)
         rows = -(-n // 1024)  # remap wants 2D maps under 32767 on a side: pad to rows x 1024
-        maps = np.zeros((rows * 1024, 2), np.float32)
+        maps: np.ndarray = np.zeros((rows * 1024, 2), np.float32)
         maps[:n] = (material_xy + self.half_extent) * scale
         maps = maps.reshape(rows, 1024, 2)
         out = cv2.remap(
@@ -73,7 +73,7 @@ def make_texture(seed: int, half_extent: float = 0.055, size: int = 2048) -> Tex
     image = (base * shade + tint).astype(np.float32)
 
     # Vessels: dark red branching curves of varying width, mostly thin.
-    vessels = np.zeros((size, size), np.float32)
+    vessels: np.ndarray = np.zeros((size, size), np.float32)
     for _ in range(90):
         pts = _vessel_polyline(rng, size, int(rng.integers(80, 400)))
         width = int(rng.choice([1, 2, 2, 3, 4, 6]))

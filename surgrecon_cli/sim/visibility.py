@@ -7,9 +7,9 @@ front of the camera, faces it, and no other part of the tissue is in the way (a 
 from __future__ import annotations
 
 import numpy as np
-import open3d as o3d
 
 from ..core.cameras import CameraModel, in_image, project
+from .render import cast_rays, mesh_scene
 from .scene import vertex_normals
 
 
@@ -22,15 +22,11 @@ def visible_vertices(
     normals = vertex_normals(vertices, faces)
     seen = in_image(uv, camera) & (depth > 0) & (((origin - vertices) * normals).sum(1) > 0)
     if seen.any():
-        scene = o3d.t.geometry.RaycastingScene()
-        mesh = o3d.t.geometry.TriangleMesh()
-        mesh.vertex.positions = o3d.core.Tensor(vertices.astype(np.float32))
-        mesh.triangle.indices = o3d.core.Tensor(faces.astype(np.int32))
-        scene.add_triangles(mesh)
+        scene = mesh_scene(vertices, faces)
         idx = np.flatnonzero(seen)
         ray = vertices[idx] - origin
         dist = np.linalg.norm(ray, axis=1)
         rays = np.column_stack([np.broadcast_to(origin, ray.shape), ray / dist[:, None]])
-        t_hit = scene.cast_rays(o3d.core.Tensor(rays.astype(np.float32)))["t_hit"].numpy()
+        t_hit = cast_rays(scene, rays)["t_hit"].numpy()
         seen[idx] = t_hit >= dist - 2e-4  # nothing closer than the vertex itself (0.2 mm)
     return seen, depth

@@ -190,10 +190,11 @@ def run_register(
             tasks.append(Task(str(frame), register_frame,
                               (layout.root.absolute(), frame, config), deps))
         followers: dict[str, int] = {}
-        for frame in frames if after_frame is not None else ():
-            task = after_frame(frame)
-            followers[task.key] = frame
-            tasks.append(replace(task, deps=(*task.deps, str(frame))))
+        if after_frame is not None:
+            for frame in frames:
+                task = after_frame(frame)
+                followers[task.key] = frame
+                tasks.append(replace(task, deps=(*task.deps, str(frame))))
 
         def on_done(key: str, value: Any) -> None:
             if key in followers:

@@ -67,7 +67,7 @@ class RegistrationResult:
     correspondences: np.ndarray
     outliers: np.ndarray
     stats: list[dict[str, Any]]
-    supported: np.ndarray | None = None
+    supported: np.ndarray
     along_surface: np.ndarray | None = None
 
 
