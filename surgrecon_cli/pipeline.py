@@ -42,6 +42,7 @@ from .io.run_lock import run_folder_lock
 from .planning import Planner, seed_run
 from .stages import registry
 from .stages.registry import StageContext
+from .stages.staleness import NOT_DONE
 
 logger = logging.getLogger(__name__)
 
@@ -169,7 +170,7 @@ def _run_locked(log: Path, run_dir: Path, config: Config, ground_truth: Path | N
             ctx.force_ingest = True
             _delete_outputs(run_dir, STAGES[1:])
         elif stale is not None:
-            if why != "not done" or stale != "report":
+            if why != NOT_DONE or stale != "report":
                 logger.info("%s: %s", stale, why)
             _invalidate(run, config, STAGES[STAGES.index(stale):])
     total_weight = sum(registry.spec(s).weight for s in wanted)

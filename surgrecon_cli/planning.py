@@ -1,17 +1,19 @@
-"""Which stage outputs of a run folder are still valid for a log and config (`Planner`),
-and seeding a new run folder with those of another (`seed_run`: a `run --tag` sweep
-reuses, by hard link, every stage output whose config keys did not change).
+"""Which stage outputs of a run folder are still valid for a log and config (`Planner`,
+asking stages/staleness.py), and seeding a new run folder with those of another
+(`seed_run`: a `run --tag` sweep reuses, by hard link, every stage output whose config keys
+did not change).
 """
 
 from __future__ import annotations
 
 from pathlib import Path
 
-from .config import Config, to_dict
+from .config import Config
 from .io.links import link_or_copy, link_tree
-from .io.run_folder import RunFolder, config_value, plain
+from .io.run_folder import RunFolder
 from .io.run_layout import RunLayout
 from .stages import registry
+from .stages.staleness import why_stale
 
 
 class Planner:
@@ -19,44 +21,16 @@ class Planner:
 
     def __init__(self, run: RunFolder, config: Config, gt_sha: str | None):
         self.run = run
-        self.layout = RunLayout(run.path)
-        self.current = plain(to_dict(config))
+        self.config = config
         self.gt_sha = gt_sha
 
-    def changed_keys(self, stage: str) -> list[str]:
-        """Config keys its outputs depend on whose value differs from the one recorded in
-        its run.json entry (else in run.json's config)."""
-        data = self.run.read()
-        own = data.get("stages", {}).get(stage, {}).get("config", {})
-        changed = []
-        for key in registry.config_keys(stage):
-            if isinstance(own, dict) and key in own:
-                recorded = own[key]
-            else:
-                recorded = config_value(data.get("config", {}), key)
-            if recorded != config_value(self.current, key):
-                changed.append(key)
-        return changed
-
     def first_stale(self, wanted: tuple[str, ...]) -> tuple[str | None, str]:
-        """The first stage (in pipeline order) that must run from scratch, and why."""
+        """The first stage (in pipeline order) that must run from scratch, and why (a
+        resumable stage not yet done with an unchanged config resumes instead)."""
         for stage in wanted:
-            spec = registry.spec(stage)
-            entry = self.run.stage(stage)
-            changed = self.changed_keys(stage) if entry else []
-            if changed:
-                return stage, f"config changed ({', '.join(changed)})"
-            if spec.resumable and not self.run.is_done(stage):
-                continue  # resumable frame by frame (it checks its own config)
-            if not self.run.is_done(stage):
-                return stage, "not done"
-            key = getattr(self.layout, spec.key_output)
-            if not key.exists():
-                return stage, f"{self.layout.relative(key)} is missing"
-            if spec.needs_ground_truth:
-                recorded = entry.get("ground_truth", {}).get("sha256")
-                if recorded != self.gt_sha:
-                    return stage, "ground truth changed"
+            why = why_stale(self.run, stage, self.config, self.gt_sha, resume=True)
+            if why:
+                return stage, why
         return None, ""
 
 
@@ -64,16 +38,9 @@ def reusable_stages(base: RunFolder, config: Config, gt_sha: str | None) -> tupl
     """The leading stages of `base` (pipeline order) that are done, whose outputs exist and
     whose config keys (cumulative, stages/registry.py) have the same values in `config`;
     the report is never among them (it names its own folder)."""
-    planner = Planner(base, config, gt_sha)
     out: list[str] = []
     for stage in registry.NAMES:
-        spec = registry.spec(stage)
-        if stage == "report" or not base.is_done(stage) or planner.changed_keys(stage):
-            break
-        if not getattr(planner.layout, spec.key_output).exists():
-            break
-        if (spec.needs_ground_truth
-                and base.stage(stage).get("ground_truth", {}).get("sha256") != gt_sha):
+        if stage == "report" or why_stale(base, stage, config, gt_sha):
             break
         out.append(stage)
     return tuple(out)

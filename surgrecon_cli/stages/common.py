@@ -8,15 +8,11 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-from ..config import Config, to_dict
+from ..config import Config
 from ..errors import SurgReconError
-from ..io.run_folder import RunFolder, plain
-from .registry import config_keys, config_part, spec, upstream_config_keys
-
-
-def recorded_config(config: Config, name: str) -> dict[str, Any]:
-    """The config keys stage `name`'s outputs depend on, as recorded in its run.json entry."""
-    return config_part(plain(to_dict(config)), config_keys(name))
+from ..io.run_folder import RunFolder
+from .registry import spec
+from .staleness import check_upstream, recorded_config
 
 
 def _mark_failed(run: RunFolder, name: str, keep: tuple[str, ...], error: str) -> None:
@@ -39,11 +35,9 @@ def stage_run(run_dir: Path, name: str, config: Config,
     progress, so that a run killed before it records new progress does not lose the old).
     """
     run = RunFolder(run_dir)
-    stage = spec(name)
-    for needed in stage.needs:
+    for needed in spec(name).needs:
         run.require_done(needed)
-    if stage.checks_upstream_config:
-        run.check_config(config, upstream_config_keys(name))
+    check_upstream(run, name, config)
     previous = run.stage(name)
     run.mark_stage(name, "running", **{k: previous[k] for k in keep if k in previous})
     info: dict[str, Any] = {}

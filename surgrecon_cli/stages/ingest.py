@@ -38,10 +38,10 @@ from ..io.log_input import resolve_log
 from ..io.mcap import LogReader
 from ..io.run_folder import RunFolder
 from ..io.run_layout import INGEST_STAGING_PREFIX, RunLayout
-from .common import recorded_config
 from .ingest_frames import check_clocks, log_span, world_poses
 from .ingest_streams import StreamCollector, video_report
 from .registry import StageContext
+from .staleness import recorded_config
 
 logger = logging.getLogger(__name__)
 

@@ -43,8 +43,9 @@ from ..io.artefacts import (
 from ..io.ingest_store import IngestedLog, ingest_identity, load_ingested
 from ..io.run_folder import FrameProgress, RunFolder
 from ..io.run_layout import RunLayout
-from .common import recorded_config, stage_run
+from .common import stage_run
 from .registry import CLASSIFY_FRAME_TASK, StageContext, resolve
+from .staleness import recorded_config, same_config
 
 logger = logging.getLogger(__name__)
 
@@ -167,7 +168,7 @@ def run_register(
     run = RunFolder(layout.root)
     made_with = recorded_config(config, STAGE)
     progress = FrameProgress(layout.register_progress)
-    recorded = progress.read() if run.stage(STAGE).get("config") == made_with else {}
+    recorded = progress.read() if same_config(run, STAGE, config) else {}
     with stage_run(layout.root, STAGE, config,
                    keep=("frames_done", "frames_failed", "config")) as info:
         n_frames = load_ingested(layout.ingest_dir).n_frames

@@ -2,9 +2,9 @@
 
 ingest -> build-template -> register -> classify -> measure -> [evaluate] -> report
 
-`pipeline.py`, resumption and staleness read only from here. A stage's outputs depend on
-its own config keys and, through its inputs, on those of every stage before it
-(`config_keys`). A key is a config section ("target") or one key of it
+`pipeline.py`, resumption and staleness (staleness.py) read only from here. A stage's
+outputs depend on its own config keys and, through its inputs, on those of every stage
+before it (`config_keys`). A key is a config section ("target") or one key of it
 ("tool.base_to_world"). Stages never import each other; their pipeline steps are looked up
 by name (`step`), so importing the registry imports no stage.
 """
@@ -19,7 +19,6 @@ from typing import Any
 
 from ..config import Config
 from ..executors import Executor
-from ..io.run_folder import config_value
 
 
 @dataclass(frozen=True)
@@ -87,11 +86,6 @@ def upstream_config_keys(name: str) -> tuple[str, ...]:
     """The config keys that shaped the outputs stage `name` builds on."""
     index = NAMES.index(name)
     return config_keys(NAMES[index - 1]) if index else ()
-
-
-def config_part(config: dict[str, Any], keys: tuple[str, ...]) -> dict[str, Any]:
-    """{key: value} of `keys` in a config dict (recorded with a stage's outputs)."""
-    return {key: config_value(config, key) for key in keys}
 
 
 @dataclass
