@@ -1,8 +1,10 @@
-"""Figures for the docs/issue notes from a finished run and its ground truth.
+"""Figures for the docs from a finished run and its ground truth.
 
     .venv/bin/python docs/make_figures.py runs/sample sample_data/sample.gt.npz docs/figures
 
-Writes template_error.png (template coloured by its distance to the true surface) and
+Writes labelled_cloud.png (the report's labelled-cloud figure of the frame it shows with the
+most deforming points: the cloud coloured by class in a camera's image and in 3D),
+template_error.png (template coloured by its distance to the true surface) and
 registered_vs_true.png (a section through the tool contact at the deepest frame).
 """
 
@@ -17,12 +19,33 @@ import numpy as np
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 
+from surgrecon_cli.config import load_config
+from surgrecon_cli.core.labels import DEFORMING
 from surgrecon_cli.core.scoring import map_to_surface
-from surgrecon_cli.stages.register import load_template, registration_path
+from surgrecon_cli.io.artefacts import read_registration, read_template
+from surgrecon_cli.io.run_layout import RunLayout
+from surgrecon_cli.report.figures import cloud_key, figure_tasks
+from surgrecon_cli.report.gather import gather, gather_views
+from surgrecon_cli.report.metrics import measure
+
+
+def labelled_cloud(run: Path, out: Path) -> None:
+    """The report's labelled-cloud figure of the frame it shows with the most deforming
+    points, as the report draws it."""
+    layout = RunLayout(run)
+    config = load_config(layout.config_toml)
+    data = gather(layout.root)
+    views = gather_views(layout, data, config.tool)
+    tasks = {t.key: t for t in figure_tasks(data, measure(data, config), views, config)}
+    view = max(views, key=lambda v: -1 if v.labels is None else int((v.labels == DEFORMING).sum()))
+    task = tasks[cloud_key(view.frame)]
+    (out / "labelled_cloud.png").write_bytes(task.fn(*task.args))
 
 
 def main(run: Path, gt_path: Path, out: Path, frame: int = 12) -> None:
-    template, rgb = load_template(run)
+    labelled_cloud(run, out)
+    cloud = read_template(RunLayout(run))
+    template, rgb = cloud.points, cloud.rgb
     with np.load(gt_path) as gt:
         vertices, faces = gt["vertices"], gt["faces"]
     mapping = map_to_surface(template, vertices[0], faces)
@@ -46,8 +69,7 @@ def main(run: Path, gt_path: Path, out: Path, frame: int = 12) -> None:
     fig.savefig(out / "template_error.png", dpi=80)
 
     truth = mapping.follow(vertices[frame], faces) * 1e3
-    with np.load(registration_path(run, frame)) as z:
-        registered = z["registered"] * 1e3
+    registered = read_registration(RunLayout(run), frame, len(template)).registered * 1e3
     err = np.linalg.norm(registered - truth, axis=1)
     fig, ax = plt.subplots(1, 2, figsize=(15, 5.5))
     band = np.abs(mm[:, 1] - 10) < 2.5  # through the simulator's tool contact at y = 10 mm

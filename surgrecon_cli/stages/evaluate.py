@@ -1,4 +1,4 @@
-"""Stage `evaluate`: score a run against the simulator's ground truth (README "Accuracy").
+"""Stage `evaluate`: score a run against the simulator's ground truth (docs/accuracy.md).
 
 Scores whatever parts the run has: the template (always), the registration (when `register`
 is done), the labels (when `classify` is done) and the contact and indentation measures
