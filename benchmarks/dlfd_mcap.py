@@ -9,27 +9,21 @@ data `Data/N/Data.mat` (per sample the 4x4 poses of arm 1 and arm 2 in their own
 metres), the stereo calibrations `Data/stereoParamsP{1,2,3}.mat` (MATLAB objects, read with
 `mat-io`) and the hand-eye results `Data/Eye2HandResult_R{r}_P{k}.mat` (4x4, mm).
 
-Conventions, each checked against hand-marked instrument tips and shafts
-(`benchmarks/dlfd_conventions.py` prints the pixel error of every alternative):
+Conventions (`benchmarks/dlfd_conventions.py` scores each against hand-marked instruments;
+details and figures in docs/dlfd.md):
 - `Eye2HandResult_R{r}_P{k}` is pair k's left camera in robot r's base frame (camera to
-  base); the red-cross target triangulated in each pair then lands within 15-18 mm of one
-  point in each robot's base, against 125-146 mm the other way round;
-- MATLAB's stereo extrinsics map row vectors, so in column form X_right = R^T X_left + t;
-- the videos are the 640x480 calibration images scaled (Data.mat's 2D targets, scaled by
-  310/640 and 244/480, land on the red cross drawn in every video);
-- the robot samples run evenly from the moment the red cross appears (d-lfd's own
-  `preprocessing/vid2Imgcut.py`, `start_imaging`: 3.7 s in trial 1) to the end of the video;
-  earlier frames get the first sample (the arms stand still until then);
-- the arm matrices are the jaw frame of a dVRK PSM in its remote-centre-of-motion frame: the
-  shaft runs from the kinematic point through the base origin, whatever the wrist does (the
-  frame's own axes are up to 80 degrees off the shaft when the wrist bends). The log carries
-  a shaft frame per arm (z from the kinematic point towards the base origin, x the jaw
-  frame's x made orthogonal), so the default `shaft_axis = "+z"` holds;
-- robot 2's base sits in robot 1's (the world) by the mean of the three pairs'
-  Y_r1 inv(Y_r2) (they differ by up to 16 mm and 5 degrees: the hand-eye results' own error).
-- arm 1 is the blunt instrument entering from the right of the p2/p3 images, arm 2 the
-  needle driver from the top left; in the images both kinematic points sit at the end of the
-  black shaft, 15-55 mm short of the jaw tips: the config's jaw part covers that.
+  base); each camera is placed by the mean of its pair's two results (robot 1's, and robot
+  2's through robot 2's base, itself the mean over the pairs of Y_r1 inv(Y_r2));
+- MATLAB's stereo extrinsics map row vectors: in column form X_right = R^T X_left + t;
+- the videos are the 640x480 calibration images scaled to 310x244;
+- the robot samples run evenly from d-lfd's `start_imaging` (preprocessing/vid2Imgcut.py;
+  3.7 s in trial 1, when the red cross appears) to the end; earlier frames get sample 0;
+- the arm matrices are a dVRK PSM's jaw frame in its remote-centre-of-motion frame: the
+  shaft runs from the kinematic point through the base origin, while the frame's axes are up
+  to 80 degrees off it when the wrist bends. The log carries a shaft frame per arm (z
+  towards the base origin), so the default `shaft_axis = "+z"` holds;
+- arm 1 is the blunt instrument from the right of the p2/p3 images, arm 2 the needle driver
+  from the top left; both kinematic points sit 20-50 mm short of the jaw tips (jaw part).
 
 Writes OUT/dlfd_N.mcap (ROS 2: CompressedImage JPEG, CameraInfo, `/tf_static` world ->
 PSM1_base -> each camera and world -> PSM2_base, the arms' shaft frames as PoseStamped in
@@ -298,9 +292,10 @@ def clearance(run: Path, config_path: Path) -> dict[str, tuple[int, list[float]]
 
 
 def figure(run: Path, config_path: Path, camera: str, png: Path) -> None:
-    """The template (frame 0) over `camera`'s image with every tool's mask (arm 1 red, arm 2
-    green), 3x enlarged."""
-    log = load_ingested(RunLayout(run).ingest_dir)
+    """The template (frame 0) over `camera`'s image, 3x enlarged, with every tool's mask (arm 1
+    red, arm 2 green): points this camera observed filled, the other pairs' points as rings."""
+    layout = RunLayout(run)
+    log = load_ingested(layout.ingest_dir)
     cfgs = load_config(config_path).tool_configs()
     c = log.cameras.index(camera)
     image = log.load_image(0, c)[:, :, ::-1].copy()
@@ -308,10 +303,15 @@ def figure(run: Path, config_path: Path, camera: str, png: Path) -> None:
                                  strict=False):
         mask = tool_image_mask(log.models[c], log.poses[0, c], pose, cfg, step=1)
         image[mask] = (0.5 * image[mask] + 0.5 * np.array(colour)).astype(np.uint8)
-    px, _ = project(read_template(RunLayout(run)).points, log.poses[0, c], log.models[c])
+    points = read_template(layout).points
+    obs = read_observations(layout, len(points))
+    seen = np.isin(np.arange(len(points)), obs.point[obs.camera == c])
+    px, _ = project(points, log.poses[0, c], log.models[c])
     big = cv2.resize(image, None, fx=3, fy=3, interpolation=cv2.INTER_NEAREST)
-    for u, v in px[np.isfinite(px).all(1)]:
-        cv2.circle(big, (round(3 * u + 1), round(3 * v + 1)), 4, (255, 255, 0), -1)
+    for (u, v), own in zip(px, seen, strict=True):
+        if np.isfinite([u, v]).all():
+            centre = (round(3 * u + 1), round(3 * v + 1))
+            cv2.circle(big, centre, 4, (255, 255, 0), -1 if own else 1)
     cv2.imwrite(str(png), big)
 
 
