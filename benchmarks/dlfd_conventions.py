@@ -21,13 +21,13 @@ from pathlib import Path
 
 import numpy as np
 from dlfd_mcap import (
-    CALIBRATED_SIZE,
     CONFIG,
     FPS,
     GEOMETRY,
     PAIRS,
     base2_in_base1,
     camera_in_base1,
+    camera_model,
     load,
     load_shipped,
     sample_at,
@@ -35,7 +35,7 @@ from dlfd_mcap import (
 )
 
 from surgrecon_cli.config import load_config
-from surgrecon_cli.core.cameras import CameraModel, project
+from surgrecon_cli.core.cameras import project
 from surgrecon_cli.core.tool import tool_image_mask, tool_pixel_mask
 
 MARKS = Path(__file__).resolve().parents[1] / "tests" / "data" / "dlfd" / "marks.json"
@@ -64,15 +64,6 @@ TRIED = [
     Convention("previous session (arm 2 shaft -y)", timing="over the whole video",
                shaft="-y", base2="pair 2", cameras="robot 1's hand-eye"),
 ]
-
-
-def _camera(d: dict, cam: str) -> CameraModel:
-    k, side = int(cam[1]), "left" if cam.endswith("l") else "right"
-    K = d["calib"][k][f"K_{side}"].copy()
-    for i, (size, new) in enumerate(zip(CALIBRATED_SIZE, (310, 244), strict=True)):
-        K[i, :2] *= new / size
-        K[i, 2] = (K[i, 2] + 0.5) * new / size - 0.5
-    return CameraModel(K=K, dist=d["calib"][k][f"D_{side}"], width=310, height=244)
 
 
 def _arm_world(d: dict, conv: Convention, arm: int, frame: int) -> tuple[np.ndarray, np.ndarray]:
@@ -112,7 +103,7 @@ def errors(d: dict, conv: Convention, marks: list[dict]) -> np.ndarray:
         p, axis = _arm_world(d, conv, arm, m["frame"])
         fuse = conv.cameras == "both robots' hand-eye"
         uv, z = project(np.array([p, p + 0.03 * axis]), camera_in_base1(dd, m["camera"], fuse),
-                        _camera(d, m["camera"]))
+                        camera_model(d, m["camera"]))
         if not (np.isfinite(uv).all() and (z > 0).all()):
             out.append([np.inf] * 3)
             continue
@@ -142,12 +133,12 @@ def coverage(d: dict, marks: list[dict], config: Path) -> tuple[int, int, dict[s
         k = 0 if m["instrument"] == "right" else 1
         pixels = np.array([m["tip"], *m["shaft"]], float)
         pose = poses(m["frame"])[k]
-        inside = tool_pixel_mask(pixels, _camera(d, m["camera"]),
+        inside = tool_pixel_mask(pixels, camera_model(d, m["camera"]),
                                  camera_in_base1(d, m["camera"]), pose, cfgs[k])
         hit, total = hit + int(inside.sum()), total + len(pixels)
     share = {}
     for cam in sorted({m["camera"] for m in marks}):
-        mask = tool_image_mask(_camera(d, cam), camera_in_base1(d, cam), poses(93), cfgs)
+        mask = tool_image_mask(camera_model(d, cam), camera_in_base1(d, cam), poses(93), cfgs)
         share[cam] = float(mask.mean())
     return hit, total, share
 

@@ -2,7 +2,7 @@
 
     python benchmarks/dlfd_mcap.py --repo /path/to/d-lfd.git --trial 1 --frames 3 -o out/
     surgrecon run out/dlfd_1.mcap -o RUN --config out/dlfd_1.toml
-    python benchmarks/dlfd_mcap.py --repo ... -o out/ --figure RUN   # PNG + the 1 mm check
+    python benchmarks/dlfd_check.py RUN --config out/dlfd_1.toml    # 1 mm check + PNG
 
 d-lfd trial N: six 310x244 videos (three stereo pairs p1..p3, left/right, 25 fps), the robot
 data `Data/N/Data.mat` (per sample the 4x4 poses of arm 1 and arm 2 in their own base frames,
@@ -44,20 +44,15 @@ import cv2
 import numpy as np
 import scipy.io
 
-from surgrecon_cli.config import load_config
-from surgrecon_cli.core.cameras import project
-from surgrecon_cli.core.geometry import matrix_to_quat, nearest_rotation, point_to_segment_distance
-from surgrecon_cli.core.tool import tool_capsules, tool_image_mask
-from surgrecon_cli.io.artefacts import read_observations, read_template
-from surgrecon_cli.io.ingest_store import load_ingested
+from surgrecon_cli.core.cameras import CameraModel
+from surgrecon_cli.core.geometry import matrix_to_quat, nearest_rotation
 from surgrecon_cli.io.records import CameraInfoRecord, ImageRecord, PoseRecord
-from surgrecon_cli.io.run_layout import RunLayout
 from surgrecon_cli.sim.log_writer import write_log
 
 PAIRS = (1, 2, 3)
 SIDES = ("left", "right")
 CAMERAS = tuple(f"p{k}{s[0]}" for k in PAIRS for s in SIDES)  # p1l, p1r, ...
-CALIBRATED_SIZE = (640, 480)
+CALIBRATED_SIZE, VIDEO_SIZE = (640, 480), (310, 244)
 FPS = 25
 T0 = 1_600_000_000_000_000_000
 CONFIG = """[topics]
@@ -166,8 +161,9 @@ def load(repo: Path, trial: int, work: Path) -> dict:
 
 
 def load_shipped(folder: Path) -> dict:
-    """`load`'s dict (without videos) from the pieces shipped in tests/data/dlfd:
-    calibration.json (cameras, mm) and robot.json (arms, hand-eye results, sample timing)."""
+    """`load`'s dict from the pieces shipped in tests/data/dlfd: calibration.json (cameras,
+    mm), robot.json (arms, hand-eye results, sample timing) and the frames' JPEGs (`images`
+    instead of `videos`)."""
     cams = json.loads((folder / "calibration.json").read_text(encoding="utf-8"))["cameras"]
     robot = json.loads((folder / "robot.json").read_text(encoding="utf-8"))
     calib = {}
@@ -180,7 +176,7 @@ def load_shipped(folder: Path) -> dict:
     hand_eye = {(r, k): _mm_to_m(np.array(robot["hand_eye_mm"][f"R{r}_P{k}"])) for r in (1, 2)
                 for k in PAIRS}
     return {"arms": np.array(robot["arms"], float), "hand_eye": hand_eye, "calib": calib,
-            "videos": {}, "start_s": robot["start_s"], "duration_s": robot["duration_s"]}
+            "images": folder, "start_s": robot["start_s"], "duration_s": robot["duration_s"]}
 
 
 def sample_at(t_s: float, d: dict) -> int:
@@ -230,89 +226,62 @@ def _tf(t: int, parent: str, child: str, T: np.ndarray) -> PoseRecord:
     return PoseRecord(t, parent, child, T[:3, 3].copy(), matrix_to_quat(T[:3, :3]))
 
 
-def build(repo: Path, trial: int, frames: int, first: int, out: Path) -> tuple[Path, Path]:
-    out.mkdir(parents=True, exist_ok=True)
-    with tempfile.TemporaryDirectory() as tmp:
-        d = load(repo, trial, Path(tmp))
-        messages: list = [("/tf_static", T0, _tf(T0, "world", "PSM1_base", np.eye(4))),
-                          ("/tf_static", T0, _tf(T0, "world", "PSM2_base",
-                                                 base2_in_base1(d["hand_eye"])))]
-        for (k, side), video in d["videos"].items():
-            cam = f"p{k}{side[0]}"
-            messages.append(("/tf_static", T0, _tf(T0, "PSM1_base", cam, camera_in_base1(d, cam))))
-            with av.open(str(video)) as container:
-                for f, frame in enumerate(container.decode(video=0)):
-                    if f >= first + frames:
-                        break
-                    if f < first:
-                        continue
-                    rgb = frame.to_ndarray(format="rgb24")
-                    h, w = rgb.shape[:2]
-                    t = T0 + round(f * 1e9 / FPS)
-                    K = d["calib"][k][f"K_{side}"].copy()
-                    for i, (size, new) in enumerate(zip(CALIBRATED_SIZE, (w, h), strict=True)):
-                        K[i, :2] *= new / size
-                        K[i, 2] = (K[i, 2] + 0.5) * new / size - 0.5
-                    messages.append((f"/{cam}/camera_info", t, CameraInfoRecord(
-                        t, cam, w, h, K, d["calib"][k][f"D_{side}"])))
-                    _, jpeg = cv2.imencode(".jpg", rgb[:, :, ::-1], [cv2.IMWRITE_JPEG_QUALITY, 95])
-                    messages.append((f"/{cam}/image/compressed", t + 1,
-                                     ImageRecord(t, cam, "jpeg", jpeg.tobytes())))
+def camera_model(d: dict, cam: str) -> CameraModel:
+    """Camera `cam` (p1l ...) for the 310x244 videos: its 640x480 calibration scaled (pixel
+    centres map as u' = (u + 0.5) s - 0.5)."""
+    k, side = int(cam[1]), "left" if cam.endswith("l") else "right"
+    K = d["calib"][k][f"K_{side}"].copy()
+    for i, (size, new) in enumerate(zip(CALIBRATED_SIZE, VIDEO_SIZE, strict=True)):
+        K[i, :2] *= new / size
+        K[i, 2] = (K[i, 2] + 0.5) * new / size - 0.5
+    return CameraModel(K=K, dist=d["calib"][k][f"D_{side}"], width=VIDEO_SIZE[0],
+                       height=VIDEO_SIZE[1])
+
+
+def _jpegs(d: dict, k: int, side: str, first: int, frames: int):
+    """(frame, JPEG bytes) of camera p{k}_{side}: the shipped JPEGs as they are (`images`),
+    else the video's frames encoded at quality 95."""
+    if "images" in d:
         for f in range(first, first + frames):
+            yield f, (d["images"] / f"p{k}_{side}" / f"{f:06d}.jpg").read_bytes()
+        return
+    with av.open(str(d["videos"][(k, side)])) as container:
+        for f, frame in enumerate(container.decode(video=0)):
+            if f >= first + frames:
+                break
+            if f >= first:
+                _, jpeg = cv2.imencode(".jpg", frame.to_ndarray(format="bgr24"),
+                                       [cv2.IMWRITE_JPEG_QUALITY, 95])
+                yield f, jpeg.tobytes()
+
+
+def build(d: dict, name: str, frames: int, first: int, out: Path) -> tuple[Path, Path]:
+    """Write OUT/NAME.mcap (video frames first .. first + frames - 1) and OUT/NAME.toml."""
+    out.mkdir(parents=True, exist_ok=True)
+    messages: list = [("/tf_static", T0, _tf(T0, "world", "PSM1_base", np.eye(4))),
+                      ("/tf_static", T0, _tf(T0, "world", "PSM2_base",
+                                             base2_in_base1(d["hand_eye"])))]
+    for k, side in ((k, s) for k in PAIRS for s in SIDES):
+        cam = f"p{k}{side[0]}"
+        model = camera_model(d, cam)
+        messages.append(("/tf_static", T0, _tf(T0, "PSM1_base", cam, camera_in_base1(d, cam))))
+        for f, jpeg in _jpegs(d, k, side, first, frames):
             t = T0 + round(f * 1e9 / FPS)
-            j = sample_at(f / FPS, d)
-            for r in (1, 2):
-                messages.append((f"/PSM{r}/shaft_pose", t + 3,
-                                 _tf(t, f"PSM{r}_base", "", shaft_pose(d["arms"][r - 1, j]))))
+            messages.append((f"/{cam}/camera_info", t, CameraInfoRecord(
+                t, cam, model.width, model.height, model.K, model.dist)))
+            messages.append((f"/{cam}/image/compressed", t + 1, ImageRecord(t, cam, "jpeg", jpeg)))
+    for f in range(first, first + frames):
+        t = T0 + round(f * 1e9 / FPS)
+        j = sample_at(f / FPS, d)
+        for r in (1, 2):
+            messages.append((f"/PSM{r}/shaft_pose", t + 3,
+                             _tf(t, f"PSM{r}_base", "", shaft_pose(d["arms"][r - 1, j]))))
     messages.sort(key=lambda m: m[1])
-    log = out / f"dlfd_{trial}.mcap"
+    log = out / f"{name}.mcap"
     write_log(log, messages, "ros2")
-    config = out / f"dlfd_{trial}.toml"
+    config = out / f"{name}.toml"
     config.write_text(CONFIG.format(**GEOMETRY))
     return log, config
-
-
-def clearance(run: Path, config_path: Path) -> dict[str, tuple[int, list[float]]]:
-    """Per camera: how many frame-0 template points it observed, and per tool the smallest
-    distance (mm) from one of them to the tool model's surface (negative = inside; inf =
-    none observed)."""
-    layout = RunLayout(run)
-    log = load_ingested(layout.ingest_dir)
-    cfgs = load_config(config_path).tool_configs()
-    points = read_template(layout).points
-    obs = read_observations(layout, len(points))
-    out = {}
-    for c, cam in enumerate(log.cameras):
-        seen = points[np.unique(obs.point[obs.camera == c])]
-        out[cam] = (len(seen), [min((float((point_to_segment_distance(seen, a, b) - r).min()) * 1e3
-                                         for a, b, r in tool_capsules(pose, cfg) if len(seen)),
-                                        default=np.inf)
-                                    for pose, cfg in zip(log.all_tool_poses(0), cfgs, strict=True)])
-    return out
-
-
-def figure(run: Path, config_path: Path, camera: str, png: Path) -> None:
-    """The template (frame 0) over `camera`'s image, 3x enlarged, with every tool's mask (arm 1
-    red, arm 2 green): points this camera observed filled, the other pairs' points as rings."""
-    layout = RunLayout(run)
-    log = load_ingested(layout.ingest_dir)
-    cfgs = load_config(config_path).tool_configs()
-    c = log.cameras.index(camera)
-    image = log.load_image(0, c)[:, :, ::-1].copy()
-    for pose, cfg, colour in zip(log.all_tool_poses(0), cfgs, ((0, 0, 255), (0, 255, 0)),
-                                 strict=False):
-        mask = tool_image_mask(log.models[c], log.poses[0, c], pose, cfg, step=1)
-        image[mask] = (0.5 * image[mask] + 0.5 * np.array(colour)).astype(np.uint8)
-    points = read_template(layout).points
-    obs = read_observations(layout, len(points))
-    seen = np.isin(np.arange(len(points)), obs.point[obs.camera == c])
-    px, _ = project(points, log.poses[0, c], log.models[c])
-    big = cv2.resize(image, None, fx=3, fy=3, interpolation=cv2.INTER_NEAREST)
-    for (u, v), own in zip(px, seen, strict=True):
-        if np.isfinite([u, v]).all():
-            centre = (round(3 * u + 1), round(3 * v + 1))
-            cv2.circle(big, centre, 4, (255, 255, 0), -1 if own else 1)
-    cv2.imwrite(str(png), big)
 
 
 def main() -> None:
@@ -322,25 +291,10 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=3)
     parser.add_argument("--first", type=int, default=0, help="first video frame")
     parser.add_argument("-o", "--out", type=Path, required=True)
-    parser.add_argument("--figure", metavar="RUN", type=Path,
-                        help="instead: draw the PNG of run RUN (made from this log and config) "
-                             "and print the 1 mm check")
-    parser.add_argument("--camera", default="p2l", help="camera of the figure")
     args = parser.parse_args()
-    config = args.out / f"dlfd_{args.trial}.toml"
-    if args.figure:
-        png = args.out / f"dlfd_{args.trial}_template_{args.camera}.png"
-        figure(args.figure, config, args.camera, png)
-        print(f"wrote {png}")
-        worst = np.inf
-        for cam, (n, gaps) in clearance(args.figure, config).items():
-            print(f"{cam}: {n} template points observed; closest to arm 1 / arm 2 model: "
-                  + " / ".join(f"{g:.1f} mm" for g in gaps))
-            worst = min(worst, *gaps)
-        print(f"{'PASS' if worst >= 1.0 else 'FAIL'}: no template point within 1 mm of either "
-              f"arm's model in any camera (closest {worst:.1f} mm)")
-        return
-    log, config = build(args.repo, args.trial, args.frames, args.first, args.out)
+    with tempfile.TemporaryDirectory() as tmp:
+        d = load(args.repo, args.trial, Path(tmp))
+        log, config = build(d, f"dlfd_{args.trial}", args.frames, args.first, args.out)
     print(f"wrote {log} and {config}")
 
 
