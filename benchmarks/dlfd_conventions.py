@@ -61,7 +61,7 @@ TRIED = [
     replace(CHOSEN, name="README's arm roles", labels="arm 1 = left"),
     *(replace(CHOSEN, name=f"shaft along jaw {a}", shaft=a) for a in ("+z", "-z", "-y", "+y")),
     *(replace(CHOSEN, name=f"robot 2 base from pair {k}", base2=f"pair {k}") for k in PAIRS),
-    Convention("previous session (arm 2 shaft -y)", timing="over the whole video",
+    Convention("previous importer, shafts along jaw -y", timing="over the whole video",
                shaft="-y", base2="pair 2", cameras="robot 1's hand-eye"),
 ]
 
