@@ -1,54 +1,40 @@
 """A few frames of a real 6-camera dVRK recording (imanlab/d-lfd, MIT) as an MCAP log + config.
 
     python benchmarks/dlfd_mcap.py --repo /path/to/d-lfd.git --trial 1 --frames 3 -o out/
+    surgrecon run out/dlfd_1.mcap -o RUN --config out/dlfd_1.toml
+    python benchmarks/dlfd_check.py RUN --config out/dlfd_1.toml    # 1 mm check + PNG
 
-d-lfd trial N: six 310x244 videos (three stereo pairs p1..p3, left/right, 25 fps), the
-robot data `Data/N/Data.mat` (scipy-readable MATLAB v5: a 1x160 cell array, per sample the
-4x4 poses of arm 1 and arm 2 in their own base frames, metres), the stereo calibrations
-`Data/stereoParamsP{1,2,3}.mat` (MATLAB `stereoParameters` objects: NOT readable by
-scipy.io.loadmat, which returns an opaque object; read here with the `mat-io` package,
-`pip install mat-io`) and the hand-eye results `Data/Eye2HandResult_R{r}_P{k}.mat` (4x4, mm;
-scipy-readable).
+d-lfd trial N: six 310x244 videos (three stereo pairs p1..p3, left/right, 25 fps), the robot
+data `Data/N/Data.mat` (per sample the 4x4 poses of arm 1 and arm 2 in their own base frames,
+metres), the stereo calibrations `Data/stereoParamsP{1,2,3}.mat` (MATLAB objects, read with
+`mat-io`) and the hand-eye results `Data/Eye2HandResult_R{r}_P{k}.mat` (4x4, mm).
 
-Conventions found by projecting the arms into the images (see the PNG this writes):
-- `Eye2HandResult_R{r}_P{k}` is the pose of pair k's left camera in robot r's base frame
-  (its inverse puts the arm 170-235 mm in front of the camera; the other way round puts it
-  behind or far outside the image);
-- MATLAB's stereo extrinsics map row vectors, x_right = x_left R + t (mm), so in column form
-  X_right = R^T X_left + t;
-- the calibration was made at 640x480 px; the videos are 310x244, taken as the same view
-  scaled (K scaled by 310/640 and 244/480);
-- the world is robot 1's base frame; robot 2's base is placed through pair 2's hand-eye
-  results (T_world_base2 = Y_r1_p2 inv(Y_r2_p2));
-- the 160 robot samples are taken as spread evenly over the video's duration (the data set
-  does not give their times); frame f uses the sample nearest its time.
+Conventions (`benchmarks/dlfd_conventions.py` scores each against hand-marked instruments;
+details and figures in docs/dlfd.md):
+- `Eye2HandResult_R{r}_P{k}` is pair k's left camera in robot r's base frame (camera to
+  base); each camera is placed by the mean of its pair's two results (robot 1's, and robot
+  2's through robot 2's base, itself the mean over the pairs of Y_r1 inv(Y_r2));
+- MATLAB's stereo extrinsics map row vectors: in column form X_right = R^T X_left + t;
+- the videos are the 640x480 calibration images scaled to 310x244;
+- the robot samples run evenly from d-lfd's `start_imaging` (preprocessing/vid2Imgcut.py;
+  3.7 s in trial 1, when the red cross appears) to the end; earlier frames get sample 0;
+- the arm matrices are a dVRK PSM's jaw frame in its remote-centre-of-motion frame: the
+  shaft runs from the kinematic point through the base origin, while the frame's axes are up
+  to 80 degrees off it when the wrist bends. The log carries a shaft frame per arm (z
+  towards the base origin), so the default `shaft_axis = "+z"` holds;
+- arm 1 is the blunt instrument from the right of the p2/p3 images, arm 2 the needle driver
+  from the top left; both kinematic points sit 20-50 mm short of the jaw tips (jaw part).
 
-Then `surgrecon run OUT/dlfd_N.mcap -o RUN --config OUT/dlfd_N.toml` and
-`python benchmarks/dlfd_mcap.py ... -o OUT --figure RUN` draws the template over one camera
-image with both arms' masks.
-
-Measured on trial 1 (3 frames, defaults): each stereo pair links (27, 25 and 18 verified
-matches of 270-300 features per image; the former fixed minimum of 40 refused them all), the
-pairs do not link to each other (0-4 verified matches). With arm 2's shaft along z (the
-first try) pairs 2 and 3 were reported as disagreeing (their pose-free matches 33.6 px off
-the epipolar lines of their hand-eye poses); with the -y shaft below, which masks more, no
-group pair is reported. Arm 2's kinematic point lands on the forceps' wrist in p2l (video
-frames 0, 124 and 248 with samples 0, 80, 159), but its frame's z axis points ~70 degrees
-off the shaft (-y, used in the config, is the nearest axis and still 25-40 degrees off); arm
-1's kinematic point projects ~100 px (of 310) right of its jaws in frame 0 and near them
-only at the end. So both models miss parts of their instruments and template points remain
-on both (jaw tips of arm 2, shaft of arm 1: see the PNG), although none is within 9.7 mm
-(arm 1) and 11.8 mm (arm 2) of its arm's model. Unresolved: the frame conventions of the
-published arm matrices, the timing of the robot samples (logged from when a red cross
-appears, which this script does not detect), the videos' crop.
-
-Writes OUT/dlfd_N.mcap (ROS 2: CompressedImage JPEG, CameraInfo, PoseStamped per camera on
-/{camera}/pose, arms on /PSM1/measured_cp and /PSM2/measured_cp) and OUT/dlfd_N.toml.
+Writes OUT/dlfd_N.mcap (ROS 2: CompressedImage JPEG, CameraInfo, `/tf_static` world ->
+PSM1_base -> each camera and world -> PSM2_base, the arms' shaft frames as PoseStamped in
+their base frames on /PSM{1,2}/shaft_pose) and OUT/dlfd_N.toml.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import re
 import subprocess
 import tempfile
 from pathlib import Path
@@ -57,46 +43,48 @@ import av
 import cv2
 import numpy as np
 import scipy.io
-from scipy.spatial.transform import Rotation
 
-from surgrecon_cli.config import load_config
-from surgrecon_cli.core.cameras import project
-from surgrecon_cli.core.geometry import point_to_segment_distance
-from surgrecon_cli.core.tool import tool_capsules, tool_image_mask
-from surgrecon_cli.io.artefacts import read_template
-from surgrecon_cli.io.ingest_store import load_ingested
+from surgrecon_cli.core.cameras import CameraModel
+from surgrecon_cli.core.geometry import matrix_to_quat, nearest_rotation
 from surgrecon_cli.io.records import CameraInfoRecord, ImageRecord, PoseRecord
-from surgrecon_cli.io.run_layout import RunLayout
 from surgrecon_cli.sim.log_writer import write_log
 
 PAIRS = (1, 2, 3)
 SIDES = ("left", "right")
-CALIBRATED_SIZE = (640, 480)
+CAMERAS = tuple(f"p{k}{s[0]}" for k in PAIRS for s in SIDES)  # p1l, p1r, ...
+CALIBRATED_SIZE, VIDEO_SIZE = (640, 480), (310, 244)
+FPS = 25
 T0 = 1_600_000_000_000_000_000
 CONFIG = """[topics]
 image = "/{{camera}}/image/compressed"
 camera_info = "/{{camera}}/camera_info"
-camera_pose = "/{{camera}}/pose"
+camera_pose = "/tf_static"
 camera_frame = "{{camera}}"
-tool_pose = "/PSM1/measured_cp"
+world_frame = "world"
+tool_pose = "/PSM1/shaft_pose"
 joint_states = ""
 
 [tool]
-# dVRK 8 mm instruments; the kinematic point sits at the wrist, the jaws beyond it
-shaft_radius_m = 0.004
+# the shaft from the kinematic point up to the RCM, the jaws beyond it; both wider than the
+# instrument by the hand-eye results' disagreement (8-15 mm in pair 2)
+shaft_radius_m = {radius_m}
 jaw_offset_m = 0.0
-jaw_length_m = {jaw_length}
-jaw_width_m = {jaw_width}
+jaw_length_m = {jaw_length_m}
+jaw_width_m = {jaw_width_m}
+mask_margin_px = {mask_margin_px}
+margin_m = {margin_m}
 
 [[tools]]
-pose = "/PSM2/measured_cp"
-# arm 2's matrices: z does not follow the shaft in the images; -y is the nearest axis
-shaft_axis = "-y"
-shaft_radius_m = 0.004
+pose = "/PSM2/shaft_pose"
+shaft_radius_m = {radius_m}
 jaw_offset_m = 0.0
-jaw_length_m = {jaw_length}
-jaw_width_m = {jaw_width}
+jaw_length_m = {jaw_length_m}
+jaw_width_m = {jaw_width_m}
+mask_margin_px = {mask_margin_px}
+margin_m = {margin_m}
 """
+GEOMETRY = {"radius_m": 0.01, "jaw_length_m": 0.05, "jaw_width_m": 0.024, "mask_margin_px": 6,
+            "margin_m": 0.01}
 
 
 def _show(repo: Path, path: str, dest: Path) -> Path:
@@ -116,8 +104,8 @@ def _props(obj) -> dict:
 
 
 def stereo_calibration(path: Path) -> dict:
-    """K (3, 3), D (5,) plumb_bob per side at 640x480, and the right camera's pose in the
-    left's frame (4, 4, metres)."""
+    """K (3, 3) 0-based, D (5,) plumb_bob per side at 640x480, and the right camera's pose in
+    the left's frame (4, 4, metres)."""
     import matio  # mat-io: reads MATLAB objects (stereoParameters), which scipy cannot
 
     sp = _props(matio.load_from_mat(str(path))["stereoParams"])
@@ -126,7 +114,9 @@ def stereo_calibration(path: Path) -> dict:
         cp = _props(sp[name])
         radial = np.asarray(cp["RadialDistortion"], float).ravel()
         tangential = np.asarray(cp["TangentialDistortion"], float).ravel()
-        out[f"K_{side}"] = np.asarray(cp["IntrinsicMatrix"], float).T
+        K = np.asarray(cp["IntrinsicMatrix"], float).T.copy()
+        K[:2, 2] -= 1.0  # MATLAB's first pixel centre is (1, 1)
+        out[f"K_{side}"] = K
         out[f"D_{side}"] = np.array([radial[0], radial[1], tangential[0], tangential[1],
                                      radial[2] if len(radial) > 2 else 0.0])
     left_to_right = np.eye(4)
@@ -142,89 +132,156 @@ def _mm_to_m(T: np.ndarray) -> np.ndarray:
     return T
 
 
-def _pose(t: int, T: np.ndarray) -> PoseRecord:
-    return PoseRecord(t, "world", "", T[:3, 3].copy(), Rotation.from_matrix(T[:3, :3]).as_quat())
+def start_seconds(repo: Path, trial: int) -> float:
+    """When trial `trial`'s robot samples start in its videos: d-lfd's `start_imaging`."""
+    text = subprocess.run(["git", "--git-dir", str(repo), "show",
+                           "HEAD:preprocessing/vid2Imgcut.py"], check=True,
+                          capture_output=True, text=True).stdout
+    table = re.search(r"start_imaging\s*=\s*np\.array\(\[([^\]]*)\]", text)
+    if table is None:
+        raise SystemExit("preprocessing/vid2Imgcut.py has no start_imaging table")
+    return float(table.group(1).replace("\\", "").split(",")[trial - 1])
 
 
-def build(repo: Path, trial: int, frames: int, out: Path) -> tuple[Path, Path]:
+def load(repo: Path, trial: int, work: Path) -> dict:
+    """Everything of trial `trial`: arms (2, n, 4, 4) m in their bases, hand_eye {(r, k):
+    camera-to-base (4, 4) m}, calib {k: stereo_calibration}, videos {(k, side): path},
+    start_s and duration_s of the robot samples in the videos."""
+    data = scipy.io.loadmat(_show(repo, f"Data/{trial}/Data.mat", work))["Data"]
+    arms = np.stack([np.stack([data[0, j][0, c] for j in range(data.shape[1])]) for c in (2, 3)])
+    hand_eye = {(r, k): _mm_to_m(scipy.io.loadmat(_show(
+        repo, f"Data/Eye2HandResult_R{r}_P{k}.mat", work))["Y_"]) for r in (1, 2) for k in PAIRS}
+    calib = {k: stereo_calibration(_show(repo, f"Data/stereoParamsP{k}.mat", work)) for k in PAIRS}
+    videos = {(k, s): _show(repo, f"Data/{trial}/p{k}_{s}.mp4", work) for k in PAIRS for s in SIDES}
+    with av.open(str(videos[(1, "left")])) as container:
+        stream = container.streams.video[0]
+        duration_s = float(stream.duration * stream.time_base)
+    return {"arms": arms, "hand_eye": hand_eye, "calib": calib, "videos": videos,
+            "start_s": start_seconds(repo, trial), "duration_s": duration_s}
+
+
+def load_shipped(folder: Path) -> dict:
+    """`load`'s dict from the pieces shipped in tests/data/dlfd: calibration.json (cameras,
+    mm), robot.json (arms, hand-eye results, sample timing) and the frames' JPEGs (`images`
+    instead of `videos`)."""
+    cams = json.loads((folder / "calibration.json").read_text(encoding="utf-8"))["cameras"]
+    robot = json.loads((folder / "robot.json").read_text(encoding="utf-8"))
+    calib = {}
+    for k in PAIRS:
+        left, right = (_mm_to_m(np.array(cams[f"p{k}_{s}"]["pose"])) for s in SIDES)
+        calib[k] = {"right_in_left": np.linalg.inv(left) @ right}
+        for s in SIDES:
+            calib[k][f"K_{s}"] = np.array(cams[f"p{k}_{s}"]["K"], float)
+            calib[k][f"D_{s}"] = np.array(cams[f"p{k}_{s}"]["D"], float)
+    hand_eye = {(r, k): _mm_to_m(np.array(robot["hand_eye_mm"][f"R{r}_P{k}"])) for r in (1, 2)
+                for k in PAIRS}
+    return {"arms": np.array(robot["arms"], float), "hand_eye": hand_eye, "calib": calib,
+            "images": folder, "start_s": robot["start_s"], "duration_s": robot["duration_s"]}
+
+
+def sample_at(t_s: float, d: dict) -> int:
+    """The robot sample nearest video time t_s (s); before the first, the first."""
+    n = d["arms"].shape[1]
+    s = (t_s - d["start_s"]) / (d["duration_s"] - d["start_s"]) * n
+    return int(np.clip(round(s), 0, n - 1))
+
+
+def _mean_pose(Ts: list[np.ndarray]) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = nearest_rotation(np.mean([t[:3, :3] for t in Ts], axis=0))
+    T[:3, 3] = np.mean([t[:3, 3] for t in Ts], axis=0)
+    return T
+
+
+def base2_in_base1(hand_eye: dict) -> np.ndarray:
+    """Robot 2's base in robot 1's (4, 4): the mean over the pairs of Y_r1 inv(Y_r2)."""
+    return _mean_pose([hand_eye[(1, k)] @ np.linalg.inv(hand_eye[(2, k)]) for k in PAIRS])
+
+
+def shaft_pose(tip: np.ndarray) -> np.ndarray:
+    """A dVRK jaw pose (4, 4) in its arm's RCM frame -> the shaft frame at the same point: z
+    towards the RCM (the base origin), x the jaw frame's x made orthogonal to it."""
+    z = -tip[:3, 3] / np.linalg.norm(tip[:3, 3])
+    x = tip[:3, 0] - (tip[:3, 0] @ z) * z
+    if np.linalg.norm(x) < 1e-6:  # jaw x along the shaft: take its y
+        x = tip[:3, 1] - (tip[:3, 1] @ z) * z
+    x /= np.linalg.norm(x)
+    out = np.eye(4)
+    out[:3, :3] = np.column_stack([x, np.cross(z, x), z])
+    out[:3, 3] = tip[:3, 3]
+    return out
+
+
+def camera_in_base1(d: dict, cam: str, fuse: bool = True) -> np.ndarray:
+    """Camera `cam` (p1l ...) in robot 1's base (4, 4) m: its pair's left camera by the mean
+    of the pair's two hand-eye results (robot 1's, and robot 2's through `base2_in_base1`;
+    `fuse=False`: robot 1's only), the right one through the stereo extrinsics."""
+    k = int(cam[1])
+    he = d["hand_eye"]
+    T = _mean_pose([he[(1, k)], base2_in_base1(he) @ he[(2, k)]]) if fuse else he[(1, k)]
+    return T @ d["calib"][k]["right_in_left"] if cam.endswith("r") else T
+
+
+def _tf(t: int, parent: str, child: str, T: np.ndarray) -> PoseRecord:
+    return PoseRecord(t, parent, child, T[:3, 3].copy(), matrix_to_quat(T[:3, :3]))
+
+
+def camera_model(d: dict, cam: str) -> CameraModel:
+    """Camera `cam` (p1l ...) for the 310x244 videos: its 640x480 calibration scaled (pixel
+    centres map as u' = (u + 0.5) s - 0.5)."""
+    k, side = int(cam[1]), "left" if cam.endswith("l") else "right"
+    K = d["calib"][k][f"K_{side}"].copy()
+    for i, (size, new) in enumerate(zip(CALIBRATED_SIZE, VIDEO_SIZE, strict=True)):
+        K[i, :2] *= new / size
+        K[i, 2] = (K[i, 2] + 0.5) * new / size - 0.5
+    return CameraModel(K=K, dist=d["calib"][k][f"D_{side}"], width=VIDEO_SIZE[0],
+                       height=VIDEO_SIZE[1])
+
+
+def _jpegs(d: dict, k: int, side: str, first: int, frames: int):
+    """(frame, JPEG bytes) of camera p{k}_{side}: the shipped JPEGs as they are (`images`),
+    else the video's frames encoded at quality 95."""
+    if "images" in d:
+        for f in range(first, first + frames):
+            yield f, (d["images"] / f"p{k}_{side}" / f"{f:06d}.jpg").read_bytes()
+        return
+    with av.open(str(d["videos"][(k, side)])) as container:
+        for f, frame in enumerate(container.decode(video=0)):
+            if f >= first + frames:
+                break
+            if f >= first:
+                _, jpeg = cv2.imencode(".jpg", frame.to_ndarray(format="bgr24"),
+                                       [cv2.IMWRITE_JPEG_QUALITY, 95])
+                yield f, jpeg.tobytes()
+
+
+def build(d: dict, name: str, frames: int, first: int, out: Path) -> tuple[Path, Path]:
+    """Write OUT/NAME.mcap (video frames first .. first + frames - 1) and OUT/NAME.toml."""
     out.mkdir(parents=True, exist_ok=True)
-    with tempfile.TemporaryDirectory() as tmp:
-        work = Path(tmp)
-        data = scipy.io.loadmat(_show(repo, f"Data/{trial}/Data.mat", work))["Data"]
-        arm1 = np.stack([data[0, j][0, 2] for j in range(data.shape[1])])
-        arm2 = np.stack([data[0, j][0, 3] for j in range(data.shape[1])])
-        hand_eye = {(r, k): _mm_to_m(scipy.io.loadmat(_show(
-            repo, f"Data/Eye2HandResult_R{r}_P{k}.mat", work))["Y_"]) for r in (1, 2)
-            for k in PAIRS}
-        calib = {k: stereo_calibration(_show(repo, f"Data/stereoParamsP{k}.mat", work))
-                 for k in PAIRS}
-        videos = {(k, s): _show(repo, f"Data/{trial}/p{k}_{s}.mp4", work)
-                  for k in PAIRS for s in SIDES}
-        base2 = hand_eye[(1, 2)] @ np.linalg.inv(hand_eye[(2, 2)])
-        messages: list = []
-        duration_s = None
-        for (k, side), video in videos.items():
-            cam = f"p{k}{side[0]}"  # p1l, p1r, ...: one name token per camera
-            with av.open(str(video)) as container:
-                stream = container.streams.video[0]
-                duration_s = float(stream.duration * stream.time_base)
-                for f, frame in enumerate(container.decode(video=0)):
-                    if f >= frames:
-                        break
-                    rgb = frame.to_ndarray(format="rgb24")
-                    h, w = rgb.shape[:2]
-                    t = T0 + round(f * 1e9 / 25)
-                    if f == 0:
-                        K = calib[k][f"K_{side}"].copy()
-                        K[0] *= w / CALIBRATED_SIZE[0]
-                        K[1] *= h / CALIBRATED_SIZE[1]
-                        messages.append((f"/{cam}/camera_info", t, CameraInfoRecord(
-                            t, cam, w, h, K, calib[k][f"D_{side}"])))
-                    _, jpeg = cv2.imencode(".jpg", rgb[:, :, ::-1],
-                                           [cv2.IMWRITE_JPEG_QUALITY, 95])
-                    messages.append((f"/{cam}/image/compressed", t + 1,
-                                     ImageRecord(t, cam, "jpeg", jpeg.tobytes())))
-                    T = hand_eye[(1, k)]
-                    if side == "right":
-                        T = T @ calib[k]["right_in_left"]
-                    messages.append((f"/{cam}/pose", t + 2, _pose(t, T)))
-        n = len(arm1)
-        for f in range(frames):
-            t = T0 + round(f * 1e9 / 25)
-            j = min(round(f / 25 / duration_s * n), n - 1)
-            messages.append(("/PSM1/measured_cp", t + 3, _pose(t, arm1[j])))
-            messages.append(("/PSM2/measured_cp", t + 3, _pose(t, base2 @ arm2[j])))
+    messages: list = [("/tf_static", T0, _tf(T0, "world", "PSM1_base", np.eye(4))),
+                      ("/tf_static", T0, _tf(T0, "world", "PSM2_base",
+                                             base2_in_base1(d["hand_eye"])))]
+    for k, side in ((k, s) for k in PAIRS for s in SIDES):
+        cam = f"p{k}{side[0]}"
+        model = camera_model(d, cam)
+        messages.append(("/tf_static", T0, _tf(T0, "PSM1_base", cam, camera_in_base1(d, cam))))
+        for f, jpeg in _jpegs(d, k, side, first, frames):
+            t = T0 + round(f * 1e9 / FPS)
+            messages.append((f"/{cam}/camera_info", t, CameraInfoRecord(
+                t, cam, model.width, model.height, model.K, model.dist)))
+            messages.append((f"/{cam}/image/compressed", t + 1, ImageRecord(t, cam, "jpeg", jpeg)))
+    for f in range(first, first + frames):
+        t = T0 + round(f * 1e9 / FPS)
+        j = sample_at(f / FPS, d)
+        for r in (1, 2):
+            messages.append((f"/PSM{r}/shaft_pose", t + 3,
+                             _tf(t, f"PSM{r}_base", "", shaft_pose(d["arms"][r - 1, j]))))
     messages.sort(key=lambda m: m[1])
-    log = out / f"dlfd_{trial}.mcap"
+    log = out / f"{name}.mcap"
     write_log(log, messages, "ros2")
-    config = out / f"dlfd_{trial}.toml"
-    config.write_text(CONFIG.format(jaw_length=0.015, jaw_width=0.008))
+    config = out / f"{name}.toml"
+    config.write_text(CONFIG.format(**GEOMETRY))
     return log, config
-
-
-def figure(run: Path, config_path: Path, camera: str, png: Path) -> dict[str, float]:
-    """The template (frame 0) over `camera`'s image with every tool's mask (arm 1 red, arm 2
-    green); returns per tool the smallest distance (mm) of a template point to its model's
-    surface (axis distance - radius; negative = inside)."""
-    log = load_ingested(RunLayout(run).ingest_dir)
-    config = load_config(config_path)
-    c = log.cameras.index(camera)
-    image = log.load_image(0, c)[:, :, ::-1].copy()
-    tools, cfgs = log.all_tool_poses(0), config.tool_configs()
-    for pose, cfg, colour in zip(tools, cfgs, ((0, 0, 255), (0, 255, 0)), strict=False):
-        mask = tool_image_mask(log.models[c], log.poses[0, c], pose, cfg, step=1)
-        image[mask] = (0.5 * image[mask] + 0.5 * np.array(colour)).astype(np.uint8)
-    points = read_template(RunLayout(run)).points
-    px, _ = project(points, log.poses[0, c], log.models[c])
-    for u, v in px[np.isfinite(px).all(1)]:
-        cv2.circle(image, (round(u), round(v)), 2, (255, 255, 0), -1)
-    big = cv2.resize(image, None, fx=3, fy=3, interpolation=cv2.INTER_NEAREST)
-    cv2.imwrite(str(png), big)
-    gaps = {}
-    for k, (pose, cfg) in enumerate(zip(tools, cfgs, strict=False)):
-        gaps[f"tool {k}"] = min((float((point_to_segment_distance(points, a, b) - r).min()) * 1e3
-                                 for a, b, r in tool_capsules(pose, cfg)), default=np.inf)
-    return gaps
 
 
 def main() -> None:
@@ -232,18 +289,12 @@ def main() -> None:
     parser.add_argument("--repo", type=Path, required=True, help="d-lfd git directory")
     parser.add_argument("--trial", type=int, default=1)
     parser.add_argument("--frames", type=int, default=3)
+    parser.add_argument("--first", type=int, default=0, help="first video frame")
     parser.add_argument("-o", "--out", type=Path, required=True)
-    parser.add_argument("--figure", metavar="RUN", type=Path,
-                        help="instead: draw the PNG of run RUN (made from this log and config)")
-    parser.add_argument("--camera", default="p2l", help="camera of the figure")
     args = parser.parse_args()
-    config = args.out / f"dlfd_{args.trial}.toml"
-    if args.figure:
-        png = args.out / f"dlfd_{args.trial}_template_{args.camera}.png"
-        gaps = figure(args.figure, config, args.camera, png)
-        print(f"wrote {png}; closest template point to each tool's model (mm): {gaps}")
-        return
-    log, config = build(args.repo, args.trial, args.frames, args.out)
+    with tempfile.TemporaryDirectory() as tmp:
+        d = load(args.repo, args.trial, Path(tmp))
+        log, config = build(d, f"dlfd_{args.trial}", args.frames, args.first, args.out)
     print(f"wrote {log} and {config}")
 
 

@@ -1,0 +1,82 @@
+"""d-lfd (tests/data/dlfd, MIT): the frame conventions of benchmarks/dlfd_mcap.py put both dVRK
+arms on their instruments, measured against jaw tips and shaft lines marked by eye in the
+videos (tests/data/dlfd/marks.json), and the other readings of the data set do not; the
+shipped frames build a template at defaults with no point within 1 mm of either arm."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+DLFD = ROOT / "tests" / "data" / "dlfd"
+
+
+@pytest.fixture(scope="module")
+def bench():
+    """The benchmark modules (dlfd_conventions imports dlfd_mcap as a sibling script)."""
+    import sys
+
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    try:
+        import dlfd_check
+        import dlfd_conventions
+        import dlfd_mcap
+    finally:
+        sys.path.remove(str(ROOT / "benchmarks"))
+    return dlfd_conventions, dlfd_mcap, dlfd_check
+
+
+@pytest.fixture(scope="module")
+def data(bench):
+    mcap = bench[1]
+    marks = json.loads((DLFD / "marks.json").read_text(encoding="utf-8"))["marks"]
+    return mcap.load_shipped(DLFD), marks
+
+
+def test_shaft_through_the_rcm_follows_the_marked_shafts(bench, data):
+    conv = bench[0]
+    d, marks = data
+    e = conv.errors(d, conv.CHOSEN, marks)  # tip px, lateral px, angle deg per mark
+    assert np.median(e[:, 2]) < 6 and e[:, 2].max() < 15
+    assert np.median(e[:, 1]) < 15 and e[:, 1].max() < 45  # 1 px ~ 0.45 mm
+    for axis in ("+z", "-z", "+y", "-y"):  # the published jaw frame's own axes
+        e_axis = conv.errors(d, replace(conv.CHOSEN, shaft=axis), marks)
+        assert np.median(e_axis[:, 2]) > 40, axis
+
+
+def test_other_readings_of_the_data_set_miss_the_instruments(bench, data):
+    conv = bench[0]
+    d, marks = data
+    inverted = conv.errors(d, replace(conv.CHOSEN, hand_eye="base-to-camera"), marks)
+    assert (inverted[:, 0] > 310).all()  # every arm behind or far outside the 310 px image
+    readme = conv.errors(d, replace(conv.CHOSEN, labels="arm 1 = left"), marks)
+    assert np.median(readme[:, 1]) > 80
+
+
+def test_the_written_config_masks_the_marked_tips_and_shafts(bench, data, tmp_path):
+    conv, mcap, _ = bench
+    d, marks = data
+    config = tmp_path / "dlfd.toml"
+    config.write_text(mcap.CONFIG.format(**mcap.GEOMETRY), encoding="utf-8")
+    hit, total, share = conv.coverage(d, marks, config)
+    assert total == 3 * len(marks) and hit >= 0.9 * total
+    assert max(share.values()) < 0.45  # the masks leave the images' tissue
+
+
+def test_shipped_frames_build_a_template_clear_of_both_arms(bench, data, tmp_path):
+    from surgrecon_cli.cli.main import main
+
+    _, mcap, check = bench
+    d, _ = data
+    log, config = mcap.build(d, "dlfd", 3, 0, tmp_path)
+    run = tmp_path / "run"
+    assert main(["ingest", str(log), "-o", str(run), "--config", str(config), "-q"]) == 0
+    assert main(["build-template", str(run), "--config", str(config), "-q"]) == 0
+    gaps = check.clearance(run, config)
+    assert sum(n > 0 for n, _ in gaps.values()) >= 4  # two pairs link at defaults
+    assert min(min(g) for _, g in gaps.values()) >= 1.0  # mm, every camera, both arms
