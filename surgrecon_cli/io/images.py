@@ -171,6 +171,27 @@ def header_size(data: bytes) -> tuple[int, int] | None:
     return None
 
 
+def structure_problem(data: bytes) -> str | None:
+    """Why PNG or JPEG bytes are cut short, or None when their structure is whole (other data:
+    None). Cheap (nothing decoded, no checksum): a PNG's chunks must chain by their lengths
+    from the signature to an IEND chunk; a JPEG needs an end-of-image marker after its first
+    start of scan (0xFF 0xD9 cannot occur inside entropy-coded data). A damaged byte inside
+    the compressed data passes here; decoding (ingest) finds that."""
+    if data.startswith(_PNG_MAGIC):
+        pos, end = len(_PNG_MAGIC), len(data)
+        while pos + 8 <= end:
+            length, kind = struct.unpack_from(">I4s", data, pos)
+            pos += 12 + length
+            if kind == b"IEND":
+                return None if pos <= end else "truncated (its IEND chunk is cut short)"
+        return "truncated (no IEND chunk: the file ends inside its chunks)"
+    if data.startswith(_JPEG_MAGIC):
+        scan = data.find(b"\xff\xda")
+        if scan < 0 or data.rfind(b"\xff\xd9") < scan:
+            return "truncated (no end-of-image marker after its image data)"
+    return None
+
+
 def _jpeg_size(data: bytes) -> tuple[int, int]:
     """(width, height) of the JPEG's first start-of-frame marker, found as libjpeg finds
     markers: bytes other than 0xFF before a marker skipped (libjpeg's "extraneous bytes"),
