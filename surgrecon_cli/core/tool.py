@@ -33,6 +33,12 @@ ToolConfigs = ToolConfig | Sequence[ToolConfig]
 _AXES = {"x": 0, "y": 1, "z": 2}
 
 
+def tool_name(index: int) -> str:
+    """How outputs name tool `index` in `Config.tool_configs()` order: `tool` for the `[tool]`,
+    `tool_K` for the K-th `[[tools]]` table (K from 1)."""
+    return "tool" if index == 0 else f"tool_{index}"
+
+
 def shaft_axis(tool_pose: np.ndarray, cfg: ToolConfig) -> np.ndarray:
     """Unit direction (3,) from the kinematic frame up the shaft (`cfg.shaft_axis`)."""
     sign = -1.0 if cfg.shaft_axis.startswith("-") else 1.0
