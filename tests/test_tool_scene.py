@@ -69,7 +69,7 @@ def test_points_behind_a_jaw_are_not_annotated():
     pose = np.eye(4)
     pose[:3, 3] = [0.03, 0.0, 0.1]  # shaft from x = 0.03 outwards, jaw back to x = 0
     points = np.array([[0.01, 0.0, 0.0], [-0.03, 0.0, 0.0]])
-    uv, labels = projected_labels(points, np.array([1, 2]), cam, model, pose, tool)
+    _, labels = projected_labels(points, np.array([1, 2]), cam, model, pose, tool)
     assert labels.tolist() == [2]
-    uv, labels = projected_labels(points, np.array([1, 2]), cam, model)
+    _, labels = projected_labels(points, np.array([1, 2]), cam, model)
     assert labels.tolist() == [1, 2]
