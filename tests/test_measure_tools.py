@@ -9,6 +9,7 @@ import json
 
 import numpy as np
 
+from surgrecon_cli.cli.main import main
 from surgrecon_cli.config import Config
 from surgrecon_cli.config.schema import ExtraToolConfig
 from surgrecon_cli.io.atomic import write_npz
@@ -60,3 +61,9 @@ def test_each_tool_has_its_contact_and_indentation(copy_run, pipeline_log):
     assert summary["onset_frame"] is None
     assert json.loads(layout.deformation_summary.read_text())["extra_tools"][0]["name"] == \
         "tool_1"
+    assert main(["report", str(copy_run), "-q"]) == 0
+    html = layout.report_html.read_text(encoding="utf-8")
+    section = html[html.index('id="contact"'):]
+    section = section[:section.index("</section>")]
+    assert "/PSM2/measured_cp" in section and "tool_1" in section
+    assert f"{int(in_contact.sum())} (frames {int(np.argmax(in_contact))}–{n - 1})" in section
