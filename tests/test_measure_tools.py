@@ -9,6 +9,7 @@ import json
 
 import numpy as np
 
+from surgrecon_cli.cli.cmd_measure import format_summary
 from surgrecon_cli.cli.main import main
 from surgrecon_cli.config import Config
 from surgrecon_cli.config.schema import ExtraToolConfig
@@ -59,6 +60,10 @@ def test_each_tool_has_its_contact_and_indentation(copy_run, pipeline_log):
     assert extra["name"] == "tool_1" and extra["onset_frame"] == int(np.argmax(in_contact))
     assert abs(extra["max_indentation_mm"] - 1e3 * truth.max()) <= 0.3
     assert summary["onset_frame"] is None
+    lines = format_summary(summary).splitlines()
+    assert lines[0] == "no tool-tissue contact"
+    assert lines[1].startswith(f"tool_1 (/PSM2/measured_cp): contact from frame "
+                               f"{int(np.argmax(in_contact))} ")
     assert json.loads(layout.deformation_summary.read_text())["extra_tools"][0]["name"] == \
         "tool_1"
     assert main(["report", str(copy_run), "-q"]) == 0

@@ -19,8 +19,11 @@ Per frame k (`measure_frame`):
   rigid motion (the positions x − u), along the axis: the robot's view of the indentation;
 - deformed area (mm²) of the deformed region seeded at the most displaced point under the
   tip, and indented volume (mm³) Σ area_i max(0, −u_i·R_i n_i) over it; 0 without contact;
-- force proxy (N): Hertz (`hertz_force`) of the indentation with the shaft
-  radius, only when youngs_modulus_kpa > 0 (NaN otherwise): a model output, not a measurement.
+- force proxy (N): Hertz (`hertz_force`) of the indentation with the working end's radius
+  (the shaft's, or half the jaw's width), only when youngs_modulus_kpa > 0 (NaN otherwise):
+  a model output, not a measurement.
+Several tools (`measure_tools`): each is measured alone at its working end (core/tool.py
+working_end), on the same compensated field; the field's deformed region is every tool's.
 """
 
 from __future__ import annotations
