@@ -55,3 +55,22 @@ def test_16_bit_images_keep_their_low_byte_and_scale_from_their_range(tmp_path: 
             assert got.dtype == np.uint8
             assert np.abs(got.astype(float) - want).max() <= 1.0
             assert got.max() >= 200  # the range is used: not the high byte's 0..15
+
+
+def test_raw_16_bit_messages_are_stored_16_bit_with_their_peak():
+    """A 12-bit camera publishing `mono16` (big-endian, as ROS allows): stored as a 16-bit
+    PNG of the same values, its peak the largest value, scaled to 0..255 from 0..4095."""
+    from surgrecon_cli.io.images import prepare_image, to_8bit
+    from surgrecon_cli.io.records import ImageRecord
+
+    rng = np.random.default_rng(5)
+    values = rng.integers(0, 4096, (24, 32), dtype=np.uint16)
+    values[3, 4] = 4000  # the largest value
+    values[values > 4000] = 17
+    stored = prepare_image(ImageRecord(1, "cam", "mono16", values.astype(">u2").tobytes(),
+                                       32, 24, 64, big_endian=True))
+    assert stored.peak == 4000
+    png = cv2.imdecode(np.frombuffer(stored.data, np.uint8), cv2.IMREAD_UNCHANGED)
+    np.testing.assert_array_equal(png, values)
+    scaled = to_8bit(png, stored.peak)
+    np.testing.assert_allclose(scaled, np.round(values * (255 / 4095)), atol=1.0)
