@@ -9,7 +9,6 @@ camera's index in the sorted id list) and each tool's (`core.tool.tool_name`: `t
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any
 
 import numpy as np
 from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
@@ -25,6 +24,7 @@ from foxglove_schemas_protobuf.SceneEntity_pb2 import SceneEntity
 from foxglove_schemas_protobuf.SceneEntityDeletion_pb2 import SceneEntityDeletion
 from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
 from foxglove_schemas_protobuf.SpherePrimitive_pb2 import SpherePrimitive
+from google.protobuf.timestamp_pb2 import Timestamp
 
 from ..config import ToolConfig
 from ..core.cameras import CameraModel, in_image, project
@@ -110,7 +110,7 @@ def _capsule(a: np.ndarray, b: np.ndarray, radius: float
                               top_scale=1.0, color=color(_TOOL_RGBA)), ends)
 
 
-def tool_entity(ts: Any, index: int, tool: ToolConfig) -> SceneEntity:
+def tool_entity(ts: Timestamp, index: int, tool: ToolConfig) -> SceneEntity:
     """Tool `index` (0 = `[tool]`, k = the k-th `[[tools]]`) in its own frame: one capsule
     per part of core/tool.py's model (the shaft, and the jaw/wrist part if it has one);
     cylinders and spheres in the parts' order, the spheres two a part (near end first)."""
