@@ -52,6 +52,20 @@ def test_an_unreadable_image(tmp_path: Path, rec: Path, capsys, content: bytes, 
     assert str(rec / "left" / "000001.png") in err and needle in err
 
 
+@pytest.mark.parametrize("ext", [".png", ".jpg"])
+@pytest.mark.parametrize("keep", [0.5, -1])
+def test_a_truncated_image(tmp_path: Path, capsys, ext: str, keep: float):
+    """A file cut short (half of it, or only its last byte missing) is named: its header
+    still gives the right size, so only the structure check can find it."""
+    stereo_folder(tmp_path / "rec", frames=3, ext=ext)
+    opencv_calibration(tmp_path / "calib.yaml", size=(320, 240))
+    path = tmp_path / "rec" / "right" / f"000001{ext}"
+    data = path.read_bytes()
+    path.write_bytes(data[: int(len(data) * keep) if keep > 0 else -1])
+    err = _fails(capsys, tmp_path, tmp_path / "rec", "--calibration", tmp_path / "calib.yaml")
+    assert str(path) in err and "truncated" in err
+
+
 def test_folders_with_different_image_counts(tmp_path: Path, rec: Path, capsys):
     (rec / "right" / "000002.png").unlink()
     err = _fails(capsys, tmp_path, rec, "--calibration", tmp_path / "calib.yaml")

@@ -178,19 +178,19 @@ def test_cameras_on_the_ecm_by_their_hand_eye_poses(tmp_path: Path):
         np.testing.assert_allclose(got.poses[k, 1], want, atol=1e-6)
 
 
-def test_contact_of_another_tool():
-    """A [[tools]] tool's contact: its shaft capsule within the contact tolerance of the
-    surface (a plane z = 0 here; the shaft along +z from the tip)."""
-    from surgrecon_cli.core.indentation import tool_contact
+def test_a_tools_clearance_counts_its_jaw():
+    """Clearance to a plane z = 0 of a dVRK-style tool (frame z out of the jaws, shaft along
+    -z) whose frame is 30 mm above the plane: its jaw, 5 to 25 mm beyond the frame and 8 mm
+    wide, ends 5 mm above the plane, 1 mm nearer than its width's half: 1 mm clearance; the
+    shaft alone would leave 30 mm; an unknown pose gives NaN."""
+    from surgrecon_cli.core.dent import tool_clearance
 
     xs = np.linspace(-0.01, 0.01, 21)
     plane = np.array([[x, y, 0.0] for x in xs for y in xs])
-    cfg, tool = Config().deformation, ToolConfig()
-    up = np.array([0.0, 0, 0, 1])  # identity: the shaft rises along +z from the tip
-    touching, clearance = tool_contact(plane, None, make_pose(np.zeros(3), up), tool, cfg)
-    assert touching and abs(clearance) < 1e-9
-    above, clearance = tool_contact(plane, None, make_pose(np.array([0, 0, 0.01]), up), tool,
-                                    cfg)
-    assert not above and clearance == pytest.approx(10.0)
-    unknown = tool_contact(plane, None, np.full((4, 4), np.nan), tool, cfg)
-    assert unknown[0] is False and np.isnan(unknown[1])
+    down = np.array([1.0, 0, 0, 0])  # 180 degrees about x: z points down, out of the jaws
+    pose = make_pose(np.array([0, 0, 0.03]), down)
+    arm = ToolConfig(shaft_axis="-z", jaw_offset_m=0.005, jaw_length_m=0.02, jaw_width_m=0.008)
+    assert np.nanmin(tool_clearance(plane, pose, arm)) == pytest.approx(0.001)
+    shaft_only = ToolConfig(shaft_axis="-z")
+    assert np.nanmin(tool_clearance(plane, pose, shaft_only)) == pytest.approx(0.03)
+    assert np.isnan(tool_clearance(plane, np.full((4, 4), np.nan), arm)).all()

@@ -31,7 +31,7 @@ from scipy.stats import chi2
 from ..config import ToolConfig
 from .classify import Neighbourhoods
 from .geometry import point_to_segment_distance
-from .tool import shaft_segment
+from .tool import tool_capsules
 
 HOLE_SPACINGS = 8.0  # a gap this many typical edges wide is a hole, however long max_edge
 
@@ -51,15 +51,16 @@ class UnderTip:
 
 def tool_clearance(positions: np.ndarray, tool_pose: np.ndarray,
                    tool: ToolConfig) -> np.ndarray:
-    """Clearance (N,) m of every point (N, 3) m to the tool capsule: distance to its axis
-    minus the shaft radius (negative inside; NaN for unknown points or tool pose)."""
+    """Clearance (N,) m of every point (N, 3) m to the tool: the smallest over its capsules
+    (shaft, jaw) of the distance to the capsule's axis minus its radius (negative inside;
+    NaN for unknown points or tool pose)."""
     out = np.full(len(positions), np.nan)
     pose = np.asarray(tool_pose, float)
     ok = np.isfinite(positions).all(1)
     if not np.isfinite(pose).all() or not ok.any():
         return out
-    a, b = shaft_segment(pose, tool)
-    out[ok] = point_to_segment_distance(positions[ok], a, b) - tool.shaft_radius_m
+    out[ok] = np.min([point_to_segment_distance(positions[ok], a, b) - radius
+                      for a, b, radius in tool_capsules(pose, tool)], axis=0)
     return out
 
 

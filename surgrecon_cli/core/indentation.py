@@ -19,12 +19,16 @@ Per frame k (`measure_frame`):
   rigid motion (the positions x − u), along the axis: the robot's view of the indentation;
 - deformed area (mm²) of the deformed region seeded at the most displaced point under the
   tip, and indented volume (mm³) Σ area_i max(0, −u_i·R_i n_i) over it; 0 without contact;
-- force proxy (N): Hertz (`hertz_force`) of the indentation with the shaft
-  radius, only when youngs_modulus_kpa > 0 (NaN otherwise): a model output, not a measurement.
+- force proxy (N): Hertz (`hertz_force`) of the indentation with the working end's radius
+  (the shaft's, or half the jaw's width), only when youngs_modulus_kpa > 0 (NaN otherwise):
+  a model output, not a measurement.
+Several tools (`measure_tools`): each is measured alone at its working end (core/tool.py
+working_end), on the same compensated field; the field's deformed region is every tool's.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, fields
 from typing import Any
 
@@ -41,6 +45,7 @@ from .dent import (
     under_tip,
     value_at_axis,
 )
+from .tool import working_end
 
 # What the contact figures read where the tool pose is unknown (no robot in the log, or a
 # gap in its stream): not measured, which is not "no contact".
@@ -116,64 +121,79 @@ class Deformation:
 def measure_frame(reference: np.ndarray, positions: np.ndarray, sigma: np.ndarray | None,
                   tool_pose: np.ndarray, nb: Neighbourhoods, rings: Rings, normals: np.ndarray,
                   cfg: DeformationConfig, tool: ToolConfig) -> tuple[dict[str, float], dict]:
-    """One frame: its figures {SERIES_KEYS: value} and field {inward_mm, magnitude_mm,
-    sigma_mm, deformed: (N,)}. reference (N, 3) m frame-0 points, positions (N, 3) m
-    (NaN: unknown), sigma (N,) m 3D RMS or None, tool_pose (4, 4) (NaN: unknown), normals
-    (N, 3) frame-0 unit normals."""
+    """`measure_tools` of one tool (pose (4, 4)): its figures and the field."""
+    figs, field = measure_tools(reference, positions, sigma, np.asarray(tool_pose)[None], nb,
+                                rings, normals, cfg, [tool])
+    return figs[0], field
+
+
+def measure_tools(reference: np.ndarray, positions: np.ndarray, sigma: np.ndarray | None,
+                  tool_poses: np.ndarray, nb: Neighbourhoods, rings: Rings, normals: np.ndarray,
+                  cfg: DeformationConfig, tools: Sequence[ToolConfig]
+                  ) -> tuple[list[dict[str, float]], dict]:
+    """One frame: each tool's figures {SERIES_KEYS: value} and the field {inward_mm,
+    magnitude_mm, sigma_mm, deformed (every tool's deformed region): (N,)}. reference (N, 3)
+    m frame-0 points, positions (N, 3) m (NaN: unknown), sigma (N,) m 3D RMS or None,
+    tool_poses (K, 4, 4) (NaN: unknown) with one config each, normals (N, 3) frame-0 unit
+    normals. A tool is measured at its working end (core/tool.working_end: the jaw's end
+    when it has one), along its shaft axis."""
     n = len(reference)
     comp = compensated_field(reference, positions, rings, sigma)
     u = comp.displacement
-    turned = np.einsum("nij,nj->ni", comp.rotation, normals)
-    inward = -(u * turned).sum(1)
-    fig = dict.fromkeys(SERIES_KEYS, float("nan"))
-    fig.update(contact=0.0, contact_point=-1.0, indentation_mm=0.0, indentation_normal_mm=0.0,
-               area_mm2=0.0, volume_mm3=0.0)
+    inward = -(u * np.einsum("nij,nj->ni", comp.rotation, normals)).sum(1)
     field = {"inward_mm": inward * 1e3, "magnitude_mm": np.linalg.norm(u, axis=1) * 1e3,
              "sigma_mm": comp.sigma * 1e3, "deformed": np.zeros(n, bool)}
-    pose = np.asarray(tool_pose, float)
-    if np.isfinite(pose).all():
-        _contact(fig, positions, sigma, pose, tool, cfg)
-        axis = pose[:3, 2] / np.linalg.norm(pose[:3, 2])
-        tip = under_tip(positions, pose, cfg.tip_radius_mm * 1e-3, tool.shaft_radius_m)
-        if len(tip.rows):
-            depth = -(u[tip.rows] @ axis)
-            fig["depth_under_tip_mm"] = value_at_axis(tip, depth) * 1e3
-            normal_depth = value_at_axis(tip, inward[tip.rows]) * 1e3
-            if sigma is not None:
-                s = comp.sigma[tip.rows] / np.sqrt(3.0)
-                ok = np.isfinite(s)
-                if ok.any():
-                    w = tip.weights[ok]
-                    fig["depth_sigma_mm"] = float((w * s[ok]).sum() / w.sum()) * 1e3
-            size = np.where(np.isfinite(u[tip.rows]).all(1),
-                            np.linalg.norm(u[tip.rows], axis=1), -np.inf)
-            seed = int(tip.rows[np.argmax(size)]) if np.isfinite(size).any() else -1
-            if fig["contact"] and np.isfinite(fig["depth_under_tip_mm"]):
-                fig["indentation_mm"] = fig["depth_under_tip_mm"]
-                fig["indentation_normal_mm"] = normal_depth
-                fig["contact_point"] = float(seed)
-                field["deformed"], fig["area_mm2"], fig["volume_mm3"] = _dent(
-                    reference, positions, comp, rings, normals, seed, nb, sigma is not None,
-                    cfg)
-        carried = under_tip(positions - u, pose, cfg.tip_radius_mm * 1e-3,
-                            cfg.ring_inner_mm * 1e-3)
-        if len(carried.rows):
-            fig["penetration_mm"] = value_at_axis(carried, carried.h) * 1e3
-    if cfg.youngs_modulus_kpa > 0:
-        fig["force_n"] = float(hertz_force(fig["indentation_mm"] * 1e-3, tool.shaft_radius_m,
-                                           cfg.youngs_modulus_kpa * 1e3, cfg.poisson_ratio))
-    return fig, field
+    figs = []
+    for tool_pose, tool in zip(np.asarray(tool_poses, float), tools, strict=True):
+        fig = dict.fromkeys(SERIES_KEYS, float("nan"))
+        fig.update(contact=0.0, contact_point=-1.0, indentation_mm=0.0,
+                   indentation_normal_mm=0.0, area_mm2=0.0, volume_mm3=0.0)
+        radius = tool.shaft_radius_m
+        if np.isfinite(tool_pose).all():
+            _contact(fig, positions, sigma, tool_pose, tool, cfg)
+            end, radius = working_end(tool_pose, tool)
+            deformed = _under_tool(fig, reference, positions, sigma, comp, inward, end, radius,
+                                   nb, rings, normals, cfg)
+            field["deformed"] |= deformed
+        if cfg.youngs_modulus_kpa > 0:
+            fig["force_n"] = float(hertz_force(fig["indentation_mm"] * 1e-3, radius,
+                                               cfg.youngs_modulus_kpa * 1e3, cfg.poisson_ratio))
+        figs.append(fig)
+    return figs, field
 
 
-def tool_contact(positions: np.ndarray, sigma: np.ndarray | None, pose: np.ndarray,
-                 tool: ToolConfig, cfg: DeformationConfig) -> tuple[bool, float]:
-    """Whether one more tool (a `[[tools]]` one; pose (4, 4), NaN: unknown) touches the
-    surface at positions (N, 3) m, and its clearance (mm, NaN: unknown), by the `[tool]`'s
-    contact test (module docstring)."""
-    fig = {"contact": 0.0, "clearance_mm": float("nan")}
-    if np.isfinite(pose).all():
-        _contact(fig, positions, sigma, np.asarray(pose, float), tool, cfg)
-    return bool(fig["contact"]), fig["clearance_mm"]
+def _under_tool(fig: dict[str, float], reference: np.ndarray, positions: np.ndarray,
+                sigma: np.ndarray | None, comp: CompensatedField, inward: np.ndarray,
+                end: np.ndarray, radius: float, nb: Neighbourhoods, rings: Rings,
+                normals: np.ndarray, cfg: DeformationConfig) -> np.ndarray:
+    """Fill a tool's depth, indentation, area, volume and penetration figures (module
+    docstring) under its working end `end` (4, 4; z up the shaft) of `radius` m; returns its
+    deformed region (N,) bool."""
+    u, axis = comp.displacement, end[:3, 2]
+    deformed = np.zeros(len(reference), bool)
+    tip = under_tip(positions, end, cfg.tip_radius_mm * 1e-3, radius)
+    if len(tip.rows):
+        fig["depth_under_tip_mm"] = value_at_axis(tip, -(u[tip.rows] @ axis)) * 1e3
+        normal_depth = value_at_axis(tip, inward[tip.rows]) * 1e3
+        if sigma is not None:
+            s = comp.sigma[tip.rows] / np.sqrt(3.0)
+            ok = np.isfinite(s)
+            if ok.any():
+                w = tip.weights[ok]
+                fig["depth_sigma_mm"] = float((w * s[ok]).sum() / w.sum()) * 1e3
+        size = np.where(np.isfinite(u[tip.rows]).all(1),
+                        np.linalg.norm(u[tip.rows], axis=1), -np.inf)
+        seed = int(tip.rows[np.argmax(size)]) if np.isfinite(size).any() else -1
+        if fig["contact"] and np.isfinite(fig["depth_under_tip_mm"]):
+            fig["indentation_mm"] = fig["depth_under_tip_mm"]
+            fig["indentation_normal_mm"] = normal_depth
+            fig["contact_point"] = float(seed)
+            deformed, fig["area_mm2"], fig["volume_mm3"] = _dent(
+                reference, positions, comp, rings, normals, seed, nb, sigma is not None, cfg)
+    carried = under_tip(positions - u, end, cfg.tip_radius_mm * 1e-3, cfg.ring_inner_mm * 1e-3)
+    if len(carried.rows):
+        fig["penetration_mm"] = value_at_axis(carried, carried.h) * 1e3
+    return deformed
 
 
 def _contact(fig: dict[str, float], positions: np.ndarray, sigma: np.ndarray | None,

@@ -33,6 +33,12 @@ ToolConfigs = ToolConfig | Sequence[ToolConfig]
 _AXES = {"x": 0, "y": 1, "z": 2}
 
 
+def tool_name(index: int) -> str:
+    """How outputs name tool `index` in `Config.tool_configs()` order: `tool` for the `[tool]`,
+    `tool_K` for the K-th `[[tools]]` table (K from 1)."""
+    return "tool" if index == 0 else f"tool_{index}"
+
+
 def shaft_axis(tool_pose: np.ndarray, cfg: ToolConfig) -> np.ndarray:
     """Unit direction (3,) from the kinematic frame up the shaft (`cfg.shaft_axis`)."""
     sign = -1.0 if cfg.shaft_axis.startswith("-") else 1.0
@@ -45,6 +51,21 @@ def shaft_segment(tool_pose: np.ndarray, cfg: ToolConfig) -> tuple[np.ndarray, n
     `shaft_length_m` from the tip."""
     tip, axis = tool_pose[:3, 3], shaft_axis(tool_pose, cfg)
     return tip + axis * cfg.shaft_radius_m, tip + axis * max(cfg.shaft_length_m, cfg.shaft_radius_m)
+
+
+def working_end(tool_pose: np.ndarray, cfg: ToolConfig) -> tuple[np.ndarray, float]:
+    """Where the tool meets the tissue: a pose (4, 4) at the tool's far end (the tip, or the
+    end of the jaw/wrist part when it has one) with +z up the shaft, and that part's radius
+    (m). For a shaft along +z without a jaw this is the tool pose itself."""
+    k = _AXES[cfg.shaft_axis[-1]]
+    up = shaft_axis(tool_pose, cfg)
+    x = tool_pose[:3, (k + 1) % 3]
+    end = np.array(tool_pose, dtype=float)
+    end[:3, :3] = np.column_stack([x, np.cross(up, x), up])
+    if cfg.jaw_length_m > 0:
+        end[:3, 3] -= up * (cfg.jaw_offset_m + cfg.jaw_length_m)
+        return end, cfg.jaw_width_m / 2
+    return end, cfg.shaft_radius_m
 
 
 def tool_capsules(tool_poses: ToolPoses, cfgs: ToolConfigs) -> list[Capsule]:

@@ -11,6 +11,7 @@ import os
 import re
 import tempfile
 from collections.abc import Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import IO, Any
 
@@ -51,6 +52,50 @@ def atomic_open(path: Path | str, mode: str = "wb") -> Iterator[IO[Any]]:
         if isinstance(exc, OSError) and exc.errno in WRITE_ERRNOS and exc.filename is None:
             raise _not_written(path, exc) from exc  # a full disk while writing `path`
         raise
+
+
+class CacheDropping:
+    """A binary file handle (`write`, `tell`, `flush`; `close` waits) whose written bytes leave
+    the page cache every `every` bytes: a helper thread fdatasyncs, then drops what is on disk
+    (POSIX_FADV_DONTNEED) while writing goes on. A log of several GB then does not push other
+    files out of the cache, and the kernel writes the next bytes into pages it just freed,
+    which costs a fraction of fresh pages' CPU (on a 2-core VM 0.7 instead of 4.4 ms for
+    1.9 MB; benchmarks/convert_speed.py)."""
+
+    def __init__(self, handle: IO[bytes], every: int = 32 << 20) -> None:
+        self.handle, self.every = handle, every
+        self.dropped = self.pending = 0
+        self.pool = ThreadPoolExecutor(max_workers=1)
+        self.syncing: Future[None] | None = None
+
+    def _drop(self, start: int, end: int) -> None:
+        fd = self.handle.fileno()
+        os.fdatasync(fd)
+        os.posix_fadvise(fd, start, end - start, os.POSIX_FADV_DONTNEED)
+
+    def write(self, data: bytes | bytearray | memoryview) -> int:
+        written = self.handle.write(data)
+        self.pending += written
+        if self.pending >= self.every and hasattr(os, "posix_fadvise"):
+            if self.syncing is not None:  # one sync at a time; errors surface here
+                self.syncing.result()
+            self.handle.flush()
+            end = self.handle.tell()
+            self.syncing = self.pool.submit(self._drop, self.dropped, end)
+            self.dropped, self.pending = end, 0
+        return written
+
+    def tell(self) -> int:
+        return self.handle.tell()
+
+    def flush(self) -> None:
+        self.handle.flush()
+
+    def close(self) -> None:
+        """Wait for the last sync (the handle stays open)."""
+        if self.syncing is not None:
+            self.syncing.result()
+        self.pool.shutdown()
 
 
 def _not_written(path: Path, exc: OSError) -> OutputError:

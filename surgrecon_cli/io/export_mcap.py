@@ -10,8 +10,9 @@ time in the source log (RUN/ingest/frames.npz `stamps_ns`). Per frame k:
                             (float32), then status / views (frames >= 1) or n_views /
                             reprojection_px (frame 0)
   /surgrecon/target         foxglove.PointCloud  the measured targets (frame 0: the template)
-  /surgrecon/tf             foxglove.FrameTransforms  world -> camera_CC, world -> tool
-  /surgrecon/scene          foxglove.SceneUpdate  camera frusta, the tool's capsule
+  /surgrecon/tf             foxglove.FrameTransforms  world -> camera_CC, world -> tool (and
+                                                      tool_1, ... for `[[tools]]`)
+  /surgrecon/scene          foxglove.SceneUpdate  camera frusta, each tool's shaft and jaw
   /surgrecon/frame_metrics  JSON  the frame's row of RUN/metrics/frames.csv
   /surgrecon/deformation    JSON  the frame's contact and indentation measures (a row of
                             RUN/metrics/deformation.csv; when `measure` is done, and then
@@ -222,12 +223,12 @@ def _write_frame(out: McapOut, layout: RunLayout, log: IngestedLog, config: Conf
                  stamp)
 
     poses = log.usable_poses(k)
-    tool = log.tool_poses[k]
-    out.protobuf(TOPIC_TF, frame_transforms(stamp, poses, tool), stamp)
+    tools = log.all_tool_poses(k)
+    out.protobuf(TOPIC_TF, frame_transforms(stamp, poses, tools), stamp)
     posed = np.isfinite(poses).all((1, 2))
     out.protobuf(TOPIC_SCENE, scene_update(
-        stamp, log.models, posed, bool(np.isfinite(tool).all()), config.tool.shaft_radius_m,
-        config.tool.shaft_length_m, config.template.working_distance_m), stamp)
+        stamp, log.models, posed, list(np.isfinite(tools).all((1, 2))), config.tool_configs(),
+        config.template.working_distance_m), stamp)
 
     points = np.column_stack([cloud["x"], cloud["y"], cloud["z"]]).astype(float)
     for c, model in enumerate(log.models):
@@ -249,8 +250,8 @@ def _write_frame(out: McapOut, layout: RunLayout, log: IngestedLog, config: Conf
         uv = np.zeros((0, 2))
         labels = np.zeros(0, np.uint8)
         if posed[c]:
-            uv, labels = projected_labels(points, cloud["label"], poses[c], model, tool,
-                                          config.tool)
+            uv, labels = projected_labels(points, cloud["label"], poses[c], model, tools,
+                                          config.tool_configs())
         out.protobuf(camera_topic(c, "annotations"), image_annotations(stamp, uv, labels),
                      stamp)
     out.json(TOPIC_METRICS, "surgrecon.FrameMetrics", metrics[1], metrics[0], stamp)

@@ -2,8 +2,8 @@
 the cameras' frusta, calibrations, images and image annotations.
 
 Frames: `world` (the tracker's), `camera_CC` (optical: x right, y down, z forward; CC the
-camera's index in the sorted id list) and `tool` (the tool tip, shaft along +z, as
-core/tool.py models it).
+camera's index in the sorted id list) and each tool's (`core.tool.tool_name`: `tool`, `tool_1`,
+...; the kinematic frame, where core/tool.py's model of the shaft and jaw is drawn).
 """
 
 from __future__ import annotations
@@ -24,16 +24,16 @@ from foxglove_schemas_protobuf.SceneEntity_pb2 import SceneEntity
 from foxglove_schemas_protobuf.SceneEntityDeletion_pb2 import SceneEntityDeletion
 from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
 from foxglove_schemas_protobuf.SpherePrimitive_pb2 import SpherePrimitive
+from google.protobuf.timestamp_pb2 import Timestamp
 
 from ..config import ToolConfig
 from ..core.cameras import CameraModel, in_image, project
 from ..core.labels import CLASS_NAMES, UNKNOWN
-from ..core.tool import ray_segment_distance, shaft_segment
+from ..core.tool import ray_segment_distance, tool_capsules, tool_name
 from .foxglove_pack import color, points_annotation, pose, quaternion, timestamp, vector3
 from .palette import CLASS_COLOURS, rgba255
 
 WORLD_FRAME = "world"
-TOOL_FRAME = "tool"
 
 CLASS_LABELS = {**CLASS_NAMES, UNKNOWN: "unknown"}
 # Class colours (RGBA 0-255), those of the report's figures (io/palette.py).
@@ -58,12 +58,13 @@ def class_colours(labels: np.ndarray) -> np.ndarray:
     return table[np.asarray(labels, np.uint8)]
 
 
-def frame_transforms(stamp: int, camera_poses: np.ndarray, tool_pose: np.ndarray
+def frame_transforms(stamp: int, camera_poses: np.ndarray, tool_poses: np.ndarray
                      ) -> FrameTransforms:
     """world -> camera_CC for every camera with a finite pose (C, 4, 4) camera-to-world, and
-    world -> tool if the tool pose (4, 4) is finite."""
+    world -> each tool's frame (`tool_name`) whose pose ((4, 4) or (K, 4, 4)) is finite."""
     children = [(camera_frame(c), p) for c, p in enumerate(camera_poses)]
-    children.append((TOOL_FRAME, tool_pose))
+    children += [(tool_name(k), p)
+                 for k, p in enumerate(np.asarray(tool_poses, float).reshape(-1, 4, 4))]
     ts = timestamp(stamp)
     return FrameTransforms(transforms=[
         FrameTransform(timestamp=ts, parent_frame_id=WORLD_FRAME, child_frame_id=name,
@@ -85,33 +86,56 @@ def _frustum(model: CameraModel, depth: float) -> LinePrimitive:
                          points=[Point3(x=x, y=y, z=z) for x, y, z in segments])
 
 
-def _tool_capsule(radius: float, length: float) -> tuple[CylinderPrimitive, SpherePrimitive]:
-    """The shaft (a cylinder from one radius up the +z axis to `length`) and its rounded
-    end (a sphere touching the tip), in the tool frame."""
-    top = max(length, radius)
-    shaft = np.eye(4)
-    shaft[2, 3] = (radius + top) / 2
-    end = np.eye(4)
-    end[2, 3] = radius
+def _capsule(a: np.ndarray, b: np.ndarray, radius: float
+             ) -> tuple[CylinderPrimitive, list[SpherePrimitive]]:
+    """A capsule of `radius` m around the segment a-b (3,) m as a cylinder (its z axis along
+    a -> b) and a sphere at each end."""
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    length = float(np.linalg.norm(b - a))
+    z = (b - a) / length if length > 0 else np.array([0.0, 0.0, 1.0])
+    helper = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    x = np.cross(helper, z)
+    x /= np.linalg.norm(x)
+    middle = np.eye(4)
+    middle[:3, :3] = np.column_stack([x, np.cross(z, x), z])
+    middle[:3, 3] = (a + b) / 2
     d = 2 * radius
-    return (CylinderPrimitive(pose=pose(shaft), size=vector3((d, d, top - radius)),
-                              bottom_scale=1.0, top_scale=1.0, color=color(_TOOL_RGBA)),
-            SpherePrimitive(pose=pose(end), size=vector3((d, d, d)), color=color(_TOOL_RGBA)))
+    ends = []
+    for centre in (a, b):
+        at = np.eye(4)
+        at[:3, 3] = centre
+        ends.append(SpherePrimitive(pose=pose(at), size=vector3((d, d, d)),
+                                    color=color(_TOOL_RGBA)))
+    return (CylinderPrimitive(pose=pose(middle), size=vector3((d, d, length)), bottom_scale=1.0,
+                              top_scale=1.0, color=color(_TOOL_RGBA)), ends)
+
+
+def tool_entity(ts: Timestamp, index: int, tool: ToolConfig) -> SceneEntity:
+    """Tool `index` (0 = `[tool]`, k = the k-th `[[tools]]`) in its own frame: one capsule
+    per part of core/tool.py's model (the shaft, and the jaw/wrist part if it has one);
+    cylinders and spheres in the parts' order, the spheres two a part (near end first)."""
+    name = tool_name(index)
+    cylinders, spheres = [], []
+    for a, b, radius in tool_capsules(np.eye(4), tool):
+        cylinder, ends = _capsule(a, b, radius)
+        cylinders.append(cylinder)
+        spheres += ends
+    return SceneEntity(timestamp=ts, frame_id=name, id=name, frame_locked=True,
+                       cylinders=cylinders, spheres=spheres)
 
 
 def scene_update(stamp: int, models: Sequence[CameraModel], cameras_posed: np.ndarray,
-                 tool_posed: bool, shaft_radius_m: float, shaft_length_m: float,
+                 tools_posed: Sequence[bool], tools: Sequence[ToolConfig],
                  frustum_depth_m: float) -> SceneUpdate:
-    """Everything drawn anew: each posed camera's frustum (cameras_posed (C,) bool) and the
-    tool's capsule if posed; entities are locked to their frames (they follow /tf)."""
+    """Everything drawn anew: each posed camera's frustum (cameras_posed (C,) bool) and each
+    posed tool (`Config.tool_configs()` order); entities are locked to their frames (they
+    follow /tf)."""
     ts = timestamp(stamp)
     entities = [SceneEntity(timestamp=ts, frame_id=camera_frame(c), id=camera_frame(c),
                             frame_locked=True, lines=[_frustum(m, frustum_depth_m)])
                 for c, m in enumerate(models) if cameras_posed[c]]
-    if tool_posed:
-        shaft, end = _tool_capsule(shaft_radius_m, shaft_length_m)
-        entities.append(SceneEntity(timestamp=ts, frame_id=TOOL_FRAME, id=TOOL_FRAME,
-                                    frame_locked=True, cylinders=[shaft], spheres=[end]))
+    entities += [tool_entity(ts, k, tool)
+                 for k, (posed, tool) in enumerate(zip(tools_posed, tools, strict=True)) if posed]
     return SceneUpdate(deletions=[SceneEntityDeletion(timestamp=ts,
                                                       type=SceneEntityDeletion.ALL)],
                        entities=entities)
@@ -144,25 +168,27 @@ def compressed_video(stamp: int, index: int, data: bytes, fmt: str) -> Compresse
 
 
 def projected_labels(points: np.ndarray, labels: np.ndarray, cam_to_world: np.ndarray,
-                     model: CameraModel, tool_pose: np.ndarray | None = None,
-                     tool: ToolConfig | None = None) -> tuple[np.ndarray, np.ndarray]:
+                     model: CameraModel, tool_poses: np.ndarray | None = None,
+                     tools: ToolConfig | Sequence[ToolConfig] | None = None
+                     ) -> tuple[np.ndarray, np.ndarray]:
     """Pixels (M, 2) and labels (M,) of the points (N, 3) m in front of the camera that
-    project into its image and, given the tool's pose and model, are not behind the tool
-    (the ray from the camera passes the shaft axis closer than its radius before the
-    point)."""
+    project into its image and, given the tools' poses ((4, 4) or (K, 4, 4)) and models, are
+    not behind a tool (the ray from the camera passes a capsule's axis, shaft or jaw, closer
+    than its radius before the point)."""
     points = np.asarray(points, float)
     keep = np.isfinite(points).all(1)
     uv, z = project(points, cam_to_world, model)
     with np.errstate(invalid="ignore"):
         keep &= (z > 0) & np.isfinite(uv).all(1) & in_image(uv, model)
-    if tool is not None and tool_pose is not None and np.isfinite(tool_pose).all() \
-            and keep.any():
+    capsules = [] if tools is None or tool_poses is None else tool_capsules(tool_poses, tools)
+    if capsules and keep.any():
         origin = cam_to_world[:3, 3]
         rays = points[keep] - origin
         depth = np.linalg.norm(rays, axis=1)
-        a, b = shaft_segment(tool_pose, tool)
-        dist, along = ray_segment_distance(origin, rays / depth[:, None], a, b)
-        hidden = (dist < tool.shaft_radius_m) & (along < depth)
+        hidden = np.zeros(len(rays), bool)
+        for a, b, radius in capsules:
+            dist, along = ray_segment_distance(origin, rays / depth[:, None], a, b)
+            hidden |= (dist < radius) & (along < depth)
         keep[np.flatnonzero(keep)[hidden]] = False
     return uv[keep], np.asarray(labels)[keep]
 

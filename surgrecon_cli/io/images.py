@@ -33,10 +33,10 @@ _STDERR_LOCK = threading.Lock()
 MAX_IMAGE_PIXELS = IMAGE_PIXEL_LIMIT
 """Largest image accepted (67 Mpx; an 8K camera has 33 Mpx); OpenCV's decoders refuse larger
 ones too (OPENCV_IO_MAX_IMAGE_PIXELS, set in surgrecon_cli/__init__.py)."""
-DECODE_FLAGS = cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION
-"""How every image is decoded: 3-channel BGR, pixels as stored. An EXIF orientation tag is
-ignored, as ROS (cv_bridge) does: the calibration and the size in CameraInfo describe the
-stored pixels, and a rotated image would match neither."""
+DECODE_FLAGS = cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION | cv2.IMREAD_ANYDEPTH
+"""How every image is decoded: 3-channel BGR, pixels as stored (8 or 16 bit: `to_8bit`). An
+EXIF orientation tag is ignored, as ROS (cv_bridge) does: the calibration and the size in
+CameraInfo describe the stored pixels, and a rotated image would match neither."""
 _JPEG_MAGIC = b"\xff\xd8\xff"
 _PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 _CORRUPT = ("Corrupt JPEG data", "Premature end of JPEG file")  # libjpeg: data was damaged
@@ -81,6 +81,7 @@ class StoredImage:
     ext: str
     width: int
     height: int
+    peak: int = 255  # largest pixel value: 255 for 8-bit data, measured for 16-bit
 
 
 def prepare_image(record: ImageRecord) -> StoredImage:
@@ -111,11 +112,28 @@ def prepare_image(record: ImageRecord) -> StoredImage:
     for line in native:
         logger.warning("%s image: %s", kind, line)
     height, width = bgr.shape[:2]
+    peak = _peak(bgr)
     if data.startswith(_JPEG_MAGIC):
-        return StoredImage(data, "jpg", width, height)
+        return StoredImage(data, "jpg", width, height, peak)
     if data.startswith(_PNG_MAGIC):
-        return StoredImage(data, "png", width, height)
-    return StoredImage(_png(bgr), "png", width, height)
+        return StoredImage(data, "png", width, height, peak)
+    return StoredImage(_png(bgr), "png", width, height, peak)
+
+
+def _peak(img: np.ndarray) -> int:
+    """The largest pixel value of a 16-bit image (255 for 8-bit data: nothing to measure)."""
+    return int(img.max()) if img.dtype == np.uint16 and img.size else 255
+
+
+def to_8bit(img: np.ndarray, peak: int) -> np.ndarray:
+    """A decoded image as uint8: 8-bit data as it is; 16-bit data scaled from its real range,
+    0 .. 2^b - 1 with b (8 to 16) the fewest bits that hold `peak` (the camera's largest value
+    over the log): a 12-bit camera's 0..4095 fill 0..255, not 0..15 as the high byte alone
+    would."""
+    if img.dtype == np.uint8:
+        return img
+    top = float((1 << max(8, min(16, int(peak).bit_length()))) - 1)
+    return cv2.convertScaleAbs(img, alpha=255.0 / top)
 
 
 def _raw(record: ImageRecord) -> StoredImage:
@@ -147,7 +165,7 @@ def _raw(record: ImageRecord) -> StoredImage:
         img = img[:, :, 0]
     if conversion is not None:
         img = cv2.cvtColor(img, conversion)
-    return StoredImage(_png(img), "png", width, height)
+    return StoredImage(_png(img), "png", width, height, _peak(img))
 
 
 def _check_pixels(width: int, height: int) -> None:
@@ -168,6 +186,27 @@ def header_size(data: bytes) -> tuple[int, int] | None:
         return width, height
     if data.startswith(_JPEG_MAGIC):
         return _jpeg_size(data)
+    return None
+
+
+def structure_problem(data: bytes) -> str | None:
+    """Why PNG or JPEG bytes are cut short, or None when their structure is whole (other data:
+    None). Cheap (nothing decoded, no checksum): a PNG's chunks must chain by their lengths
+    from the signature to an IEND chunk; a JPEG needs an end-of-image marker after its first
+    start of scan (0xFF 0xD9 cannot occur inside entropy-coded data). A damaged byte inside
+    the compressed data passes here; decoding (ingest) finds that."""
+    if data.startswith(_PNG_MAGIC):
+        pos, end = len(_PNG_MAGIC), len(data)
+        while pos + 8 <= end:
+            length, kind = struct.unpack_from(">I4s", data, pos)
+            pos += 12 + length
+            if kind == b"IEND":
+                return None if pos <= end else "truncated (its IEND chunk is cut short)"
+        return "truncated (no IEND chunk: the file ends inside its chunks)"
+    if data.startswith(_JPEG_MAGIC):
+        scan = data.find(b"\xff\xda")
+        if scan < 0 or data.rfind(b"\xff\xd9") < scan:
+            return "truncated (no end-of-image marker after its image data)"
     return None
 
 

@@ -20,7 +20,7 @@ from ..core.cameras import CameraModel
 from ..core.sync import PoseStream
 from ..errors import InputError, RunFolderError
 from .atomic import file_identity, write_json, write_npz
-from .images import DECODE_FLAGS
+from .images import DECODE_FLAGS, to_8bit
 from .run_layout import RunLayout
 
 
@@ -73,7 +73,8 @@ class IngestedLog:
         return np.where(self.usable[frame][:, None, None], self.poses[frame], np.nan)
 
     def load_image(self, frame: int, camera_index: int) -> np.ndarray:
-        """Image (H, W, 3) uint8 RGB of one camera at one frame."""
+        """Image (H, W, 3) uint8 RGB of one camera at one frame (16-bit images scaled from
+        the camera's range: io.images.to_8bit of its `pixel_max`)."""
         rel = self.image_paths[frame][camera_index]
         if not rel:
             raise RunFolderError(f"frame {frame}: camera {self.cameras[camera_index]} has no image")
@@ -82,7 +83,9 @@ class IngestedLog:
         bgr = cv2.imdecode(data, DECODE_FLAGS)
         if bgr is None:
             raise InputError(f"{path}: stored image does not decode; re-run ingest")
-        return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+        peak = self.report.get("cameras", {}).get(self.cameras[camera_index], {}).get(
+            "pixel_max", 65535)
+        return cv2.cvtColor(to_8bit(bgr, peak), cv2.COLOR_BGR2RGB)
 
 
 def save_pose_streams(root: Path, cameras: list[PoseStream], tool: PoseStream) -> None:

@@ -191,6 +191,10 @@ class RunLayout:
     def deformation_csv(self) -> Path:
         return self.metrics_dir / "deformation.csv"
 
+    @property
+    def deformation_tools_csv(self) -> Path:
+        return self.metrics_dir / "deformation_tools.csv"
+
     # evaluation and report
     @property
     def metrics_dir(self) -> Path:
@@ -264,6 +268,7 @@ DESCRIBED_FILES = (
     ("labels", "labels (T, N) and the measures behind them"),
     ("frames_csv", "the per-frame table behind these plots"),
     ("deformation_csv", "per frame: tool-tissue contact, indentation, area, volume, force"),
+    ("deformation_tools_csv", "the same per frame and tool, when there are `[[tools]]`"),
     ("deformation", "the rigid-motion-compensated displacement field and the per-frame measures"),
     ("summary_json", "this run at a glance"),
     ("evaluation_json", "scores against ground truth (when evaluated)"),

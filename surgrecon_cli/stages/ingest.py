@@ -247,11 +247,11 @@ def _assemble(collector: StreamCollector, reader: LogReader, config: Config, sta
     report = _report(ids, cams, stamps, pose_streams, jitter, frames, image_index, usable,
                      trimmed)
     for cid, cam in zip(ids, cams, strict=True):
-        report["cameras"][cid].update(video_report(cam, frame_stamps, tolerance_ns))
+        report["cameras"][cid].update(video_report(cam, frame_stamps, tolerance_ns),
+                                      pixel_max=cam.pixel_max,
+                                      pose_source=poses_in_world.sources[cid],
+                                      pose_conflicts=poses_in_world.conflicts.get(cid, 0))
     report["tracker_bodies"] = _tracker_bodies(ids, pose_streams, jitter, gap_ns)
-    for cid in ids:
-        report["cameras"][cid]["pose_source"] = poses_in_world.sources[cid]
-        report["cameras"][cid]["pose_conflicts"] = poses_in_world.conflicts.get(cid, 0)
     report["tool_pose_source"] = poses_in_world.sources.get("tool", "")
     report.update(robot=robot, tool_pose_topic=collector.tool_topic,
                   tool_rate_hz=rate_hz(tool.stamps_ns),

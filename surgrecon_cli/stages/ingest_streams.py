@@ -76,6 +76,7 @@ class CameraStreams:
     video_format: str = ""  # h264 / h265 for a video camera: its packets are kept too
     packet_stamps: array = field(default_factory=lambda: array("q"))
     packet_sizes: array = field(default_factory=lambda: array("q"))
+    pixel_max: int = 0  # largest pixel value of its images (io.images.StoredImage.peak)
 
 
 class StreamCollector:
@@ -186,6 +187,7 @@ class StreamCollector:
         cam.stamps.append(stamp_ns)
         cam.sizes.extend((stored.width, stored.height))
         cam.files.append(rel)
+        cam.pixel_max = max(cam.pixel_max, stored.peak)
 
     def _check_size(self, camera: str, stamp_ns: int, width: int, height: int) -> None:
         cam = self.cameras[camera]

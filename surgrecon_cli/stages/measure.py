@@ -8,7 +8,10 @@ classify stage's (same settings, rebuilt here). Writes atomically
                                 the force model is off; a frame without a tool pose: contact
                                 "not measured", the rest empty)
   RUN/measure/deformation.npz   the per-frame series and the compensated field (T, N)
-  RUN/measure/summary.json      onset, release, deepest indentation, largest area, ...
+  RUN/metrics/deformation_tools.csv  with `[[tools]]` only: one row per frame and tool
+                                (TOOL_COLUMNS; tool `tool`, `tool_1`, ... as core/tool.tool_name)
+  RUN/measure/summary.json      onset, release, deepest indentation, largest area, ...; per
+                                `[[tools]]` tool the same under `extra_tools`
 A point's σ here is that of its registered position and of its template position combined
 (the displacement from frame 0 carries both). Frames are measured one at a time and the
 field written by rows (io/rows.py): memory is flat in the number of frames.
@@ -24,20 +27,22 @@ from typing import Any
 import numpy as np
 
 from ..config import Config
+from ..config.schema import ExtraToolConfig
 from ..core.classify import Neighbourhoods, template_neighbourhoods
 from ..core.deformation import Rings, surface_normals, surrounding_rings
 from ..core.indentation import (
     FIELD_DTYPES,
     NOT_MEASURED,
     SERIES_KEYS,
+    DeformationSeries,
     camera_viewpoint,
-    measure_frame,
+    measure_tools,
     series_of,
     summarise,
-    tool_contact,
     tool_known,
 )
 from ..core.noise import covariance_sigma
+from ..core.tool import tool_name
 from ..io.artefacts import read_observations, read_registration, read_template
 from ..io.atomic import write_json
 from ..io.ingest_store import IngestedLog, load_ingested
@@ -51,6 +56,9 @@ logger = logging.getLogger(__name__)
 
 STAGE = "measure"
 DEFORMATION_COLUMNS = ("frame", *SERIES_KEYS)
+TOOL_COLUMNS = ("frame", "tool", "pose", "contact", "clearance_mm", "tolerance_mm",
+                "indentation_mm", "indentation_normal_mm", "depth_under_tip_mm", "area_mm2",
+                "volume_mm3", "force_n")
 
 
 def geometry(points: np.ndarray, log: IngestedLog,
@@ -77,8 +85,7 @@ def run_measure(run_dir: Path, config: Config,
         obs = read_observations(layout, n)
         template_sigma = covariance_sigma(obs.covariance + obs.pose_covariance)
         nb, rings, normals = geometry(template, log, config)
-        figs = []
-        extra: list[list[tuple[bool, float]]] = [[] for _ in config.tools]  # per [[tools]]
+        figs: list[list[dict[str, float]]] = [[] for _ in config.tool_configs()]  # per tool
         scratch = {key: layout.measure_dir / f".deformation.{key}.tmp" for key in FIELD_DTYPES}
         layout.measure_dir.mkdir(parents=True, exist_ok=True)
         field = {key: RowFile(path, (n_frames, n), FIELD_DTYPES[key], create=True)
@@ -90,21 +97,20 @@ def run_measure(run_dir: Path, config: Config,
                     reg = read_registration(layout, k, n)
                     positions = reg.registered.astype(float)
                     sigma = np.hypot(reg.sigma.astype(float), template_sigma)
-                fig, rows = measure_frame(template, positions, sigma, log.tool_poses[k], nb,
-                                          rings, normals, config.deformation, config.tool)
-                figs.append(fig)
-                for t, (pose, tool) in enumerate(zip(log.all_tool_poses(k)[1:], config.tools,
-                                                     strict=True)):
-                    extra[t].append(tool_contact(positions, sigma, pose, tool,
-                                                 config.deformation))
+                frame_figs, rows = measure_tools(template, positions, sigma,
+                                                 log.all_tool_poses(k), nb, rings, normals,
+                                                 config.deformation, config.tool_configs())
+                for t, fig in enumerate(frame_figs):
+                    figs[t].append(fig)
                 for key, value in rows.items():
                     field[key].write(k, value)
                 step(k + 1, n_frames + 1)
-            series = series_of(figs)
+            all_series = [series_of(f) for f in figs]
+            series = all_series[0]
             summary = finite_json({
                 **summarise(series, config.deformation, config.tool),
-                "extra_tools": [_extra_summary(tool.pose, frames)
-                                for tool, frames in zip(config.tools, extra, strict=True)]})
+                "extra_tools": [_extra_summary(t, tool, all_series[t], config)
+                                for t, tool in enumerate(config.tools, start=1)]})
             write_npz_rows(layout.deformation, {**{k: getattr(series, k) for k in SERIES_KEYS},
                                                 **field})
         finally:
@@ -115,9 +121,12 @@ def run_measure(run_dir: Path, config: Config,
         summary.update(contact_measured_frames=int(measured.sum()),
                        contact=None if measured.any() else NOT_MEASURED)
         write_json(layout.deformation_summary, summary)
-        write_csv(layout.deformation_csv, DEFORMATION_COLUMNS,
-                  [row if known else {"frame": row["frame"], "contact": NOT_MEASURED}
-                   for row, known in zip(series.rows(), measured, strict=True)])
+        write_csv(layout.deformation_csv, DEFORMATION_COLUMNS, _rows(series, measured))
+        if config.tools:
+            write_csv(layout.deformation_tools_csv, TOOL_COLUMNS, _tool_rows(log, config,
+                                                                             all_series))
+        else:
+            layout.deformation_tools_csv.unlink(missing_ok=True)  # from an earlier config
         step(n_frames + 1, n_frames + 1)
         info.update(onset_frame=summary["onset_frame"], release_frame=summary["release_frame"],
                     max_indentation_mm=summary["max_indentation_mm"],
@@ -127,10 +136,31 @@ def run_measure(run_dir: Path, config: Config,
     return summary
 
 
-def _extra_summary(pose_topic: str, frames: list[tuple[bool, float]]) -> dict[str, Any]:
-    """A `[[tools]]` tool over the sequence: its frames in contact, smallest clearance."""
-    clearance = np.array([c for _, c in frames], float)
-    return {"pose": pose_topic, "contact_frames": [k for k, (c, _) in enumerate(frames) if c],
+def _rows(series: DeformationSeries, measured: np.ndarray) -> list[dict[str, Any]]:
+    """A tool's rows (`DeformationSeries.rows`); frames without its pose: "not measured"."""
+    return [row if known else {"frame": row["frame"], "contact": NOT_MEASURED}
+            for row, known in zip(series.rows(), measured, strict=True)]
+
+
+def _tool_rows(log: IngestedLog, config: Config,
+               all_series: list[DeformationSeries]) -> list[dict[str, Any]]:
+    """deformation_tools.csv: per frame, every tool's row, in `Config.tool_configs()` order."""
+    poses = [config.topics.tool_pose, *(t.pose for t in config.tools)]
+    known = [tool_known(log.tool_poses),
+             *(tool_known(log.extra_tool_poses[:, t]) for t in range(len(config.tools)))]
+    per_tool = [[{**row, "tool": tool_name(t), "pose": poses[t]}
+                 for row in _rows(s, known[t])] for t, s in enumerate(all_series)]
+    return [rows[k] for k in range(log.n_frames) for rows in per_tool]
+
+
+def _extra_summary(index: int, tool: ExtraToolConfig, series: DeformationSeries,
+                   config: Config) -> dict[str, Any]:
+    """A `[[tools]]` tool over the sequence: `summarise`'s figures (without the settings),
+    its smallest clearance, name and pose topic."""
+    clearance = series.clearance_mm
+    figures = summarise(series, config.deformation, tool)
+    del figures["settings"]
+    return {"name": tool_name(index), "pose": tool.pose, **figures,
             "min_clearance_mm": (float(np.nanmin(clearance)) if np.isfinite(clearance).any()
                                  else None)}
 
