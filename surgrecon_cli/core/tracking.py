@@ -44,9 +44,9 @@ def shading(grey: np.ndarray) -> np.ndarray:
         return cv2.GaussianBlur(grey.astype(np.float32), (0, 0), SHADING_SIGMA_PX)
     small = cv2.resize(grey, (w // SHADING_DOWNSCALE, h // SHADING_DOWNSCALE),
                        interpolation=cv2.INTER_AREA).astype(np.float32)
-    sigma = np.sqrt(SHADING_SIGMA_PX**2 - 2.0**2) / SHADING_DOWNSCALE
-    small = cv2.GaussianBlur(small, (0, 0), sigma)
-    return cv2.resize(small, (w, h), interpolation=cv2.INTER_LINEAR)
+    sigma = float(np.sqrt(SHADING_SIGMA_PX**2 - 2.0**2)) / SHADING_DOWNSCALE
+    blurred = cv2.GaussianBlur(small, (0, 0), sigma)
+    return cv2.resize(blurred, (w, h), interpolation=cv2.INTER_LINEAR)
 
 
 @dataclass(frozen=True)
