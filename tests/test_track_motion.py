@@ -118,7 +118,7 @@ def test_tracks_on_a_specular_highlight_are_refused():
 def test_the_scene_motion_seen_by_one_camera_predicts_the_other_cameras_pixels(sweep):
     # The rig swept ~6 deg between frames 2 and 4 without the poses saying so: the motion
     # fitted to camera 0's (true) pixels moves the points to where camera 1 sees them.
-    scene, cfg, points, _views, poses = sweep
+    scene, _cfg, points, _views, poses = sweep
     truth, seen = _truth(scene, poses, points, 2)
     latest = scene.vertices[1][points]
     stale = np.linalg.norm(project(latest, poses[1], scene.models[1])[0] - truth[:, 1], axis=1)
