@@ -129,3 +129,23 @@ def test_the_scene_motion_seen_by_one_camera_predicts_the_other_cameras_pixels(s
     predicted = project(moved, poses[1], scene.models[1])[0]
     error = np.linalg.norm(predicted - truth[:, 1], axis=1)[seen[:, 1]]
     assert np.percentile(error, 95) < 1.0
+
+
+def test_points_are_reassociated_by_descriptor_when_every_track_was_lost(sweep):
+    # Frame 2 -> 4 with nothing known at frame 2 (every track lost, no latest position):
+    # no chained track says how the image moved since the template (frame 0, ~12 deg
+    # away); ORB matches between the template's and the current images do.
+    scene, cfg, points, views, poses = sweep
+    pixels0, _ = _truth(scene, poses, points, 0)
+    truth, seen = _truth(scene, poses, points, 2)
+    n = len(points)
+    lost = np.full((n, 3), np.nan)
+    pixels, found, _ = find_points(lost, views[1], views[2], poses, poses,
+                                   np.full((n, len(poses), 2), np.nan), scene.models,
+                                   scene.tool_poses[2], cfg.target, cfg.tool,
+                                   anchor_views=views[0], anchor_pixels=pixels0)
+    both = seen.all(1)
+    assert both.sum() > 150
+    assert found[both].all(1).mean() >= 0.8
+    error = np.linalg.norm(pixels - truth, axis=2)[found & seen]
+    assert np.percentile(error, 95) < 1.5

@@ -129,13 +129,14 @@ def pixel_noise_from_residuals(residuals_px: np.ndarray, point_index: np.ndarray
 def image_noise_sigma(grey: np.ndarray) -> float:
     """Intensity noise σ_I (grey levels) of an image (H, W), Immerkær's (1996) estimator:
     the mean absolute response to a mask that cancels locally planar intensity."""
-    g = np.asarray(grey, np.float32)
+    g = np.asarray(grey)
     if g.shape[0] < 3 or g.shape[1] < 3:
         return 0.0
     mask = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float32)
-    response = cv2.filter2D(g, -1, mask, borderType=cv2.BORDER_REPLICATE)[1:-1, 1:-1]
+    response = cv2.filter2D(g, cv2.CV_32F, mask, borderType=cv2.BORDER_REPLICATE)[1:-1, 1:-1]
     h, w = g.shape
-    return float(np.sqrt(np.pi / 2) * np.abs(response).sum() / (6.0 * (w - 2) * (h - 2)))
+    total = cv2.norm(np.ascontiguousarray(response), cv2.NORM_L1)  # Σ |response|
+    return float(np.sqrt(np.pi / 2) * total / (6.0 * (w - 2) * (h - 2)))
 
 
 def localisation_variance_px2(grey: np.ndarray, pixels: np.ndarray, window_px: int,

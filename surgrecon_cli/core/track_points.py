@@ -28,6 +28,7 @@ from ..config import TargetConfig
 from .cameras import CameraModel, in_image, project, undistort_pixels
 from .geometry import invert_pose
 from .noise import localisation_variance_px2
+from .reacquire import descriptor_motion
 from .tool import ToolConfigs, tool_pixel_mask
 from .tracking import TrackingView, apply_motion, image_motion, track_adaptive
 
@@ -124,11 +125,15 @@ def _anchor(anchor: TrackingView, cur: TrackingView, anchor_pixels: np.ndarray,
             pixels: np.ndarray, found: np.ndarray, model: CameraModel,
             cfg: TargetConfig) -> tuple[np.ndarray, np.ndarray]:
     """Step 2 for one camera: the chained pixels (N, 2) / found (N,) with the points not
-    found re-acquired from the template's image."""
+    found re-acquired from the template's image, from where the image motion since the
+    template puts them: fitted to the chained tracks, or where they are too few (tracking
+    lost), to ORB matches between the two images (core/reacquire.descriptor_motion)."""
     has = np.isfinite(anchor_pixels).all(1) & in_image(
         np.nan_to_num(anchor_pixels, nan=-1e9), model, KLT_BORDER_PX)
     pairs = has & found
     motion = image_motion(anchor_pixels[pairs], pixels[pairs])
+    if motion is None:
+        motion = descriptor_motion(anchor, cur)
     if motion is None:
         return pixels, found
     guess = apply_motion(motion, np.nan_to_num(anchor_pixels))
