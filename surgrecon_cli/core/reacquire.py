@@ -21,7 +21,7 @@ MIN_MATCH_INLIERS = 3 * MIN_MOTION_FIT  # matches agreeing on one motion to beli
 def orb_features(view: TrackingView) -> tuple[np.ndarray, np.ndarray]:
     """ORB corners (K, 2) px and descriptors (K, 32) uint8 of a view's grey image, highlights
     (`view.specular`) excluded."""
-    orb = cv2.ORB_create(nfeatures=ORB_FEATURES)
+    orb = cv2.ORB.create(nfeatures=ORB_FEATURES)
     mask = np.where(view.specular, 0, 255).astype(np.uint8)
     keypoints, descriptors = orb.detectAndCompute(view.grey, mask)
     if descriptors is None or len(keypoints) == 0:
