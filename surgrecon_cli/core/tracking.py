@@ -16,6 +16,7 @@ from .noise import image_noise_sigma
 NCC_PATCH_PX = 9  # ours: side of the patch compared after tracking (px)
 PILOT_STRIDE = 8  # ours: an unknown motion is measured on every 8th point (~12 %) ...
 PILOT_EXTRA_LEVELS = 1  # ... one pyramid level deeper than the tracks (twice the reach)
+PILOT_ENOUGH = 0.9  # ours: a prior whose pilots track this share is used without the other's
 SHADING_SIGMA_PX = 6.0  # ours: shading scale removed before tracking (px), ~ half a KLT window
 SHADING_DOWNSCALE = 4  # the shading is measured at 1/4 resolution (`shading`)
 SPECULAR_VALUE = 235  # ours: a pixel this bright (max of RGB, of 255) ...
@@ -194,16 +195,16 @@ def track_adaptive(prev: TrackingView, cur: TrackingView, start: np.ndarray,
     motion those pilot tracks show (`image_motion`: a camera or scene that moved without
     the poses saying so), and the motion left is the expected one (`expected_motion_px`).
     Only the tracks at a shallower depth than the full one go unchecked backward.
-    `alternative` (M, 2): other
-    guesses (e.g. no motion, where `guess` comes from the poses), piloted too; the one whose
-    pilot tracks more points is used. Returns tracked (M, 2), ok (M,) and each track's
+    `alternative` (M, 2): other guesses (e.g. no motion, where `guess` comes from the
+    poses), piloted too unless `guess`'s pilots track PILOT_ENOUGH of their points; the one
+    whose pilot tracks more points is used. Returns tracked (M, 2), ok (M,) and each track's
     distance from its (corrected) guess (M,) px (NaN where not ok)."""
     full = cfg.klt_levels
     if not np.isfinite(motion_px) and len(start) >= 2 * PILOT_STRIDE:
         pilot = slice(None, None, PILOT_STRIDE)
         deep = full + PILOT_EXTRA_LEVELS
         sample, ok = klt_track(prev, cur, start[pilot], guess[pilot], cfg, deep)
-        if alternative is not None:
+        if alternative is not None and ok.mean() < PILOT_ENOUGH:
             other, other_ok = klt_track(prev, cur, start[pilot], alternative[pilot], cfg, deep)
             if other_ok.sum() > ok.sum():
                 guess, sample, ok = alternative, other, other_ok
