@@ -4,19 +4,23 @@ lost there re-acquired from the template's own images. Pure OpenCV/numpy on arra
 
 Per camera:
 1. chain: the points visible at their latest positions are tracked from the previous
-   image (where they were found there, else their projection), starting at their latest
-   position projected now or where they were (the prior whose pilot sample tracks more
-   points), moved by the camera's image motion measured on that pilot sample (core/
-   tracking.track_adaptive), so that a camera or scene moving 6-15 px a frame is followed
-   whether or not the poses say so;
+   image (where they were found there, else their projection). In the first camera that
+   can, they start at their latest position projected now or where they were (the prior
+   whose pilot sample tracks more points), moved by the image motion measured on that
+   pilot sample (core/tracking.track_adaptive); in every later camera, at their latest
+   positions moved by the scene's rigid motion that the first camera's tracks show
+   (`scene_motion`), without pilots. So a camera or scene moving 6-15 px a frame is
+   followed whether or not the poses say so, mostly by one forward pass at full
+   resolution;
 2. anchor: the points not found so (lost in the previous frame, newly back in view, or
    failed) are tracked from the template's image of that camera, starting at their
-   template pixel moved by the template-to-now image motion fitted on the chained tracks:
+   template pixel moved by the template-to-now image motion fitted on the chained tracks
+   or, with too few of those (tracking lost), on ORB matches (core/reacquire.py):
    points lost for a while come back. The chained tracks are kept as they are: tracked
    again from the template's appearance after a sweep of 10 deg or more, KLT's
    translation-only window is biased by the changed perspective and shading (measured on
-   `rig-sweep` after 4 frames: 0.35 px median, 1.1 px p95; chained 0.2 px, 0.6 px), more than the
-   chain's drift over the same frames.
+   `rig-sweep` after 4 frames: 0.35 px median, 1.1 px p95; chained 0.2 px, 0.6 px), more
+   than the chain's drift over the same frames.
 """
 
 from __future__ import annotations
