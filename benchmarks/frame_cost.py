@@ -11,14 +11,15 @@ too, so that both start cold alike).
 
 For every case (size:cameras): `surgrecon simulate LOG --width W --height H --cameras C
 --frames F --seed S`, `surgrecon ingest` and `surgrecon build-template` (reused when they
-exist in WORKDIR), then, in this process, on one thread (BLAS and OpenCV, as a worker):
+exist in WORKDIR), then on one thread (BLAS and OpenCV, as a worker):
 
-- measured: `stages.register.register_frame` of frames 1..F-1 in order (the register
-  stage with 1 worker: the process caches warm as they are in a worker), per frame: total,
+- measured, in a child process per tree: `stages.register.register_frame` of frames
+  1..F-1 in order (the register stage with 1 worker: the process caches warm as they are
+  in a worker; "before" runs first, "after" then rewrites the frames), per frame: total,
   and its target part (tracking, reprojection check) and registration part as the frame
   step reports them; "rest" = total - both (loading inputs, decoding, writing).
-- floor, the irreducible parts of one frame, timed on the same data: decoding the frame's
-  C JPEG images; one pyramid build per image (cv2.buildOpticalFlowPyramid with
+- floor, in this process, the irreducible parts of one frame, timed on the same data:
+  decoding the frame's C JPEG images; one pyramid build per image (cv2.buildOpticalFlowPyramid with
   derivatives, `--floor-levels` levels, default 1: the depth that tracks as well as 3,
   measured in issue 15); KLT forward and backward of the template points each camera
   saw, on prebuilt pyramids (calcOpticalFlowPyrLK on the images minus its own pyramid
