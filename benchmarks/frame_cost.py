@@ -1,18 +1,25 @@
 """Per-frame cost of the register stage beside its floor on this machine (issue 15).
 
-    .venv/bin/python benchmarks/frame_cost.py [--sizes 640x512 1920x1080] [--cameras 2 4 6]
-        [--frames 6] [--seed 7] [--workdir /tmp/surgrecon-frame-cost]
+    .venv/bin/python benchmarks/frame_cost.py [--cases 640x512:2 640x512:5 1280x1024:2]
+        [--frames 6] [--seed 7] [--workdir /tmp/surgrecon-frame-cost] [--before SRC]
 
-For every (size, cameras): `surgrecon simulate LOG --width W --height H --cameras C
+`--before SRC`: also measure the register stage of another surgrecon source tree (e.g. the
+base commit: `git worktree add /tmp/base 1405d84`, then `--before /tmp/base`) on the same
+run folders, in a child process with PYTHONPATH=SRC, printed as a "before" row above this
+tree's "after" row, both against the same floor (this tree is measured in a child process
+too, so that both start cold alike).
+
+For every case (size:cameras): `surgrecon simulate LOG --width W --height H --cameras C
 --frames F --seed S`, `surgrecon ingest` and `surgrecon build-template` (reused when they
-exist in WORKDIR), then, in this process, on one thread (BLAS and OpenCV, as a worker):
+exist in WORKDIR), then on one thread (BLAS and OpenCV, as a worker):
 
-- measured: `stages.register.register_frame` of frames 1..F-1 in order (the register
-  stage with 1 worker: the process caches warm as they are in a worker), per frame: total,
+- measured, in a child process per tree: `stages.register.register_frame` of frames
+  1..F-1 in order (the register stage with 1 worker: the process caches warm as they are
+  in a worker; "before" runs first, "after" then rewrites the frames), per frame: total,
   and its target part (tracking, reprojection check) and registration part as the frame
   step reports them; "rest" = total - both (loading inputs, decoding, writing).
-- floor, the irreducible parts of one frame, timed on the same data: decoding the frame's
-  C JPEG images; one pyramid build per image (cv2.buildOpticalFlowPyramid with
+- floor, in this process, the irreducible parts of one frame, timed on the same data:
+  decoding the frame's C JPEG images; one pyramid build per image (cv2.buildOpticalFlowPyramid with
   derivatives, `--floor-levels` levels, default 1: the depth that tracks as well as 3,
   measured in issue 15); KLT forward and backward of the template points each camera
   saw, on prebuilt pyramids (calcOpticalFlowPyrLK on the images minus its own pyramid
@@ -30,6 +37,8 @@ measured in one run, on a machine that may be loaded: compare ratios of one run.
 from __future__ import annotations
 
 import argparse
+import json
+import os
 import subprocess
 import sys
 import time
@@ -98,6 +107,15 @@ def measured(run: Path, frames: int, config: Config) -> dict[str, float]:
     parts = {"target": target / n * scale, "registration": solve / n * scale}
     return {"total": total / n, "wall": wall_total, **parts,
             "rest": total / n - parts["target"] - parts["registration"]}
+
+
+def measured_by(code: Path | None, run: Path, frames: int) -> dict[str, float]:
+    """`measured` in a child process on one thread, with PYTHONPATH=code (None: this tree)."""
+    env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1")
+    env["PYTHONPATH"] = str((code or Path(__file__).resolve().parents[1]).absolute())
+    out = subprocess.run([sys.executable, __file__, "--measure", str(run), "--frames",
+                          str(frames)], env=env, check=True, capture_output=True, text=True)
+    return json.loads(out.stdout.strip().splitlines()[-1])
 
 
 def tracking_floor(run: Path, levels: int, window: int) -> dict[str, float]:
@@ -169,45 +187,58 @@ def registration_floor(run: Path, frame: int, config: Config) -> dict[str, float
             "iterations": float(iterations[0])}
 
 
+def row(label: str, case: str, m: dict[str, float], t: dict[str, float],
+        r: dict[str, float]) -> str:
+    """One table row: the measured parts of `m` beside the floors t (tracking), r (ADMM)."""
+    f_target = t["decode"] + t["pyramid"] + t["klt"]
+    f_reg = r["solve"] + r["admm"]
+    floor = f_target + f_reg
+    return (f"{case:>12} {label:>6} | {m['wall']:6.3f} {m['total']:6.3f} {floor:6.3f} "
+            f"{m['total'] / floor:5.1f} | {m['target']:6.3f} {f_target:6.3f} "
+            f"{m['target'] / f_target:5.1f} | {m['registration']:6.3f} {f_reg:6.3f} "
+            f"{m['registration'] / f_reg:5.1f} {r['iterations']:5.0f} | "
+            f"{m['rest']:5.3f} | {t['decode']:.3f} {t['pyramid']:.3f} {t['klt']:.3f} "
+            f"{r['solve']:.3f} {r['admm']:.3f}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--sizes", nargs="+", default=["640x512", "1920x1080"])
-    parser.add_argument("--cameras", nargs="+", type=int, default=[2, 4, 6])
+    parser.add_argument("--cases", nargs="+", default=["640x512:2", "640x512:5", "1280x1024:2"],
+                        help="WIDTHxHEIGHT:CAMERAS")
     parser.add_argument("--frames", type=int, default=6)
     parser.add_argument("--seed", type=int, default=7)
     parser.add_argument("--floor-levels", type=int, default=1)
     parser.add_argument("--workdir", type=Path, default=Path("/tmp/surgrecon-frame-cost"))
+    parser.add_argument("--before", type=Path, help="surgrecon source tree measured as before")
+    parser.add_argument("--measure", type=Path, help=argparse.SUPPRESS)  # child: one run
     args = parser.parse_args()
-    args.workdir.mkdir(parents=True, exist_ok=True)
     config = Config()
     cv2.setNumThreads(1)
     from threadpoolctl import threadpool_limits
 
     threadpool_limits(limits=1)
-    head = (f"{'size':>10} {'cams':>4} | {'wall s':>6} {'cpu s':>6} {'floor':>6} {'ratio':>5} | "
+    if args.measure is not None:
+        print(json.dumps(measured(args.measure, args.frames, config)))
+        return
+    args.workdir.mkdir(parents=True, exist_ok=True)
+    head = (f"{'case':>12} {'code':>6} | {'wall s':>6} {'cpu s':>6} {'floor':>6} {'ratio':>5} | "
             f"{'target':>6} {'floor':>6} {'ratio':>5} | {'regist':>6} {'floor':>6} {'ratio':>5}"
             f" {'iters':>5} | {'rest':>5} | decode pyramid klt solve admm (floor, s)")
     print(head)
-    for size in args.sizes:
+    for case in args.cases:
+        size, cameras = case.split(":")
         width, height = (int(v) for v in size.split("x"))
-        for cameras in args.cameras:
-            try:
-                run = prepare(args.workdir, width, height, cameras, args.frames, args.seed)
-            except subprocess.CalledProcessError as exc:  # e.g. no template: say so, go on
-                print(f"{size:>10} {cameras:>4} | not measured: {exc.cmd[1]} failed", flush=True)
-                continue
-            m = measured(run, args.frames, config)
-            t = tracking_floor(run, args.floor_levels, config.target.klt_window_px)
-            r = registration_floor(run, args.frames - 1, config)
-            f_target = t["decode"] + t["pyramid"] + t["klt"]
-            f_reg = r["solve"] + r["admm"]
-            floor = f_target + f_reg
-            print(f"{size:>10} {cameras:>4} | {m['wall']:6.3f} {m['total']:6.3f} {floor:6.3f} "
-                  f"{m['total'] / floor:5.1f} | {m['target']:6.3f} {f_target:6.3f} "
-                  f"{m['target'] / f_target:5.1f} | {m['registration']:6.3f} {f_reg:6.3f} "
-                  f"{m['registration'] / f_reg:5.1f} {r['iterations']:5.0f} | "
-                  f"{m['rest']:5.3f} | {t['decode']:.3f} {t['pyramid']:.3f} {t['klt']:.3f} "
-                  f"{r['solve']:.3f} {r['admm']:.3f}", flush=True)
+        try:
+            run = prepare(args.workdir, width, height, int(cameras), args.frames, args.seed)
+        except subprocess.CalledProcessError as exc:  # e.g. no template: say so, go on
+            print(f"{case:>12} | not measured: {exc.cmd[1]} failed", flush=True)
+            continue
+        codes = ([("before", args.before)] if args.before else []) + [("after", None)]
+        rows = [(label, measured_by(code, run, args.frames)) for label, code in codes]
+        t = tracking_floor(run, args.floor_levels, config.target.klt_window_px)
+        r = registration_floor(run, args.frames - 1, config)
+        for label, m in rows:
+            print(row(label, case, m, t, r), flush=True)
 
 
 if __name__ == "__main__":

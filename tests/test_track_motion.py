@@ -14,7 +14,7 @@ from surgrecon_cli.config import Config
 from surgrecon_cli.core.cameras import project
 from surgrecon_cli.core.noise import NoiseModel
 from surgrecon_cli.core.target import build_target
-from surgrecon_cli.core.track_points import find_points, visible_points
+from surgrecon_cli.core.track_points import find_points, scene_motion, visible_points
 from surgrecon_cli.core.tracking import klt_track, specular_mask, tracking_view
 from surgrecon_cli.sim.variants import variant_config
 
@@ -113,3 +113,39 @@ def test_tracks_on_a_specular_highlight_are_refused():
     assert ok[far].mean() > 0.9
     error = np.linalg.norm(tracked[far & ok] - start[far & ok], axis=1)
     assert np.percentile(error, 90) < 0.1
+
+
+def test_the_scene_motion_seen_by_one_camera_predicts_the_other_cameras_pixels(sweep):
+    # The rig swept ~6 deg between frames 2 and 4 without the poses saying so: the motion
+    # fitted to camera 0's (true) pixels moves the points to where camera 1 sees them.
+    scene, _cfg, points, _views, poses = sweep
+    truth, seen = _truth(scene, poses, points, 2)
+    latest = scene.vertices[1][points]
+    stale = np.linalg.norm(project(latest, poses[1], scene.models[1])[0] - truth[:, 1], axis=1)
+    assert np.median(stale[seen[:, 1]]) > 15.0
+    fit = scene_motion(latest[seen[:, 0]], truth[seen[:, 0], 0], scene.models[0], poses[0])
+    assert fit is not None and fit[1] < 0.5
+    moved = latest @ fit[0][:3, :3].T + fit[0][:3, 3]
+    predicted = project(moved, poses[1], scene.models[1])[0]
+    error = np.linalg.norm(predicted - truth[:, 1], axis=1)[seen[:, 1]]
+    assert np.percentile(error, 95) < 1.0
+
+
+def test_points_are_reassociated_by_descriptor_when_every_track_was_lost(sweep):
+    # Frame 2 -> 4 with nothing known at frame 2 (every track lost, no latest position):
+    # no chained track says how the image moved since the template (frame 0, ~12 deg
+    # away); ORB matches between the template's and the current images do.
+    scene, cfg, points, views, poses = sweep
+    pixels0, _ = _truth(scene, poses, points, 0)
+    truth, seen = _truth(scene, poses, points, 2)
+    n = len(points)
+    lost = np.full((n, 3), np.nan)
+    pixels, found, _ = find_points(lost, views[1], views[2], poses, poses,
+                                   np.full((n, len(poses), 2), np.nan), scene.models,
+                                   scene.tool_poses[2], cfg.target, cfg.tool,
+                                   anchor_views=views[0], anchor_pixels=pixels0)
+    both = seen.all(1)
+    assert both.sum() > 150
+    assert found[both].all(1).mean() >= 0.8
+    error = np.linalg.norm(pixels - truth, axis=2)[found & seen]
+    assert np.percentile(error, 95) < 1.5

@@ -129,36 +129,61 @@ def pixel_noise_from_residuals(residuals_px: np.ndarray, point_index: np.ndarray
 def image_noise_sigma(grey: np.ndarray) -> float:
     """Intensity noise σ_I (grey levels) of an image (H, W), Immerkær's (1996) estimator:
     the mean absolute response to a mask that cancels locally planar intensity."""
-    g = np.asarray(grey, np.float32)
+    g = np.asarray(grey)
     if g.shape[0] < 3 or g.shape[1] < 3:
         return 0.0
     mask = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float32)
-    response = cv2.filter2D(g, -1, mask, borderType=cv2.BORDER_REPLICATE)[1:-1, 1:-1]
+    response = cv2.filter2D(g, cv2.CV_32F, mask, borderType=cv2.BORDER_REPLICATE)[1:-1, 1:-1]
     h, w = g.shape
-    return float(np.sqrt(np.pi / 2) * np.abs(response).sum() / (6.0 * (w - 2) * (h - 2)))
+    total = cv2.norm(np.ascontiguousarray(response), cv2.NORM_L1)  # Σ |response|
+    return float(np.sqrt(np.pi / 2) * total / (6.0 * (w - 2) * (h - 2)))
 
 
 def localisation_variance_px2(grey: np.ndarray, pixels: np.ndarray, window_px: int,
                               noise_sigma: float) -> np.ndarray:
     """Per-axis variance (M,) px² of locating the window around pixels (M, 2) in an image
-    (H, W): the Cramér-Rao bound σ_I² trace((Σ_w ∇I ∇Iᵀ)⁻¹) / 2. Pixels outside: inf."""
+    (H, W): the Cramér-Rao bound σ_I² trace((Σ_w ∇I ∇Iᵀ)⁻¹) / 2 (Sobel gradients, scale
+    1/8, the window's sums centred on the rounded pixel). Pixels outside: inf."""
     g = np.asarray(grey, np.float32)
-    gx = cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3, scale=1 / 8)
-    gy = cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=3, scale=1 / 8)
-    size = (int(window_px), int(window_px))
-    sums = [cv2.boxFilter(a, -1, size, normalize=False) for a in (gx * gx, gx * gy, gy * gy)]
     out = np.full(len(pixels), np.inf)
     uv = np.round(np.asarray(pixels, float)).astype(np.int64) if len(pixels) else np.zeros(
         (0, 2), np.int64)
     inside = ((uv[:, 0] >= 0) & (uv[:, 1] >= 0) & (uv[:, 0] < g.shape[1])
               & (uv[:, 1] < g.shape[0]))
     if inside.any():
-        u, v = uv[inside, 0], uv[inside, 1]
-        a, b, c = (m[v, u].astype(float) for m in sums)
+        a, b, c = _gradient_sums(g, uv[inside, 0], uv[inside, 1], int(window_px))
         det = a * c - b * b
         trace_inverse = (a + c) / np.maximum(det, 1e-12)
         out[inside] = np.where(det > 1e-12, noise_sigma**2 * trace_inverse / 2.0, np.inf)
     return out
+
+
+def _gradient_sums(g: np.ndarray, u: np.ndarray, v: np.ndarray,
+                   window: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Σ gx², Σ gx gy, Σ gy² (each (M,)) over the window x window patches of image g (H, W)
+    float32 centred on pixels (u, v) (M,) int: from patches cut around the points alone when
+    they cover less than the image (cost ∝ points), else by box filters of the whole image
+    (borders reflected either way)."""
+    half = window // 2
+    if len(u) * (window + 2) ** 2 >= g.size:
+        gx = cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3, scale=1 / 8)
+        gy = cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=3, scale=1 / 8)
+        size = (window, window)
+        sums = [cv2.boxFilter(p, -1, size, normalize=False) for p in (gx * gx, gx * gy, gy * gy)]
+        a, b, c = (m[v, u].astype(float) for m in sums)
+        return a, b, c
+    pad = half + 1
+    padded = cv2.copyMakeBorder(g, pad, pad, pad, pad, cv2.BORDER_REFLECT_101)
+    steps = np.arange(-pad, pad + 1)
+    rows = (v + pad)[:, None, None] + steps[None, :, None]
+    cols = (u + pad)[:, None, None] + steps[None, None, :]
+    patch = padded[rows, cols]  # (M, window + 2, window + 2)
+    dx = patch[:, :, 2:] - patch[:, :, :-2]  # central differences, then [1 2 1] / 8 across
+    dy = patch[:, 2:, :] - patch[:, :-2, :]
+    gx = (dx[:, :-2] + 2.0 * dx[:, 1:-1] + dx[:, 2:]) / 8.0
+    gy = (dy[:, :, :-2] + 2.0 * dy[:, :, 1:-1] + dy[:, :, 2:]) / 8.0
+    return ((gx * gx).sum((1, 2), dtype=float), (gx * gy).sum((1, 2), dtype=float),
+            (gy * gy).sum((1, 2), dtype=float))
 
 
 def pose_jitter(stamps_ns: np.ndarray, positions: np.ndarray,
