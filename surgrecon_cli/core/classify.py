@@ -20,9 +20,9 @@ core/frame_step.py: σ is the RMS of a 3D position error, metres) and its neighb
    rigid motion from frame 0, weighted by precision; under "one rigid motion" the residual
    S = Σ_j r_jᵀ Σ_j⁻¹ r_j (Σ_j the member's displacement covariance) is chi-square with
    3n − 6 degrees of freedom (n members), and the departure is significant when S exceeds
-   its bound at `significance`, after the frame's noise scale: the median over all its
-   labelled neighbourhoods of S / the chi-square median of its dof, when above 1 (most of a
-   scene moves rigidly, as most template points are inliers; the noise model's σ is a floor,
+   its bound at `significance`, after the frame's noise scale: the lower quartile over all
+   its labelled neighbourhoods of S / the chi-square lower quartile of its dof, when above 1
+   (at least a quarter of a scene moves rigidly; the noise model's σ is a floor,
    and real images scatter positions more than it says: on the simulator's real-image
    breathing variant, 82 % of truly rigid moving neighbourhoods failed the unscaled test,
    S / dof 2.5). Is it large enough to count? The RMS residual of the
@@ -69,6 +69,10 @@ from .labels import (
 )
 
 SIGMA_FLOOR_M = 1e-6  # ours: a σ below a micrometre is numerical, not a measurement
+# Ours: the noise scale is read at the lower quartile of the neighbourhoods' departures, so
+# that up to 3/4 of them may truly deform (a stereo endoscope close to a dent sees mostly
+# the dent and its 5 mm surroundings; the median read too much deformation as noise there).
+SCALE_QUANTILE = 0.25
 
 
 @dataclass(frozen=True)
@@ -226,12 +230,14 @@ def departure_statistic(template: np.ndarray, positions: np.ndarray, covariance:
 
 def noise_scale(stat: np.ndarray, dof: np.ndarray) -> float:
     """The factor (>= 1) by which a frame's noise model understates the departures of its
-    neighbourhoods from one rigid motion: the median over neighbourhoods (dof > 0) of S / the
-    chi-square median of its dof (module docstring, step 3). 1 without any."""
+    neighbourhoods from one rigid motion: the lower quartile over neighbourhoods (dof > 0)
+    of S / the chi-square lower quartile of its dof (module docstring, step 3). 1 without
+    any."""
     ok = (dof > 0) & np.isfinite(stat)
     if not ok.any():
         return 1.0
-    return max(1.0, float(np.median(stat[ok] / chi2.median(dof[ok]))))
+    return max(1.0, float(np.quantile(stat[ok] / chi2.ppf(SCALE_QUANTILE, dof[ok]),
+                                      SCALE_QUANTILE)))
 
 
 def classify_frame(template: np.ndarray, registered: np.ndarray, nb: Neighbourhoods,
