@@ -94,10 +94,14 @@ def test_retriangulation_sees_motion_along_the_line_of_sight():
     pixels += rng.normal(0.0, pixel_sigma, pixels.shape)
     noise = NoiseModel(pixel_px=pixel_sigma / np.sqrt(2), tracking_px=pixel_sigma / np.sqrt(2),
                        tracker_position_m=0.0, tracker_rotation_rad=0.0,
-                       shared_body=(True, True))
-    found = np.ones((n, 2), bool)
+                       shared_body=(True, True, False))
+    found = np.ones((n, 3), bool)
     found[0, 1] = False  # one view: no position
-    position, image_cov, pose_cov = retriangulate(found, pixels, models, poses, noise)
+    # a third camera whose pose is unknown in this frame is left out
+    pixels = np.concatenate([pixels, pixels[:, :1]], axis=1)
+    poses = np.concatenate([poses, np.full((1, 4, 4), np.nan)])
+    position, image_cov, pose_cov = retriangulate(found, pixels, [*models, models[0]], poses,
+                                                  noise)
     assert np.isnan(position[0]).all()
     err = position[1:] - moved[1:]
     m2 = np.einsum("ni,nij,nj->n", err, np.linalg.inv(image_cov[1:] + pose_cov[1:]), err)

@@ -74,6 +74,7 @@ def retriangulate(found: np.ndarray, pixels: np.ndarray, models: list[CameraMode
     evidence a gate summarised (core/target.py calls a point static when its frame-0
     position still explains every view separately; its views together may not)."""
     n = len(found)
+    found = found & np.isfinite(poses).all((1, 2))[None, :]  # a camera without a pose: unused
     positions = np.full((n, 3), np.nan)
     image_cov = np.full((n, 3, 3), np.nan)
     pose_cov = np.full((n, 3, 3), np.nan)
