@@ -284,3 +284,25 @@ def test_a_camera_that_sees_no_tissue_renders(tmp_path):
     builder = LogBuilder(cfg)
     assert not _seen(builder, 0)[-1][0].any()
     assert simulate(tmp_path / "sep.mcap", cfg).n_frames == 2
+
+
+def test_breathing_rises_rigidly_with_a_local_swelling():
+    """The breathing variant: the whole tissue rises 2-5 mm within one breath (0.2-0.3 Hz),
+    seen by a stereo head with real-image difficulty; only a local swelling deforms."""
+    cfg = variant_config("breathing", seed=105, frames=12)
+    assert cfg.cameras == 2 and cfg.stereo_baseline == STEREO_BASELINE and cfg.warp_px > 0
+    assert 0.2 <= 1.0 / cfg.breath_period <= 0.3
+    builder = LogBuilder(cfg)
+    vertices = builder.true_vertices()
+    peak = int(np.argmax(np.linalg.norm(vertices - vertices[0], axis=2).mean(1)))
+    moved = np.linalg.norm(vertices[peak] - vertices[0], axis=1)
+    far = np.linalg.norm(builder.mesh.vertices[:, :2] - cfg.swell_xy, axis=1) > 0.015
+    assert 0.002 <= np.median(moved) <= 0.005
+    R, t = fit_rigid(vertices[0][far], vertices[peak][far])
+    assert np.abs(vertices[0][far] @ R.T + t - vertices[peak][far]).max() < 1e-9
+    labels = true_labels(vertices, 1.0, 5.0, 0.25)[peak]
+    assert not (labels[far] == DEFORMING).any()
+    assert (labels == DEFORMING).sum() > 50  # the swelling
+    # The tool is held well away from the tissue.
+    tip, _ = builder.motion.tool_pose(builder.frame_times[peak])
+    assert np.linalg.norm(vertices[peak] - tip, axis=1).min() > 0.010

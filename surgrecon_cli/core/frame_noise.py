@@ -15,8 +15,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from .cameras import CameraModel, undistort_pixels
-from .noise import NoiseModel, pixel_noise_from_residuals
+from .cameras import CameraModel, undistort_pixels, view_distortion_jacobians
+from .noise import (
+    NoiseModel,
+    body_pose_covariance,
+    pixel_noise_from_residuals,
+    point_covariances,
+    projection_jacobians,
+)
 from .triangulate import Observations, reprojection_residuals, triangulate
 
 MIN_POINTS = 20  # ours: fewer points seen twice measure no frame noise (excess 0)
@@ -55,3 +61,42 @@ def tracking_excess_px2(found: np.ndarray, pixels: np.ndarray, localisation: np.
     if not np.isfinite(measured) or predicted.size == 0:
         return 0.0, float("nan")
     return max(0.0, measured**2 - float(np.median(predicted))), measured
+
+
+def retriangulate(found: np.ndarray, pixels: np.ndarray, models: list[CameraModel],
+                  poses: np.ndarray, noise: NoiseModel) -> tuple[np.ndarray, np.ndarray,
+                                                                  np.ndarray]:
+    """Every point found (N, C) bool by >= 2 cameras, re-triangulated from its tracked pixels
+    (N, C, 2) px at camera poses (C, 4, 4), without any gate: positions (N, 3) m and their
+    covariances (N, 3, 3) m² from image noise (pixel noise + the frame's tracking noise,
+    `noise.tracking_px`) and from the cameras' pose errors (per view, or the rigid error of a
+    shared tracker body). NaN for the other points. The classifier's own look at the
+    evidence a gate summarised (core/target.py calls a point static when its frame-0
+    position still explains every view separately; its views together may not)."""
+    n = len(found)
+    found = found & np.isfinite(poses).all((1, 2))[None, :]  # a camera without a pose: unused
+    positions = np.full((n, 3), np.nan)
+    image_cov = np.full((n, 3, 3), np.nan)
+    pose_cov = np.full((n, 3, 3), np.nan)
+    idx = np.flatnonzero(found.sum(1) >= 2)
+    if len(idx) == 0:
+        return positions, image_cov, pose_cov
+    obs = tracked_observations(found[idx], pixels[idx], models)
+    tri = triangulate(obs, poses, models, len(idx))
+    ok = tri.in_front & np.isfinite(tri.points).all(1)
+    at = np.nan_to_num(tri.points[obs.point])
+    focal = np.array([m.K[0, 0] for m in models])[obs.camera]
+    J, z = projection_jacobians(at, poses[obs.camera], focal,
+                                view_distortion_jacobians(at, obs.camera, poses, models))
+    image = noise.tracked_view_variance_px2(z, focal, np.full(len(z), noise.tracking_px**2),
+                                            pose=False)
+    independent = image + np.where(noise.on_shared_body(obs.camera), 0.0,
+                                   noise.pose_variance_px2(z, focal))
+    cov = point_covariances(obs.point, J, image, len(idx))
+    body = body_pose_covariance(np.nan_to_num(tri.points), obs.point, obs.camera,
+                                poses[:, :3, 3], noise)
+    pose = point_covariances(obs.point, J, independent, len(idx)) - cov + body
+    positions[idx[ok]] = tri.points[ok]
+    image_cov[idx[ok]] = cov[ok]
+    pose_cov[idx[ok]] = pose[ok]
+    return positions, image_cov, pose_cov

@@ -178,7 +178,12 @@ class Motion:
         moved = rest + (self.breathing(t) * weight)[:, None] * self.breath_direction
         d2 = ((rest - self.contact_rest) ** 2).sum(1)
         dent = self.indentation(t) * np.exp(-d2 / (2 * cfg.indent_sigma**2))
-        return moved - dent[:, None] * self.tool_axis
+        moved = moved - dent[:, None] * self.tool_axis
+        if cfg.swell_amplitude > 0 and cfg.breath_amplitude > 0:
+            s2 = ((rest[:, :2] - np.asarray(cfg.swell_xy)) ** 2).sum(1)
+            phase = self.breathing(t) / cfg.breath_amplitude
+            moved[:, 2] += cfg.swell_amplitude * phase * np.exp(-s2 / (2 * cfg.swell_sigma**2))
+        return moved
 
     # ---- tool ---------------------------------------------------------------------------
     def tool_tip(self, t: float) -> np.ndarray:

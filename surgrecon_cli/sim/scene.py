@@ -5,6 +5,8 @@ is a material point whose frame-0 (x, y) indexes the texture. Motion (all ours, 
 resemble an insufflated abdomen, not taken from the paper):
 - breathing: the part of the dome with x > `breath_edge` shifts rigidly by up to
   `breath_amplitude` (smooth-step transition of width `breath_width`), cos² in time;
+- swelling (`swell_amplitude` > 0): a local Gaussian bump rises along +z in phase with the
+  breathing (non-rigid: the rest of the breathing region moves rigidly);
 - tool: a cylindrical shaft approaches a contact point in the still part of the dome and
   indents it along its axis by up to `indent_depth` (Gaussian dent of width `indent_sigma`),
   then releases `release` of the dent (>= 1: all of it, and the tool lifts off); the tip
@@ -59,6 +61,11 @@ class SimConfig:
     breath_width: float = 0.008  # width of the smooth transition (m)
     breath_amplitude: float = 0.003  # peak breathing shift (m)
     breath_period: float = 5.0  # s
+    # Local swelling that breathes with the tissue: a Gaussian bump (along +z, about the
+    # dome's normal) of this peak height at the breathing peak (m; 0 = off), width and place.
+    swell_amplitude: float = 0.0
+    swell_sigma: float = 0.005  # m
+    swell_xy: tuple[float, float] = (-0.010, 0.004)  # material centre (m)
     indent_depth: float = 0.007  # peak tool indentation (m)
     indent_sigma: float = 0.006  # dent width (m)
     contact_xy: tuple[float, float] = (-0.022, 0.010)  # material contact point (m)

@@ -50,6 +50,15 @@ VARIANTS: dict[str, Variant] = {
              **REAL_IMAGES},
         ),
         Variant(
+            "breathing",
+            "stereo-real over breathing tissue: all of it rises 4 mm at 0.25 Hz (the tool "
+            "held away) with a local swelling of 0.8 mm",
+            {"cameras": 2, "stereo_baseline": STEREO_BASELINE, **REAL_IMAGES,
+             "breath_edge": -1.0, "breath_amplitude": 0.004, "breath_period": 4.0,
+             "swell_amplitude": 0.0025, "swell_sigma": 0.0025, "indent_depth": 0.0,
+             "tool_clearance": 0.015},
+        ),
+        Variant(
             "stereo-plus",
             "the stereo endoscope plus 3 tracked ring cameras",
             {"cameras": 5, "stereo_baseline": STEREO_BASELINE},

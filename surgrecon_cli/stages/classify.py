@@ -1,7 +1,8 @@
 """Stage `classify`: label every template point at every frame (core/classify.py).
 
-Reads the template and every registered frame (io/artefacts.py); a frame's points whose
-evidence does not support a label (core/quality.unsupported_points) are unknown. Writes
+Reads the template and every registered frame (io/artefacts.py); intra-camera inliers are
+classified from their own re-triangulated pixels (`static_verdicts_checked`); a frame's points
+whose evidence does not support a label (core/quality.unsupported_points) are unknown. Writes
 RUN/classify/labels.npz (`io/artefacts.FrameLabels`: labels after hysteresis, raw labels, the
 displacement and deformation measures, reprojection status) and every frame's labelled
 cloud RUN/clouds/FFFFFF.ply, written once, here: positions, template colours, point_id,
@@ -16,12 +17,13 @@ import functools
 import logging
 import shutil
 from collections.abc import Callable, Collection
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
-from ..config import Config
+from ..config import ClassifyConfig, Config
+from ..core.cameras import CameraModel
 from ..core.classify import (
     Evidence,
     FrameClasses,
@@ -29,9 +31,10 @@ from ..core.classify import (
     classify_frame,
     template_neighbourhoods,
 )
+from ..core.frame_noise import retriangulate
 from ..core.hysteresis import HysteresisAhead, hysteresis_step
 from ..core.labels import CLASS_NAMES, INTRA, STATIC, UNKNOWN
-from ..core.noise import covariance_sigma
+from ..core.noise import NoiseModel, covariance_sigma, noise_from_report
 from ..core.quality import frame_quality, unsupported_points
 from ..executors import Executor, Task
 from ..executors.serial import SerialExecutor
@@ -63,11 +66,13 @@ _CLOUD_BLOCK = 64
 class TemplateNoise:
     """The template points' uncertainty: covariance (N, 3, 3) m² from image noise,
     pose_covariance (N, 3, 3) m² from the cameras' pose errors (common to nearby points),
-    sigma (N,) m = √trace of their sum."""
+    sigma (N,) m = √trace of their sum; the run's noise model (its tracking_px is each
+    frame's own)."""
 
     covariance: np.ndarray
     pose_covariance: np.ndarray
     sigma: np.ndarray
+    model: NoiseModel
 
 
 # template (N, 3) m, its neighbourhoods, its points' uncertainty
@@ -82,7 +87,9 @@ def _cached_template(run_dir: str, _stamp: tuple[tuple[int, ...], ...], neighbou
     nb = template_neighbourhoods(template, neighbourhood_mm, min_neighbours, max_neighbours)
     obs = read_observations(layout, len(template))
     cov, pose_cov = obs.covariance, obs.pose_covariance
-    noise = TemplateNoise(cov, pose_cov, covariance_sigma(cov + pose_cov))
+    log = load_ingested(layout.ingest_dir)
+    noise = TemplateNoise(cov, pose_cov, covariance_sigma(cov + pose_cov),
+                          noise_from_report(log.report, log.cameras, obs.pixel_noise_px))
     for array in (template, nb.index, nb.mask, cov, pose_cov, noise.sigma):
         array.flags.writeable = False  # shared by every frame this process classifies
     return template, nb, noise
@@ -108,10 +115,12 @@ def classify_one_frame(run_dir: Path, frame: int, config: Config) -> int:
     reg = read_registration(layout, frame, len(template))
     cfg = config.classify
     transforms = reg.transforms.astype(float) if cfg.measure == "transform_diff" else None
-    registered = reg.registered.astype(float)
+    log = load_ingested(layout.ingest_dir)
+    evidence = frame_evidence(reg, reg.registered.astype(float), template_noise)
+    registered, evidence = static_verdicts_checked(
+        reg, template, template_noise, evidence, list(log.models), log.usable_poses(frame), cfg)
     classes = classify_frame(template, registered, nb, cfg, transforms=transforms,
-                             status=reg.status,
-                             evidence=frame_evidence(reg, registered, template_noise))
+                             status=reg.status, evidence=evidence)
     quality = frame_quality(frame, reg.status, None, reg.sigma.astype(float),
                             reg.residual.astype(float), reg.target_sigma.astype(float),
                             bool(reg.failed), bool(reg.converged), reg.error)
@@ -151,6 +160,39 @@ def frame_evidence(reg: FrameRegistration, registered: np.ndarray,
                     measured=np.where(has[:, None], target, registered),
                     measured_sigma=np.where(has, target_sigma, sigma),
                     displacement_cov=displacement, departure_cov=departure)
+
+
+def static_verdicts_checked(reg: FrameRegistration, template: np.ndarray,
+                            template_noise: TemplateNoise, evidence: Evidence,
+                            models: list[CameraModel], poses: np.ndarray,
+                            cfg: ClassifyConfig) -> tuple[np.ndarray, Evidence]:
+    """Registered positions (N, 3) m and evidence of a frame, where the reprojection check's
+    static verdicts (intra-camera inliers: target = frame-0 position) are contradicted by
+    the points' own views: a point whose tracked pixels re-triangulate (without a gate,
+    core/frame_noise.retriangulate) at least `static_mm` from its frame-0 position, and
+    significantly so under that position's covariance plus the template's, is measured
+    there instead. (The check tests every view alone with the pose error as per-view noise:
+    with a narrow stereo baseline, motion along the line of sight moves each view by less
+    than that noise, but their disparity by far more than the image noise; on the stereo
+    simulator a third of truly deforming points were called static that way.)"""
+    intra = reg.status == INTRA
+    found = np.isfinite(reg.pixels).all(2) & intra[:, None]
+    noise = replace(template_noise.model, tracking_px=float(reg.tracking_px))
+    position, image_cov, pose_cov = retriangulate(found, reg.pixels.astype(float), models,
+                                                  poses, noise)
+    seen = intra & np.isfinite(position).all(1)
+    registered = reg.registered.astype(float)
+    if not seen.any():
+        return registered, evidence
+    registered[seen] = position[seen]
+    measured, measured_sigma = evidence.measured.copy(), evidence.measured_sigma.copy()
+    displacement, departure = evidence.displacement_cov.copy(), evidence.departure_cov.copy()
+    measured[seen] = position[seen]
+    measured_sigma[seen] = covariance_sigma(image_cov[seen] + pose_cov[seen])
+    departure[seen] = image_cov[seen] + template_noise.covariance[seen]
+    displacement[seen] = departure[seen] + pose_cov[seen] + template_noise.pose_covariance[seen]
+    return registered, replace(evidence, measured=measured, measured_sigma=measured_sigma,
+                               displacement_cov=displacement, departure_cov=departure)
 
 
 def classify_task(run_dir: Path, config: Config, frame: int) -> Task:
