@@ -179,7 +179,7 @@ def main(argv: list[str] | None = None) -> int:
                         pair, cfg, register if label == "before" else register_pair)
                     e = emit(label, reg, wall, wall if label == "ours" else t_ours, resid)
                     decisions[(family, n, label)].append(res.stats[0]["colour_weight_mm"])
-                    estimates[(family, n, label)].append(estimate_ratio(e, res))
+                    estimates[(family, n, label)].append(estimate_ratio(e, res, pair.source))
                     if label == "ours":
                         t_ours = wall
                         if family.endswith("_partial"):

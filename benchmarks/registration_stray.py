@@ -20,9 +20,9 @@ TIME_CAP_S, BCPD_FACTOR = 0.3, 5.0
 ESTIMATE_FACTOR = 10.0
 
 
-def estimate_ratio(e: Errors, result: object) -> float:
+def estimate_ratio(e: Errors, result: object, source: np.ndarray) -> float:
     """True median error / the summary's estimated median error (inf for a 0 estimate)."""
-    est = error_estimate_mm(result)[0]  # type: ignore[arg-type]
+    est = error_estimate_mm(result, source)[0]  # type: ignore[arg-type]
     return float("inf") if not est > 0 else e.median / est
 
 

@@ -16,6 +16,7 @@ from surgrecon_cli.core.registration.colour import decide_colour
 from surgrecon_cli.core.registration.pair import error_estimate_mm, follow_supported
 from surgrecon_cli.core.registration.surface import analyse_target
 from surgrecon_cli.registration import register_pair
+from surgrecon_cli.sim.pairs_catalog import make_pair
 from surgrecon_cli.sim.pairs_stray import stray_colour_pair
 
 GATE_M = 5e-3
@@ -89,6 +90,16 @@ def test_points_without_target_surface_are_never_worse_than_not_moving_far_from_
 def test_error_estimate_is_within_10x_of_the_true_error_and_says_what_it_sees(partial_run):
     pair, res = partial_run
     true_median = np.median(np.linalg.norm(res.registered - pair.truth, axis=1)) * 1e3
-    median, p95, sees = error_estimate_mm(res)
+    median, p95, sees = error_estimate_mm(res, pair.source)
     assert true_median / 10 < median < 10 * true_median and p95 >= median
     assert "along" in sees and "colour" in sees
+
+
+def test_without_colour_the_estimate_counts_the_motion_a_slide_could_hide():
+    pair = make_pair("blob", 1500, 104)
+    res = register_pair(pair.source, pair.target)
+    true_median = np.median(np.linalg.norm(res.registered - pair.truth, axis=1)) * 1e3
+    median, _, sees = error_estimate_mm(res, pair.source)
+    assert median > true_median / 10 and "cannot be seen" in sees
+    across = np.nanmedian(res.residuals) * 1e3
+    assert median > 2 * across  # more than the across-surface part alone

@@ -56,17 +56,18 @@ def _register_one(job: Any, cfg: Any, *, use_ids: bool, landmarks: Path | None =
                     extra={"correspondence": result.correspondences.astype(np.int32),
                            "outlier": result.outliers.astype(np.uint8),
                            "supported": result.supported.astype(np.uint8)})
-    return src, result, _summary_row(job, result, len(dst.xyz), seconds)
+    return src, result, _summary_row(job, result, src.xyz, len(dst.xyz), seconds)
 
 
-def _summary_row(job: Any, result: Any, n_target: int, seconds: float) -> dict[str, Any]:
+def _summary_row(job: Any, result: Any, source: Any, n_target: int,
+                 seconds: float) -> dict[str, Any]:
     """What the run can know of its own error (no ground truth): mm, degrees."""
     import numpy as np
 
     from ..core.registration.pair import error_estimate_mm
     from ..core.scoring import distance_stats_mm
 
-    est_median, est_p95, sees = error_estimate_mm(result)
+    est_median, est_p95, sees = error_estimate_mm(result, source)
     residual = distance_stats_mm(result.residuals)
     rigid = result.stats[0]
     cos = (np.trace(rigid["rotation"]) - 1.0) / 2.0
