@@ -12,6 +12,7 @@ Families (all lengths in metres; see sim/pairs.py and sim/pairs_shapes.py for th
 - blob_noisy, body_noisy: noise 0.5 % of the diagonal and 10 % spikes;
 - stray_colour, stray_colour_partial (30 % cut away): a held-back tissue (sim/pairs_stray.py),
   0.2 mm noise, 4 RGB levels of colour noise, 20 % strays ON the surface with random colours;
+  stray_colour_30: the same with 30 % strays, at 1k and 2k points;
 - rotation: the body turned 90 degrees about a random axis, scaled 0.8, plus 3 % non-rigid.
 """
 
@@ -49,6 +50,8 @@ FAMILIES: dict[str, Family] = {
     "stray_colour": Family(lambda n, s: stray_colour_pair(n, s), (2000, 5000, 20000), True),
     "stray_colour_partial": Family(lambda n, s: stray_colour_pair(n, s, partial=0.3), (5000,),
                                    True),
+    "stray_colour_30": Family(lambda n, s: stray_colour_pair(n, s, strays=0.3), (1000, 2000),
+                              True),
     "blob": Family(_shape("blob"), (5000,), False),
     "torus": Family(_shape("torus"), (5000,), False),
     "body": Family(_shape("body"), (5000,), False),
