@@ -95,8 +95,8 @@ def _summary_line(row: dict[str, Any]) -> str:
             f"{row['colour_decision']}; {row['colour_strays']} target points of stray colour "
             f"left out; rigid start {row['rotation_deg']:.1f} deg, scale {row['scale']:.3f}): "
             f"{row['supported']} on target surface, {row['unsupported']} without "
-            f"({row['followed']} followed their supported neighbours, fading to not moving "
-            f"10 % of the diagonal away); estimated error (no ground truth) median "
+            f"({row['followed']} followed their supported neighbours, within 2-5 % of the "
+            f"diagonal of them); estimated error (no ground truth) median "
             f"{row['error_estimate_median_mm']:.3f} mm, p95 {row['error_estimate_p95_mm']:.3f} "
             f"mm, it sees {row['error_estimate_sees']}; {row['outliers']} outliers; "
             f"{row['seconds']:.2f} s -> {row['output']}")
@@ -178,8 +178,9 @@ def register_pair_cmd(source: Path | None, target: Path | None, output: Path,
     Colour is used when both PLYs carry red/green/blue: its weight is measured from the
     target's texture on the points whose colour agrees with their neighbours (target points
     of stray colour are left out; 0 = colour not informative), or set in mm per RGB unit.
-    Source points without target surface near them move with their supported neighbours,
-    fading to not moving at 10 % of the diagonal from them.
+    Source points without target surface near them move with their supported neighbours
+    (within 2-5 % of the cloud's diagonal of them; farther, they follow the smooth motion
+    weakly pulled towards not moving).
     The keys that matter (--set registration.KEY=VALUE):
       color_weight_mm        0 = automatic; e.g. 50: a full RGB unit costs 50 mm
       max_correspondence_mm  5: matches farther than this are dropped (mm)
