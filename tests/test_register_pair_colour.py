@@ -100,3 +100,9 @@ def test_without_colour_the_estimate_counts_the_motion_a_slide_could_hide():
     assert median > true_median / 10 and "cannot be seen" in sees
     across = np.nanmedian(res.residuals) * 1e3
     assert median > 2 * across  # more than the across-surface part alone
+
+
+def test_coincident_target_points_leave_colour_out():
+    rng = np.random.default_rng(5)
+    d = decide_colour(np.zeros((60, 3)), rng.uniform(0, 1, (60, 3)), np.ones(60, bool), GATE_M)
+    assert d.weight_mm == 0.0

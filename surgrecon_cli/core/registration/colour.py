@@ -81,6 +81,8 @@ def texture_line(xyz: np.ndarray, rgb: np.ndarray) -> tuple[float, float]:
     c2 = np.median(np.sum((rgb[pts, None, :] - rgb[nn[:, 1:]]) ** 2, axis=2), axis=0)
     ranks = max(MIN_RANKS, int(np.sum(r2 <= (FIT_REACH_SPACINGS**2) * r2[0])))
     r2, c2 = r2[:ranks], c2[:ranks]
+    if not r2[-1] > r2[0]:  # coincident points: no distances to fit over
+        return 0.0, 0.0
     slope, intercept = np.polyfit(r2, c2, 1)
     return float(np.sqrt(max(slope, 0.0))), float(np.sqrt(max(intercept, 0.0) / 2.0))
 
