@@ -139,8 +139,8 @@ def error_estimate_mm(result: RegistrationResult,
     colour decided the matches, the along-surface offset from them (`along_surface`), and
     without colour nothing measures a slide along the surface, so the estimate takes the
     only bound there is: how far each point moved (registered - source (N, 3) m; on the
-    benchmark's colourless shapes the true error is 0.2-1.5x that, and 10-60x the across
-    part alone). NaN without supported points."""
+    benchmark's colourless shapes the true median error is 0.01-0.6x this estimate's, and
+    2-40x the across part's alone). NaN without supported points."""
     est = result.residuals * 1e3
     along = result.along_surface
     if along is not None and np.isfinite(along).any():
