@@ -106,3 +106,17 @@ def test_coincident_target_points_leave_colour_out():
     rng = np.random.default_rng(5)
     d = decide_colour(np.zeros((60, 3)), rng.uniform(0, 1, (60, 3)), np.ones(60, bool), GATE_M)
     assert d.weight_mm == 0.0
+
+
+def test_known_pairs_keep_the_callers_target_indices_when_strays_are_left_out():
+    pair = stray_colour_pair(1500, 104)
+    m = len(pair.target)
+    stray = int(np.flatnonzero(pair.target_outlier)[0])  # a landmark may name any target
+    ids = np.full(m, -1)
+    ids[7] = 3
+    res = register_pair(pair.source, pair.target, pair.source_rgb, pair.target_rgb,
+                        landmarks=np.array([[0, 5], [10, stray]]), target_ids=ids)
+    assert res.stats[0]["colour_strays"] > 0.5 * pair.target_outlier.sum()
+    assert list(res.correspondences[[0, 10, 3]]) == [5, stray, 7]
+    free = res.correspondences[res.correspondences >= 0]
+    assert free.max() < m and pair.target_outlier[free].mean() < 0.02
