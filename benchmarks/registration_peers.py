@@ -2,7 +2,8 @@
 
 Binaries come from flags or environment variables (SURGRECON_BCPD, SURGRECON_FAST_RNRR);
 without them a peer is "not available". Peers run as subprocesses on one thread
-(OMP_NUM_THREADS=1, OPENBLAS_NUM_THREADS=1); their wall time is the subprocess's, i.e. it
+(OMP_NUM_THREADS=1, OPENBLAS_NUM_THREADS=1); their time is the subprocess's CPU time (user +
+system: the machine is shared, so wall time would measure the others' load), i.e. it
 includes process start-up and their text/mesh file reading and writing (input files are
 written before the clock starts). Coordinates are written in mm.
 
@@ -29,7 +30,6 @@ import os
 import subprocess
 import sys
 import tempfile
-import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -46,15 +46,20 @@ class PeerError(RuntimeError):
     """A peer exited with an error, timed out or wrote no result."""
 
 
+def _children_cpu() -> float:
+    t = os.times()
+    return t.children_user + t.children_system
+
+
 def run_timed(cmd: list[str], cwd: Path, cap_s: float) -> float:
-    """Run cmd on one thread in cwd; its wall time (s). Raises PeerError."""
+    """Run cmd on one thread in cwd; its CPU time (user + system, s). Raises PeerError."""
     env = {**os.environ, **ONE_THREAD}
-    t0 = time.perf_counter()
+    t0 = _children_cpu()
     try:
         proc = subprocess.run(cmd, cwd=cwd, env=env, capture_output=True, timeout=cap_s)
     except subprocess.TimeoutExpired as exc:
         raise PeerError(f"capped at {cap_s:.0f} s") from exc
-    wall = time.perf_counter() - t0
+    wall = _children_cpu() - t0
     if proc.returncode != 0:
         tail = (proc.stderr or proc.stdout).decode(errors="replace").strip().splitlines()[-1:]
         raise PeerError(f"exit {proc.returncode}: {' '.join(tail)[:80]}")

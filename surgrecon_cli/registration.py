@@ -3,6 +3,6 @@
 A thin alias of `surgrecon_cli.core.registration`, importable without the CLI.
 """
 
-from .core.registration import RegistrationResult, apply_transforms, register
+from .core.registration import RegistrationResult, apply_transforms, register, register_pair
 
-__all__ = ["RegistrationResult", "apply_transforms", "register"]
+__all__ = ["RegistrationResult", "apply_transforms", "register", "register_pair"]

@@ -15,8 +15,10 @@ log = logging.getLogger(__name__)
 
 SUMMARY_COLUMNS = ("source", "target", "output", "source_points", "target_points",
                    "supported", "unsupported", "residual_median_mm", "residual_p95_mm",
-                   "along_surface_median_mm", "outliers", "colour_weight_mm", "rotation_deg",
-                   "scale", "seconds", "error")
+                   "along_surface_median_mm", "error_estimate_median_mm",
+                   "error_estimate_p95_mm", "error_estimate_sees", "outliers",
+                   "colour_weight_mm", "colour_decision", "colour_strays", "followed",
+                   "rotation_deg", "scale", "seconds", "error")
 
 
 def _register_one(job: Any, cfg: Any, *, use_ids: bool, landmarks: Path | None = None,
@@ -29,7 +31,7 @@ def _register_one(job: Any, cfg: Any, *, use_ids: bool, landmarks: Path | None =
     from ..errors import InputError
     from ..io.pair_inputs import read_cloud, read_landmarks, read_weights
     from ..io.ply import write_cloud_ply
-    from ..registration import register
+    from ..registration import register_pair
 
     src, dst = read_cloud(job.source), read_cloud(job.target)
     lm = read_landmarks(landmarks, len(src.xyz), len(dst.xyz)) if landmarks else None
@@ -45,8 +47,8 @@ def _register_one(job: Any, cfg: Any, *, use_ids: bool, landmarks: Path | None =
             bar.set_postfix(median_mm=f"{state['median_residual_mm']:.3f}")
 
     start = time.perf_counter()
-    result = register(src.xyz, dst.xyz, src.rgb, dst.rgb, cfg, target_ids=target_ids,
-                      weights=w, landmarks=lm, callback=on_step)
+    result = register_pair(src.xyz, dst.xyz, src.rgb, dst.rgb, cfg, target_ids=target_ids,
+                           weights=w, landmarks=lm, callback=on_step)
     seconds = time.perf_counter() - start
     ids = src.point_id if src.point_id is not None else np.arange(len(src.xyz))
     write_cloud_ply(job.output, result.registered, rgb=src.rgb, point_id=ids,
@@ -54,15 +56,18 @@ def _register_one(job: Any, cfg: Any, *, use_ids: bool, landmarks: Path | None =
                     extra={"correspondence": result.correspondences.astype(np.int32),
                            "outlier": result.outliers.astype(np.uint8),
                            "supported": result.supported.astype(np.uint8)})
-    return src, result, _summary_row(job, result, len(dst.xyz), seconds)
+    return src, result, _summary_row(job, result, src.xyz, len(dst.xyz), seconds)
 
 
-def _summary_row(job: Any, result: Any, n_target: int, seconds: float) -> dict[str, Any]:
+def _summary_row(job: Any, result: Any, source: Any, n_target: int,
+                 seconds: float) -> dict[str, Any]:
     """What the run can know of its own error (no ground truth): mm, degrees."""
     import numpy as np
 
+    from ..core.registration.pair import error_estimate_mm
     from ..core.scoring import distance_stats_mm
 
+    est_median, est_p95, sees = error_estimate_mm(result, source)
     residual = distance_stats_mm(result.residuals)
     rigid = result.stats[0]
     cos = (np.trace(rigid["rotation"]) - 1.0) / 2.0
@@ -73,8 +78,11 @@ def _summary_row(job: Any, result: Any, n_target: int, seconds: float) -> dict[s
             "residual_median_mm": residual["median_mm"],
             "residual_p95_mm": residual["p95_mm"],
             "along_surface_median_mm": distance_stats_mm(result.along_surface)["median_mm"],
-            "outliers": int(result.outliers.sum()),
+            "error_estimate_median_mm": est_median, "error_estimate_p95_mm": est_p95,
+            "error_estimate_sees": sees, "outliers": int(result.outliers.sum()),
             "colour_weight_mm": float(rigid["colour_weight_mm"]),
+            "colour_decision": rigid["colour_reason"], "colour_strays": rigid["colour_strays"],
+            "followed": rigid["followed"],
             "rotation_deg": float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))),
             "scale": float(rigid["scale"]), "seconds": seconds, "error": ""}
 
@@ -83,15 +91,15 @@ def _summary_line(row: dict[str, Any]) -> str:
     """The row in words, each figure labelled with what it measures."""
     colour = (f"colour {row['colour_weight_mm']:.0f} mm per RGB unit"
               if row["colour_weight_mm"] > 0 else "colour not used")
-    along = row["along_surface_median_mm"]
-    along_text = f", along it {along:.3f} mm (from colour)" if along == along else ""
-    return (f"registered {row['source_points']} points onto {row['target_points']} ({colour}; "
-            f"rigid start {row['rotation_deg']:.1f} deg, scale {row['scale']:.3f}): "
-            f"{row['supported']} on target surface, {row['unsupported']} without (followed "
-            f"their neighbours); estimated error (no ground truth): across the surface median "
-            f"{row['residual_median_mm']:.3f} mm, p95 {row['residual_p95_mm']:.3f} mm"
-            f"{along_text}; {row['outliers']} outliers; {row['seconds']:.2f} s "
-            f"-> {row['output']}")
+    return (f"registered {row['source_points']} points onto {row['target_points']} ({colour}: "
+            f"{row['colour_decision']}; {row['colour_strays']} target points of stray colour "
+            f"left out; rigid start {row['rotation_deg']:.1f} deg, scale {row['scale']:.3f}): "
+            f"{row['supported']} on target surface, {row['unsupported']} without "
+            f"({row['followed']} followed their supported neighbours, within 2-5 % of the "
+            f"diagonal of them); estimated error (no ground truth) median "
+            f"{row['error_estimate_median_mm']:.3f} mm, p95 {row['error_estimate_p95_mm']:.3f} "
+            f"mm, it sees {row['error_estimate_sees']}; {row['outliers']} outliers; "
+            f"{row['seconds']:.2f} s -> {row['output']}")
 
 
 def _batch_jobs(source: Path | None, target: Path | None, pairs: Path | None,
@@ -168,7 +176,11 @@ def register_pair_cmd(source: Path | None, target: Path | None, output: Path,
 
     \b
     Colour is used when both PLYs carry red/green/blue: its weight is measured from the
-    target's texture (0 = colour not informative there), or set in mm per RGB unit.
+    target's texture on the points whose colour agrees with their neighbours (target points
+    of stray colour are left out; 0 = colour not informative), or set in mm per RGB unit.
+    Source points without target surface near them move with their supported neighbours
+    (within 2-5 % of the cloud's diagonal of them; farther, they follow the smooth motion
+    weakly pulled towards not moving).
     The keys that matter (--set registration.KEY=VALUE):
       color_weight_mm        0 = automatic; e.g. 50: a full RGB unit costs 50 mm
       max_correspondence_mm  5: matches farther than this are dropped (mm)

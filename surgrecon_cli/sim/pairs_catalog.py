@@ -10,6 +10,9 @@ Families (all lengths in metres; see sim/pairs.py and sim/pairs_shapes.py for th
 - blob, torus, body, limb: colourless scans, motion up to 10 % of the diagonal, noise
   0.1 % of the diagonal, 2 % spikes; blob_partial, body_partial: single-view target scans;
 - blob_noisy, body_noisy: noise 0.5 % of the diagonal and 10 % spikes;
+- stray_colour, stray_colour_partial (30 % cut away): a held-back tissue (sim/pairs_stray.py),
+  0.2 mm noise, 4 RGB levels of colour noise, 20 % strays ON the surface with random colours;
+  stray_colour_30: the same with 30 % strays, at 1k and 2k points;
 - rotation: the body turned 90 degrees about a random axis, scaled 0.8, plus 3 % non-rigid.
 """
 
@@ -20,6 +23,7 @@ from dataclasses import dataclass
 
 from .pairs import Pair, tissue_pair
 from .pairs_shapes import rotation_pair, shape_pair
+from .pairs_stray import stray_colour_pair
 
 TUNING_SEEDS = (0, 1, 2, 3, 4)
 ACCEPTANCE_SEEDS = (100, 101, 102, 103, 104)
@@ -43,6 +47,11 @@ FAMILIES: dict[str, Family] = {
     "tissue_partial": Family(lambda n, s: tissue_pair(n, s, partial=0.3), (5000,), True),
     "tissue_noisy": Family(lambda n, s: tissue_pair(n, s, noise_mm=0.5, outliers=0.4),
                            (5000,), True),
+    "stray_colour": Family(lambda n, s: stray_colour_pair(n, s), (2000, 5000, 20000), True),
+    "stray_colour_partial": Family(lambda n, s: stray_colour_pair(n, s, partial=0.3), (5000,),
+                                   True),
+    "stray_colour_30": Family(lambda n, s: stray_colour_pair(n, s, strays=0.3), (1000, 2000),
+                              True),
     "blob": Family(_shape("blob"), (5000,), False),
     "torus": Family(_shape("torus"), (5000,), False),
     "body": Family(_shape("body"), (5000,), False),

@@ -1,0 +1,122 @@
+"""`register_pair` (issue 28): a colour decision strays cannot make, the same at any density
+and stray share; points without target surface follow their supported neighbours and stay
+put beside static ones; an error estimate that sees the along-surface error where colour does.
+
+Truth from the simulator (sim/pairs_stray.py: which target points are strays, where every
+source point truly went); acceptance seeds (100+) only: the weights were tuned on 0-4.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from surgrecon_cli.core.registration.colour import decide_colour
+from surgrecon_cli.core.registration.pair import error_estimate_mm, follow_supported
+from surgrecon_cli.core.registration.surface import analyse_target
+from surgrecon_cli.registration import register_pair
+from surgrecon_cli.sim.pairs_catalog import make_pair
+from surgrecon_cli.sim.pairs_stray import stray_colour_pair
+
+GATE_M = 5e-3
+
+
+def _decide(pair):
+    use = ~analyse_target(pair.target, cKDTree(pair.target)).stray
+    return decide_colour(pair.target, pair.target_rgb, use, GATE_M)
+
+
+def test_colour_decision_is_the_same_from_1k_to_100k_points_and_0_to_30_percent_strays():
+    weights = []
+    for n, strays in ((1000, 0.2), (5000, 0.0), (5000, 0.2), (5000, 0.3), (20000, 0.2),
+                      (100000, 0.3)):
+        d = _decide(stray_colour_pair(n, 100, strays=strays))
+        assert d.weight_mm > 0, (n, strays, d.reason)
+        weights.append(d.weight_mm)
+    assert max(weights) < 2.0 * min(weights)
+
+
+def test_random_coloured_strays_on_the_surface_are_told_apart_by_colour():
+    pair = stray_colour_pair(5000, 101)
+    d = _decide(pair)
+    assert np.mean(~d.agree[pair.target_outlier]) > 0.75  # strays flagged
+    assert np.mean(d.agree[~pair.target_outlier]) > 0.9  # tissue kept
+
+
+def test_flat_colour_with_random_strays_is_not_used():
+    pair = stray_colour_pair(5000, 102)
+    rng = np.random.default_rng(0)
+    flat = np.clip(0.6 + rng.normal(0, 4 / 255, pair.target_rgb.shape), 0, 1)
+    flat[pair.target_outlier] = rng.uniform(0, 1, (int(pair.target_outlier.sum()), 3))
+    use = ~analyse_target(pair.target, cKDTree(pair.target)).stray
+    assert decide_colour(pair.target, flat, use, GATE_M).weight_mm == 0.0
+
+
+def test_unsupported_points_follow_near_supported_ones_and_keep_their_own_far_away():
+    rng = np.random.default_rng(3)
+    src = np.c_[rng.uniform(0, 0.03, (3000, 2)), np.zeros(3000)]
+    supported = src[:, 0] < 0.015
+    shift = np.array([0.5e-3, -1e-3, 2e-3])
+    reg = src + shift * supported[:, None]
+    out = follow_supported(src, reg, supported, reach=(0.1, 0.2))  # 4.2 / 8.5 mm
+    gap = src[:, 0] - 0.015
+    near, far = ~supported & (gap < 3e-3), ~supported & (gap > 9e-3)
+    np.testing.assert_allclose(out[near] - src[near], np.tile(shift, (near.sum(), 1)),
+                               atol=1e-9)
+    np.testing.assert_allclose(out[far], src[far], atol=1e-12)
+    np.testing.assert_array_equal(out[supported], reg[supported])
+
+
+@pytest.fixture(scope="module")
+def partial_run():
+    pair = stray_colour_pair(2000, 103, partial=0.3)
+    return pair, register_pair(pair.source, pair.target, pair.source_rgb, pair.target_rgb)
+
+
+def test_points_without_target_surface_are_not_worse_than_not_moving(partial_run):
+    pair, res = partial_run
+    err = np.linalg.norm(res.registered - pair.truth, axis=1)
+    still = np.linalg.norm(pair.source - pair.truth, axis=1)
+    lost = ~res.supported
+    assert lost.sum() > 0.15 * len(err)  # the cut side is found
+    assert np.median(err[lost]) < np.median(still[lost]) + 0.1e-3
+    assert np.median(err) < 0.5e-3  # the supported part is registered
+
+
+def test_error_estimate_is_within_10x_of_the_true_error_and_says_what_it_sees(partial_run):
+    pair, res = partial_run
+    true_median = np.median(np.linalg.norm(res.registered - pair.truth, axis=1)) * 1e3
+    median, p95, sees = error_estimate_mm(res, pair.source)
+    assert true_median / 10 < median < 10 * true_median and p95 >= median
+    assert "along" in sees and "colour" in sees
+
+
+def test_without_colour_the_estimate_counts_the_motion_a_slide_could_hide():
+    pair = make_pair("blob", 1500, 104)
+    res = register_pair(pair.source, pair.target)
+    true_median = np.median(np.linalg.norm(res.registered - pair.truth, axis=1)) * 1e3
+    median, _, sees = error_estimate_mm(res, pair.source)
+    assert median > true_median / 10 and "cannot be seen" in sees
+    across = np.nanmedian(res.residuals) * 1e3
+    assert median > 2 * across  # more than the across-surface part alone
+
+
+def test_coincident_target_points_leave_colour_out():
+    rng = np.random.default_rng(5)
+    d = decide_colour(np.zeros((60, 3)), rng.uniform(0, 1, (60, 3)), np.ones(60, bool), GATE_M)
+    assert d.weight_mm == 0.0
+
+
+def test_known_pairs_keep_the_callers_target_indices_when_strays_are_left_out():
+    pair = stray_colour_pair(1500, 104)
+    m = len(pair.target)
+    stray = int(np.flatnonzero(pair.target_outlier)[0])  # a landmark may name any target
+    ids = np.full(m, -1)
+    ids[7] = 3
+    res = register_pair(pair.source, pair.target, pair.source_rgb, pair.target_rgb,
+                        landmarks=np.array([[0, 5], [10, stray]]), target_ids=ids)
+    assert res.stats[0]["colour_strays"] > 0.5 * pair.target_outlier.sum()
+    assert list(res.correspondences[[0, 10, 3]]) == [5, stray, 7]
+    free = res.correspondences[res.correspondences >= 0]
+    assert free.max() < m and pair.target_outlier[free].mean() < 0.02
