@@ -129,14 +129,28 @@ def factorise(D: sp.csr_matrix, B: sp.csr_matrix, L: sp.csr_matrix, beta: float,
     return Factor(solve=lu.solve, eps=eps, mu1=mu1, mu2=mu2)
 
 
+def _sq(v: np.ndarray) -> float:
+    """Sum of squares of all entries."""
+    flat = v.ravel()
+    return float(flat @ flat)
+
+
+def _scaled_transpose(stacked: sp.csr_matrix, n_data: int, mu1: float,
+                      mu2: float) -> sp.csr_matrix:
+    """[mu1 Dᵀ, mu2 Bᵀ] from stacked = [D; B] (D its first n_data rows)."""
+    scale = np.where(np.arange(stacked.shape[0]) < n_data, mu1, mu2)
+    return (sp.diags(scale) @ stacked).T.tocsr()
+
+
 def energy(prob: AdmmProblem, X: np.ndarray) -> float:
     """E(X) above (without the beta term), normalised units."""
     return _energy(prob, prob.D @ X, prob.B @ X)
 
 
 def _energy(prob: AdmmProblem, DX: np.ndarray, BX: np.ndarray) -> float:
-    r = np.linalg.norm(DX - prob.G, axis=1)
-    s = np.linalg.norm(BX, axis=1)
+    d = DX - prob.G
+    r = np.sqrt(np.einsum("ij,ij->i", d, d))
+    s = np.sqrt(np.einsum("ij,ij->i", BX, BX))
     data = prob.w @ (r if prob.data_l1 else r * r)
     smooth = prob.alpha * (prob.c @ (s if prob.smooth_l1 else s * s))
     return float(data + smooth)
@@ -162,12 +176,15 @@ def run_admm(
     Returns the new state, the info and the factor in use at the end.
     """
     D, B, G, L = prob.D, prob.B, prob.G, prob.L
-    Dt = D.T.tocsr()
-    Bt = B.T.tocsr()
+    n_data = len(G)
+    # One sparse product each way per iteration: [D; B] X, and [mu1 Dᵀ, mu2 Bᵀ] [.; .]
+    stacked = sp.vstack([D, B], format="csr")
     solve, eps, mu1, mu2 = factor.solve, factor.eps, factor.mu1, factor.mu2
+    back = _scaled_transpose(stacked, n_data, mu1, mu2)
     n_fact = 0
     X, U1, U2 = state.X, state.U1, state.U2
-    DX, BX = D @ X, B @ X
+    SX = stacked @ X
+    DX, BX = SX[:n_data], SX[n_data:]
     C, Z = DX - G, BX.copy()
     rows = max(len(G) + len(BX), 1)
     prior = prob.X0
@@ -175,7 +192,7 @@ def run_admm(
     e_prev = energy(prob, X)
     it = 0
     for it in range(1, max_iter + 1):  # noqa: B007 - `it` is reported after the loop
-        rhs = mu1 * (Dt @ (G + C - U1)) + mu2 * (Bt @ (Z - U2)) + eps * prior
+        rhs = back @ np.concatenate([G + C - U1, Z - U2]) + eps * prior
         if prob.beta > 0:
             A = X.reshape(-1, 4, 3)[:, :3, :]
             R = nearest_rotation(A).reshape(-1, 3)
@@ -184,7 +201,8 @@ def run_admm(
         X = solve(rhs)
         if not np.isfinite(X).all():
             raise GeometryError("registration system gave a non-finite solution")
-        DX, BX = D @ X, B @ X
+        SX = stacked @ X
+        DX, BX = SX[:n_data], SX[n_data:]
         hat1 = relax * DX + (1.0 - relax) * (C + G)
         hat2 = relax * BX + (1.0 - relax) * Z
         C_old, Z_old = C, Z
@@ -193,9 +211,9 @@ def run_admm(
         U1 = U1 + hat1 - G - C
         U2 = U2 + hat2 - Z
         r1, r2 = DX - G - C, BX - Z
-        primal = np.sqrt((np.sum(r1 * r1) + np.sum(r2 * r2)) / rows)
+        primal = np.sqrt((_sq(r1) + _sq(r2)) / rows)
         d1, d2 = C - C_old, Z - Z_old
-        dual = np.sqrt((np.sum(d1 * d1) + np.sum(d2 * d2)) / rows)
+        dual = np.sqrt((_sq(d1) + _sq(d2)) / rows)
         moved = (X - X_old).reshape(-1, 4, 3)[:, 3, :]
         step = float(np.sqrt(np.max(np.einsum("ij,ij->i", moved, moved))))
         e_now = _energy(prob, DX, BX)
@@ -209,6 +227,7 @@ def run_admm(
             mu1, mu2 = mu1 * mu_growth, mu2 * mu_growth
             factor = factorise(D, B, L, prob.beta, mu1, mu2)
             solve, eps = factor.solve, factor.eps
+            back = _scaled_transpose(stacked, n_data, mu1, mu2)
             n_fact += 1
     converged = bool(primal < tol and step < tol and change < ENERGY_RTOL)
     info = AdmmInfo(iterations=it, primal=float(primal), dual=float(dual), step=step,
