@@ -10,6 +10,11 @@ import numpy as np
 from .cameras import CameraModel, undistort_pixels
 from .tracking import specular_mask, specular_zone
 
+# ours: an image wider than this is searched for features at 1/s of its size, s the
+# smallest integer that brings it to this width: SIFT's finest octave (the image upsampled
+# 2x) then has the full image's pixels instead of four times as many
+DETECT_WIDTH_PX = 1024
+
 
 @dataclass(frozen=True)
 class Features:
@@ -59,10 +64,20 @@ def detect_features(
     the light, so a feature there triangulates to no point of the tissue and is not tracked.
 
     The contrast threshold is half OpenCV's default: endoscopic tissue is low-contrast and we
-    want hundreds to thousands of features per image (our choice, not the paper's).
+    want hundreds to thousands of features per image (our choice, not the paper's). Images
+    wider than DETECT_WIDTH_PX are searched downscaled (area average); the pixels are
+    given in the full image.
     """
-    gray = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
-    highlight = specular_zone(specular_mask(image))
+    height, width = image.shape[:2]
+    scale = -(-width // DETECT_WIDTH_PX)
+    small = image
+    if scale > 1:
+        size = (width // scale, height // scale)
+        small = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+        if exclude is not None:  # a pixel touching an excluded one is excluded
+            exclude = cv2.resize(exclude.astype(np.uint8), size, interpolation=cv2.INTER_AREA) > 0
+    gray = cv2.cvtColor(small, cv2.COLOR_RGB2GRAY)
+    highlight = specular_zone(specular_mask(small))
     exclude = highlight if exclude is None else exclude | highlight
     mask = (~exclude).astype(np.uint8) * 255
     sift = cv2.SIFT.create(nfeatures=max_features, contrastThreshold=contrast_threshold)
@@ -73,7 +88,9 @@ def detect_features(
     # SIFT may return one location twice with different orientations: keep the first.
     _, first = np.unique(np.round(pixels, 2), axis=0, return_index=True)
     first = np.sort(first)
-    pixels = pixels[first]
+    # pixel centres of the downscaled image back to the full image's
+    factor = np.array([width / gray.shape[1], height / gray.shape[0]])
+    pixels = (pixels[first] + 0.5) * factor - 0.5
     return Features(
         pixels,
         undistort_pixels(pixels, camera),
