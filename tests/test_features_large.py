@@ -1,4 +1,4 @@
-"""Features of a large image are searched downscaled (core/features.DETECT_WIDTH_PX) but
+"""Features of a large image are searched downscaled (template.detect_width_px) but
 located in the full image: a known shift of the image is recovered in full-size pixels."""
 
 from __future__ import annotations
@@ -6,8 +6,9 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from surgrecon_cli.config import Config
 from surgrecon_cli.core.cameras import CameraModel
-from surgrecon_cli.core.features import DETECT_WIDTH_PX, detect_features
+from surgrecon_cli.core.features import detect_features
 
 SHIFT = np.array([13.0, 7.0])  # px, the second image's content moved right and down
 
@@ -21,15 +22,16 @@ def _texture(width: int, height: int) -> np.ndarray:
 
 
 def test_a_shift_is_recovered_in_full_image_pixels():
-    width, height = 2 * DETECT_WIDTH_PX + 100, 600  # searched at a third of its size
+    cfg = Config().template
+    width, height = 2 * cfg.detect_width_px + 100, 600  # searched at a third of its size
     base = _texture(width + 40, height + 40)
     first = np.ascontiguousarray(base[20:20 + height, 20:20 + width])
     dx, dy = SHIFT.astype(int)
     second = np.ascontiguousarray(base[20 - dy:20 - dy + height, 20 - dx:20 - dx + width])
     K = np.array([[1000.0, 0, width / 2], [0, 1000.0, height / 2], [0, 0, 1]])
     camera = CameraModel(K, np.zeros(5), width, height)
-    a = detect_features(first, camera, 4000, 0.02)
-    b = detect_features(second, camera, 4000, 0.02)
+    a = detect_features(first, camera, cfg)
+    b = detect_features(second, camera, cfg)
     assert len(a) > 100 and len(b) > 100
     matches = cv2.BFMatcher(cv2.NORM_L2, crossCheck=True).match(a.descriptors, b.descriptors)
     offsets = np.array([b.pixels[m.trainIdx] - a.pixels[m.queryIdx] for m in matches])

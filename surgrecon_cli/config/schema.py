@@ -138,6 +138,10 @@ class TemplateConfig:
         0.008, "SIFT contrast threshold (OpenCV default 0.04; tissue is low-contrast)",
         bounds=(0, 1)
     )
+    detect_width_px: int = _doc(
+        1280, "images wider than this are searched for features downscaled by the smallest "
+        "integer factor that brings them to this width (0 = always at full size)",
+        bounds=(0, 100_000))
     ratio: float = _doc(
         0.9, "Lowe ratio test (against the runner-up inside or outside the epipolar segment)",
         bounds=(0, 1)

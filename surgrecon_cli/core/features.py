@@ -7,13 +7,9 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from ..config import TemplateConfig
 from .cameras import CameraModel, undistort_pixels
 from .tracking import specular_mask, specular_zone
-
-# ours: an image wider than this is searched for features at 1/s of its size, s the
-# smallest integer that brings it to this width: SIFT's finest octave (the image upsampled
-# 2x) then has the full image's pixels instead of four times as many
-DETECT_WIDTH_PX = 1024
 
 
 @dataclass(frozen=True)
@@ -52,25 +48,22 @@ def sample_rgb(image: np.ndarray, pixels: np.ndarray) -> np.ndarray:
     return out.reshape(-1, 3)
 
 
-def detect_features(
-    image: np.ndarray,
-    camera: CameraModel,
-    max_features: int,
-    contrast_threshold: float,
-    exclude: np.ndarray | None = None,
-) -> Features:
+def detect_features(image: np.ndarray, camera: CameraModel, cfg: TemplateConfig,
+                    exclude: np.ndarray | None = None) -> Features:
     """SIFT on an RGB image (H, W, 3) uint8; `exclude` (H, W) bool masks pixels out (tool),
     and so do saturated specular highlights (core/tracking.specular_zone): they move with
     the light, so a feature there triangulates to no point of the tissue and is not tracked.
 
     The contrast threshold is half OpenCV's default: endoscopic tissue is low-contrast and we
     want hundreds to thousands of features per image (our choice, not the paper's). Images
-    wider than DETECT_WIDTH_PX are searched downscaled (area average); the pixels are
-    given in the full image.
+    wider than `cfg.detect_width_px` are searched downscaled by the smallest integer factor
+    s that brings them to it (area average; SIFT's finest octave, the image upsampled 2x,
+    then has 4/s² of the full image's pixels instead of 4x); the pixels are given in the
+    full image. `cfg.max_features`, `cfg.contrast_threshold`: SIFT's.
     """
     height, width = image.shape[:2]
-    scale = -(-width // DETECT_WIDTH_PX)
     small = image
+    scale = -(-width // cfg.detect_width_px) if cfg.detect_width_px else 1
     if scale > 1:
         size = (width // scale, height // scale)
         small = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
@@ -80,7 +73,7 @@ def detect_features(
     highlight = specular_zone(specular_mask(small))
     exclude = highlight if exclude is None else exclude | highlight
     mask = (~exclude).astype(np.uint8) * 255
-    sift = cv2.SIFT.create(nfeatures=max_features, contrastThreshold=contrast_threshold)
+    sift = cv2.SIFT.create(nfeatures=cfg.max_features, contrastThreshold=cfg.contrast_threshold)
     keypoints, descriptors = sift.detectAndCompute(gray, mask)
     if not keypoints:
         return no_features()
