@@ -3,6 +3,8 @@ located in the full image: a known shift of the image is recovered in full-size 
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import cv2
 import numpy as np
 
@@ -22,7 +24,7 @@ def _texture(width: int, height: int) -> np.ndarray:
 
 
 def test_a_shift_is_recovered_in_full_image_pixels():
-    cfg = Config().template
+    cfg = replace(Config().template, detect_width_px=1280)
     width, height = 2 * cfg.detect_width_px + 100, 600  # searched at a third of its size
     base = _texture(width + 40, height + 40)
     first = np.ascontiguousarray(base[20:20 + height, 20:20 + width])
