@@ -138,11 +138,7 @@ class TemplateConfig:
         0.008, "SIFT contrast threshold (OpenCV default 0.04; tissue is low-contrast)",
         bounds=(0, 1)
     )
-    detect_width_px: int = _doc(
-        0, "images wider than this are searched for features downscaled by the smallest "
-        "integer factor that brings them to this width (0 = always at full size; 1280: a "
-        "1920x1080 template in about half the CPU time and memory, its error ~10 % larger)",
-        bounds=(0, 100_000))
+    detect_width_px: int = _doc(0, "wider images: SIFT downscaled to it (0: off)", bounds=(0, 9999))
     ratio: float = _doc(
         0.9, "Lowe ratio test (against the runner-up inside or outside the epipolar segment)",
         bounds=(0, 1)
