@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from surgrecon_cli.config import Config
-from surgrecon_cli.core.frame_step import data_weights, register_rigid_first
+from surgrecon_cli.core.frame_step import DataTerm, data_weights, register_rigid_first
 from surgrecon_cli.core.labels import INTER, UNOBSERVED
 from surgrecon_cli.core.noise import NoiseModel
 from surgrecon_cli.core.rigid_fit import robust_rigid
@@ -70,9 +70,9 @@ def test_unobserved_points_follow_the_scene_rigid_motion():
         noise=NoiseModel(0.2, 0.2, 0.0, 0.0))
     ids = np.flatnonzero(observed)
     rgb = np.full((n, 3), 128, np.uint8)
-    result, _ = register_rigid_first(source, rgb, target, positions[ids], rgb[ids], ids,
-                                     data_weights(target, has_new=False),
-                                     np.full((4, 4), np.nan), Config())
+    data = DataTerm(positions[ids], rgb[ids], ids, data_weights(target, has_new=False))
+    result, _ = register_rigid_first(source, rgb, target, data, np.full((4, 4), np.nan),
+                                     Config())
     error = np.linalg.norm(result.registered - truth, axis=1)
     assert observed.mean() < 0.15
     assert np.percentile(error[~observed], 95) < 3e-4  # motion: 1.4-3.4 mm

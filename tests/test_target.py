@@ -7,6 +7,7 @@ import pytest
 from scenes import render_frames
 
 from surgrecon_cli.config import Config
+from surgrecon_cli.core.frame_inputs import FrameInput, Rig, Sighting, TemplateData
 from surgrecon_cli.core.noise import NoiseModel
 from surgrecon_cli.core.scoring import map_to_surface
 from surgrecon_cli.core.target import INTER, INTRA, OUTLIER, UNOBSERVED, build_target
@@ -33,21 +34,13 @@ def tracked():
     # The scene's poses are exact: the noise is the template's measured pixel noise.
     noise = NoiseModel(pixel_px=template.pixel_noise_px, tracking_px=0.0,
                        tracker_position_m=0.0, tracker_rotation_rad=0.0)
-    target = build_target(
-        template.points,
-        template.covariance,
-        template.points,
-        [tracking_view(image) for image in scene.images[0]],
-        [tracking_view(image) for image in scene.images[1]],
-        scene.poses[0],
-        scene.poses[1],
-        pixels,
-        scene.models,
-        scene.tool_poses[1],
-        noise,
-        cfg.target,
-        cfg.tool,
-    )
+    data = TemplateData(template.points, template.rgb, template.covariance,
+                        np.zeros((n, 3, 3)), pixels)
+    rig = Rig(list(scene.models), noise, cfg.target, cfg.tool)
+    base = Sighting([tracking_view(image) for image in scene.images[0]], scene.poses[0], pixels)
+    frame = FrameInput(1, [tracking_view(image) for image in scene.images[1]], scene.poses[1],
+                       scene.tool_poses[1])
+    target = build_target(data, rig, template.points, base, frame)
     mapping = map_to_surface(template.points, scene.vertices[0], scene.faces)
     truth0 = mapping.follow(scene.vertices[0], scene.faces)
     truth1 = mapping.follow(scene.vertices[1], scene.faces)

@@ -12,6 +12,7 @@ from scenes import render_frames
 
 from surgrecon_cli.config import Config
 from surgrecon_cli.core.cameras import project
+from surgrecon_cli.core.frame_inputs import FrameInput, Rig, Sighting, TemplateData
 from surgrecon_cli.core.noise import NoiseModel
 from surgrecon_cli.core.target import build_target
 from surgrecon_cli.core.track_points import find_points, scene_motion, visible_points
@@ -54,10 +55,12 @@ def test_a_two_frame_sweep_keeps_the_visible_points_tracked(sweep):
     assert np.median(np.linalg.norm(truth - start, axis=2)[seen]) > 15.0  # real motion
     template = scene.vertices[0][points]
     n = len(points)
-    target = build_target(
-        template, np.zeros((n, 3, 3)), template, views[1], views[2], poses, poses, start,
-        scene.models, scene.tool_poses[2], NoiseModel(0.3, 0.3, 0.0, 0.0), cfg.target,
-        cfg.tool)
+    zeros = np.zeros((n, 3, 3))
+    data = TemplateData(template, np.zeros((n, 3), np.uint8), zeros, zeros,
+                        np.full((n, len(poses), 2), np.nan))
+    rig = Rig(list(scene.models), NoiseModel(0.3, 0.3, 0.0, 0.0), cfg.target, cfg.tool)
+    target = build_target(data, rig, template, Sighting(views[1], poses, start),
+                          FrameInput(2, views[2], poses, scene.tool_poses[2]))
     found = np.isfinite(target.pixels).all(2)
     both = seen.all(1)
     assert both.sum() > 150

@@ -26,7 +26,7 @@ class RegistrationConfig:
         bounds=(0, 1e6))
     data_penalty: str = _doc("l1", "'l1' (heavy-tailed, the paper's model) or 'l2' (Gaussian)")
     smooth_penalty: str = _doc("l1", "'l1' or 'l2' on neighbour differences")
-    admm_iterations: int = _doc(15, "largest number of ADMM iterations per outer step",
+    admm_iterations: int = _doc(5, "largest number of ADMM iterations per outer step",
         bounds=(1, 100_000))
     final_admm_iterations: int = _doc(
         300, "largest number of ADMM iterations of the last outer step (run to convergence)",

@@ -7,6 +7,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from ..config import TemplateConfig
 from .cameras import CameraModel, undistort_pixels
 from .tracking import specular_mask, specular_zone
 
@@ -47,25 +48,32 @@ def sample_rgb(image: np.ndarray, pixels: np.ndarray) -> np.ndarray:
     return out.reshape(-1, 3)
 
 
-def detect_features(
-    image: np.ndarray,
-    camera: CameraModel,
-    max_features: int,
-    contrast_threshold: float,
-    exclude: np.ndarray | None = None,
-) -> Features:
+def detect_features(image: np.ndarray, camera: CameraModel, cfg: TemplateConfig,
+                    exclude: np.ndarray | None = None) -> Features:
     """SIFT on an RGB image (H, W, 3) uint8; `exclude` (H, W) bool masks pixels out (tool),
     and so do saturated specular highlights (core/tracking.specular_zone): they move with
     the light, so a feature there triangulates to no point of the tissue and is not tracked.
 
     The contrast threshold is half OpenCV's default: endoscopic tissue is low-contrast and we
-    want hundreds to thousands of features per image (our choice, not the paper's).
+    want hundreds to thousands of features per image (our choice, not the paper's). Images
+    wider than `cfg.detect_width_px` are searched downscaled by the smallest integer factor
+    s that brings them to it (area average; SIFT's finest octave, the image upsampled 2x,
+    then has 4/s² of the full image's pixels instead of 4x); the pixels are given in the
+    full image. `cfg.max_features`, `cfg.contrast_threshold`: SIFT's.
     """
-    gray = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
-    highlight = specular_zone(specular_mask(image))
+    height, width = image.shape[:2]
+    small = image
+    scale = -(-width // cfg.detect_width_px) if cfg.detect_width_px else 1
+    if scale > 1:
+        size = (width // scale, height // scale)
+        small = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+        if exclude is not None:  # a pixel touching an excluded one is excluded
+            exclude = cv2.resize(exclude.astype(np.uint8), size, interpolation=cv2.INTER_AREA) > 0
+    gray = cv2.cvtColor(small, cv2.COLOR_RGB2GRAY)
+    highlight = specular_zone(specular_mask(small))
     exclude = highlight if exclude is None else exclude | highlight
     mask = (~exclude).astype(np.uint8) * 255
-    sift = cv2.SIFT.create(nfeatures=max_features, contrastThreshold=contrast_threshold)
+    sift = cv2.SIFT.create(nfeatures=cfg.max_features, contrastThreshold=cfg.contrast_threshold)
     keypoints, descriptors = sift.detectAndCompute(gray, mask)
     if not keypoints:
         return no_features()
@@ -73,7 +81,9 @@ def detect_features(
     # SIFT may return one location twice with different orientations: keep the first.
     _, first = np.unique(np.round(pixels, 2), axis=0, return_index=True)
     first = np.sort(first)
-    pixels = pixels[first]
+    # pixel centres of the downscaled image back to the full image's
+    factor = np.array([width / gray.shape[1], height / gray.shape[0]])
+    pixels = (pixels[first] + 0.5) * factor - 0.5
     return Features(
         pixels,
         undistort_pixels(pixels, camera),

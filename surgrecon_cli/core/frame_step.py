@@ -1,9 +1,9 @@
-"""One frame of the registration pipeline as a pure function (Su et al. 2019, Fig. 2):
+"""One frame of the registration pipeline (Su et al. 2019, Fig. 2), `FrameRegistrar.step`:
 target cloud -> data weights -> the scene's robust rigid motion, then the non-rigid
 remainder with the tool-contact constraint -> composition with the base's transforms ->
-per-point uncertainty of the result.
-
-The stage (stages/register.py) only loads the inputs and writes the outputs.
+per-point uncertainty of the result. The registrar is built once per run (template,
+cameras, noise model, config); the stage (stages/register.py) only loads the inputs and
+writes the outputs.
 
 Uncertainty of a registered position (σ, metres, RMS of the 3D error):
 - a point with a target: σ² = σ_target² + r² (+ σ_template² for a re-triangulated
@@ -28,6 +28,7 @@ from scipy.spatial import cKDTree
 from ..config import Config
 from ..errors import GeometryError
 from .cameras import CameraModel
+from .frame_inputs import FrameInput, Rig, Sighting, TemplateData
 from .labels import INTER, INTRA, OUTLIER, UNOBSERVED
 from .noise import NoiseModel, covariance_sigma
 from .registration import RegistrationResult, register
@@ -47,13 +48,26 @@ RIGID_INLIER_FLOOR_M = 0.5e-3  # ... or within 0.5 mm (σ may be under-estimated
 class BaseState:
     """What a frame is registered against: the base frame's index, its transforms from the
     frame-0 template (N, 3, 4), registered points (N, 3) m, latest positions (N, 3) m
-    (target where observed, else registered) and where points were seen (N, C, 2) px."""
+    (target where observed, else registered) and its images, poses and the pixels where
+    the points were seen there (N, C, 2)."""
 
     frame: int
     transforms: np.ndarray
     source: np.ndarray
     latest: np.ndarray
-    pixels: np.ndarray
+    seen: Sighting
+
+
+@dataclass(frozen=True)
+class DataTerm:
+    """The registration's data: target points (M, 3) m with colours (M, 3) uint8 and the
+    template index each one is (M,) (-1: a new point, matched by nearest neighbour), and
+    the data weight of every template point (N,) (`data_weights`)."""
+
+    xyz: np.ndarray
+    rgb: np.ndarray
+    ids: np.ndarray
+    weights: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -135,22 +149,24 @@ def predicted_positions(source: np.ndarray, target_xyz: np.ndarray, target_ids: 
     return source + np.einsum("nk,nkj->nj", w / w.sum(1, keepdims=True), shift[j])
 
 
-def register_with_contact(source: np.ndarray, source_rgb: np.ndarray, target_xyz: np.ndarray,
-                          target_rgb: np.ndarray, target_ids: np.ndarray, weights: np.ndarray,
+def register_with_contact(source: np.ndarray, source_rgb: np.ndarray, data: DataTerm,
                           tool_pose: np.ndarray, config: Config) -> tuple[RegistrationResult, int]:
-    """Register with the tissue kept out of the tool (robot kinematics, Su et al. 2019
-    section II.C), in one solve: points without data (weight 0: under the tool, hidden by
-    it) predicted inside the tool's capsule (`predicted_positions`: moved with their tracked
-    neighbours) get a target on the capsule's surface, pushed along the shaft, so that the
-    field around the tool follows the contact; after the solve, the other points without
-    data farther than FOLLOW_FROM_M from any data point move towards the inverse-distance
-    blend of their nearest data points' displacements (`predicted_positions` on the
-    registered positions), fully from FOLLOW_FULL_M on: far from its support, the solve's
-    affine field, fitted to the data's noise, would amplify it with distance; near it,
-    the field follows a dent better than a blend. Every point without data still
-    inside the capsule (the l1 fit leaves a contact target a little short of it, and the
-    prediction can miss a point) is moved onto the surface, its transform translated by
-    the same push. Returns the result and the number of points in contact."""
+    """Register source (N, 3) m (colours (N, 3) uint8) to the data with the tissue kept out
+    of the tool (robot kinematics, Su et al. 2019 section II.C), in one solve: points
+    without data (weight 0: under the tool, hidden by it) predicted inside the tool's
+    capsule (`predicted_positions`: moved with their tracked neighbours) get a target on
+    the capsule's surface, pushed along the shaft, so that the field around the tool
+    follows the contact; after the solve, the other points without data farther than
+    FOLLOW_FROM_M from any data point move towards the inverse-distance blend of their
+    nearest data points' displacements (`predicted_positions` on the registered positions),
+    fully from FOLLOW_FULL_M on: far from its support, the solve's affine field, fitted to
+    the data's noise, would amplify it with distance; near it, the field follows a dent
+    better than a blend. Every point without data still inside the capsule (the l1 fit
+    leaves a contact target a little short of it, and the prediction can miss a point) is
+    moved onto the surface, its transform translated by the same push. tool_pose (K, 4, 4):
+    every tool's pose (`config.tool_configs()`). Returns the result and the number of
+    points in contact."""
+    target_xyz, target_ids, weights = data.xyz, data.ids, data.weights
     guess = predicted_positions(source, target_xyz, target_ids,
                                 config.registration.interp_neighbors)
     without_data = weights == 0
@@ -159,17 +175,17 @@ def register_with_contact(source: np.ndarray, source_rgb: np.ndarray, target_xyz
     contact = np.flatnonzero(predicted)
     result = register(source, np.concatenate([target_xyz, pushed[contact]]),
                       source_rgb=source_rgb,
-                      target_rgb=np.concatenate([target_rgb, source_rgb[contact]]),
+                      target_rgb=np.concatenate([data.rgb, source_rgb[contact]]),
                       config=config.registration,
                       target_ids=np.concatenate([target_ids, contact]),
                       weights=np.where(predicted, 1.0, weights))
-    data = np.flatnonzero(~without_data)
+    anchors = np.flatnonzero(~without_data)
     free = np.flatnonzero(without_data & ~predicted)
     registered = result.registered.copy()
-    if len(data) and len(free):
-        follow = predicted_positions(source, result.registered[data], data,
+    if len(anchors) and len(free):
+        follow = predicted_positions(source, result.registered[anchors], anchors,
                                      config.registration.interp_neighbors)
-        distance, _ = cKDTree(source[data]).query(source[free])
+        distance, _ = cKDTree(source[anchors]).query(source[free])
         share = np.clip((distance - FOLLOW_FROM_M) / (FOLLOW_FULL_M - FOLLOW_FROM_M), 0, 1)
         registered[free] += share[:, None] * (follow[free] - registered[free])
     inside, pushed = push_out_of_tool(registered, tool_pose, config.tool_configs())
@@ -195,8 +211,7 @@ def rigid_start(source: np.ndarray, target: TargetCloud) -> np.ndarray:
 
 
 def register_rigid_first(source: np.ndarray, source_rgb: np.ndarray, target: TargetCloud,
-                         target_xyz: np.ndarray, target_rgb: np.ndarray, target_ids: np.ndarray,
-                         weights: np.ndarray, tool_pose: np.ndarray,
+                         data: DataTerm, tool_pose: np.ndarray,
                          config: Config) -> tuple[RegistrationResult, int]:
     """`register_with_contact` of source (N, 3) m moved first by the scene's rigid motion to
     `target` (`rigid_start`): the non-rigid registration solves the remainder, and points
@@ -204,8 +219,7 @@ def register_rigid_first(source: np.ndarray, source_rgb: np.ndarray, target: Tar
     transforms (N, 3, 4) include the rigid motion (source -> registered)."""
     rigid = rigid_start(source, target)
     moved = source @ rigid[:, :3].T + rigid[:, 3]
-    result, n_contact = register_with_contact(moved, source_rgb, target_xyz, target_rgb,
-                                              target_ids, weights, tool_pose, config)
+    result, n_contact = register_with_contact(moved, source_rgb, data, tool_pose, config)
     transforms = compose(result.transforms, np.broadcast_to(rigid, result.transforms.shape))
     return replace(result, transforms=transforms), n_contact
 
@@ -233,90 +247,69 @@ def registered_sigma(template: np.ndarray, template_sigma: np.ndarray, registere
     return sigma, residual, support
 
 
-def register_frame_step(
-    template: np.ndarray,
-    template_rgb: np.ndarray,
-    template_cov: np.ndarray,
-    base: BaseState,
-    base_views: list[TrackingView | None],
-    base_poses: np.ndarray,
-    views: list[TrackingView | None],
-    poses: np.ndarray,
-    models: list[CameraModel],
-    tool_pose: np.ndarray,
-    noise: NoiseModel,
-    config: Config,
-    new_point_images: list[np.ndarray | None] | None = None,
-    template_pose_cov: np.ndarray | None = None,
-    anchor_views: list[TrackingView | None] | None = None,
-    anchor_pixels: np.ndarray | None = None,
-) -> FrameResult:
-    """Target cloud and registration of one frame against its base.
+class FrameRegistrar:
+    """The frame step of one run, built once from its template, cameras, noise model and
+    config: `step(frame, base)` registers a frame against its base. `anchor`: the
+    template's frame-0 tracking views, against which tracks are corrected and lost points
+    re-acquired (core/track_points.py; None: tracks from the base only)."""
 
-    template (N, 3) m frame-0 points, rgb (N, 3) uint8, covariances (N, 3, 3) m² (of which
-    template_pose_cov from the cameras' pose errors); base_views / views: per camera the
-    base's and this frame's images prepared for tracking (core/tracking.tracking_view;
-    None where unusable); poses (C, 4, 4) camera-to-world, NaN where unusable; tool_pose
-    (K, 4, 4) every tool's pose in the world, as `config.tool_configs()` lists them (NaN =
-    unknown); new_point_images: this frame's RGB images (H, W, 3)
-    uint8 when new features are to be triangulated into the target (None: not this frame);
-    anchor_views / anchor_pixels (N, C, 2): the template's images and pixels, against
-    which tracks are corrected and lost points re-acquired (core/track_points.py).
-    The base's cloud is first moved by the scene's robust rigid motion to the target
-    (`rigid_start`); the registration solves the non-rigid remainder.
-    Raises GeometryError when the frame cannot be registered (e.g. too few tracked
-    points)."""
-    start = time.perf_counter()
-    target = build_target(template, template_cov, base.latest, base_views, views,
-                          base_poses, poses, base.pixels, models, tool_pose, noise,
-                          config.target, config.tool_configs(), template_pose_cov, anchor_views,
-                          anchor_pixels)
-    has_target = (target.status == INTRA) | (target.status == INTER)
-    ids = np.flatnonzero(has_target)
-    target_xyz, target_rgb = target.positions[ids], template_rgb[ids]
-    n_new = 0
-    if new_point_images is not None:
-        new_xyz, new_rgb = _new_points(new_point_images, poses, models, tool_pose, target_xyz,
-                                       config)
-        n_new = len(new_xyz)
-        target_xyz = np.concatenate([target_xyz, new_xyz])
-        target_rgb = np.concatenate([target_rgb, new_rgb])
-        ids = np.concatenate([ids, np.full(n_new, -1)])
-    if len(target_xyz) < 3:
-        raise GeometryError(f"{len(ids)} template point(s) tracked into this frame "
-                            f"({target.counts()}); need >= 3")
-    seconds_target = time.perf_counter() - start
-    start = time.perf_counter()
-    result, n_contact = register_rigid_first(
-        base.source, template_rgb, target, target_xyz, target_rgb, ids,
-        data_weights(target, has_new=n_new > 0), tool_pose, config)
-    seconds_register = time.perf_counter() - start
-    sigma, residual, support = registered_sigma(
-        template, covariance_sigma(template_cov), result.registered, target,
-        config.registration.extrapolation_growth)
-    return FrameResult(
-        transforms=compose(result.transforms, base.transforms),
-        registered=result.registered,
-        sigma=sigma,
-        residual=residual,
-        support_mm=support,
-        target=target,
-        new_points=n_new,
-        contact_points=n_contact,
-        converged=bool(result.stats[-1].get("converged", False)),
-        seconds_target=seconds_target,
-        seconds_register=seconds_register,
-    )
+    def __init__(self, template: TemplateData, models: list[CameraModel], noise: NoiseModel,
+                 config: Config, anchor: list[TrackingView | None] | None = None) -> None:
+        self.template = template
+        self.rig = Rig(list(models), noise, config.target, config.tool_configs())
+        self.config = config
+        self.anchor = anchor
+        self.template_sigma = covariance_sigma(template.covariance)
 
+    def step(self, frame: FrameInput, base: BaseState) -> FrameResult:
+        """Target cloud and registration of `frame` against `base`: the base's cloud is
+        moved by the scene's robust rigid motion to the target, the registration solves
+        the non-rigid remainder. Raises GeometryError when the frame cannot be registered
+        (e.g. too few tracked points)."""
+        start = time.perf_counter()
+        target = build_target(self.template, self.rig, base.latest, base.seen, frame,
+                              self.anchor)
+        data = self.data_term(target, frame)
+        seconds_target = time.perf_counter() - start
+        start = time.perf_counter()
+        result, n_contact = register_rigid_first(base.source, self.template.rgb, target, data,
+                                                 frame.tool_pose, self.config)
+        seconds_register = time.perf_counter() - start
+        sigma, residual, support = registered_sigma(
+            self.template.points, self.template_sigma, result.registered, target,
+            self.config.registration.extrapolation_growth)
+        return FrameResult(
+            transforms=compose(result.transforms, base.transforms),
+            registered=result.registered, sigma=sigma, residual=residual,
+            support_mm=support, target=target, new_points=int((data.ids < 0).sum()),
+            contact_points=n_contact,
+            converged=bool(result.stats[-1].get("converged", False)),
+            seconds_target=seconds_target, seconds_register=seconds_register)
 
-def _new_points(images: list[np.ndarray | None], poses: np.ndarray, models: list[CameraModel],
-                tool_pose: np.ndarray, tracked: np.ndarray, config: Config):
-    """New features of the frame triangulated as in the template build, away from the
-    tracked points: (M, 3) m and colours (M, 3) uint8."""
-    try:
-        fresh = build_template(images, models, poses, tool_pose, config.template,
-                               config.tool_configs())
-    except GeometryError:
-        return np.zeros((0, 3)), np.zeros((0, 3), np.uint8)
-    return new_target_points(fresh.points, fresh.rgb, tracked,
-                             config.target.new_point_spacing_mm * 1e-3)
+    def data_term(self, target: TargetCloud, frame: FrameInput) -> DataTerm:
+        """The tracked points' targets, and with `frame.images` the frame's new features
+        triangulated away from them (index -1); raises GeometryError under 3 points."""
+        ids = np.flatnonzero((target.status == INTRA) | (target.status == INTER))
+        xyz, rgb = target.positions[ids], self.template.rgb[ids]
+        n_new = 0
+        if frame.images is not None:
+            new_xyz, new_rgb = self._new_points(frame.images, frame, xyz)
+            n_new = len(new_xyz)
+            xyz, rgb = np.concatenate([xyz, new_xyz]), np.concatenate([rgb, new_rgb])
+            ids = np.concatenate([ids, np.full(n_new, -1)])
+        if len(xyz) < 3:
+            raise GeometryError(f"{len(ids)} template point(s) tracked into this frame "
+                                f"({target.counts()}); need >= 3")
+        return DataTerm(xyz, rgb, ids, data_weights(target, has_new=n_new > 0))
+
+    def _new_points(self, images: list[np.ndarray | None], frame: FrameInput,
+                    tracked: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """New features of the frame's `images` triangulated as in the template build, away
+        from the tracked points (K, 3) m: (M, 3) m and colours (M, 3) uint8."""
+        try:
+            fresh = build_template(images, self.rig.models, frame.poses,
+                                   frame.tool_pose, self.config.template, self.rig.tools)
+        except GeometryError:
+            return np.zeros((0, 3)), np.zeros((0, 3), np.uint8)
+        return new_target_points(fresh.points, fresh.rgb, tracked,
+                                 self.config.target.new_point_spacing_mm * 1e-3)

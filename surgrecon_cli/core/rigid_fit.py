@@ -12,6 +12,7 @@ from .geometry import fit_rigid
 HYPOTHESES = 128  # RANSAC triples tried
 REFINE_ITERATIONS = 10  # reweighted Kabsch steps
 MIN_PAIRS = 6  # fewer correspondences: no rigid motion is fitted (identity)
+SCORE_PAIRS = 256  # ours: hypotheses are counted on at most this many pairs, evenly spread
 
 
 def robust_rigid(src: np.ndarray, dst: np.ndarray, inlier_m: float,
@@ -19,7 +20,8 @@ def robust_rigid(src: np.ndarray, dst: np.ndarray, inlier_m: float,
     """Rigid motion R (3, 3), t (3,) with dst ~ src @ R.T + t for pairs src, dst (K, 3) m of
     which many may not follow it (deforming tissue, mistracked points); inliers (K,) bool:
     the pairs within `inlier_m` m of it. The triple whose motion has most inliers starts
-    an iteratively reweighted Kabsch fit with Tukey weights of cut-off `inlier_m`.
+    an iteratively reweighted Kabsch fit with Tukey weights of cut-off `inlier_m` (triples
+    are counted on SCORE_PAIRS evenly spread pairs: the refinement uses them all).
     Identity (and no inliers) with fewer than MIN_PAIRS pairs or no triple that explains
     MIN_PAIRS of them. Deterministic for a given `seed`."""
     k = len(src)
@@ -29,10 +31,12 @@ def robust_rigid(src: np.ndarray, dst: np.ndarray, inlier_m: float,
     rng = np.random.default_rng(seed)
     triples = np.stack([rng.choice(k, 3, replace=False) for _ in range(HYPOTHESES)])
     R, t = fit_rigid(src[triples], dst[triples])  # (H, 3, 3), (H, 3)
-    moved = np.einsum("hij,kj->hki", R, src) + t[:, None, :]
-    counts = (np.linalg.norm(moved - dst, axis=2) <= inlier_m).sum(1)
+    score = np.linspace(0, k - 1, min(k, SCORE_PAIRS)).astype(int)
+    moved = np.einsum("hij,kj->hki", R, src[score]) + t[:, None, :]
+    off = moved - dst[score]
+    counts = (np.einsum("hki,hki->hk", off, off) <= inlier_m**2).sum(1)
     best = int(np.argmax(counts))
-    if counts[best] < MIN_PAIRS:
+    if counts[best] * k / len(score) < MIN_PAIRS:
         return identity
     R, t = R[best], t[best]
     for _ in range(REFINE_ITERATIONS):

@@ -27,12 +27,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.stats import chi2
 
-from ..config import TargetConfig
-from .cameras import (
-    CameraModel,
-    project,
-    view_distortion_jacobians,
-)
+from .cameras import project, view_distortion_jacobians
+from .frame_inputs import FrameInput, Rig, Sighting, TemplateData
 from .frame_noise import tracked_observations, tracking_excess_px2
 from .labels import INTER, INTRA, OUTLIER, STATUS_NAMES, UNOBSERVED
 from .noise import (
@@ -42,7 +38,7 @@ from .noise import (
     point_covariances,
     projection_jacobians,
 )
-from .tool import ToolConfigs, points_near_tool
+from .tool import points_near_tool
 from .track_points import find_points
 from .tracking import TrackingView
 from .triangulate import triangulate
@@ -78,35 +74,45 @@ def gate_chi2(significance: float, dof: int = 2) -> float:
     return float(chi2.isf(significance, dof))
 
 
-def _view_terms(points: np.ndarray, camera: int, rows: np.ndarray, pixels: np.ndarray,
-                localisation: np.ndarray, models: list[CameraModel], poses: np.ndarray,
-                noise: NoiseModel):
+@dataclass(frozen=True)
+class Tracks:
+    """Where the template points were found in a frame: pixels (N, C, 2) (NaN = not
+    found), found (N, C) bool, and each found pixel's localisation variance (N, C) px²."""
+
+    pixels: np.ndarray
+    found: np.ndarray
+    localisation: np.ndarray
+
+
+def _view_terms(points: np.ndarray, rows: np.ndarray, camera: int, tracks: Tracks, rig: Rig,
+                poses: np.ndarray):
     """Residual e (M, 2) px, Jacobian (M, 2, 3) and pixel variance (M,) of points (M, 3)
-    found at pixels[rows, camera] in `camera` (localisation (N, C) px² per view)."""
+    found at tracks.pixels[rows, camera] in `camera` (posed by poses (C, 4, 4))."""
+    models = rig.models
     uv, _ = project(points, poses[camera], models[camera])
     focal = np.full(len(points), models[camera].K[0, 0])
     cams = np.full(len(points), camera)
     J, z = projection_jacobians(points, np.broadcast_to(poses[camera], (len(points), 4, 4)),
                                 focal, view_distortion_jacobians(points, cams, poses, models))
-    variance = noise.tracked_view_variance_px2(z, focal, localisation[rows, camera])
-    e = uv - pixels[rows, camera]
+    variance = rig.noise.tracked_view_variance_px2(z, focal,
+                                                   tracks.localisation[rows, camera])
+    e = uv - tracks.pixels[rows, camera]
     e[~(z > 0)] = np.inf
     return e, J, variance
 
 
-def intra_distances(template: np.ndarray, template_cov: np.ndarray, found: np.ndarray,
-                    pixels: np.ndarray, localisation: np.ndarray, models: list[CameraModel],
-                    poses: np.ndarray, noise: NoiseModel) -> np.ndarray:
+def intra_distances(template: TemplateData, tracks: Tracks, rig: Rig,
+                    poses: np.ndarray) -> np.ndarray:
     """Squared Mahalanobis distance (N, C) of each found pixel from the projection of the
-    point's frame-0 position (N, 3), with covariance J Σ_p Jᵀ + s² I; inf where not found."""
+    point's frame-0 position, with covariance J Σ_p Jᵀ + s² I; inf where not found."""
+    found = tracks.found
     d2 = np.full(found.shape, np.inf)
     for c in range(found.shape[1]):
         rows = np.flatnonzero(found[:, c])
         if len(rows) == 0:
             continue
-        e, J, variance = _view_terms(template[rows], c, rows, pixels, localisation, models,
-                                     poses, noise)
-        cov = np.nan_to_num(template_cov[rows], nan=0.0)
+        e, J, variance = _view_terms(template.points[rows], rows, c, tracks, rig, poses)
+        cov = np.nan_to_num(template.covariance[rows], nan=0.0)
         S = np.einsum("mai,mij,mbj->mab", J, cov, J) + variance[:, None, None] * np.eye(2)
         det = S[:, 0, 0] * S[:, 1, 1] - S[:, 0, 1] * S[:, 1, 0]
         quad = (S[:, 1, 1] * e[:, 0] ** 2 - 2 * S[:, 0, 1] * e[:, 0] * e[:, 1]
@@ -115,45 +121,33 @@ def intra_distances(template: np.ndarray, template_cov: np.ndarray, found: np.nd
     return d2
 
 
-def reprojection_check(
-    template: np.ndarray,
-    template_cov: np.ndarray,
-    found: np.ndarray,
-    pixels: np.ndarray,
-    localisation: np.ndarray,
-    models: list[CameraModel],
-    poses: np.ndarray,
-    noise: NoiseModel,
-    significance: float,
-    template_pose_cov: np.ndarray | None = None,
-):
-    """Split points by the reprojection-error check. template (N, 3) m frame-0 positions with
-    covariances (N, 3, 3) m²; found (N, C) bool, pixels (N, C, 2) px, localisation (N, C)
-    px² the tracking variance of each found pixel.
+def reprojection_check(template: TemplateData, tracks: Tracks, rig: Rig, poses: np.ndarray):
+    """Split points by the reprojection-error check (gate at `rig.cfg.significance`, the
+    frame's noise in `rig.noise`), cameras posed by poses (C, 4, 4).
 
     Returns status (N,), positions (N, 3) (template position for intra, re-triangulated for
     inter, NaN otherwise) and the covariances (N, 3, 3) m² of those positions from image
     noise alone and from the cameras' pose errors (NaN otherwise; the pose part of views of
-    a shared tracker body is its rigid error: `body_pose_covariance`). template_pose_cov
-    (N, 3, 3): the pose part of template_cov (None = 0).
+    a shared tracker body is its rigid error: `body_pose_covariance`).
     """
-    n, _n_cams = found.shape
-    bound = gate_chi2(significance)
+    found, pixels, localisation = tracks.found, tracks.pixels, tracks.localisation
+    models, noise = rig.models, rig.noise
+    n = len(found)
+    bound = gate_chi2(rig.cfg.significance)
     views = found.sum(1)
     status = np.full(n, OUTLIER, np.uint8)
     status[views == 0] = UNOBSERVED
     positions = np.full((n, 3), np.nan)
     covariances = np.full((n, 3, 3), np.nan)
     pose_part = np.full((n, 3, 3), np.nan)
-    template_pose = np.zeros_like(template_cov) if template_pose_cov is None else template_pose_cov
-    d2 = intra_distances(template, template_cov, found, pixels, localisation, models, poses,
-                         noise)
+    template_pose = template.pose_covariance
+    d2 = intra_distances(template, tracks, rig, poses)
     # One view cannot confirm a point static (it may move along that camera's ray), just as
     # it cannot confirm it dynamic.
     intra = (views >= 2) & np.all(np.where(found, d2 <= bound, True), axis=1)
     status[intra] = INTRA
-    positions[intra] = template[intra]
-    covariances[intra] = template_cov[intra] - template_pose[intra]
+    positions[intra] = template.points[intra]
+    covariances[intra] = template.covariance[intra] - template_pose[intra]
     pose_part[intra] = template_pose[intra]
     candidates = np.flatnonzero(~intra & (views >= 2))
     use = found[candidates].copy()
@@ -192,54 +186,37 @@ def reprojection_check(
     return status, positions, covariances, pose_part
 
 
-def build_target(
-    template: np.ndarray,
-    template_cov: np.ndarray,
-    latest: np.ndarray,
-    prev_views: list[TrackingView | None],
-    cur_views: list[TrackingView | None],
-    prev_poses: np.ndarray,
-    cur_poses: np.ndarray,
-    prev_pixels: np.ndarray,
-    models: list[CameraModel],
-    tool_pose: np.ndarray,
-    noise: NoiseModel,
-    cfg: TargetConfig,
-    tool_cfg: ToolConfigs,
-    template_pose_cov: np.ndarray | None = None,
-    anchor_views: list[TrackingView | None] | None = None,
-    anchor_pixels: np.ndarray | None = None,
-) -> TargetCloud:
-    """Target cloud of a frame for template points (N, 3) at frame 0 (covariances (N, 3, 3)
-    m², of which template_pose_cov from pose errors) and latest positions, gated with the
-    run's noise model and each tracked pixel's localisation variance (core/noise.py; its
-    median is the frame's tracking_px).
+def build_target(template: TemplateData, rig: Rig, latest: np.ndarray, base: Sighting,
+                 frame: FrameInput, anchor: list[TrackingView | None] | None = None
+                 ) -> TargetCloud:
+    """Target cloud of `frame` for the template points (frame-0 positions and covariances),
+    gated with the run's noise model `rig.noise` and each tracked pixel's localisation
+    variance (core/noise.py; its median is the frame's tracking_px).
 
-    prev_views/cur_views: per camera the image prepared for tracking (core/tracking.
-    tracking_view) or None, "prev" being the frame tracked from (any earlier frame: the
-    pipeline passes the template base, whose views it builds once per process); poses (C, 4, 4)
-    with NaN where unusable; prev_pixels (N, C, 2): where each point was found in that frame
-    (NaN = not found; then its projection is tracked instead); latest (N, 3) m: positions
-    at that frame; anchor_views / anchor_pixels (N, C, 2): the template's images and
-    pixels, against which the tracks are corrected and lost points re-acquired
-    (core/track_points.find_points; None: tracks from prev only).
+    latest (N, 3) m: the points' positions at the base frame, whose images, poses and
+    pixels `base` holds (NaN pixel = not found there; then the projection of its latest
+    position is tracked instead); `anchor`: the template's frame-0 views, against which
+    the tracks are corrected and lost points re-acquired at `template.pixels`
+    (core/track_points.find_points; None: tracks from the base only).
     """
-    n = len(template)
-    pixels, found, localisation = find_points(
-        latest, prev_views, cur_views, prev_poses, cur_poses, prev_pixels, models, tool_pose,
-        cfg, tool_cfg, anchor_views, anchor_pixels)
+    n = len(template.points)
+    tracks = Tracks(*find_points(
+        latest, base.views, frame.views, base.poses, frame.poses, base.pixels, rig.models,
+        frame.tool_pose, rig.cfg, rig.tools, anchor, template.pixels))
+    found, poses = tracks.found, frame.poses
     # The bound is a floor: what the frame's re-triangulated residuals show beyond the
     # model is localisation error too (core/frame_noise.py).
-    excess, _ = tracking_excess_px2(found, pixels, localisation, models, cur_poses, noise)
-    localisation[found] += excess
+    excess, _ = tracking_excess_px2(found, tracks.pixels, tracks.localisation, rig.models,
+                                    poses, rig.noise)
+    tracks.localisation[found] += excess
     if found.any():
-        noise = replace(noise, tracking_px=float(np.sqrt(np.median(localisation[found]))))
-    status, positions, covariances, pose_part = reprojection_check(
-        template, template_cov, found, pixels, localisation, models, cur_poses, noise,
-        cfg.significance, template_pose_cov)
+        rig = replace(rig, noise=replace(
+            rig.noise, tracking_px=float(np.sqrt(np.median(tracks.localisation[found])))))
+    status, positions, covariances, pose_part = reprojection_check(template, tracks, rig, poses)
     # Tissue is pushed away by the tool, so visibility is judged in the images (mask);
     # a re-triangulated point inside the tool's capsule is a tool point, not tissue.
-    on_tool = (status == INTER) & points_near_tool(np.nan_to_num(positions), tool_pose, tool_cfg)
+    on_tool = (status == INTER) & points_near_tool(np.nan_to_num(positions), frame.tool_pose,
+                                                   rig.tools)
     status[on_tool] = OUTLIER
     positions[on_tool] = np.nan
     covariances[on_tool] = np.nan
@@ -247,13 +224,13 @@ def build_target(
     positions[unobserved] = latest[unobserved]
     has = (status == INTRA) | (status == INTER)
     rows, cams = np.nonzero(found & (status == INTER)[:, None])
-    pose_cov = body_pose_covariance(np.nan_to_num(positions), rows, cams, cur_poses[:, :3, 3],
-                                    noise) + np.nan_to_num(pose_part)
+    pose_cov = body_pose_covariance(np.nan_to_num(positions), rows, cams, poses[:, :3, 3],
+                                    rig.noise) + np.nan_to_num(pose_part)
     sigma = np.full(n, np.nan)
     sigma[has] = covariance_sigma(covariances[has] + pose_cov[has])
     covariances[~has] = np.nan
-    return TargetCloud(positions, status, found.sum(1), pixels, covariances, pose_cov, sigma,
-                       noise)
+    return TargetCloud(positions, status, found.sum(1), tracks.pixels, covariances, pose_cov,
+                       sigma, rig.noise)
 
 
 def new_target_points(candidates: np.ndarray, candidate_rgb: np.ndarray, tracked: np.ndarray,

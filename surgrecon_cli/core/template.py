@@ -107,8 +107,7 @@ def build_template(
     )
     if usable.sum() < 2:
         raise GeometryError(f"frame 0 has {int(usable.sum())} usable camera(s); need >= 2")
-    detect = [(images[c], models[c], cfg.max_features, cfg.contrast_threshold,
-               tool_image_mask(models[c], poses[c], tool_pose, tool_cfg,
+    detect = [(images[c], models[c], cfg, tool_image_mask(models[c], poses[c], tool_pose, tool_cfg,
                                step=max(MASK_STEP_PX, round(MASK_STEP_PX * models[c].width
                                                             / MASK_STEP_WIDTH_PX))))
               for c in np.flatnonzero(usable)]

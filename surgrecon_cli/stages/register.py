@@ -27,7 +27,8 @@ from typing import Any
 import numpy as np
 
 from ..config import Config
-from ..core.frame_step import BaseState, FrameResult, register_frame_step, unregistered
+from ..core.frame_inputs import FrameInput, Sighting, TemplateData
+from ..core.frame_step import BaseState, FrameRegistrar, FrameResult, unregistered
 from ..core.noise import noise_from_report
 from ..core.tracking import TrackingView, tracking_view
 from ..errors import GeometryError
@@ -40,6 +41,7 @@ from ..io.artefacts import (
     read_template,
     write_registration,
 )
+from ..io.atomic import file_identity
 from ..io.ingest_store import IngestedLog, ingest_identity, load_ingested
 from ..io.run_folder import FrameProgress, RunFolder
 from ..io.run_layout import RunLayout
@@ -59,18 +61,23 @@ def base_frame(frame: int, update_every: int) -> int:
     return ((frame - 1) // update_every) * update_every if update_every else 0
 
 
-def _load_base(layout: RunLayout, frame: int, update_every: int, template: np.ndarray,
-               pixels0: np.ndarray) -> BaseState:
-    """The base state of `frame`; a failed base frame is replaced by its own base."""
-    n = len(template)
+def _load_base(layout: RunLayout, log: IngestedLog, frame: int, update_every: int,
+               template: TemplateData) -> BaseState:
+    """The base state of `frame` with its views; a failed base frame is replaced by its own
+    base."""
+    n = len(template.points)
     while frame > 0:
         reg = read_registration(layout, frame, n)
         if not reg.failed:
+            seen = Sighting(frame_views(log, frame), log.usable_poses(frame),
+                            reg.pixels.astype(float))
             return BaseState(frame, reg.transforms.astype(float), reg.registered,
                              np.where(np.isfinite(reg.target), reg.target, reg.registered),
-                             reg.pixels.astype(float))
+                             seen)
         frame = base_frame(frame, update_every)
-    return BaseState(0, np.tile(np.eye(3, 4), (n, 1, 1)), template, template, pixels0)
+    seen = Sighting(frame_views(log, 0), log.usable_poses(0), template.pixels)
+    return BaseState(0, np.tile(np.eye(3, 4), (n, 1, 1)), template.points, template.points,
+                     seen)
 
 
 _VIEWS: OrderedDict[tuple, tuple[TrackingView | None, ...]] = OrderedDict()
@@ -94,36 +101,45 @@ def frame_views(log: IngestedLog, frame: int) -> list[TrackingView | None]:
         return list(_VIEWS[key])
 
 
+@functools.lru_cache(maxsize=1)
+def _registrar(run_dir: str, _identity: tuple, config: Config) -> FrameRegistrar:
+    """The run's frame step, built once per process (a worker registers many frames);
+    keyed by the run folder, its ingest and template files' identity and the config."""
+    layout = RunLayout(Path(run_dir))
+    log = load_ingested(layout.ingest_dir)
+    cloud = read_template(layout)
+    n, models = len(cloud.points), list(log.models)
+    obs = read_observations(layout, n)
+    template = TemplateData(cloud.points, cloud.rgb, obs.total_covariance, obs.pose_covariance,
+                            obs.pixels_by_camera(n, len(models)))
+    noise = noise_from_report(log.report, log.cameras, obs.pixel_noise_px)
+    return FrameRegistrar(template, models, noise, config, anchor=frame_views(log, 0))
+
+
 def register_frame(run_dir: Path, frame: int, config: Config) -> dict:
     """Target cloud and registration of one frame k >= 1 against its base (a task: reads
     the run folder, writes RUN/registration/k.npz atomically). Returns the frame's timings
     and counts, or its failure."""
     layout = RunLayout(run_dir)
     log = load_ingested(layout.ingest_dir)
-    template = read_template(layout)
-    n, models = len(template.points), list(log.models)
-    obs = read_observations(layout, n)
+    identity = (ingest_identity(layout.ingest_dir),
+                file_identity(layout.template_ply, layout.observations))
+    registrar = _registrar(str(layout.root.absolute()), identity, config)
+    template = registrar.template
     every = config.registration.template_update_every
-    pixels0 = obs.pixels_by_camera(n, len(models))
-    base = _load_base(layout, base_frame(frame, every), every, template.points, pixels0)
-    new_every = config.target.new_points_every
     start = time.perf_counter()
-    anchor_views = frame_views(log, 0)
-    base_views, views = frame_views(log, base.frame), frame_views(log, frame)
+    base = _load_base(layout, log, base_frame(frame, every), every, template)
+    new_every = config.target.new_points_every
+    images = log.frame_images(frame) if new_every and frame % new_every == 0 else None
+    inputs = FrameInput(frame, frame_views(log, frame), log.usable_poses(frame),
+                        log.all_tool_poses(frame), images)
     seconds_views = time.perf_counter() - start  # counted with the target: its images
     try:
-        result = register_frame_step(
-            template.points, template.rgb, obs.total_covariance, base,
-            base_views, log.usable_poses(base.frame), views, log.usable_poses(frame), models,
-            log.all_tool_poses(frame),
-            noise_from_report(log.report, log.cameras, obs.pixel_noise_px), config,
-            new_point_images=(log.frame_images(frame) if new_every and frame % new_every == 0
-                              else None),
-            template_pose_cov=obs.pose_covariance, anchor_views=anchor_views,
-            anchor_pixels=pixels0)
+        result = registrar.step(inputs, base)
     except GeometryError as exc:
-        write_registration(layout, frame, _artefact(unregistered(n, len(models)), base.frame,
-                                                    str(exc)))
+        write_registration(layout, frame, _artefact(
+            unregistered(len(template.points), len(registrar.rig.models)), base.frame,
+            str(exc)))
         return {"frame": frame, "failed": str(exc), "base": base.frame}
     result = replace(result, seconds_target=result.seconds_target + seconds_views)
     write_registration(layout, frame, _artefact(result, base.frame))

@@ -41,7 +41,9 @@ from ...errors import GeometryError
 from ..geometry import nearest_rotation
 
 EPS_REL = 1e-6  # ours: Tikhonov weight relative to the mean diagonal of the system
-ENERGY_RTOL = 1e-4  # ours: relative energy change of one iteration counted as converged
+# ours: relative energy change of one iteration counted as converged (1e-4 costs ~17 % more
+# registration time for the same error on a tuning log)
+ENERGY_RTOL = 1e-3
 PIVOT_RTOL = 1e-13  # ours: an LU pivot this small relative to the largest means singular
 
 
@@ -93,10 +95,15 @@ def shrink_rows(v: np.ndarray, tau: np.ndarray) -> np.ndarray:
     return v * scale[:, None]
 
 
-def _prox(v: np.ndarray, weight: np.ndarray, mu: float, l1: bool) -> np.ndarray:
-    if l1:
+def _prox(v: np.ndarray, weight: np.ndarray, mu: np.ndarray, l1: np.ndarray) -> np.ndarray:
+    """Row-wise prox of weight_i rho(.) / mu_i: the group soft threshold where l1_i, else
+    the l2 shrink; v (K, 3), weight, mu (K,), l1 (K,) bool."""
+    if l1.all():
         return shrink_rows(v, weight / mu)
-    return v * (mu / (2.0 * weight + mu))[:, None]
+    quadratic = v * (mu / (2.0 * weight + mu))[:, None]
+    if not l1.any():
+        return quadratic
+    return np.where(l1[:, None], shrink_rows(v, weight / mu), quadratic)
 
 
 @dataclass(frozen=True)
@@ -129,14 +136,29 @@ def factorise(D: sp.csr_matrix, B: sp.csr_matrix, L: sp.csr_matrix, beta: float,
     return Factor(solve=lu.solve, eps=eps, mu1=mu1, mu2=mu2)
 
 
+def _sq(v: np.ndarray) -> float:
+    """Sum of squares of all entries."""
+    flat = v.ravel()
+    return float(flat @ flat)
+
+
+def _scaled(stacked: sp.csr_matrix, n_data: int, mu1: float,
+            mu2: float) -> tuple[sp.csr_matrix, np.ndarray]:
+    """[mu1 Dᵀ, mu2 Bᵀ] from stacked = [D; B] (D its first n_data rows), and the penalty of
+    each row (mu1 for D's, mu2 for B's)."""
+    mu = np.where(np.arange(stacked.shape[0]) < n_data, mu1, mu2)
+    return (sp.diags(mu) @ stacked).T.tocsr(), mu
+
+
 def energy(prob: AdmmProblem, X: np.ndarray) -> float:
     """E(X) above (without the beta term), normalised units."""
     return _energy(prob, prob.D @ X, prob.B @ X)
 
 
 def _energy(prob: AdmmProblem, DX: np.ndarray, BX: np.ndarray) -> float:
-    r = np.linalg.norm(DX - prob.G, axis=1)
-    s = np.linalg.norm(BX, axis=1)
+    d = DX - prob.G
+    r = np.sqrt(np.einsum("ij,ij->i", d, d))
+    s = np.sqrt(np.einsum("ij,ij->i", BX, BX))
     data = prob.w @ (r if prob.data_l1 else r * r)
     smooth = prob.alpha * (prob.c @ (s if prob.smooth_l1 else s * s))
     return float(data + smooth)
@@ -162,54 +184,56 @@ def run_admm(
     Returns the new state, the info and the factor in use at the end.
     """
     D, B, G, L = prob.D, prob.B, prob.G, prob.L
-    Dt = D.T.tocsr()
-    Bt = B.T.tocsr()
+    n_data = len(G)
+    # Both splits as one: rows [D; B] X - [G; 0] = [C; Z], multipliers [U1; U2], so that an
+    # iteration is one sparse product each way and one prox over all rows.
+    stacked = sp.vstack([D, B], format="csr")
+    offset = np.concatenate([G, np.zeros((B.shape[0], 3))])
+    weight = np.concatenate([prob.w, prob.alpha * prob.c])
+    l1 = np.repeat([prob.data_l1, prob.smooth_l1], [n_data, B.shape[0]])
     solve, eps, mu1, mu2 = factor.solve, factor.eps, factor.mu1, factor.mu2
+    back, mu = _scaled(stacked, n_data, mu1, mu2)
     n_fact = 0
-    X, U1, U2 = state.X, state.U1, state.U2
-    DX, BX = D @ X, B @ X
-    C, Z = DX - G, BX.copy()
-    rows = max(len(G) + len(BX), 1)
+    X, U = state.X, np.concatenate([state.U1, state.U2])
+    SX = stacked @ X
+    W = SX - offset
+    rows = max(len(W), 1)
     prior = prob.X0
     primal = dual = step = change = np.inf
-    e_prev = energy(prob, X)
+    e_prev = _energy(prob, SX[:n_data], SX[n_data:])
     it = 0
     for it in range(1, max_iter + 1):  # noqa: B007 - `it` is reported after the loop
-        rhs = mu1 * (Dt @ (G + C - U1)) + mu2 * (Bt @ (Z - U2)) + eps * prior
+        rhs = back @ (offset + W - U) + eps * prior
         if prob.beta > 0:
             A = X.reshape(-1, 4, 3)[:, :3, :]
             R = nearest_rotation(A).reshape(-1, 3)
             rhs += 2.0 * prob.beta * (L.T @ R)
         X_old = X
         X = solve(rhs)
-        if not np.isfinite(X).all():
-            raise GeometryError("registration system gave a non-finite solution")
-        DX, BX = D @ X, B @ X
-        hat1 = relax * DX + (1.0 - relax) * (C + G)
-        hat2 = relax * BX + (1.0 - relax) * Z
-        C_old, Z_old = C, Z
-        C = _prox(hat1 - G + U1, prob.w, mu1, prob.data_l1)
-        Z = _prox(hat2 + U2, prob.alpha * prob.c, mu2, prob.smooth_l1)
-        U1 = U1 + hat1 - G - C
-        U2 = U2 + hat2 - Z
-        r1, r2 = DX - G - C, BX - Z
-        primal = np.sqrt((np.sum(r1 * r1) + np.sum(r2 * r2)) / rows)
-        d1, d2 = C - C_old, Z - Z_old
-        dual = np.sqrt((np.sum(d1 * d1) + np.sum(d2 * d2)) / rows)
+        SX = stacked @ X
+        hat = relax * SX + (1.0 - relax) * (W + offset)
+        W_old = W
+        W = _prox(hat - offset + U, weight, mu, l1)
+        U = U + hat - offset - W
+        primal = np.sqrt(_sq(SX - offset - W) / rows)
+        dual = np.sqrt(_sq(W - W_old) / rows)
         moved = (X - X_old).reshape(-1, 4, 3)[:, 3, :]
         step = float(np.sqrt(np.max(np.einsum("ij,ij->i", moved, moved))))
-        e_now = _energy(prob, DX, BX)
+        e_now = _energy(prob, SX[:n_data], SX[n_data:])
         change = abs(e_now - e_prev) / max(abs(e_now), 1e-300)
         e_prev = e_now
         if primal < tol and step < tol and change < ENERGY_RTOL:
             break
         if mu_growth > 1.0 and mu1 < mu1_max:
-            U1 = U1 / mu_growth
-            U2 = U2 / mu_growth
+            U = U / mu_growth
             mu1, mu2 = mu1 * mu_growth, mu2 * mu_growth
             factor = factorise(D, B, L, prob.beta, mu1, mu2)
             solve, eps = factor.solve, factor.eps
+            back, mu = _scaled(stacked, n_data, mu1, mu2)
             n_fact += 1
+    if not np.isfinite(X).all():
+        raise GeometryError("registration system gave a non-finite solution")
+    U1, U2 = U[:n_data], U[n_data:]
     converged = bool(primal < tol and step < tol and change < ENERGY_RTOL)
     info = AdmmInfo(iterations=it, primal=float(primal), dual=float(dual), step=step,
                     energy_change=float(change), factorisations=n_fact, converged=converged)

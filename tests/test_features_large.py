@@ -1,0 +1,42 @@
+"""Features of a large image are searched downscaled (template.detect_width_px) but
+located in the full image: a known shift of the image is recovered in full-size pixels."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import cv2
+import numpy as np
+
+from surgrecon_cli.config import Config
+from surgrecon_cli.core.cameras import CameraModel
+from surgrecon_cli.core.features import detect_features
+
+SHIFT = np.array([13.0, 7.0])  # px, the second image's content moved right and down
+
+
+def _texture(width: int, height: int) -> np.ndarray:
+    """Smooth random RGB texture (blurred noise), mid-grey, no saturated pixels."""
+    noise = np.random.default_rng(4).normal(0.0, 1.0, (height, width)).astype(np.float32)
+    grey = cv2.GaussianBlur(noise, (0, 0), 4.0)
+    grey = np.clip(128 + 90 * grey / grey.std(), 20, 235).astype(np.uint8)
+    return np.repeat(grey[:, :, None], 3, axis=2)
+
+
+def test_a_shift_is_recovered_in_full_image_pixels():
+    cfg = replace(Config().template, detect_width_px=1280)
+    width, height = 2 * cfg.detect_width_px + 100, 600  # searched at a third of its size
+    base = _texture(width + 40, height + 40)
+    first = np.ascontiguousarray(base[20:20 + height, 20:20 + width])
+    dx, dy = SHIFT.astype(int)
+    second = np.ascontiguousarray(base[20 - dy:20 - dy + height, 20 - dx:20 - dx + width])
+    K = np.array([[1000.0, 0, width / 2], [0, 1000.0, height / 2], [0, 0, 1]])
+    camera = CameraModel(K, np.zeros(5), width, height)
+    a = detect_features(first, camera, cfg)
+    b = detect_features(second, camera, cfg)
+    assert len(a) > 100 and len(b) > 100
+    matches = cv2.BFMatcher(cv2.NORM_L2, crossCheck=True).match(a.descriptors, b.descriptors)
+    offsets = np.array([b.pixels[m.trainIdx] - a.pixels[m.queryIdx] for m in matches])
+    near = np.linalg.norm(offsets - np.median(offsets, axis=0), axis=1) < 3.0
+    assert near.sum() > 50
+    np.testing.assert_allclose(np.median(offsets[near], axis=0), SHIFT, atol=0.3)
