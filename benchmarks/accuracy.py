@@ -35,7 +35,7 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
-from surgrecon_cli.io.run_layout import RunLayout
+from surgrecon_cli.io.run.layout import RunLayout
 
 DEFAULT_VARIANTS = ("default", "stereo", "stereo-plus", "noisy", "rigid", "sweep")
 DEFAULT_SEEDS = (101, 102, 103, 104, 105)

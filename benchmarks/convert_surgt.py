@@ -38,8 +38,8 @@ def decoded_frames(count: int) -> list[np.ndarray]:
 
 def hand_built(path: Path, frames: list[np.ndarray]) -> None:
     """The clip as the simulator lays out a log (its default topics), written by hand."""
-    from surgrecon_cli.core.geometry import matrix_to_quat, nearest_rotation
-    from surgrecon_cli.io.records import CameraInfoRecord, ImageRecord, PoseRecord
+    from surgrecon_cli.core.geometry.poses import matrix_to_quat, nearest_rotation
+    from surgrecon_cli.io.logs.records import CameraInfoRecord, ImageRecord, PoseRecord
     from surgrecon_cli.sim.log_writer import write_log
 
     fs = cv2.FileStorage(str(SURGT / "calibration.yaml"), cv2.FILE_STORAGE_READ)
@@ -71,7 +71,7 @@ def hand_built(path: Path, frames: list[np.ndarray]) -> None:
 def template(log: Path, run: Path, config: list[str]) -> np.ndarray:
     """Ingest + build-template at defaults; the template's points (N, 3) m."""
     from surgrecon_cli.cli.main import main
-    from surgrecon_cli.io.ply import read_ply
+    from surgrecon_cli.io.run.ply import read_ply
 
     assert main(["ingest", str(log), "-o", str(run), "-q", *config]) == 0
     assert main(["build-template", str(run), "-q", *config]) == 0

@@ -15,7 +15,7 @@ alone under a tool hovering 1 mm above: no contact) on --variant-seeds, the firs
 as tuning, the others as acceptance. --sample adds the shipped sample (its ground truth
 predates the recorded tool poses: the ingested ones are used).
 
-Goals (core/deformation_scoring.py): contact onset and release within 1 frame; indentation
+Goals (core/evaluate/deformation_scoring.py): contact onset and release within 1 frame; indentation
 depth at the tip, frames in contact, median error <= 0.3 mm or <= 10 % of the true depth;
 deformed area within 20 % (median relative error); out of contact (breathing alone) no
 contact and the depth under the tip within 2 sigma; overhead of the measures <= 5 % of the

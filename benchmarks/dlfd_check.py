@@ -19,12 +19,12 @@ import cv2
 import numpy as np
 
 from surgrecon_cli.config import load_config
-from surgrecon_cli.core.cameras import project
-from surgrecon_cli.core.geometry import point_to_segment_distance
-from surgrecon_cli.core.tool import tool_capsules, tool_image_mask
-from surgrecon_cli.io.artefacts import read_observations, read_template
-from surgrecon_cli.io.ingest_store import load_ingested
-from surgrecon_cli.io.run_layout import RunLayout
+from surgrecon_cli.core.geometry.cameras import project
+from surgrecon_cli.core.geometry.poses import point_to_segment_distance
+from surgrecon_cli.core.geometry.tool import tool_capsules, tool_image_mask
+from surgrecon_cli.io.run.artefacts import read_observations, read_template
+from surgrecon_cli.io.run.ingest_store import load_ingested
+from surgrecon_cli.io.run.layout import RunLayout
 
 
 def clearance(run: Path, config_path: Path) -> dict[str, tuple[int, list[float]]]:

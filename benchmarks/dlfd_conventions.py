@@ -35,8 +35,8 @@ from dlfd_mcap import (
 )
 
 from surgrecon_cli.config import load_config
-from surgrecon_cli.core.cameras import project
-from surgrecon_cli.core.tool import tool_image_mask, tool_pixel_mask
+from surgrecon_cli.core.geometry.cameras import project
+from surgrecon_cli.core.geometry.tool import tool_image_mask, tool_pixel_mask
 
 MARKS = Path(__file__).resolve().parents[1] / "tests" / "data" / "dlfd" / "marks.json"
 

@@ -44,9 +44,9 @@ import cv2
 import numpy as np
 import scipy.io
 
-from surgrecon_cli.core.cameras import CameraModel
-from surgrecon_cli.core.geometry import matrix_to_quat, nearest_rotation
-from surgrecon_cli.io.records import CameraInfoRecord, ImageRecord, PoseRecord
+from surgrecon_cli.core.geometry.cameras import CameraModel
+from surgrecon_cli.core.geometry.poses import matrix_to_quat, nearest_rotation
+from surgrecon_cli.io.logs.records import CameraInfoRecord, ImageRecord, PoseRecord
 from surgrecon_cli.sim.log_writer import write_log
 
 PAIRS = (1, 2, 3)

@@ -52,10 +52,10 @@ from scipy.spatial import cKDTree
 from surgrecon_cli.config import Config
 from surgrecon_cli.core.registration import graph, register
 from surgrecon_cli.core.registration.admm import factorise
-from surgrecon_cli.core.tracking import tracking_image
-from surgrecon_cli.io.artefacts import read_observations, read_registration, read_template
-from surgrecon_cli.io.ingest_store import load_ingested
-from surgrecon_cli.io.run_layout import RunLayout
+from surgrecon_cli.core.target.tracking import tracking_image
+from surgrecon_cli.io.run.artefacts import read_observations, read_registration, read_template
+from surgrecon_cli.io.run.ingest_store import load_ingested
+from surgrecon_cli.io.run.layout import RunLayout
 
 SURGRECON = [str(Path(sys.executable).with_name("surgrecon"))]
 

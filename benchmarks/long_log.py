@@ -39,8 +39,13 @@ from pathlib import Path
 
 import numpy as np
 
-from surgrecon_cli.core.geometry import matrix_to_quat
-from surgrecon_cli.io.records import CameraInfoRecord, ImageRecord, JointStateRecord, PoseRecord
+from surgrecon_cli.core.geometry.poses import matrix_to_quat
+from surgrecon_cli.io.logs.records import (
+    CameraInfoRecord,
+    ImageRecord,
+    JointStateRecord,
+    PoseRecord,
+)
 from surgrecon_cli.sim.log_writer import write_log
 from surgrecon_cli.sim.motion import Motion
 from surgrecon_cli.sim.scene import SimConfig

@@ -44,11 +44,11 @@ from real_reference import (
     reference_positions,
 )
 
-from surgrecon_cli.core.labels import DEFORMING, SHIFTING, STATIC, UNKNOWN
-from surgrecon_cli.io.artefacts import read_observations, read_template
-from surgrecon_cli.io.ingest_store import load_ingested
-from surgrecon_cli.io.ply import read_ply
-from surgrecon_cli.io.run_layout import RunLayout
+from surgrecon_cli.core.classify.labels import DEFORMING, SHIFTING, STATIC, UNKNOWN
+from surgrecon_cli.io.run.artefacts import read_observations, read_template
+from surgrecon_cli.io.run.ingest_store import load_ingested
+from surgrecon_cli.io.run.layout import RunLayout
+from surgrecon_cli.io.run.ply import read_ply
 
 DEFAULT_VARIANTS = ("stereo", "stereo-real", "stereo-sweep", "breathing")
 DEFAULT_SEEDS = (201,)
@@ -149,10 +149,10 @@ def truth_label_checks(layout: RunLayout, n_frames: int, log_path: Path) -> dict
     """Deforming where the truth is confidently rigid, and truly moving point-frames called
     moving (frames 1 on; module docstring)."""
     from surgrecon_cli.config import Config
-    from surgrecon_cli.core.classify import template_neighbourhoods
-    from surgrecon_cli.core.labels import rigid_fit_rms
-    from surgrecon_cli.core.scoring import map_to_surface
-    from surgrecon_cli.io.ground_truth import load_ground_truth
+    from surgrecon_cli.core.classify.labels import rigid_fit_rms
+    from surgrecon_cli.core.classify.rules import template_neighbourhoods
+    from surgrecon_cli.core.evaluate.scoring import map_to_surface
+    from surgrecon_cli.io.logs.ground_truth import load_ground_truth
 
     gt = load_ground_truth(log_path.with_name(f"{log_path.stem}.gt.npz"))
     template = read_template(layout).points

@@ -22,9 +22,9 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from surgrecon_cli.core.cameras import CameraModel, pixel_rays, project
-from surgrecon_cli.core.noise import MAD_TO_SIGMA
-from surgrecon_cli.io.ingest_store import IngestedLog
+from surgrecon_cli.core.geometry.cameras import CameraModel, pixel_rays, project
+from surgrecon_cli.core.noise.model import MAD_TO_SIGMA
+from surgrecon_cli.io.run.ingest_store import IngestedLog
 
 PATCH = 11  # px, side of the NCC patch
 SEARCH = (4, 24)  # px searched around the expected match: rows, columns

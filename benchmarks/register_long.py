@@ -25,7 +25,7 @@ from long_log import surgrecon_executable
 from threadpoolctl import threadpool_limits
 
 from surgrecon_cli.config import Config
-from surgrecon_cli.io.run_layout import RunLayout
+from surgrecon_cli.io.run.layout import RunLayout
 from surgrecon_cli.stages.register import register_frame
 
 

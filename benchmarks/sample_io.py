@@ -22,7 +22,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from surgrecon_cli.cli.main import main
-from surgrecon_cli.io.log_info import scan_log
+from surgrecon_cli.info import scan_log
 
 SAMPLE = Path(__file__).resolve().parents[1] / "sample_data" / "sample.mcap"
 

@@ -31,12 +31,12 @@ from pathlib import Path
 import numpy as np
 from long_log import _LAUNCHER, surgrecon_executable, write_long_log
 
-from surgrecon_cli.core.labels import SHIFTING, STATIC
-from surgrecon_cli.io.artefacts import FrameRegistration
-from surgrecon_cli.io.atomic import write_json, write_npz
-from surgrecon_cli.io.ingest_store import _load_ingested, load_ingested
-from surgrecon_cli.io.run_folder import FrameProgress, RunFolder
-from surgrecon_cli.io.run_layout import RunLayout
+from surgrecon_cli.core.classify.labels import SHIFTING, STATIC
+from surgrecon_cli.io.run.artefacts import FrameRegistration
+from surgrecon_cli.io.run.atomic import write_json, write_npz
+from surgrecon_cli.io.run.folder import FrameProgress, RunFolder
+from surgrecon_cli.io.run.ingest_store import _load_ingested, load_ingested
+from surgrecon_cli.io.run.layout import RunLayout
 from surgrecon_cli.report.frames import FrameAccumulator
 from surgrecon_cli.sim.random_frames import write_random_classified
 from surgrecon_cli.stages.classify import write_labels_streaming

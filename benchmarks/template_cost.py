@@ -5,7 +5,7 @@ log with every candidate pair matched against pair sequencing, at 640x480 and 19
         [--baseline /path/to/other/checkout] [--workdir DIR]
 
 Per size and seed, `surgrecon simulate --cameras 6 --frames 2` and `surgrecon ingest` make
-a run; then each mode builds the template (`core.template.build_template`, the stage's
+a run; then each mode builds the template (`core.template.build.build_template`, the stage's
 call) in a fresh child process, which prints: template points, error against the
 simulator's true frame-0 surface (median / p95 mm, as `surgrecon evaluate` maps them),
 camera pairs matched across epipolar bands, camera-to-template matchings, wall and CPU
@@ -44,11 +44,11 @@ def child(run_dir: Path, gt_path: Path, mode: str) -> None:
     import numpy as np
 
     from surgrecon_cli.config import Config
-    from surgrecon_cli.core.noise import noise_from_report
-    from surgrecon_cli.core.scoring import map_to_surface
-    from surgrecon_cli.core.template import build_template
-    from surgrecon_cli.io.ground_truth import load_ground_truth
-    from surgrecon_cli.io.ingest_store import load_ingested
+    from surgrecon_cli.core.evaluate.scoring import map_to_surface
+    from surgrecon_cli.core.noise.model import noise_from_report
+    from surgrecon_cli.core.template.build import build_template
+    from surgrecon_cli.io.logs.ground_truth import load_ground_truth
+    from surgrecon_cli.io.run.ingest_store import load_ingested
 
     config = Config()
     if mode != "before":

@@ -4,7 +4,7 @@
 
 Writes (once; `sim/tf_load.py`) a ROS 2 log of `/tf` messages, each with the 20 transforms
 of a robot's link chain, then, in a child process, reads every transform
-(`io.mcap.transforms.read_transforms`) and builds the tree (`core.tf_tree.build_tf_tree`)
+(`io.logs.transforms.read_transforms`) and builds the tree (`core.sync.tf_tree.build_tf_tree`)
 as ingest does, keeping both alive. Reported: the child's RSS after its imports, its peak
 RSS (the kernel's high-water mark, VmHWM) and its RSS at the end, and the growth per sample
 in bytes. `--measure-only` skips writing (e.g. to measure another checkout's code on the same
@@ -29,8 +29,8 @@ def status(key):
             return int(line.split()[1]) * 1024
     raise KeyError(key)
 
-from surgrecon_cli.core.tf_tree import build_tf_tree
-from surgrecon_cli.io.mcap.transforms import read_transforms
+from surgrecon_cli.core.sync.tf_tree import build_tf_tree
+from surgrecon_cli.io.logs.transforms import read_transforms
 base = status("VmRSS")
 log = read_transforms(Path(sys.argv[1]))
 tree = build_tf_tree(log.samples)

@@ -33,14 +33,14 @@ from pathlib import Path
 
 import numpy as np
 
-from surgrecon_cli.core.cameras import in_image, project
-from surgrecon_cli.core.labels import DEFORMING, INTER, INTRA, UNKNOWN
-from surgrecon_cli.core.rigid_fit import robust_rigid
-from surgrecon_cli.core.scoring import map_to_surface
-from surgrecon_cli.io.artefacts import read_labels, read_registration, read_template
-from surgrecon_cli.io.ground_truth import load_ground_truth
-from surgrecon_cli.io.ingest_store import load_ingested
-from surgrecon_cli.io.run_layout import RunLayout
+from surgrecon_cli.core.classify.labels import DEFORMING, INTER, INTRA, UNKNOWN
+from surgrecon_cli.core.evaluate.scoring import map_to_surface
+from surgrecon_cli.core.geometry.cameras import in_image, project
+from surgrecon_cli.core.registration.rigid_fit import robust_rigid
+from surgrecon_cli.io.logs.ground_truth import load_ground_truth
+from surgrecon_cli.io.run.artefacts import read_labels, read_registration, read_template
+from surgrecon_cli.io.run.ingest_store import load_ingested
+from surgrecon_cli.io.run.layout import RunLayout
 
 
 def run(argv: list[str]) -> None:

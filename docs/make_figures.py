@@ -20,10 +20,10 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 
 from surgrecon_cli.config import load_config
-from surgrecon_cli.core.labels import DEFORMING
-from surgrecon_cli.core.scoring import map_to_surface
-from surgrecon_cli.io.artefacts import read_registration, read_template
-from surgrecon_cli.io.run_layout import RunLayout
+from surgrecon_cli.core.classify.labels import DEFORMING
+from surgrecon_cli.core.evaluate.scoring import map_to_surface
+from surgrecon_cli.io.run.artefacts import read_registration, read_template
+from surgrecon_cli.io.run.layout import RunLayout
 from surgrecon_cli.report.figures import cloud_key, figure_tasks
 from surgrecon_cli.report.gather import gather, gather_views
 from surgrecon_cli.report.metrics import measure

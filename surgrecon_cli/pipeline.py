@@ -32,13 +32,13 @@ from typing import Any
 from .config import Config, to_dict, to_toml
 from .errors import InputError, RunFolderError, SurgReconError
 from .executors import Executor, make_executor
-from .io.artefacts import read_json
-from .io.atomic import remove_leftovers, write_text
-from .io.ground_truth import gt_path_beside
-from .io.log_input import resolve_log
-from .io.run_folder import RunFolder, file_sha256, plain
-from .io.run_layout import RunLayout
-from .io.run_lock import run_folder_lock
+from .io.logs.ground_truth import gt_path_beside
+from .io.logs.log_input import resolve_log
+from .io.run.artefacts import read_json
+from .io.run.atomic import remove_leftovers, write_text
+from .io.run.folder import RunFolder, file_sha256, plain
+from .io.run.layout import RunLayout
+from .io.run.lock import run_folder_lock
 from .planning import Planner, seed_run
 from .stages import registry
 from .stages.registry import StageContext
@@ -49,9 +49,9 @@ logger = logging.getLogger(__name__)
 STAGES = registry.NAMES
 Progress = Callable[[str, float], None]
 # Modules of the task functions, imported by parallel workers as they start.
-TASK_MODULES = ("surgrecon_cli.core.template", "surgrecon_cli.stages.register",
-                "surgrecon_cli.stages.classify", "surgrecon_cli.io.plots",
-                "surgrecon_cli.io.plots_evaluation", "surgrecon_cli.io.plots_deformation")
+TASK_MODULES = ("surgrecon_cli.core.template.build", "surgrecon_cli.stages.register",
+                "surgrecon_cli.stages.classify", "surgrecon_cli.report.plots",
+                "surgrecon_cli.report.plots_evaluation", "surgrecon_cli.report.plots_deformation")
 
 
 def open_executor(config: Config) -> closing[Executor]:

@@ -9,9 +9,9 @@ from __future__ import annotations
 from pathlib import Path
 
 from .config import Config
-from .io.links import link_or_copy, link_tree
-from .io.run_folder import RunFolder
-from .io.run_layout import RunLayout
+from .io.run.folder import RunFolder
+from .io.run.layout import RunLayout
+from .io.run.links import link_or_copy, link_tree
 from .stages import registry
 from .stages.staleness import why_stale
 

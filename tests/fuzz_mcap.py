@@ -32,7 +32,7 @@ import synth_log
 import zstandard
 from synth_log import SynthSpec
 
-from surgrecon_cli.io.records import (
+from surgrecon_cli.io.logs.records import (
     CameraInfoRecord,
     ImageRecord,
     JointStateRecord,

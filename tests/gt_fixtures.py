@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from surgrecon_cli.core.scoring import SurfaceMapping, map_to_surface
+from surgrecon_cli.core.evaluate.scoring import SurfaceMapping, map_to_surface
 
 
 @dataclass(frozen=True)

@@ -6,8 +6,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from surgrecon_cli.core.cameras import CameraModel
-from surgrecon_cli.core.geometry import make_pose, quat_to_matrix
+from surgrecon_cli.core.geometry.cameras import CameraModel
+from surgrecon_cli.core.geometry.poses import make_pose, quat_to_matrix
 from surgrecon_cli.sim.render import Renderer, tool_mesh
 from surgrecon_cli.sim.scene import SimConfig, vertex_normals
 from surgrecon_cli.sim.simulate import LogBuilder, _noisy_pose

@@ -13,8 +13,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from surgrecon_cli.core.geometry import make_pose
-from surgrecon_cli.io.records import (
+from surgrecon_cli.core.geometry.poses import make_pose
+from surgrecon_cli.io.logs.records import (
     CameraInfoRecord,
     ImageRecord,
     JointStateRecord,

@@ -12,7 +12,7 @@ import pytest
 from convert_inputs import opencv_calibration, stereo_folder
 
 from surgrecon_cli.cli.main import main
-from surgrecon_cli.io.ingest_store import load_ingested
+from surgrecon_cli.io.run.ingest_store import load_ingested
 
 
 def _convert_and_ingest(tmp_path: Path, src: Path) -> Path:
@@ -60,8 +60,8 @@ def test_16_bit_images_keep_their_low_byte_and_scale_from_their_range(tmp_path: 
 def test_raw_16_bit_messages_are_stored_16_bit_with_their_peak():
     """A 12-bit camera publishing `mono16` (big-endian, as ROS allows): stored as a 16-bit
     PNG of the same values, its peak the largest value, scaled to 0..255 from 0..4095."""
-    from surgrecon_cli.io.images import prepare_image, to_8bit
-    from surgrecon_cli.io.records import ImageRecord
+    from surgrecon_cli.io.logs.images import prepare_image, to_8bit
+    from surgrecon_cli.io.logs.records import ImageRecord
 
     rng = np.random.default_rng(5)
     values = rng.integers(0, 4096, (24, 32), dtype=np.uint16)

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from surgrecon_cli.cli.main import main
-from surgrecon_cli.io.ingest_store import load_ingested
-from surgrecon_cli.io.log_input import resolve_log
-from surgrecon_cli.io.run_folder import RunFolder, file_sha256
+from surgrecon_cli.io.logs.log_input import resolve_log
+from surgrecon_cli.io.run.folder import RunFolder, file_sha256
+from surgrecon_cli.io.run.ingest_store import load_ingested
 from surgrecon_cli.sim.log_writer import write_log
 from surgrecon_cli.sim.scene import SimConfig
 from surgrecon_cli.sim.simulate import LogBuilder

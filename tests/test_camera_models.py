@@ -1,6 +1,6 @@
 """Camera models: plumb_bob, rational_polynomial and equidistant (fisheye) distortion agree
 with OpenCV, undistortion inverts projection, analytic Jacobians agree with finite
-differences (and make core/noise.py's covariances right for every model), and models
+differences (and make core/noise/model.py's covariances right for every model), and models
 serialise (older dicts without a model load as plumb_bob)."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
-from surgrecon_cli.core.cameras import (
+from surgrecon_cli.core.geometry.cameras import (
     CameraModel,
     pixel_rays,
     project,
@@ -17,14 +17,14 @@ from surgrecon_cli.core.cameras import (
     undistort_pixels,
     view_distortion_jacobians,
 )
-from surgrecon_cli.core.distortion import (
+from surgrecon_cli.core.geometry.distortion import (
     distort_normalized,
     distortion_jacobian,
     undistort_normalized,
 )
-from surgrecon_cli.core.geometry import invert_pose, make_pose
-from surgrecon_cli.core.noise import covariance_sigma, point_covariances, projection_jacobians
-from surgrecon_cli.core.triangulate import Observations, triangulate
+from surgrecon_cli.core.geometry.poses import invert_pose, make_pose
+from surgrecon_cli.core.geometry.triangulate import Observations, triangulate
+from surgrecon_cli.core.noise.model import covariance_sigma, point_covariances, projection_jacobians
 from surgrecon_cli.errors import GeometryError
 
 K = np.array([[612.0, 0, 322.4], [0, 606.5, 238.9], [0, 0, 1]])
@@ -192,7 +192,7 @@ def _stereo_far_off_axis(model: str, dist: list[float], n: int = 3000, sigma_px:
 @pytest.mark.parametrize(("model", "dist"), [("equidistant", [0.05, -0.01, 0.002, 0.0]),
                                              ("plumb_bob", [-0.12, 0.03, 0, 0, 0])])
 def test_noise_jacobians_with_distortion_predict_triangulation_error(model, dist):
-    """core/noise.py's Jacobians times the lens distortion's Jacobian are pixel Jacobians:
+    """core/noise/model.py's Jacobians times the lens distortion's Jacobian are pixel Jacobians:
     the covariance they give matches the RMS error of noisy triangulations. Without it (the
     pinhole Jacobian) the prediction is 0.36x the error for this fisheye, 0.94x plumb_bob."""
     models, poses, points, obs, tri = _stereo_far_off_axis(model, dist)

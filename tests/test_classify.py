@@ -1,4 +1,4 @@
-"""core.classify: static / shifting / deforming on synthetic and true motion fields."""
+"""core.classify.rules: static / shifting / deforming on synthetic and true motion fields."""
 
 from __future__ import annotations
 
@@ -9,15 +9,15 @@ import pytest
 from gt_fixtures import true_field
 
 from surgrecon_cli.config import ClassifyConfig, load_config
-from surgrecon_cli.core.classify import (
+from surgrecon_cli.core.classify.labels import DEFORMING, SHIFTING, STATIC, UNKNOWN, true_labels
+from surgrecon_cli.core.classify.rules import (
     apply_hysteresis,
     classify_frame,
     classify_sequence,
     template_neighbourhoods,
     transform_difference_mm,
 )
-from surgrecon_cli.core.labels import DEFORMING, SHIFTING, STATIC, UNKNOWN, true_labels
-from surgrecon_cli.core.scoring import label_scores
+from surgrecon_cli.core.evaluate.scoring import label_scores
 from surgrecon_cli.errors import ConfigError, GeometryError
 from surgrecon_cli.sim.scene import SimConfig, make_tissue
 from surgrecon_cli.sim.simulate import LogBuilder

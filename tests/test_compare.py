@@ -7,8 +7,8 @@ import shutil
 import pytest
 
 from surgrecon_cli.cli.main import main
-from surgrecon_cli.io.compare import config_differences, load_runs
-from surgrecon_cli.io.run_layout import RunLayout
+from surgrecon_cli.io.run.layout import RunLayout
+from surgrecon_cli.report.compare import config_differences, load_runs
 
 
 @pytest.fixture(scope="module")

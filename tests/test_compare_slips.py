@@ -3,9 +3,9 @@ said to be identical rather than one line hiding the other."""
 
 from __future__ import annotations
 
-from surgrecon_cli.io.compare import load_runs
-from surgrecon_cli.io.compare_html import comparison_html
-from surgrecon_cli.io.run_folder import RunFolder
+from surgrecon_cli.io.run.folder import RunFolder
+from surgrecon_cli.report.compare import load_runs
+from surgrecon_cli.report.compare_html import comparison_html
 
 
 def test_measure_stage_is_compared(pipeline_run):

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from surgrecon_cli.cli.main import main
-from surgrecon_cli.io.ingest_store import load_ingested
+from surgrecon_cli.io.run.ingest_store import load_ingested
 from surgrecon_cli.sim.conventions import CONVENTIONS
 from surgrecon_cli.sim.scene import SimConfig
 from surgrecon_cli.sim.simulate import simulate

@@ -122,7 +122,7 @@ def test_the_written_config_ingests_the_log_with_its_geometry(tmp_path: Path):
     run = tmp_path / "run"
     assert main(["ingest", str(out), "-o", str(run), "--config", str(out.with_suffix(".toml")),
                  "-q"]) == 0
-    from surgrecon_cli.io.ingest_store import load_ingested
+    from surgrecon_cli.io.run.ingest_store import load_ingested
 
     ingested = load_ingested(run / "ingest")
     assert ingested.cameras == ("left", "right") and ingested.n_frames == 3
@@ -170,7 +170,7 @@ def test_tum_poses_and_stamps_file(tmp_path: Path):
     run = tmp_path / "run"
     assert main(["ingest", str(out), "-o", str(run), "--config", str(out.with_suffix(".toml")),
                  "-q"]) == 0
-    from surgrecon_cli.io.ingest_store import load_ingested
+    from surgrecon_cli.io.run.ingest_store import load_ingested
 
     ingested = load_ingested(run / "ingest")
     assert ingested.usable.all()

@@ -23,7 +23,7 @@ def test_six_cameras_convert_and_ingest_where_the_calibration_puts_them(tmp_path
     run = tmp_path / "run"
     assert main(["ingest", str(out), "-o", str(run), "--config", str(out.with_suffix(".toml")),
                  "-q"]) == 0
-    from surgrecon_cli.io.ingest_store import load_ingested
+    from surgrecon_cli.io.run.ingest_store import load_ingested
 
     log = load_ingested(run / "ingest")
     assert log.cameras == CAMERAS and log.n_frames == 3 and log.usable.all()

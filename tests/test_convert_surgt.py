@@ -62,7 +62,7 @@ def test_folder_and_video_run_to_the_same_template(tmp_path: Path):
                      "-q"]) == 0
         summary = json.loads((run / "metrics" / "summary.json").read_text(encoding="utf-8"))
         assert summary["frames"] == 3 and summary["cameras"] == ["left", "right"]
-        from surgrecon_cli.io.ply import read_ply
+        from surgrecon_cli.io.run.ply import read_ply
 
         cloud = read_ply(run / "template.ply")
         points[name] = np.column_stack([cloud["x"], cloud["y"], cloud["z"]])

@@ -1,4 +1,4 @@
-"""core/deformation.py + core/indentation.py + core/deformation_scoring.py on synthetic
+"""core/measure/deformation.py + core/measure/indentation.py + core/evaluate/deformation_scoring.py on synthetic
 surfaces: indentations of known depth, area and volume are recovered; rigid motion and
 breathing give no indentation; a tool hovering 1 mm above the tissue gives no contact."""
 
@@ -10,11 +10,15 @@ import numpy as np
 import pytest
 
 from surgrecon_cli.config import Config, ConfigError, load_config
-from surgrecon_cli.core.classify import template_neighbourhoods
-from surgrecon_cli.core.deformation import compensated_field, surface_normals, surrounding_rings
-from surgrecon_cli.core.deformation_scoring import score_deformation
-from surgrecon_cli.core.dent import patch_triangles, share_above
-from surgrecon_cli.core.indentation import (
+from surgrecon_cli.core.classify.rules import template_neighbourhoods
+from surgrecon_cli.core.evaluate.deformation_scoring import score_deformation
+from surgrecon_cli.core.measure.deformation import (
+    compensated_field,
+    surface_normals,
+    surrounding_rings,
+)
+from surgrecon_cli.core.measure.dent import patch_triangles, share_above
+from surgrecon_cli.core.measure.indentation import (
     contact_events,
     hertz_force,
     measure_sequence,

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from surgrecon_cli.io.run_layout import RunLayout
+from surgrecon_cli.io.run.layout import RunLayout
 
 ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"

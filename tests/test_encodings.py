@@ -16,13 +16,13 @@ from synth_log import SynthSpec
 
 from surgrecon_cli.cli.main import main
 from surgrecon_cli.config import TopicsConfig
-from surgrecon_cli.core.cameras import CameraModel, project
-from surgrecon_cli.core.geometry import make_pose
+from surgrecon_cli.core.geometry.cameras import CameraModel, project
+from surgrecon_cli.core.geometry.poses import make_pose
 from surgrecon_cli.errors import GeometryError, InputError
-from surgrecon_cli.io.images import prepare_image
-from surgrecon_cli.io.ingest_store import load_ingested
-from surgrecon_cli.io.mcap import LogItem, LogReader
-from surgrecon_cli.io.records import CameraInfoRecord, ImageRecord, PoseRecord
+from surgrecon_cli.io.logs.images import prepare_image
+from surgrecon_cli.io.logs.reader import LogItem, LogReader
+from surgrecon_cli.io.logs.records import CameraInfoRecord, ImageRecord, PoseRecord
+from surgrecon_cli.io.run.ingest_store import load_ingested
 from surgrecon_cli.sim import log_writer, ros_encoding
 from surgrecon_cli.sim.log_writer import ENCODINGS, write_log
 from surgrecon_cli.stages.ingest_streams import StreamCollector

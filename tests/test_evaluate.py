@@ -10,21 +10,21 @@ import pytest
 
 from surgrecon_cli.cli.main import main
 from surgrecon_cli.config import Config
-from surgrecon_cli.core.labels import DEFORMING, STATIC
-from surgrecon_cli.core.scoring import label_scores, map_to_surface
+from surgrecon_cli.core.classify.labels import DEFORMING, STATIC
+from surgrecon_cli.core.evaluate.scoring import label_scores, map_to_surface
 from surgrecon_cli.errors import InputError
-from surgrecon_cli.io.artefacts import (
+from surgrecon_cli.io.logs.ground_truth import gt_path_beside, load_ground_truth
+from surgrecon_cli.io.run.artefacts import (
     FrameLabels,
     FrameRegistration,
     write_labels,
     write_registration,
 )
-from surgrecon_cli.io.atomic import write_npz
-from surgrecon_cli.io.ground_truth import gt_path_beside, load_ground_truth
-from surgrecon_cli.io.ingest_store import load_ingested
-from surgrecon_cli.io.ply import write_cloud_ply
-from surgrecon_cli.io.run_folder import RunFolder
-from surgrecon_cli.io.run_layout import RunLayout
+from surgrecon_cli.io.run.atomic import write_npz
+from surgrecon_cli.io.run.folder import RunFolder
+from surgrecon_cli.io.run.ingest_store import load_ingested
+from surgrecon_cli.io.run.layout import RunLayout
+from surgrecon_cli.io.run.ply import write_cloud_ply
 from surgrecon_cli.stages.evaluate import run_evaluate
 
 OFFSET_MM = 0.5

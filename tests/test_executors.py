@@ -23,7 +23,7 @@ from surgrecon_cli.executors import (
     run_graph,
     topological_order,
 )
-from surgrecon_cli.io.run_folder import RunFolder
+from surgrecon_cli.io.run.folder import RunFolder
 from surgrecon_cli.pipeline import run_pipeline
 from surgrecon_cli.stages.classify import run_classify
 from surgrecon_cli.stages.register import base_frame

@@ -21,14 +21,14 @@ from mcap_protobuf.schema import build_file_descriptor_set
 from scipy.spatial.transform import Rotation
 
 from surgrecon_cli.cli.main import main
-from surgrecon_cli.core.labels import UNKNOWN
-from surgrecon_cli.io.artefacts import read_labels
-from surgrecon_cli.io.export_mcap import shipped_layout
-from surgrecon_cli.io.foxglove_pack import stamp_ns, unpack_points
-from surgrecon_cli.io.foxglove_scene import CLASS_RGBA
-from surgrecon_cli.io.ingest_store import load_ingested
-from surgrecon_cli.io.ply import read_ply
-from surgrecon_cli.io.run_layout import RunLayout
+from surgrecon_cli.core.classify.labels import UNKNOWN
+from surgrecon_cli.io.export.foxglove_pack import stamp_ns, unpack_points
+from surgrecon_cli.io.export.foxglove_scene import CLASS_RGBA
+from surgrecon_cli.io.export.to_mcap import shipped_layout
+from surgrecon_cli.io.run.artefacts import read_labels
+from surgrecon_cli.io.run.ingest_store import load_ingested
+from surgrecon_cli.io.run.layout import RunLayout
+from surgrecon_cli.io.run.ply import read_ply
 
 PER_FRAME = {"/surgrecon/cloud": PointCloud, "/surgrecon/target": PointCloud,
              "/surgrecon/tf": FrameTransforms, "/surgrecon/scene": SceneUpdate}
@@ -305,7 +305,7 @@ def test_metrics_without_a_report_are_the_class_counts(copy_run, tmp_path):
 def test_tum_of_the_recorded_streams_interpolate_to_the_ingested_poses(exported):
     """camera_CC_tracker.tum / tool_robot.tum hold the streams as recorded (in the world):
     interpolated to the image stamps as ingest does, they give its poses."""
-    from surgrecon_cli.core.sync import PoseStream, poses_at
+    from surgrecon_cli.core.sync.streams import PoseStream, poses_at
 
     log = load_ingested(RunLayout(exported[0]).ingest_dir)
     tum = exported[2]

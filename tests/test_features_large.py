@@ -9,8 +9,8 @@ import cv2
 import numpy as np
 
 from surgrecon_cli.config import Config
-from surgrecon_cli.core.cameras import CameraModel
-from surgrecon_cli.core.features import detect_features
+from surgrecon_cli.core.geometry.cameras import CameraModel
+from surgrecon_cli.core.template.features import detect_features
 
 SHIFT = np.array([13.0, 7.0])  # px, the second image's content moved right and down
 

@@ -14,10 +14,10 @@ import synth_log
 
 from surgrecon_cli.cli.common import progress
 from surgrecon_cli.cli.main import main
-from surgrecon_cli.core import sync
+from surgrecon_cli.core.sync import streams as sync
 from surgrecon_cli.errors import InputError
-from surgrecon_cli.io.ground_truth import load_ground_truth
-from surgrecon_cli.io.records import PoseRecord
+from surgrecon_cli.io.logs.ground_truth import load_ground_truth
+from surgrecon_cli.io.logs.records import PoseRecord
 from surgrecon_cli.sim.log_writer import write_log
 
 T0, MS = synth_log.T0, synth_log.MS

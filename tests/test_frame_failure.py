@@ -9,9 +9,9 @@ import shutil
 import numpy as np
 
 from surgrecon_cli.config import Config
-from surgrecon_cli.core.labels import UNKNOWN
-from surgrecon_cli.io.run_folder import RunFolder
-from surgrecon_cli.io.run_layout import RunLayout
+from surgrecon_cli.core.classify.labels import UNKNOWN
+from surgrecon_cli.io.run.folder import RunFolder
+from surgrecon_cli.io.run.layout import RunLayout
 from surgrecon_cli.stages.classify import run_classify
 from surgrecon_cli.stages.register import run_register
 

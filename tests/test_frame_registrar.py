@@ -7,9 +7,9 @@ from __future__ import annotations
 import numpy as np
 
 from surgrecon_cli.config import Config
-from surgrecon_cli.core.scoring import map_to_surface
-from surgrecon_cli.io.artefacts import read_registration, read_template
-from surgrecon_cli.io.run_layout import RunLayout
+from surgrecon_cli.core.evaluate.scoring import map_to_surface
+from surgrecon_cli.io.run.artefacts import read_registration, read_template
+from surgrecon_cli.io.run.layout import RunLayout
 from surgrecon_cli.stages import register as stage
 
 

@@ -7,10 +7,10 @@ import numpy as np
 from scenes import render_frames
 
 from surgrecon_cli.config import Config
-from surgrecon_cli.core.frame_step import DataTerm, register_with_contact
+from surgrecon_cli.core.geometry.tool import push_out_of_tool
 from surgrecon_cli.core.registration import register
-from surgrecon_cli.core.tool import push_out_of_tool
-from surgrecon_cli.core.tracking import (
+from surgrecon_cli.core.registration.frame_step import DataTerm, register_with_contact
+from surgrecon_cli.core.target.tracking import (
     klt_levels_for,
     klt_track,
     track_adaptive,
@@ -93,7 +93,7 @@ def test_contact_is_folded_into_one_registration_and_keeps_the_tissue_out_of_the
     # A flat 18 mm patch; the tool (4 mm radius, rounded end) presses 2 mm into its centre,
     # where the cameras see no tissue (weight 0); the rest is observed still. Tissue cannot
     # be inside the tool: under it, it lies on the tool's rounded end.
-    import surgrecon_cli.core.frame_step as frame_step
+    import surgrecon_cli.core.registration.frame_step as frame_step
 
     solves = []
     monkeypatch.setattr(frame_step, "register",

@@ -237,8 +237,8 @@ def _baseline(tmp: Path, cases: list[Case], results: dict[str, dict]) -> dict[st
 
 def _check_ingest(case: Case, baseline: dict[str, Path]) -> str:
     """'' if the exit-0 run folder is right, else what is wrong."""
-    from surgrecon_cli.io.ingest_store import load_ingested
-    from surgrecon_cli.io.run_folder import RunFolder
+    from surgrecon_cli.io.run.folder import RunFolder
+    from surgrecon_cli.io.run.ingest_store import load_ingested
 
     run = Path(case.argv[case.argv.index("-o") + 1])
     if not RunFolder(run).is_done("ingest"):
@@ -283,7 +283,7 @@ def _check_ply(case: Case) -> str:
     lies closer to the target than the source did), else what is wrong."""
     from scipy.spatial import cKDTree
 
-    from surgrecon_cli.io.ply import read_ply, read_ply_counted
+    from surgrecon_cli.io.run.ply import read_ply, read_ply_counted
 
     out = Path(case.argv[case.argv.index("-o") + 1])
     if not out.is_file():

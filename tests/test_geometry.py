@@ -1,10 +1,10 @@
-"""core.geometry: quaternion order and sign conventions, slerp, batched shapes."""
+"""core.geometry.poses: quaternion order and sign conventions, slerp, batched shapes."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from surgrecon_cli.core.geometry import make_pose, matrix_to_quat, quat_to_matrix, slerp
+from surgrecon_cli.core.geometry.poses import make_pose, matrix_to_quat, quat_to_matrix, slerp
 
 HALF = np.sqrt(0.5)
 

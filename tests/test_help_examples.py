@@ -255,7 +255,7 @@ def _sections(names: list[str]) -> str:
 
 def _write_landmarks(path: Path, world: dict[str, Path]) -> None:
     """True pairs between the run's first and last clouds (same point_id), every 25th."""
-    from surgrecon_cli.io.ply import read_ply
+    from surgrecon_cli.io.run.ply import read_ply
 
     clouds = sorted((world["classified"] / "clouds").glob("*.ply"))
     src = read_ply(clouds[0])["point_id"]

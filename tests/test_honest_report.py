@@ -15,9 +15,9 @@ from synth_log import SynthSpec
 
 from surgrecon_cli.cli.main import main
 from surgrecon_cli.config import Config
-from surgrecon_cli.core.quality import frame_quality, pooled_within_2sigma, verdict
-from surgrecon_cli.io.ingest_store import load_ingested
-from surgrecon_cli.io.run_folder import RunFolder
+from surgrecon_cli.core.classify.quality import frame_quality, pooled_within_2sigma, verdict
+from surgrecon_cli.io.run.folder import RunFolder
+from surgrecon_cli.io.run.ingest_store import load_ingested
 from surgrecon_cli.report.caveats import run_caveats
 from surgrecon_cli.stages.report import run_report
 

@@ -19,9 +19,9 @@ import pytest
 
 from surgrecon_cli.cli.main import main
 from surgrecon_cli.errors import InputError
-from surgrecon_cli.io.images import MAX_IMAGE_PIXELS, prepare_image
-from surgrecon_cli.io.log_input import resolve_log
-from surgrecon_cli.io.records import ImageRecord
+from surgrecon_cli.io.logs.images import MAX_IMAGE_PIXELS, prepare_image
+from surgrecon_cli.io.logs.log_input import resolve_log
+from surgrecon_cli.io.logs.records import ImageRecord
 
 MEMORY_CAP_MB = 1024
 
@@ -52,7 +52,7 @@ BILLION_LAUGHS = """rosbag2_bagfile_information:
 def test_yaml_bomb_in_metadata_is_refused_before_it_expands(tmp_path: Path):
     (tmp_path / "metadata.yaml").write_text(BILLION_LAUGHS)
     peak, printed = peak_rss_mb(
-        "from surgrecon_cli.io.log_input import resolve_log\n"
+        "from surgrecon_cli.io.logs.log_input import resolve_log\n"
         "from surgrecon_cli.errors import InputError\n"
         "try:\n    resolve_log(sys.argv[1])\nexcept InputError as exc:\n    print(exc)\n",
         str(tmp_path))
@@ -105,8 +105,8 @@ def test_crafted_images_stay_under_the_memory_cap(tmp_path: Path):
         (tmp_path / f"{k}.bin").write_bytes(data)
     peak, printed = peak_rss_mb(
         "from pathlib import Path\n"
-        "from surgrecon_cli.io.images import prepare_image\n"
-        "from surgrecon_cli.io.records import ImageRecord\n"
+        "from surgrecon_cli.io.logs.images import prepare_image\n"
+        "from surgrecon_cli.io.logs.records import ImageRecord\n"
         "for path in sorted(Path(sys.argv[1]).glob('*.bin')):\n"
         "    try:\n"
         "        prepare_image(ImageRecord(0, 'cam', '', path.read_bytes()))\n"
@@ -191,7 +191,7 @@ def test_full_disk_and_unusable_output_folders_name_the_file(copy_run: Path, pip
                                                              monkeypatch, capsys):
     import errno
 
-    import surgrecon_cli.io.atomic as atomic
+    import surgrecon_cli.io.run.atomic as atomic
 
     def full(_fd: int) -> None:
         raise OSError(errno.ENOSPC, "No space left on device")
@@ -257,8 +257,8 @@ def test_negative_stamp_is_called_negative(tmp_path: Path, capsys):
 
 
 def test_long_names_in_errors_are_cut():
-    from surgrecon_cli.core.tf_samples import make_samples
-    from surgrecon_cli.core.tf_tree import build_tf_tree
+    from surgrecon_cli.core.sync.tf_samples import make_samples
+    from surgrecon_cli.core.sync.tf_tree import build_tf_tree
     from surgrecon_cli.errors import NAME_LIMIT
 
     huge = "f" * 5_000_000

@@ -11,9 +11,9 @@ import synth_log
 
 from surgrecon_cli.cli.main import main
 from surgrecon_cli.config import TopicsConfig, load_config
-from surgrecon_cli.core.geometry import invert_pose, make_pose, matrix_to_quat
-from surgrecon_cli.io.log_info import camera_pattern, scan_log
-from surgrecon_cli.io.records import PoseRecord
+from surgrecon_cli.core.geometry.poses import invert_pose, make_pose, matrix_to_quat
+from surgrecon_cli.info import camera_pattern, scan_log
+from surgrecon_cli.io.logs.records import PoseRecord
 
 ROOT = Path(__file__).resolve().parents[1]
 SAMPLE = ROOT / "sample_data" / "sample.mcap"
@@ -176,7 +176,7 @@ def test_truncated_log_is_streamed_and_the_damage_reported(tmp_path: Path, capsy
 
 def test_corrupt_chunk_of_an_indexed_log_is_reported(tmp_path: Path, capsys):
     from surgrecon_cli.errors import InputError
-    from surgrecon_cli.io.mcap.transforms import read_transforms
+    from surgrecon_cli.io.logs.transforms import read_transforms
 
     log = write_tree_log(tmp_path / "tree.mcap")
     data = bytearray(log.read_bytes())

@@ -143,7 +143,7 @@ def test_another_world_frame_is_written_as_a_key(messages, tmp_path: Path, capsy
 def test_a_world_below_the_root_is_reached_down_the_tree(messages, tmp_path: Path, capsys):
     """The tree's root is `map` and `world` a static child of it: the chains go up to `map`
     and down (inverted) to `world`, as ingest composes them."""
-    from surgrecon_cli.io.records import PoseRecord
+    from surgrecon_cli.io.logs.records import PoseRecord
 
     def world_under_map(stream: Iterator) -> Iterator:
         stream = _rename_world(stream)

@@ -15,10 +15,10 @@ from synth_log import MS, T0, SynthSpec
 
 from surgrecon_cli.cli.main import main
 from surgrecon_cli.config import Config, to_toml
-from surgrecon_cli.core.geometry import make_pose
-from surgrecon_cli.io.ingest_store import load_ingested
-from surgrecon_cli.io.records import ImageRecord, PoseRecord
-from surgrecon_cli.io.run_folder import RunFolder, file_sha256
+from surgrecon_cli.core.geometry.poses import make_pose
+from surgrecon_cli.io.logs.records import ImageRecord, PoseRecord
+from surgrecon_cli.io.run.folder import RunFolder, file_sha256
+from surgrecon_cli.io.run.ingest_store import load_ingested
 from surgrecon_cli.sim.log_writer import ENCODINGS
 
 

@@ -15,10 +15,10 @@ from synth_log import MS, T0, SynthSpec
 from test_ingest import check_log
 
 from surgrecon_cli.cli.main import main
-from surgrecon_cli.core.cameras import CameraModel
-from surgrecon_cli.core.intrinsics import folds_before_corners, implausible_intrinsics
-from surgrecon_cli.io.ingest_store import load_ingested
-from surgrecon_cli.io.records import CameraInfoRecord, ImageRecord, PoseRecord
+from surgrecon_cli.core.geometry.cameras import CameraModel
+from surgrecon_cli.core.geometry.intrinsics import folds_before_corners, implausible_intrinsics
+from surgrecon_cli.io.logs.records import CameraInfoRecord, ImageRecord, PoseRecord
+from surgrecon_cli.io.run.ingest_store import load_ingested
 
 
 def with_orientation(jpeg: bytes, orientation: int) -> bytes:

@@ -35,9 +35,9 @@ import numpy as np
 import pytest
 
 from surgrecon_cli.cli.main import main
-from surgrecon_cli.io.ply import read_ply
-from surgrecon_cli.io.run_folder import FrameProgress, RunFolder
-from surgrecon_cli.io.run_layout import RunLayout
+from surgrecon_cli.io.run.folder import FrameProgress, RunFolder
+from surgrecon_cli.io.run.layout import RunLayout
+from surgrecon_cli.io.run.ply import read_ply
 from surgrecon_cli.pipeline import STAGES
 
 SEED = 7

@@ -7,17 +7,22 @@ from __future__ import annotations
 import numpy as np
 
 from surgrecon_cli.config import ClassifyConfig
-from surgrecon_cli.core.cameras import CameraModel, project
-from surgrecon_cli.core.classify import (
+from surgrecon_cli.core.classify.labels import (
+    DEFORMING,
+    SHIFTING,
+    label_rule,
+    radius_neighbourhoods,
+)
+from surgrecon_cli.core.classify.rules import (
     Evidence,
     classify_frame,
     departure_statistic,
     noise_scale,
     template_neighbourhoods,
 )
-from surgrecon_cli.core.frame_noise import retriangulate
-from surgrecon_cli.core.labels import DEFORMING, SHIFTING, label_rule, radius_neighbourhoods
-from surgrecon_cli.core.noise import NoiseModel
+from surgrecon_cli.core.geometry.cameras import CameraModel, project
+from surgrecon_cli.core.noise.frame_noise import retriangulate
+from surgrecon_cli.core.noise.model import NoiseModel
 
 
 def _scene(rng: np.random.Generator, true_sigma_m: float):

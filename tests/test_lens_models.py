@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from surgrecon_cli.cli.main import main
-from surgrecon_cli.io.ingest_store import load_ingested
+from surgrecon_cli.io.run.ingest_store import load_ingested
 from surgrecon_cli.sim.scene import SimConfig
 from surgrecon_cli.sim.simulate import simulate
 

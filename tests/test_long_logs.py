@@ -10,12 +10,12 @@ from pathlib import Path
 
 import numpy as np
 
-from surgrecon_cli.core.hysteresis import apply_hysteresis
-from surgrecon_cli.core.labels import DEFORMING, SHIFTING, STATIC, UNKNOWN
-from surgrecon_cli.io.artefacts import FrameRegistration
-from surgrecon_cli.io.rows import npz_rows
-from surgrecon_cli.io.run_folder import FrameProgress
-from surgrecon_cli.io.run_layout import RunLayout
+from surgrecon_cli.core.classify.hysteresis import apply_hysteresis
+from surgrecon_cli.core.classify.labels import DEFORMING, SHIFTING, STATIC, UNKNOWN
+from surgrecon_cli.io.run.artefacts import FrameRegistration
+from surgrecon_cli.io.run.folder import FrameProgress
+from surgrecon_cli.io.run.layout import RunLayout
+from surgrecon_cli.io.run.rows import npz_rows
 from surgrecon_cli.report.frames import SAMPLED_FRAMES, FrameAccumulator
 from surgrecon_cli.sim.random_frames import write_random_classified
 from surgrecon_cli.stages.classify import write_labels_streaming

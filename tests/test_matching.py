@@ -1,4 +1,4 @@
-"""Pose-guided feature matching (core/matching.py) on synthetic features with known
+"""Pose-guided feature matching (core/template/matching.py) on synthetic features with known
 correspondences: two tracked cameras see the same 3D points, each point carries one random
 descriptor in both images (plus noise), so the right matches are known exactly; distractors
 test the ratio test, the epipolar and depth gates and the mutual check.
@@ -9,10 +9,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from surgrecon_cli.core import matching
-from surgrecon_cli.core.features import Features
-from surgrecon_cli.core.geometry import invert_pose
-from surgrecon_cli.core.matching import (
+from surgrecon_cli.core.geometry.poses import invert_pose
+from surgrecon_cli.core.template import matching
+from surgrecon_cli.core.template.features import Features
+from surgrecon_cli.core.template.matching import (
     build_tracks,
     epipolar_candidates,
     essential_matrix,

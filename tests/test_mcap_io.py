@@ -1,4 +1,4 @@
-"""MCAP writing (sim.log_writer) and reading (io.mcap): every encoding round-trips records;
+"""MCAP writing (sim.log_writer) and reading (io.logs): every encoding round-trips records;
 dispatch by schema; stamps; damage handling; deterministic, atomic writes."""
 
 from __future__ import annotations
@@ -13,9 +13,15 @@ from mcap.reader import make_reader
 
 from surgrecon_cli.config import IngestConfig, TopicsConfig
 from surgrecon_cli.errors import InputError, TopicError
-from surgrecon_cli.io.mcap import DECODERS, LogReader
-from surgrecon_cli.io.mcap.transforms import read_transforms
-from surgrecon_cli.io.records import CameraInfoRecord, ImageRecord, JointStateRecord, PoseRecord
+from surgrecon_cli.io.logs.encodings.registry import DECODERS
+from surgrecon_cli.io.logs.reader import LogReader
+from surgrecon_cli.io.logs.records import (
+    CameraInfoRecord,
+    ImageRecord,
+    JointStateRecord,
+    PoseRecord,
+)
+from surgrecon_cli.io.logs.transforms import read_transforms
 from surgrecon_cli.sim.log_writer import ENCODINGS, write_log
 
 T0 = synth_log.T0
@@ -245,7 +251,7 @@ def test_json_frame_transform_generic_joint_states_and_ros1_tf(tmp_path: Path):
 def test_cache_dropping_writer_keeps_every_byte(tmp_path: Path):
     """Writes that cross the drop interval many times (syncs in flight meanwhile) give the
     file a plain write gives, and `tell` counts every byte."""
-    from surgrecon_cli.io.atomic import CacheDropping, atomic_open
+    from surgrecon_cli.io.run.atomic import CacheDropping, atomic_open
 
     rng = np.random.default_rng(3)
     parts = [rng.integers(0, 256, int(n), dtype=np.uint8).tobytes()

@@ -13,10 +13,10 @@ import pytest
 
 from surgrecon_cli.cli.main import main
 from surgrecon_cli.config import Config
-from surgrecon_cli.io.atomic import write_npz
-from surgrecon_cli.io.ground_truth import gt_path_beside, load_ground_truth
-from surgrecon_cli.io.run_folder import RunFolder
-from surgrecon_cli.io.run_layout import RunLayout
+from surgrecon_cli.io.logs.ground_truth import gt_path_beside, load_ground_truth
+from surgrecon_cli.io.run.atomic import write_npz
+from surgrecon_cli.io.run.folder import RunFolder
+from surgrecon_cli.io.run.layout import RunLayout
 from surgrecon_cli.stages.evaluate import run_evaluate
 from surgrecon_cli.stages.measure import DEFORMATION_COLUMNS
 
@@ -101,8 +101,8 @@ def test_the_mcap_export_carries_the_measures(pipeline_run, tmp_path):
     from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
     from mcap.reader import make_reader
 
-    from surgrecon_cli.io.artefacts import read_deformation
-    from surgrecon_cli.io.foxglove_pack import unpack_points
+    from surgrecon_cli.io.export.foxglove_pack import unpack_points
+    from surgrecon_cli.io.run.artefacts import read_deformation
 
     run_dir = pipeline_run[0]
     out = tmp_path / "run.mcap"

@@ -13,9 +13,9 @@ from surgrecon_cli.cli.cmd_measure import format_summary
 from surgrecon_cli.cli.main import main
 from surgrecon_cli.config import Config
 from surgrecon_cli.config.schema import ExtraToolConfig
-from surgrecon_cli.io.atomic import write_npz
-from surgrecon_cli.io.ground_truth import gt_path_beside, load_ground_truth
-from surgrecon_cli.io.run_layout import RunLayout
+from surgrecon_cli.io.logs.ground_truth import gt_path_beside, load_ground_truth
+from surgrecon_cli.io.run.atomic import write_npz
+from surgrecon_cli.io.run.layout import RunLayout
 from surgrecon_cli.stages.measure import DEFORMATION_COLUMNS, TOOL_COLUMNS, run_measure
 
 

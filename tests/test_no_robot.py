@@ -16,7 +16,7 @@ from mcap.reader import make_reader
 from surgrecon_cli.cli.cmd_evaluate import format_evaluation
 from surgrecon_cli.cli.main import main
 from surgrecon_cli.config import Config
-from surgrecon_cli.io.ingest_store import load_ingested, save_ingested
+from surgrecon_cli.io.run.ingest_store import load_ingested, save_ingested
 from surgrecon_cli.stages.evaluate import run_evaluate
 from surgrecon_cli.stages.measure import run_measure
 from surgrecon_cli.stages.report import run_report

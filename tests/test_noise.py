@@ -1,14 +1,19 @@
-"""The run's noise model recovers known pixel and tracker noise (core/noise.py)."""
+"""The run's noise model recovers known pixel and tracker noise (core/noise/model.py)."""
 
 from __future__ import annotations
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from surgrecon_cli.core.cameras import CameraModel, project, undistort_pixels
-from surgrecon_cli.core.frame_noise import tracking_excess_px2
-from surgrecon_cli.core.geometry import make_pose
-from surgrecon_cli.core.noise import (
+from surgrecon_cli.core.geometry.cameras import CameraModel, project, undistort_pixels
+from surgrecon_cli.core.geometry.poses import make_pose
+from surgrecon_cli.core.geometry.triangulate import (
+    Observations,
+    reprojection_residuals,
+    triangulate,
+)
+from surgrecon_cli.core.noise.frame_noise import tracking_excess_px2
+from surgrecon_cli.core.noise.model import (
     NoiseModel,
     covariance_sigma,
     pixel_noise_from_residuals,
@@ -16,7 +21,6 @@ from surgrecon_cli.core.noise import (
     pose_jitter,
     projection_jacobians,
 )
-from surgrecon_cli.core.triangulate import Observations, reprojection_residuals, triangulate
 
 
 def _rig(n_cams: int = 4):
@@ -114,7 +118,7 @@ def test_fixed_pose_stream_has_no_jitter():
 def test_cameras_on_one_tracked_body_are_found():
     """A stereo head's two cameras follow one marker: their relative pose does not jitter;
     a third, separately tracked camera's does."""
-    from surgrecon_cli.core.noise import shared_bodies
+    from surgrecon_cli.core.noise.model import shared_bodies
 
     rng = np.random.default_rng(6)
     t = np.arange(400) * 0.025

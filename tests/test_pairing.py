@@ -1,4 +1,4 @@
-"""Camera grouping and pair sequencing (core/pairing.py) on synthetic rigs whose geometry
+"""Camera grouping and pair sequencing (core/template/pairing.py) on synthetic rigs whose geometry
 fixes the answer: working depths where optical axes meet, view angles and baselines from
 the construction, cameras facing the same point, facing each other and facing away, and
 groups / maximum-spanning-tree sequences from hand-made link weights.
@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 from scipy.sparse.csgraph import minimum_spanning_tree
 
-from surgrecon_cli.core.cameras import CameraModel
-from surgrecon_cli.core.pairing import (
+from surgrecon_cli.core.geometry.cameras import CameraModel
+from surgrecon_cli.core.template.pairing import (
     FULL_ANGLE_DEG,
     MAX_ANGLE_DEG,
     MIN_BASELINE_RATIO,

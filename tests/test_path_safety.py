@@ -20,11 +20,11 @@ from synth_log import SynthSpec
 
 from surgrecon_cli.cli.main import main
 from surgrecon_cli.config import Config, TopicsConfig, load_config
-from surgrecon_cli.io.ingest_store import load_ingested
-from surgrecon_cli.io.mcap import LogReader
-from surgrecon_cli.io.ply import read_ply
-from surgrecon_cli.io.records import ImageRecord, PoseRecord
-from surgrecon_cli.io.run_folder import RunFolder
+from surgrecon_cli.io.logs.reader import LogReader
+from surgrecon_cli.io.logs.records import ImageRecord, PoseRecord
+from surgrecon_cli.io.run.folder import RunFolder
+from surgrecon_cli.io.run.ingest_store import load_ingested
+from surgrecon_cli.io.run.ply import read_ply
 from surgrecon_cli.sim.log_writer import write_log
 
 ID_PAIRS = [

@@ -9,11 +9,11 @@ import pytest
 
 from surgrecon_cli.cli.main import main
 from surgrecon_cli.config import load_config
-from surgrecon_cli.core.labels import STATIC, UNKNOWN
+from surgrecon_cli.core.classify.labels import STATIC, UNKNOWN
 from surgrecon_cli.errors import RunFolderError
-from surgrecon_cli.io.ply import read_ply
-from surgrecon_cli.io.run_folder import FrameProgress, RunFolder, file_sha256
-from surgrecon_cli.io.run_layout import RunLayout
+from surgrecon_cli.io.run.folder import FrameProgress, RunFolder, file_sha256
+from surgrecon_cli.io.run.layout import RunLayout
+from surgrecon_cli.io.run.ply import read_ply
 from surgrecon_cli.pipeline import STAGES, run_pipeline
 
 SPEC_TYPES = {"x": "f4", "y": "f4", "z": "f4", "red": "u1", "green": "u1", "blue": "u1",

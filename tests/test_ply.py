@@ -8,7 +8,7 @@ import plyfile
 import pytest
 
 from surgrecon_cli.errors import InputError
-from surgrecon_cli.io.ply import read_ply, read_ply_counted, write_cloud_ply
+from surgrecon_cli.io.run.ply import read_ply, read_ply_counted, write_cloud_ply
 
 
 def cloud(n: int = 200, seed: int = 0):

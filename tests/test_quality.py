@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from surgrecon_cli.core.labels import (
+from surgrecon_cli.core.classify.labels import (
     DEFORMING,
     INTER,
     INTRA,
@@ -13,7 +13,7 @@ from surgrecon_cli.core.labels import (
     STATIC,
     UNOBSERVED,
 )
-from surgrecon_cli.core.quality import frame_quality, unsupported_points
+from surgrecon_cli.core.classify.quality import frame_quality, unsupported_points
 
 
 def _frame(status, residual_ratio):

@@ -11,9 +11,9 @@ from pathlib import Path
 import numpy as np
 
 from surgrecon_cli.cli.main import main
-from surgrecon_cli.core.labels import DEFORMING, SHIFTING, STATIC
-from surgrecon_cli.io.ply import read_ply
-from surgrecon_cli.io.run_layout import RunLayout
+from surgrecon_cli.core.classify.labels import DEFORMING, SHIFTING, STATIC
+from surgrecon_cli.io.run.layout import RunLayout
+from surgrecon_cli.io.run.ply import read_ply
 
 SURGT = Path(__file__).parent / "data" / "surgt"
 FRAMES = 6

@@ -11,8 +11,8 @@ import synth_log
 from synth_log import SynthSpec
 
 from surgrecon_cli.cli.main import main
-from surgrecon_cli.io.ingest_store import load_ingested
-from surgrecon_cli.io.records import PoseRecord
+from surgrecon_cli.io.logs.records import PoseRecord
+from surgrecon_cli.io.run.ingest_store import load_ingested
 
 
 def ingest(log: Path, run: Path, *extra: str) -> int:

@@ -8,8 +8,8 @@ import numpy as np
 from test_registration import err_mm, make
 
 from surgrecon_cli.cli.main import main
-from surgrecon_cli.io.metrics import read_csv
-from surgrecon_cli.io.ply import read_ply, write_cloud_ply
+from surgrecon_cli.io.run.metrics import read_csv
+from surgrecon_cli.io.run.ply import read_ply, write_cloud_ply
 
 QUICK = ["-q", "--set", "registration.outer_iterations=3"]
 

@@ -23,8 +23,8 @@ import numpy as np
 import pytest
 
 from surgrecon_cli.config import load_config
-from surgrecon_cli.core.scoring import map_to_surface
-from surgrecon_cli.io.ply import read_ply
+from surgrecon_cli.core.evaluate.scoring import map_to_surface
+from surgrecon_cli.io.run.ply import read_ply
 from surgrecon_cli.pipeline import run_pipeline
 
 

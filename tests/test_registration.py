@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from surgrecon_cli.config import ConfigError, RegistrationConfig, from_dict
-from surgrecon_cli.core.geometry import quat_to_matrix
+from surgrecon_cli.core.geometry.poses import quat_to_matrix
 from surgrecon_cli.errors import GeometryError
 from surgrecon_cli.registration import apply_transforms, register
 from surgrecon_cli.sim.pairs import MM, dome, texture, warp

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from surgrecon_cli.config import Config
-from surgrecon_cli.io.run_folder import RunFolder
+from surgrecon_cli.io.run.folder import RunFolder
 from surgrecon_cli.stages.report import CLASS_COLUMNS, FRAME_COLUMNS, STATUS_COLUMNS, run_report
 
 VOID = {"meta", "img", "br", "hr", "link", "input"}

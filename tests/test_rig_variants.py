@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 
 from surgrecon_cli.config import Config
-from surgrecon_cli.core.cameras import world_to_camera
-from surgrecon_cli.core.labels import DEFORMING, UNKNOWN
-from surgrecon_cli.io.ingest_store import load_ingested
-from surgrecon_cli.io.run_layout import RunLayout
+from surgrecon_cli.core.classify.labels import DEFORMING, UNKNOWN
+from surgrecon_cli.core.geometry.cameras import world_to_camera
+from surgrecon_cli.io.run.ingest_store import load_ingested
+from surgrecon_cli.io.run.layout import RunLayout
 from surgrecon_cli.pipeline import run_pipeline
 from surgrecon_cli.sim.simulate import simulate
 from surgrecon_cli.sim.variants import variant_config

@@ -12,7 +12,7 @@ import pytest
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from surgrecon_cli.core.geometry import fit_rigid
+from surgrecon_cli.core.geometry.poses import fit_rigid
 from surgrecon_cli.core.registration.correspondences import build_matcher
 from surgrecon_cli.core.registration.graph import mean_spacing
 from surgrecon_cli.core.registration.rigid import MIN_KNOWN, rigid_prealign

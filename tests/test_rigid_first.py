@@ -6,11 +6,11 @@ from __future__ import annotations
 import numpy as np
 
 from surgrecon_cli.config import Config
-from surgrecon_cli.core.frame_step import DataTerm, data_weights, register_rigid_first
-from surgrecon_cli.core.labels import INTER, UNOBSERVED
-from surgrecon_cli.core.noise import NoiseModel
-from surgrecon_cli.core.rigid_fit import robust_rigid
-from surgrecon_cli.core.target import TargetCloud
+from surgrecon_cli.core.classify.labels import INTER, UNOBSERVED
+from surgrecon_cli.core.noise.model import NoiseModel
+from surgrecon_cli.core.registration.frame_step import DataTerm, data_weights, register_rigid_first
+from surgrecon_cli.core.registration.rigid_fit import robust_rigid
+from surgrecon_cli.core.target.cloud import TargetCloud
 from surgrecon_cli.sim.motion import _rotation
 
 

@@ -14,8 +14,8 @@ import synth_log
 from rosbag_convert import mcap_to_bag, mcap_to_db3
 
 from surgrecon_cli.cli.main import main
-from surgrecon_cli.io.ingest_store import load_ingested
-from surgrecon_cli.io.log_info import scan_log
+from surgrecon_cli.info import scan_log
+from surgrecon_cli.io.run.ingest_store import load_ingested
 from surgrecon_cli.sim.log_writer import write_log
 from surgrecon_cli.sim.scene import SimConfig
 from surgrecon_cli.sim.simulate import LogBuilder

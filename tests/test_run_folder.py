@@ -1,4 +1,4 @@
-"""io.run_folder: run.json creation, atomic stage updates, input and config checks."""
+"""io.run.folder: run.json creation, atomic stage updates, input and config checks."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import pytest
 
 from surgrecon_cli.config import Config, IngestConfig, load_config
 from surgrecon_cli.errors import RunFolderError
-from surgrecon_cli.io.run_folder import RunFolder, file_sha256, package_versions
+from surgrecon_cli.io.run.folder import RunFolder, file_sha256, package_versions
 
 
 def test_start_mark_and_read(tmp_path: Path):

@@ -19,13 +19,13 @@ import pytest
 
 from surgrecon_cli.cli.main import main
 from surgrecon_cli.errors import RunFolderError
-from surgrecon_cli.io.run_layout import RunLayout
-from surgrecon_cli.io.run_lock import run_folder_lock
+from surgrecon_cli.io.run.layout import RunLayout
+from surgrecon_cli.io.run.lock import run_folder_lock
 
 SURGRECON = [sys.executable, "-c",
              "import sys; from surgrecon_cli.cli.main import main; sys.exit(main())"]
 # A second process that takes the lock as a command does and keeps it until stdin closes.
-HOLDER = ("import sys; from surgrecon_cli.io.run_lock import run_folder_lock\n"
+HOLDER = ("import sys; from surgrecon_cli.io.run.lock import run_folder_lock\n"
           "with run_folder_lock(sys.argv[1], 'register'):\n"
           "    print('locked', flush=True); sys.stdin.read()\n")
 

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from surgrecon_cli.core.labels import DEFORMING, SHIFTING, STATIC, UNKNOWN
-from surgrecon_cli.core.scoring import distance_stats_mm, label_scores, map_to_surface
+from surgrecon_cli.core.classify.labels import DEFORMING, SHIFTING, STATIC, UNKNOWN
+from surgrecon_cli.core.evaluate.scoring import distance_stats_mm, label_scores, map_to_surface
 from surgrecon_cli.sim.scene import SimConfig, make_tissue
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from surgrecon_cli.core.labels import (
+from surgrecon_cli.core.classify.labels import (
     DEFORMING,
     SHIFTING,
     STATIC,

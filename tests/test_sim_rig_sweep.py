@@ -7,7 +7,7 @@ import itertools
 
 import numpy as np
 
-from surgrecon_cli.core.geometry import fit_rigid
+from surgrecon_cli.core.geometry.poses import fit_rigid
 from surgrecon_cli.sim.simulate import LogBuilder
 from surgrecon_cli.sim.variants import variant_config
 

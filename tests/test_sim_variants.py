@@ -10,11 +10,11 @@ import pytest
 
 from surgrecon_cli.cli.main import main
 from surgrecon_cli.config import LabelsConfig, TopicsConfig
-from surgrecon_cli.core.geometry import fit_rigid, invert_pose, make_pose, quat_to_matrix
-from surgrecon_cli.core.labels import DEFORMING, SHIFTING, true_labels
-from surgrecon_cli.io.ground_truth import load_ground_truth
-from surgrecon_cli.io.mcap.reader import LogReader
-from surgrecon_cli.io.records import JointStateRecord, PoseRecord
+from surgrecon_cli.core.classify.labels import DEFORMING, SHIFTING, true_labels
+from surgrecon_cli.core.geometry.poses import fit_rigid, invert_pose, make_pose, quat_to_matrix
+from surgrecon_cli.io.logs.ground_truth import load_ground_truth
+from surgrecon_cli.io.logs.reader import LogReader
+from surgrecon_cli.io.logs.records import JointStateRecord, PoseRecord
 from surgrecon_cli.sim.scene import SimConfig
 from surgrecon_cli.sim.simulate import T0_NS, LogBuilder, simulate
 from surgrecon_cli.sim.variants import STEREO_BASELINE, VARIANTS, variant_config

@@ -14,8 +14,8 @@ import pytest
 
 from surgrecon_cli.config import ClassifyConfig, Config, IngestConfig, TemplateConfig
 from surgrecon_cli.errors import RunFolderError
-from surgrecon_cli.io.run_folder import RunFolder
-from surgrecon_cli.io.run_layout import RunLayout
+from surgrecon_cli.io.run.folder import RunFolder
+from surgrecon_cli.io.run.layout import RunLayout
 from surgrecon_cli.stages.staleness import (
     NOT_DONE,
     changed_keys,

@@ -8,7 +8,7 @@ import ast
 import re
 from pathlib import Path
 
-from surgrecon_cli.io.run_layout import DESCRIBED_FILES, RunLayout
+from surgrecon_cli.io.run.layout import DESCRIBED_FILES, RunLayout
 from surgrecon_cli.stages import registry
 
 PACKAGE = Path(__file__).resolve().parents[1] / "surgrecon_cli"

@@ -1,12 +1,12 @@
-"""core.sync: frame grouping, pose/joint interpolation, pose validation (pure numpy)."""
+"""core.sync.streams: frame grouping, pose/joint interpolation, pose validation (pure numpy)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from surgrecon_cli.core.geometry import make_pose, quat_to_matrix
-from surgrecon_cli.core.sync import (
+from surgrecon_cli.core.geometry.poses import make_pose, quat_to_matrix
+from surgrecon_cli.core.sync.streams import (
     base_to_world_pose,
     group_frames,
     interpolate_values,

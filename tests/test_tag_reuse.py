@@ -9,10 +9,10 @@ from pathlib import Path
 import numpy as np
 
 from surgrecon_cli.config import Config
-from surgrecon_cli.io.compare import load_runs
-from surgrecon_cli.io.run_folder import RunFolder
+from surgrecon_cli.io.run.folder import RunFolder
 from surgrecon_cli.pipeline import run_pipeline, tagged
 from surgrecon_cli.planning import reusable_stages
+from surgrecon_cli.report.compare import load_runs
 
 
 def _inode(path: Path) -> int:

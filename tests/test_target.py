@@ -7,12 +7,12 @@ import pytest
 from scenes import render_frames
 
 from surgrecon_cli.config import Config
-from surgrecon_cli.core.frame_inputs import FrameInput, Rig, Sighting, TemplateData
-from surgrecon_cli.core.noise import NoiseModel
-from surgrecon_cli.core.scoring import map_to_surface
-from surgrecon_cli.core.target import INTER, INTRA, OUTLIER, UNOBSERVED, build_target
-from surgrecon_cli.core.template import build_template
-from surgrecon_cli.core.tracking import tracking_view
+from surgrecon_cli.core.evaluate.scoring import map_to_surface
+from surgrecon_cli.core.noise.model import NoiseModel
+from surgrecon_cli.core.target.cloud import INTER, INTRA, OUTLIER, UNOBSERVED, build_target
+from surgrecon_cli.core.target.frame_inputs import FrameInput, Rig, Sighting, TemplateData
+from surgrecon_cli.core.target.tracking import tracking_view
+from surgrecon_cli.core.template.build import build_template
 from surgrecon_cli.sim.scene import SimConfig
 
 
@@ -78,7 +78,7 @@ def test_status_bookkeeping(tracked):
 
 
 def test_photometric_check_rejects_a_drifted_track():
-    from surgrecon_cli.core.tracking import patch_ncc
+    from surgrecon_cli.core.target.tracking import patch_ncc
 
     rng = np.random.default_rng(0)
     image = (rng.random((80, 80)) * 255).astype(np.uint8)

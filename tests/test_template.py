@@ -9,18 +9,18 @@ import pytest
 from scenes import render_frames
 
 from surgrecon_cli.config import Config
-from surgrecon_cli.core.cameras import CameraModel, project, undistort_pixels
-from surgrecon_cli.core.geometry import make_pose, point_to_segment_distance
-from surgrecon_cli.core.pairing import plan_pairs
-from surgrecon_cli.core.scoring import distance_stats_mm, map_to_surface
-from surgrecon_cli.core.template import build_template
-from surgrecon_cli.core.tool import (
+from surgrecon_cli.core.evaluate.scoring import distance_stats_mm, map_to_surface
+from surgrecon_cli.core.geometry.cameras import CameraModel, project, undistort_pixels
+from surgrecon_cli.core.geometry.poses import make_pose, point_to_segment_distance
+from surgrecon_cli.core.geometry.tool import (
     points_near_tool,
     push_out_of_tool,
     shaft_segment,
     tool_image_mask,
 )
-from surgrecon_cli.core.triangulate import Observations, triangulate
+from surgrecon_cli.core.geometry.triangulate import Observations, triangulate
+from surgrecon_cli.core.template.build import build_template
+from surgrecon_cli.core.template.pairing import plan_pairs
 from surgrecon_cli.errors import GeometryError
 from surgrecon_cli.sim.scene import SimConfig
 

@@ -11,9 +11,9 @@ import pytest
 from scenes import render_frames
 
 from surgrecon_cli.config import Config
-from surgrecon_cli.core.scoring import distance_stats_mm, map_to_surface
-from surgrecon_cli.core.template import build_template
-from surgrecon_cli.core.template_gate import pair_minimums
+from surgrecon_cli.core.evaluate.scoring import distance_stats_mm, map_to_surface
+from surgrecon_cli.core.template.build import build_template
+from surgrecon_cli.core.template.gate import pair_minimums
 from surgrecon_cli.errors import GeometryError
 from surgrecon_cli.sim.scene import SimConfig
 

@@ -14,9 +14,9 @@ import synth_log
 from synth_log import MS, T0, SynthSpec
 
 from surgrecon_cli.cli.main import main
-from surgrecon_cli.core.tf_samples import MAX_FRAME_ID_BYTES, SampleCollector, concat_samples
-from surgrecon_cli.core.tf_tree import build_tf_tree
-from surgrecon_cli.io.records import PoseRecord
+from surgrecon_cli.core.sync.tf_samples import MAX_FRAME_ID_BYTES, SampleCollector, concat_samples
+from surgrecon_cli.core.sync.tf_tree import build_tf_tree
+from surgrecon_cli.io.logs.records import PoseRecord
 from surgrecon_cli.sim.tf_load import write_tf_log
 
 BENCHMARK = Path(__file__).resolve().parents[1] / "benchmarks" / "tf_memory.py"

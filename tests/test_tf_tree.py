@@ -1,4 +1,4 @@
-"""The TF tree (core.tf_tree) and the transform channels of MCAP logs (io.mcap.transforms):
+"""The TF tree (core.sync.tf_tree) and the transform channels of MCAP logs (io.logs.transforms):
 composition through the common ancestor, interpolation and its limits, static edges, clear
 errors, and /tf + /tf_static decoded from every encoding (multi-transform messages too)."""
 
@@ -12,12 +12,12 @@ import pytest
 import synth_log
 from mcap.writer import Writer
 
-from surgrecon_cli.core.geometry import invert_pose, make_pose
-from surgrecon_cli.core.tf_samples import concat_samples, make_samples
-from surgrecon_cli.core.tf_tree import build_tf_tree
+from surgrecon_cli.core.geometry.poses import invert_pose, make_pose
+from surgrecon_cli.core.sync.tf_samples import concat_samples, make_samples
+from surgrecon_cli.core.sync.tf_tree import build_tf_tree
 from surgrecon_cli.errors import InputError
-from surgrecon_cli.io.mcap.transforms import is_static_channel, read_transforms
-from surgrecon_cli.io.records import PoseRecord
+from surgrecon_cli.io.logs.records import PoseRecord
+from surgrecon_cli.io.logs.transforms import is_static_channel, read_transforms
 from surgrecon_cli.sim.log_writer import ENCODINGS, write_log
 
 T0 = synth_log.T0

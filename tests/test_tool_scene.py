@@ -1,4 +1,4 @@
-"""The Foxglove scene draws every tool as core/tool.py models it: the shaft and the jaw/wrist
+"""The Foxglove scene draws every tool as core/geometry/tool.py models it: the shaft and the jaw/wrist
 capsule beyond the kinematic frame, each tool in its own frame (`tool`, `tool_1`, ...)."""
 
 from __future__ import annotations
@@ -8,8 +8,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from surgrecon_cli.config import ToolConfig
-from surgrecon_cli.core.cameras import CameraModel
-from surgrecon_cli.io.foxglove_scene import frame_transforms, projected_labels, scene_update
+from surgrecon_cli.core.geometry.cameras import CameraModel
+from surgrecon_cli.io.export.foxglove_scene import frame_transforms, projected_labels, scene_update
 
 
 def _matrix(p) -> np.ndarray:

@@ -14,12 +14,12 @@ from synth_log import MS, T0, SynthSpec
 
 from surgrecon_cli.cli.main import main
 from surgrecon_cli.config import Config, ToolConfig, load_config
-from surgrecon_cli.core.geometry import make_pose, point_to_segment_distance
-from surgrecon_cli.core.template import build_template
-from surgrecon_cli.core.tool import points_near_tool, tool_capsules, tool_pixel_mask
+from surgrecon_cli.core.geometry.poses import make_pose, point_to_segment_distance
+from surgrecon_cli.core.geometry.tool import points_near_tool, tool_capsules, tool_pixel_mask
+from surgrecon_cli.core.template.build import build_template
 from surgrecon_cli.errors import ConfigError
-from surgrecon_cli.io.ingest_store import load_ingested
-from surgrecon_cli.io.records import PoseRecord
+from surgrecon_cli.io.logs.records import PoseRecord
+from surgrecon_cli.io.run.ingest_store import load_ingested
 from surgrecon_cli.sim.scene import SimConfig
 
 TIP_DOWN = make_pose(np.zeros(3), np.array([1.0, 0, 0, 0]))  # z (shaft) points down: -z world
@@ -50,7 +50,7 @@ def test_every_tool_is_masked_and_removed():
     assert len(tool_capsules(unknown, (ToolConfig(), JAW))) == 1
     # A camera 10 cm above, looking down: the pixel of the second tool's axis is masked.
     camera_pose = make_pose(np.array([0.0, 0, 0.1]), np.array([1.0, 0, 0, 0]))
-    from surgrecon_cli.core.cameras import CameraModel, project
+    from surgrecon_cli.core.geometry.cameras import CameraModel, project
     model = CameraModel(np.array([[400.0, 0, 160], [0, 400.0, 120], [0, 0, 1]]), np.zeros(5),
                         320, 240)
     px, _ = project(np.array([[0.02, 0, 0.0]]), camera_pose, model)
@@ -136,7 +136,7 @@ def test_info_proposes_every_dvrk_arm_and_its_config_runs(tmp_path: Path):
 
 
 def test_dvrk_arm_topics_are_recognised():
-    from surgrecon_cli.io.log_info.dvrk import dvrk_arms
+    from surgrecon_cli.info.dvrk import dvrk_arms
     got = dvrk_arms(["/PSM1/local/measured_cp", "/PSM1/measured_cp", "/ECM/measured_cp",
                      "/dvrk/PSM2/position_cartesian_current", "/jhu_daVinci/PSM3/measured_cp",
                      "/PSM2/setpoint_cp", "/camera/left/pose", "/MTML/measured_cp"])
@@ -150,7 +150,7 @@ def test_cameras_on_the_ecm_by_their_hand_eye_poses(tmp_path: Path):
     ECM's frame, camera 1 5 mm along its x and turned 10 degrees about its y."""
     from scipy.spatial.transform import Rotation
 
-    from surgrecon_cli.core.geometry import make_pose as pose_of
+    from surgrecon_cli.core.geometry.poses import make_pose as pose_of
 
     spec = SynthSpec(cameras=(0, 1), frames=3)
     spec.mutate = lambda msgs: [
@@ -183,7 +183,7 @@ def test_a_tools_clearance_counts_its_jaw():
     -z) whose frame is 30 mm above the plane: its jaw, 5 to 25 mm beyond the frame and 8 mm
     wide, ends 5 mm above the plane, 1 mm nearer than its width's half: 1 mm clearance; the
     shaft alone would leave 30 mm; an unknown pose gives NaN."""
-    from surgrecon_cli.core.dent import tool_clearance
+    from surgrecon_cli.core.measure.dent import tool_clearance
 
     xs = np.linspace(-0.01, 0.01, 21)
     plane = np.array([[x, y, 0.0] for x in xs for y in xs])

@@ -11,12 +11,12 @@ import pytest
 from scenes import render_frames
 
 from surgrecon_cli.config import Config
-from surgrecon_cli.core.cameras import project
-from surgrecon_cli.core.frame_inputs import FrameInput, Rig, Sighting, TemplateData
-from surgrecon_cli.core.noise import NoiseModel
-from surgrecon_cli.core.target import build_target
-from surgrecon_cli.core.track_points import find_points, scene_motion, visible_points
-from surgrecon_cli.core.tracking import klt_track, specular_mask, tracking_view
+from surgrecon_cli.core.geometry.cameras import project
+from surgrecon_cli.core.noise.model import NoiseModel
+from surgrecon_cli.core.target.cloud import build_target
+from surgrecon_cli.core.target.frame_inputs import FrameInput, Rig, Sighting, TemplateData
+from surgrecon_cli.core.target.track_points import find_points, scene_motion, visible_points
+from surgrecon_cli.core.target.tracking import klt_track, specular_mask, tracking_view
 from surgrecon_cli.sim.variants import variant_config
 
 

@@ -22,11 +22,11 @@ from synth_log import SynthSpec
 from surgrecon_cli.cli.main import main
 from surgrecon_cli.config import TopicsConfig
 from surgrecon_cli.errors import InputError
-from surgrecon_cli.io.ingest_store import load_ingested
-from surgrecon_cli.io.mcap import LogReader
-from surgrecon_cli.io.mcap.foxglove import JsonDeserializer, compressed_video
-from surgrecon_cli.io.records import ImageRecord
-from surgrecon_cli.io.video import REORDER_LIMIT, VideoDecoder, is_keyframe
+from surgrecon_cli.io.logs.encodings.foxglove import JsonDeserializer, compressed_video
+from surgrecon_cli.io.logs.reader import LogReader
+from surgrecon_cli.io.logs.records import ImageRecord
+from surgrecon_cli.io.logs.video import REORDER_LIMIT, VideoDecoder, is_keyframe
+from surgrecon_cli.io.run.ingest_store import load_ingested
 from surgrecon_cli.sim import simulate as sim_module
 from surgrecon_cli.sim.log_writer import write_log
 from surgrecon_cli.sim.scene import SimConfig

@@ -14,8 +14,8 @@ from synth_log import SynthSpec
 from test_video import _images_as
 
 from surgrecon_cli.cli.main import main
-from surgrecon_cli.io.export_mcap import VideoPassThrough, camera_topic
-from surgrecon_cli.io.ingest_store import load_ingested, load_video
+from surgrecon_cli.io.export.to_mcap import VideoPassThrough, camera_topic
+from surgrecon_cli.io.run.ingest_store import load_ingested, load_video
 
 pytestmark = pytest.mark.skipif(importlib.util.find_spec("av") is None,
                                 reason='PyAV not installed (pip install "surgrecon[video]")')

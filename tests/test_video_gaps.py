@@ -13,9 +13,9 @@ from synth_log import SynthSpec
 from test_video import KEYFRAME_INTERVAL, _images_as, decoded, encode_stream, frame_rgb, needs_av
 
 from surgrecon_cli.cli.main import main
-from surgrecon_cli.io.ingest_store import load_ingested
-from surgrecon_cli.io.records import ImageRecord
-from surgrecon_cli.io.video import VideoDecoder
+from surgrecon_cli.io.logs.records import ImageRecord
+from surgrecon_cli.io.logs.video import VideoDecoder
+from surgrecon_cli.io.run.ingest_store import load_ingested
 
 N = 12  # frames 0, 5, 10 are keyframes
 

@@ -27,8 +27,8 @@ def build_template_cmd(run_dir: Path, config: Any, quiet: bool) -> None:
       surgrecon build-template runs/sample
       surgrecon build-template runs/sample --executor processes --workers 2
     """
-    from ..core.template import STEPS
-    from ..io.run_layout import RunLayout
+    from ..core.template.build import STEPS
+    from ..io.run.layout import RunLayout
     from ..pipeline import open_executor
     from ..stages.template import run_build_template
 
@@ -53,7 +53,7 @@ def build_template_cmd(run_dir: Path, config: Any, quiet: bool) -> None:
 
 
 def _named(run_dir: Path, groups: list[list[int]]) -> list[list[str]]:
-    from ..io.run_folder import RunFolder
+    from ..io.run.folder import RunFolder
 
     cameras = RunFolder(run_dir).read().get("ingest", {}).get("cameras", [])
     return [[cameras[c] if c < len(cameras) else str(c) for c in g] for g in groups]

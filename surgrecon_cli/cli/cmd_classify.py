@@ -29,7 +29,7 @@ def classify_cmd(run_dir: Path, config: Any, quiet: bool) -> None:
       surgrecon classify runs/sample
       surgrecon classify runs/sample --set classify.significance=0.001
     """
-    from ..io.run_layout import RunLayout
+    from ..io.run.layout import RunLayout
     from ..pipeline import open_executor
     from ..stages.classify import run_classify
 

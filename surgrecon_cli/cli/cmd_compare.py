@@ -29,13 +29,13 @@ def compare_cmd(run_dirs: tuple[Path, ...], html_path: Path | None, quiet: bool)
       surgrecon compare runs/sample runs/sample-alpha
       surgrecon compare runs/sweep/* --html sweep.html
     """
-    from ..io.compare import format_comparison, load_runs
+    from ..report.compare import format_comparison, load_runs
 
     runs = load_runs(list(run_dirs))
     click.echo(format_comparison(runs))
     if html_path is not None:
-        from ..io.atomic import write_text
-        from ..io.compare_html import comparison_html
+        from ..io.run.atomic import write_text
+        from ..report.compare_html import comparison_html
 
         write_text(html_path, comparison_html(runs))
         click.echo(f"html -> {html_path}")

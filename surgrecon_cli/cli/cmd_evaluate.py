@@ -31,7 +31,7 @@ def evaluate_cmd(run_dir: Path, gt_path: Path | None, config: Any, quiet: bool) 
     Example:
       surgrecon evaluate runs/sample --ground-truth sample_data/sample.gt.npz
     """
-    from ..io.run_layout import RunLayout
+    from ..io.run.layout import RunLayout
     from ..stages.evaluate import run_evaluate
 
     gt_path = gt_path or _default_gt(run_dir)
@@ -47,8 +47,8 @@ def evaluate_cmd(run_dir: Path, gt_path: Path | None, config: Any, quiet: bool) 
 
 def _default_gt(run_dir: Path) -> Path:
     from ..errors import InputError
-    from ..io.ground_truth import gt_path_beside
-    from ..io.run_folder import RunFolder
+    from ..io.logs.ground_truth import gt_path_beside
+    from ..io.run.folder import RunFolder
 
     recorded = RunFolder(run_dir).read().get("input", {}).get("path")
     candidate = gt_path_beside(Path(recorded)) if recorded else None

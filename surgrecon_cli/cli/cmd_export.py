@@ -54,12 +54,12 @@ def export_cmd(run_dir: Path, mcap_path: Path | None, tum_dir: Path | None, forc
     if mcap_path is not None and mcap_path.exists() and not force:
         raise InputError(f"{mcap_path} exists; pass --force to replace it")
     if tum_dir is not None:
-        from ..io.export_tum import export_tum
+        from ..io.export.to_tum import export_tum
 
         for trajectory in export_tum(run_dir, tum_dir):
             click.echo(f"{trajectory.name:<12} {trajectory.poses:>6} poses -> {trajectory.path}")
     if mcap_path is not None:
-        from ..io.export_mcap import export_mcap
+        from ..io.export.to_mcap import export_mcap
 
         with progress(quiet)(desc="export", unit="frame") as bar:
             def on_frame(done: int, total: int) -> None:

@@ -1,5 +1,5 @@
 """`surgrecon info LOG`: channels, TF tree, role candidates and pose chains of a log; a starter
-config (the text and the config come from io/log_info)."""
+config (the text and the config come from info)."""
 
 from __future__ import annotations
 
@@ -50,9 +50,9 @@ def info_cmd(log: Path, write_config: Path | None, force: bool, config: Any,
       surgrecon info recordings/bag_2024_05_01/ --write-config bag.toml
     """
     from ..errors import InputError
-    from ..io.atomic import atomic_open
-    from ..io.log_info import format_info, scan_log, topics_toml
-    from ..io.mcap.registry import no_images_message
+    from ..info import format_info, scan_log, topics_toml
+    from ..io.logs.encodings.registry import no_images_message
+    from ..io.run.atomic import atomic_open
 
     if write_config is not None and write_config.exists() and not force:
         raise InputError(f"{write_config} exists; pass --force to replace it")

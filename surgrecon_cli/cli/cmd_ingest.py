@@ -43,8 +43,8 @@ def ingest_cmd(
       surgrecon ingest sample_data/sample.mcap -o runs/sample
       surgrecon ingest my_raven.mcap -o runs/raven --config raven.toml --allow-truncated
     """
-    from ..io.log_input import resolve_log
-    from ..io.run_layout import RunLayout
+    from ..io.logs.log_input import resolve_log
+    from ..io.run.layout import RunLayout
     from ..stages.ingest import ingest
 
     size = resolve_log(log).size

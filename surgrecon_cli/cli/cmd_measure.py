@@ -33,7 +33,7 @@ def measure_cmd(run_dir: Path, config: Any, quiet: bool) -> None:
       surgrecon measure runs/sample
       surgrecon measure runs/sample --set deformation.youngs_modulus_kpa=5
     """
-    from ..io.run_layout import RunLayout
+    from ..io.run.layout import RunLayout
     from ..stages.measure import run_measure
 
     with progress(quiet)(desc="measure", unit="frame") as bar:

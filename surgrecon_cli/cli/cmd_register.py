@@ -28,8 +28,8 @@ def register_cmd(run_dir: Path, config: Any, quiet: bool) -> None:
       surgrecon register runs/sample --set registration.alpha=0.1
       surgrecon register runs/sample --executor processes --workers 2
     """
-    from ..io.ingest_store import load_ingested
-    from ..io.run_layout import RunLayout
+    from ..io.run.ingest_store import load_ingested
+    from ..io.run.layout import RunLayout
     from ..pipeline import open_executor
     from ..stages.register import run_register
 

@@ -29,8 +29,8 @@ def _register_one(job: Any, cfg: Any, *, use_ids: bool, landmarks: Path | None =
     import numpy as np
 
     from ..errors import InputError
-    from ..io.pair_inputs import read_cloud, read_landmarks, read_weights
-    from ..io.ply import write_cloud_ply
+    from ..io.logs.pair_inputs import read_cloud, read_landmarks, read_weights
+    from ..io.run.ply import write_cloud_ply
     from ..registration import register_pair
 
     src, dst = read_cloud(job.source), read_cloud(job.target)
@@ -64,8 +64,8 @@ def _summary_row(job: Any, result: Any, source: Any, n_target: int,
     """What the run can know of its own error (no ground truth): mm, degrees."""
     import numpy as np
 
+    from ..core.evaluate.scoring import distance_stats_mm
     from ..core.registration.pair import error_estimate_mm
-    from ..core.scoring import distance_stats_mm
 
     est_median, est_p95, sees = error_estimate_mm(result, source)
     residual = distance_stats_mm(result.residuals)
@@ -105,7 +105,7 @@ def _summary_line(row: dict[str, Any]) -> str:
 def _batch_jobs(source: Path | None, target: Path | None, pairs: Path | None,
                 output: Path) -> list[Any] | None:
     """The batch's pairs, or None for a single pair (SOURCE and TARGET files)."""
-    from ..io.pair_inputs import pairs_from_folders, pairs_from_list
+    from ..io.logs.pair_inputs import pairs_from_folders, pairs_from_list
 
     if pairs is not None:
         if source is not None or target is not None:
@@ -122,7 +122,7 @@ def _run_batch(jobs: list[Any], output: Path, cfg: Any, use_ids: bool, quiet: bo
     """Register every pair in this process; a failing pair is recorded and the rest go on.
     OUT/pairs.csv (written last, atomically) has one row per pair."""
     from ..errors import InputError, SurgReconError
-    from ..io.metrics import write_csv
+    from ..io.run.metrics import write_csv
 
     rows, failed = [], []
     with progress(quiet)(jobs, desc="register-pair", unit="pair") as bar:
@@ -208,8 +208,8 @@ def register_pair_cmd(source: Path | None, target: Path | None, output: Path,
             raise click.UsageError("--landmarks, --weights and --apply take a single pair")
         _run_batch(jobs, output, cfg, use_ids, quiet)
         return
-    from ..io.pair_inputs import PairJob, read_cloud
-    from ..io.ply import write_cloud_ply
+    from ..io.logs.pair_inputs import PairJob, read_cloud
+    from ..io.run.ply import write_cloud_ply
     from ..registration import apply_transforms
 
     assert source is not None and target is not None

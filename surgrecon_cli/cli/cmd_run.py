@@ -66,7 +66,7 @@ def run_cmd(logs: tuple[Path, ...], run_dir: Path, gt_path: Path | None, allow_t
       surgrecon run logs/*.mcap -o runs/ --executor processes --workers 2
       surgrecon run logs/*.mcap -o runs/ --scheduler tcp://10.0.0.5:8786
     """
-    from ..io.run_lock import run_folder_lock
+    from ..io.run.lock import run_folder_lock
     from ..pipeline import open_executor, tagged
 
     if len(logs) > 1 and gt_path is not None:
@@ -111,8 +111,8 @@ def _run_one(log: Path, run_dir: Path, gt_path: Path | None, allow_truncated: bo
 
 def _export_mcap(run_dirs: list[Path]) -> None:
     """`--export mcap`: RUN/export.mcap of every finished run."""
-    from ..io.export_mcap import export_mcap
-    from ..io.run_layout import RunLayout
+    from ..io.export.to_mcap import export_mcap
+    from ..io.run.layout import RunLayout
 
     for run_dir in run_dirs:
         result = export_mcap(run_dir, RunLayout(run_dir).export_mcap)

@@ -93,7 +93,7 @@ def locks_run_folder(create: bool = False, writes: bool = True) -> Callable[...,
     def decorate(func: Callable[..., Any]) -> Callable[..., Any]:
         @functools.wraps(func)
         def wrapper(*args: Any, **kwargs: Any) -> Any:
-            from ..io.run_lock import run_folder_lock
+            from ..io.run.lock import run_folder_lock
 
             command = click.get_current_context().info_name or func.__name__
             with run_folder_lock(kwargs["run_dir"], command, create=create, writes=writes):

@@ -6,8 +6,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from .fields import _doc, _require, check_bounds
+from .registration import RegistrationConfig
 from .schema_deformation import DeformationConfig
-from .schema_registration import RegistrationConfig
 
 
 @dataclass(frozen=True)
@@ -76,7 +76,7 @@ class IngestConfig:
 @dataclass(frozen=True)
 class ToolConfig:
     """Tool model: a shaft cylinder from the tip along the tool frame's +z axis (`shaft_axis`),
-    and a jaw/wrist part beyond the frame (core/tool.py)."""
+    and a jaw/wrist part beyond the frame (core/geometry/tool.py)."""
 
     shaft_radius_m: float = _doc(0.004, "shaft radius (m)", bounds=(0, 0.1))
     shaft_length_m: float = _doc(0.15, "shaft length from the tip (m)", bounds=(0, 2))
@@ -232,7 +232,7 @@ class TargetConfig:
 
 @dataclass(frozen=True)
 class ClassifyConfig:
-    """Point classification (mm); thresholds are ours, see core/classify.py for the reasoning."""
+    """Point classification (mm); thresholds are ours, see core/classify/rules.py for the reasoning."""
 
     static_mm: float = _doc(
         1.0, "motion tolerance: a displacement below this (or below what the noise explains) "

@@ -1,5 +1,5 @@
 """Config section `[deformation]`: tool-tissue contact and indentation measured from the
-reconstruction (core/deformation.py explains every quantity)."""
+reconstruction (core/measure/deformation.py explains every quantity)."""
 
 from __future__ import annotations
 

@@ -32,8 +32,8 @@ from typing import Any
 
 import numpy as np
 
-from ..core.distortion import DISTORTION_MODELS
-from ..core.geometry import invert_pose, nearest_rotation
+from ..core.geometry.distortion import DISTORTION_MODELS
+from ..core.geometry.poses import invert_pose, nearest_rotation
 from ..errors import InputError
 from .calibration_files import RECTIFIED_KEYS, read_calibration_file
 

@@ -13,7 +13,7 @@ from typing import Any
 from mcap.writer import CompressionType
 
 from ..errors import InputError
-from ..io.atomic import write_text
+from ..io.run.atomic import write_text
 from ..sim.log_writer import write_log
 from .calibration import Rig, load_rig
 from .sources import VIDEO_SUFFIXES, FolderSource, VideoSource, choose_layout, stereo_folders

@@ -3,7 +3,7 @@ videos -> frames of encoded images, one per camera.
 
 Images are kept as they are where the file already is what a ROS `CompressedImage` carries:
 JPEG and PNG bytes are copied (8 or 16 bit; the size read from the header, nothing decoded;
-a file cut short is refused: `io.images.structure_problem`);
+a file cut short is refused: `io.logs.images.structure_problem`);
 BMP, TIFF and other files OpenCV reads are re-encoded once as PNG (lossless, bit depth kept).
 Video frames (decoded by PyAV) are encoded once, as JPEG quality 95 by default (the video is
 lossy already; a PNG of a 1280x1024 frame is ~10x larger) or as PNG (`image_format='png'`).
@@ -24,7 +24,7 @@ import cv2
 import numpy as np
 
 from ..errors import InputError
-from ..io.images import header_size, structure_problem
+from ..io.logs.images import header_size, structure_problem
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mkv", ".mov", ".m4v", ".webm", ".mpg", ".mpeg", ".h264")

@@ -15,9 +15,9 @@ from dataclasses import replace
 
 import numpy as np
 
-from ..core.geometry import matrix_to_quat
+from ..core.geometry.poses import matrix_to_quat
 from ..errors import InputError
-from ..io.records import CameraInfoRecord, ImageRecord, PoseRecord, Record
+from ..io.logs.records import CameraInfoRecord, ImageRecord, PoseRecord, Record
 from .calibration import CameraCalibration, Rig
 from .sources import Frame
 from .stamps import PoseTrack

@@ -30,7 +30,7 @@ from ..config import RunConfig
 from ..errors import ExecutorError  # re-exported: raised by every executor
 
 if TYPE_CHECKING:
-    from ..core.template import MapCalls
+    from ..core.template.build import MapCalls
 
 _THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 

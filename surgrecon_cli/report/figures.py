@@ -1,5 +1,5 @@
 """Report layer 3: the figures, drawn before the page is written, as tasks on an executor
-(matplotlib is most of the stage's time); io/plots.py draws.
+(matplotlib is most of the stage's time); report/plots.py draws.
 
 `figure_tasks` decides which figures the run has, each a picklable call keyed by its name;
 `draw_figures` runs them and returns {name: PNG bytes} for the page (report/page.py) to place.
@@ -13,12 +13,12 @@ from typing import Any
 import numpy as np
 
 from ..config import Config
-from ..core.labels import CLASS_NAMES, UNKNOWN
+from ..core.classify.labels import CLASS_NAMES, UNKNOWN
 from ..executors import Executor, Task
-from ..io import plots, plots_deformation, plots_evaluation
-from ..io.palette import CLASS_COLOURS, STATUS_COLOURS
+from . import plots, plots_deformation, plots_evaluation
 from .gather import CloudView, RunData
 from .metrics import CLASS_COLUMNS, STATUS_COLUMNS, Metrics, stage_seconds
+from .palette import CLASS_COLOURS, STATUS_COLOURS
 
 
 def cloud_key(frame: int) -> str:

@@ -13,9 +13,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..core.labels import DEFORMING, SHIFTING, STATIC, STATUS_NAMES, UNKNOWN
-from ..core.quality import FrameQuality, frame_quality
-from ..io.artefacts import FrameRegistration
+from ..core.classify.labels import DEFORMING, SHIFTING, STATIC, STATUS_NAMES, UNKNOWN
+from ..core.classify.quality import FrameQuality, frame_quality
+from ..io.run.artefacts import FrameRegistration
 
 SAMPLED_FRAMES = 200
 CLASS_CODES = {"static": STATIC, "shifting": SHIFTING, "deforming": DEFORMING,

@@ -1,8 +1,8 @@
 """Report layer 1: read a run folder into `RunData` (None where a stage is not done) and the
 images behind the labelled-cloud views.
 
-Every artefact is read through io/artefacts.py, io/ingest_store.py and io/rows.py, whose
-paths come from io/run_layout.py; per-frame arrays are read one frame at a time and reduced
+Every artefact is read through io/run/artefacts.py, io/run/ingest_store.py and io/run/rows.py, whose
+paths come from io/run/layout.py; per-frame arrays are read one frame at a time and reduced
 at once (report/frames.py), so a long log's report does not hold all frames' points.
 """
 
@@ -16,20 +16,20 @@ from typing import Any
 import numpy as np
 
 from ..config import ToolConfig
-from ..core.indentation import SERIES_KEYS, DeformationSeries
-from ..core.views import best_camera, pick_frames
+from ..core.classify.views import best_camera, pick_frames
+from ..core.measure.indentation import SERIES_KEYS, DeformationSeries
 from ..errors import RunFolderError
-from ..io.artefacts import (
+from ..io.run.artefacts import (
     read_deformation_summary,
     read_evaluation,
     read_registration,
     read_template,
     read_template_summary,
 )
-from ..io.ingest_store import IngestedLog, load_ingested
-from ..io.rows import npz_rows
-from ..io.run_folder import RunFolder
-from ..io.run_layout import RunLayout
+from ..io.run.folder import RunFolder
+from ..io.run.ingest_store import IngestedLog, load_ingested
+from ..io.run.layout import RunLayout
+from ..io.run.rows import npz_rows
 from .frames import CLASS_CODES, FrameAccumulator, FrameFigures
 
 

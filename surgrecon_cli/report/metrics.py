@@ -13,9 +13,9 @@ import numpy as np
 
 from .. import __version__
 from ..config import Config
-from ..core.labels import STATUS_NAMES
-from ..core.quality import Verdict, pooled_within_2sigma, verdict
-from ..io.metrics import finite_json
+from ..core.classify.labels import STATUS_NAMES
+from ..core.classify.quality import Verdict, pooled_within_2sigma, verdict
+from ..io.run.metrics import finite_json
 from .caveats import run_caveats
 from .frames import CLASS_CODES, STATUS_CODES, stats
 from .gather import RunData

@@ -1,5 +1,5 @@
 """Report layer 4: the HTML page, composed last from the run data, its metrics and the
-figures already drawn (report/figures.py); io/report_html.py has the blocks. Pure.
+figures already drawn (report/figures.py); report/html.py has the blocks. Pure.
 
 A figure is placed by its name with its caption when it was drawn; a section left with
 nothing to show is left out.
@@ -16,7 +16,7 @@ import numpy as np
 
 from .. import __version__
 from ..config import Config
-from ..core.quality import (
+from ..core.classify.quality import (
     GOOD_2SIGMA,
     MAX_RESIDUAL_RATIO,
     MAX_UNKNOWN,
@@ -24,8 +24,8 @@ from ..core.quality import (
     pooled_within_2sigma,
     verdict,
 )
-from ..io import report_html as rh
-from ..io.run_layout import DESCRIBED_FILES, RunLayout
+from ..io.run.layout import DESCRIBED_FILES, RunLayout
+from . import html as rh
 from .figures import cloud_key
 from .frames import FrameFigures
 from .gather import CloudView, RunData

@@ -1,5 +1,5 @@
 """Report layer 4, one section: tool-tissue contact and indentation (issue 17), composed
-from the measures (core/indentation.py), their summary, the scores against ground truth
+from the measures (core/measure/indentation.py), their summary, the scores against ground truth
 when evaluated and the figures already drawn. Pure."""
 
 from __future__ import annotations
@@ -10,8 +10,8 @@ from typing import Any
 import numpy as np
 
 from ..config import Config
-from ..core.indentation import NOT_MEASURED, tool_known
-from ..io import report_html as rh
+from ..core.measure.indentation import NOT_MEASURED, tool_known
+from . import html as rh
 from .gather import RunData
 
 

@@ -20,8 +20,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..core.geometry import invert_pose, make_pose, matrix_to_quat
-from ..io.records import PoseRecord, Record
+from ..core.geometry.poses import invert_pose, make_pose, matrix_to_quat
+from ..io.logs.records import PoseRecord, Record
 
 Message = tuple[str, int, Record]
 WORLD = "world"

@@ -23,7 +23,7 @@ from foxglove_schemas_protobuf.PoseInFrame_pb2 import PoseInFrame
 from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 from google.protobuf.descriptor import Descriptor, FieldDescriptor
 
-from ..io.records import CameraInfoRecord, ImageRecord, JointStateRecord, PoseRecord, Record
+from ..io.logs.records import CameraInfoRecord, ImageRecord, JointStateRecord, PoseRecord, Record
 
 PROTO_CLASSES: dict[str, Any] = {
     cls.DESCRIPTOR.full_name: cls

@@ -13,7 +13,7 @@ joint states    sensor_msgs/JointState                        foxglove.JointStat
 Deterministic: no wall clock anywhere (log and publish time = the given log time, per-topic
 sequence numbers), fixed chunk size and zstd compression, so the same records give the same
 bytes. The file is written atomically (temporary name, then rename), leaving the page cache
-as it goes (`io.atomic.CacheDropping`).
+as it goes (`io.run.atomic.CacheDropping`).
 """
 
 from __future__ import annotations
@@ -28,8 +28,8 @@ from mcap_protobuf.schema import register_schema
 from mcap_ros2.writer import Writer as Ros2Writer
 
 from .. import __version__
-from ..io.atomic import CacheDropping, atomic_open
-from ..io.records import Record
+from ..io.logs.records import Record
+from ..io.run.atomic import CacheDropping, atomic_open
 from .foxglove_encoding import PROTO_CLASSES, foxglove_message, json_schema, to_json, to_protobuf
 from .ros_encoding import MSGS_ROS1, MSGS_ROS2, full_text, ros1_serialize, ros_message
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..core.geometry import make_pose, matrix_to_quat
+from ..core.geometry.poses import make_pose, matrix_to_quat
 from .scene import SimConfig, TissueMesh, smoothstep
 
 

@@ -5,9 +5,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..core.labels import SHIFTING, STATIC, UNKNOWN
-from ..io.atomic import write_npz
-from ..io.run_layout import RunLayout
+from ..core.classify.labels import SHIFTING, STATIC, UNKNOWN
+from ..io.run.atomic import write_npz
+from ..io.run.layout import RunLayout
 
 
 def write_random_classified(layout: RunLayout, n_frames: int, n_points: int,

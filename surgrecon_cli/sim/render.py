@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 import open3d as o3d
 
-from ..core.cameras import CameraModel, pixel_rays
+from ..core.geometry.cameras import CameraModel, pixel_rays
 from .texture import Texture
 
 TISSUE, TOOL = 0, 1

@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from ..io.records import CameraInfoRecord, ImageRecord, JointStateRecord, PoseRecord, Record
+from ..io.logs.records import CameraInfoRecord, ImageRecord, JointStateRecord, PoseRecord, Record
 
 _COMMON = {
     "sensor_msgs/CompressedImage": "std_msgs/Header header\nstring format\nuint8[] data",

@@ -3,8 +3,8 @@
 Streams: per camera JPEG images at `frame_rate` (each camera with its own small clock
 offset and jitter) and CameraInfo; per camera tracker poses at `tracker_rate` with noise;
 robot tool-tip pose and joint states at `robot_rate`. Ground truth (`NAME.gt.npz`,
-io/ground_truth.py) holds the true surface at every frame and its labels by the rule of
-core/labels.py, the true tool-tip pose at every frame and the simulator's dent depth.
+io/logs/ground_truth.py) holds the true surface at every frame and its labels by the rule of
+core/classify/labels.py, the true tool-tip pose at every frame and the simulator's dent depth.
 """
 
 from __future__ import annotations
@@ -18,11 +18,11 @@ import cv2
 import numpy as np
 
 from ..config import LabelsConfig
-from ..core.cameras import CameraModel
-from ..core.geometry import make_pose, matrix_to_quat, quat_to_matrix
-from ..core.labels import CLASS_NAMES, true_labels
-from ..io.atomic import write_npz
-from ..io.records import CameraInfoRecord, ImageRecord, JointStateRecord, PoseRecord
+from ..core.classify.labels import CLASS_NAMES, true_labels
+from ..core.geometry.cameras import CameraModel
+from ..core.geometry.poses import make_pose, matrix_to_quat, quat_to_matrix
+from ..io.logs.records import CameraInfoRecord, ImageRecord, JointStateRecord, PoseRecord
+from ..io.run.atomic import write_npz
 from .conventions import CONVENTIONS, Message
 from .degrade import degrade
 from .log_writer import write_log

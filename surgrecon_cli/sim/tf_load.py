@@ -3,7 +3,7 @@
 `/tf` messages (`tf2_msgs/msg/TFMessage`, cdr, zstd chunks) at `rate_hz`, each holding the
 transforms of a robot's `links` frames at one stamp: a chain world -> link_0 -> link_1 -> ...
 (joints turning about z, 1 cm apart), as a robot's state publisher sends them. Only TF: the
-log is read with `io.mcap.transforms.read_transforms`, not ingested.
+log is read with `io.logs.transforms.read_transforms`, not ingested.
 """
 
 from __future__ import annotations
@@ -15,8 +15,8 @@ import numpy as np
 from mcap.writer import CompressionType
 from mcap_ros2.writer import Writer as Ros2Writer
 
-from ..io.atomic import atomic_open
-from ..io.records import PoseRecord
+from ..io.logs.records import PoseRecord
+from ..io.run.atomic import atomic_open
 from .ros_encoding import MSGS_ROS2, full_text, ros_message
 
 T0_NS = 1_700_000_000_000_000_000

@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError
-from ..io.video import INSTALL_HINT
+from ..io.logs.video import INSTALL_HINT
 
 CRF = 12
 ENCODERS = {"h264": "libx264", "h265": "libx265"}

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..core.cameras import CameraModel, in_image, project
+from ..core.geometry.cameras import CameraModel, in_image, project
 from .render import cast_rays, mesh_scene
 from .scene import vertex_normals
 

@@ -1,6 +1,6 @@
-"""Stage `classify`: label every template point at every frame (core/classify.py).
+"""Stage `classify`: label every template point at every frame (core/classify/rules.py).
 
-Reads the template and every registered frame (io/artefacts.py); intra-camera inliers are
+Reads the template and every registered frame (io/run/artefacts.py); intra-camera inliers are
 classified from their own re-triangulated pixels (`static_verdicts_checked`); a frame's points
 whose evidence does not support a label (core/quality.unsupported_points) are unknown. Writes
 RUN/classify/labels.npz (`io/artefacts.FrameLabels`: labels after hysteresis, raw labels, the
@@ -23,32 +23,32 @@ from pathlib import Path
 import numpy as np
 
 from ..config import ClassifyConfig, Config
-from ..core.cameras import CameraModel
-from ..core.classify import (
+from ..core.classify.hysteresis import HysteresisAhead, hysteresis_step
+from ..core.classify.labels import CLASS_NAMES, INTRA, STATIC, UNKNOWN
+from ..core.classify.quality import frame_quality, unsupported_points
+from ..core.classify.rules import (
     Evidence,
     FrameClasses,
     Neighbourhoods,
     classify_frame,
     template_neighbourhoods,
 )
-from ..core.frame_noise import retriangulate
-from ..core.hysteresis import HysteresisAhead, hysteresis_step
-from ..core.labels import CLASS_NAMES, INTRA, STATIC, UNKNOWN
-from ..core.noise import NoiseModel, covariance_sigma, noise_from_report
-from ..core.quality import frame_quality, unsupported_points
+from ..core.geometry.cameras import CameraModel
+from ..core.noise.frame_noise import retriangulate
+from ..core.noise.model import NoiseModel, covariance_sigma, noise_from_report
 from ..executors import Executor, Task
 from ..executors.serial import SerialExecutor
-from ..io.artefacts import (
+from ..io.run.artefacts import (
     FrameRegistration,
     read_observations,
     read_registration,
     read_template,
     write_frame_cloud,
 )
-from ..io.atomic import file_identity, write_npz
-from ..io.ingest_store import load_ingested
-from ..io.rows import RowFile, npz_rows, write_npz_rows
-from ..io.run_layout import RunLayout
+from ..io.run.atomic import file_identity, write_npz
+from ..io.run.ingest_store import load_ingested
+from ..io.run.layout import RunLayout
+from ..io.run.rows import RowFile, npz_rows, write_npz_rows
 from .common import stage_run
 from .registry import StageContext
 

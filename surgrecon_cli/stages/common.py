@@ -10,7 +10,7 @@ from typing import Any
 
 from ..config import Config
 from ..errors import SurgReconError
-from ..io.run_folder import RunFolder
+from ..io.run.folder import RunFolder
 from .registry import spec
 from .staleness import check_upstream, recorded_config
 

@@ -2,7 +2,7 @@
 
 Scores whatever parts the run has: the template (always), the registration (when `register`
 is done), the labels (when `classify` is done) and the contact and indentation measures
-(when `measure` is done; core/deformation_scoring.py: the same definitions on the true
+(when `measure` is done; core/evaluate/deformation_scoring.py: the same definitions on the true
 surface, with the true tool poses, or the ingested ones for ground truth written before
 they were recorded). Ground-truth frame k is the k-th ingested frame. Writes atomically
   RUN/metrics/evaluation.json         the scores (mm)
@@ -21,19 +21,24 @@ from typing import Any
 import numpy as np
 
 from ..config import Config
-from ..core.deformation_scoring import score_deformation, true_deformation
-from ..core.evaluation import error_summary, on_tool, registration_errors, true_point_labels
-from ..core.indentation import NOT_MEASURED, camera_viewpoint, tool_known
-from ..core.labels import UNKNOWN
-from ..core.scoring import distance_stats_mm, label_scores, map_to_surface
+from ..core.classify.labels import UNKNOWN
+from ..core.evaluate.deformation_scoring import score_deformation, true_deformation
+from ..core.evaluate.evaluation import (
+    error_summary,
+    on_tool,
+    registration_errors,
+    true_point_labels,
+)
+from ..core.evaluate.scoring import distance_stats_mm, label_scores, map_to_surface
+from ..core.measure.indentation import NOT_MEASURED, camera_viewpoint, tool_known
 from ..errors import InputError
-from ..io.artefacts import read_deformation, read_labels, read_registration, read_template
-from ..io.atomic import write_npz
-from ..io.ground_truth import GroundTruth, load_ground_truth
-from ..io.ingest_store import IngestedLog, load_ingested
-from ..io.metrics import finite_json, write_metrics_json
-from ..io.run_folder import RunFolder
-from ..io.run_layout import RunLayout
+from ..io.logs.ground_truth import GroundTruth, load_ground_truth
+from ..io.run.artefacts import read_deformation, read_labels, read_registration, read_template
+from ..io.run.atomic import write_npz
+from ..io.run.folder import RunFolder
+from ..io.run.ingest_store import IngestedLog, load_ingested
+from ..io.run.layout import RunLayout
+from ..io.run.metrics import finite_json, write_metrics_json
 from .common import stage_run
 from .registry import StageContext
 
@@ -156,7 +161,7 @@ def _honesty_part(result: dict[str, Any], labels: np.ndarray, errors: np.ndarray
 
 def _deformation_part(layout: RunLayout, gt: GroundTruth, log: IngestedLog, config: Config,
                       n_points: int) -> dict[str, Any]:
-    """Contact and indentation scores (core/deformation_scoring.py)."""
+    """Contact and indentation scores (core/evaluate/deformation_scoring.py)."""
     measured = read_deformation(layout, (log.n_frames, n_points)).series
     poses = gt.tool_poses if gt.tool_poses is not None else log.tool_poses
     view = camera_viewpoint(log.poses[0], log.usable[0], gt.vertices[0])

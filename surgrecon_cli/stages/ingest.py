@@ -1,7 +1,7 @@
 """The ingest stage: log -> `RUN/ingest/` (frames, poses, intrinsics, images) + run.json.
 Streams the log once (images written to disk as they arrive), synchronises images into
 frames, interpolates tracker poses to each image stamp and the robot to each frame stamp
-(`core.sync`), and saves `IngestedLog`, built in a hidden staging folder renamed to
+(`core.sync.streams`), and saves `IngestedLog`, built in a hidden staging folder renamed to
 `RUN/ingest` only when complete (run.json says `ingest: done` only after that)."""
 
 from __future__ import annotations
@@ -21,9 +21,9 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ..config import Config
-from ..core.geometry import interpolate_poses
-from ..core.noise import pose_jitter, shared_bodies
-from ..core.sync import (
+from ..core.geometry.poses import interpolate_poses
+from ..core.noise.model import pose_jitter, shared_bodies
+from ..core.sync.streams import (
     FrameGrouping,
     PoseStream,
     group_frames,
@@ -32,12 +32,12 @@ from ..core.sync import (
     rate_hz,
 )
 from ..errors import InputError, RunFolderError, SurgReconError, quoted
-from ..io.atomic import is_temporary
-from ..io.ingest_store import IngestedLog, save_ingested, save_pose_streams
-from ..io.log_input import resolve_log
-from ..io.mcap import LogReader
-from ..io.run_folder import RunFolder
-from ..io.run_layout import INGEST_STAGING_PREFIX, RunLayout
+from ..io.logs.log_input import resolve_log
+from ..io.logs.reader import LogReader
+from ..io.run.atomic import is_temporary
+from ..io.run.folder import RunFolder
+from ..io.run.ingest_store import IngestedLog, save_ingested, save_pose_streams
+from ..io.run.layout import INGEST_STAGING_PREFIX, RunLayout
 from .ingest_frames import check_clocks, log_span, world_poses
 from .ingest_streams import StreamCollector, video_report
 from .registry import StageContext
@@ -314,7 +314,7 @@ def _tracker_bodies(ids: tuple[str, ...], streams: list[PoseStream],
 
 
 def _jitter(position: float, rotation: float) -> dict[str, float | None]:
-    """A pose stream's measured per-axis noise (m, rad; core/noise.py) in mm and degrees."""
+    """A pose stream's measured per-axis noise (m, rad; core/noise/model.py) in mm and degrees."""
     return {"tracker_jitter_mm": float(position * 1e3) if np.isfinite(position) else None,
             "tracker_jitter_deg": float(np.degrees(rotation)) if np.isfinite(rotation) else None}
 

@@ -16,14 +16,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..config import Config
-from ..core.geometry import make_pose
-from ..core.sync import PoseStream, base_to_world_pose, fmt_stamp
-from ..core.tf_samples import concat_samples
-from ..core.tf_tree import TfTree, build_tf_tree
-from ..core.world_poses import chain_stream, moved_by, stream_to_world, transformed
+from ..core.geometry.poses import make_pose
+from ..core.sync.streams import PoseStream, base_to_world_pose, fmt_stamp
+from ..core.sync.tf_samples import concat_samples
+from ..core.sync.tf_tree import TfTree, build_tf_tree
+from ..core.sync.world_poses import chain_stream, moved_by, stream_to_world, transformed
 from ..errors import InputError, quoted
-from ..io.mcap import LogReader
-from ..io.mcap.transforms import read_transforms
+from ..io.logs.reader import LogReader
+from ..io.logs.transforms import read_transforms
 from .ingest_streams import CameraStreams, Poses
 
 logger = logging.getLogger(__name__)

@@ -10,20 +10,20 @@ from pathlib import Path
 
 import numpy as np
 
-from ..core.cameras import CameraModel
-from ..core.intrinsics import folds_before_corners, implausible_intrinsics
-from ..core.sync import PoseStream, fmt_stamp, validate_pose_stream
-from ..core.tf_samples import frame_id_problem
+from ..core.geometry.cameras import CameraModel
+from ..core.geometry.intrinsics import folds_before_corners, implausible_intrinsics
+from ..core.sync.streams import PoseStream, fmt_stamp, validate_pose_stream
+from ..core.sync.tf_samples import frame_id_problem
 from ..errors import GeometryError, InputError, quoted
-from ..io.images import StoredImage, prepare_image
-from ..io.ingest_store import VideoPackets, save_video
-from ..io.mcap import LogItem
-from ..io.mcap.topics import EXTRA_TOOL_ROLE
-from ..io.records import CameraInfoRecord, ImageRecord, JointStateRecord, PoseRecord
-from ..io.run_layout import RunLayout
-from ..io.video import CODECS as VIDEO_CODECS
-from ..io.video import VideoDecoder
-from ..io.video_checks import VideoProblem
+from ..io.logs.images import StoredImage, prepare_image
+from ..io.logs.reader import LogItem
+from ..io.logs.records import CameraInfoRecord, ImageRecord, JointStateRecord, PoseRecord
+from ..io.logs.topics import EXTRA_TOOL_ROLE
+from ..io.logs.video import CODECS as VIDEO_CODECS
+from ..io.logs.video import VideoDecoder
+from ..io.logs.video_checks import VideoProblem
+from ..io.run.ingest_store import VideoPackets, save_video
+from ..io.run.layout import RunLayout
 
 logger = logging.getLogger(__name__)
 
@@ -76,7 +76,7 @@ class CameraStreams:
     video_format: str = ""  # h264 / h265 for a video camera: its packets are kept too
     packet_stamps: array = field(default_factory=lambda: array("q"))
     packet_sizes: array = field(default_factory=lambda: array("q"))
-    pixel_max: int = 0  # largest pixel value of its images (io.images.StoredImage.peak)
+    pixel_max: int = 0  # largest pixel value of its images (io.logs.images.StoredImage.peak)
 
 
 class StreamCollector:
@@ -133,7 +133,7 @@ class StreamCollector:
     def _image(self, item: LogItem, record: ImageRecord) -> None:
         cam = self._camera(item.camera)
         cam.image_topic = cam.image_topic or item.topic
-        if record.format in VIDEO_CODECS:  # one stateful decoder per topic (io/video.py)
+        if record.format in VIDEO_CODECS:  # one stateful decoder per topic (io/logs/video.py)
             if item.topic not in self.videos:
                 self.videos[item.topic] = (item.camera, VideoDecoder(item.topic, record.format))
             decoder = self.videos[item.topic][1]
@@ -250,7 +250,7 @@ class StreamCollector:
 
 def video_report(cam: CameraStreams, frame_stamps_ns: np.ndarray,
                  tolerance_ns: int) -> dict[str, int]:
-    """A camera's video problems (lost and duplicated messages; io/video_checks.py) as
+    """A camera's video problems (lost and duplicated messages; io/logs/video_checks.py) as
     report counts, each warned about naming the camera and the frames (of `frame_stamps_ns`
     (T,) ns, increasing) that lost its image."""
     for p in cam.video:

@@ -1,5 +1,5 @@
 """Stage `measure`: tool-tissue contact and indentation measured from the reconstruction
-(issue 17; the definitions are in core/deformation.py and core/indentation.py).
+(issue 17; the definitions are in core/measure/deformation.py and core/measure/indentation.py).
 
 Reads the template, its observations (the frame-0 points' uncertainty), every registered
 frame (positions and σ) and the ingested tool and camera poses; the neighbourhoods are the
@@ -14,7 +14,7 @@ classify stage's (same settings, rebuilt here). Writes atomically
                                 `[[tools]]` tool the same under `extra_tools`
 A point's σ here is that of its registered position and of its template position combined
 (the displacement from frame 0 carries both). Frames are measured one at a time and the
-field written by rows (io/rows.py): memory is flat in the number of frames.
+field written by rows (io/run/rows.py): memory is flat in the number of frames.
 """
 
 from __future__ import annotations
@@ -28,9 +28,10 @@ import numpy as np
 
 from ..config import Config
 from ..config.schema import ExtraToolConfig
-from ..core.classify import Neighbourhoods, template_neighbourhoods
-from ..core.deformation import Rings, surface_normals, surrounding_rings
-from ..core.indentation import (
+from ..core.classify.rules import Neighbourhoods, template_neighbourhoods
+from ..core.geometry.tool import tool_name
+from ..core.measure.deformation import Rings, surface_normals, surrounding_rings
+from ..core.measure.indentation import (
     FIELD_DTYPES,
     NOT_MEASURED,
     SERIES_KEYS,
@@ -41,14 +42,13 @@ from ..core.indentation import (
     summarise,
     tool_known,
 )
-from ..core.noise import covariance_sigma
-from ..core.tool import tool_name
-from ..io.artefacts import read_observations, read_registration, read_template
-from ..io.atomic import write_json
-from ..io.ingest_store import IngestedLog, load_ingested
-from ..io.metrics import finite_json, write_csv
-from ..io.rows import RowFile, write_npz_rows
-from ..io.run_layout import RunLayout
+from ..core.noise.model import covariance_sigma
+from ..io.run.artefacts import read_observations, read_registration, read_template
+from ..io.run.atomic import write_json
+from ..io.run.ingest_store import IngestedLog, load_ingested
+from ..io.run.layout import RunLayout
+from ..io.run.metrics import finite_json, write_csv
+from ..io.run.rows import RowFile, write_npz_rows
 from .common import stage_run
 from .registry import StageContext
 

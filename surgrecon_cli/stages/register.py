@@ -1,6 +1,6 @@
 """Stage `register`: target cloud and non-rigid registration of every frame k >= 1.
 
-Per frame k, one task (`register_frame`): the frame step of core/frame_step.py (target
+Per frame k, one task (`register_frame`): the frame step of core/registration/frame_step.py (target
 cloud G_k tracked from the base frame's images, points lost there re-acquired from the
 template's frame-0 images, gated by the run's measured noise; registration of
 the base's cloud to G_k; per-point uncertainty). The base is frame 0, or with re-basing
@@ -27,24 +27,24 @@ from typing import Any
 import numpy as np
 
 from ..config import Config
-from ..core.frame_inputs import FrameInput, Sighting, TemplateData
-from ..core.frame_step import BaseState, FrameRegistrar, FrameResult, unregistered
-from ..core.noise import noise_from_report
-from ..core.tracking import TrackingView, tracking_view
+from ..core.noise.model import noise_from_report
+from ..core.registration.frame_step import BaseState, FrameRegistrar, FrameResult, unregistered
+from ..core.target.frame_inputs import FrameInput, Sighting, TemplateData
+from ..core.target.tracking import TrackingView, tracking_view
 from ..errors import GeometryError
 from ..executors import Executor, Task
 from ..executors.serial import SerialExecutor
-from ..io.artefacts import (
+from ..io.run.artefacts import (
     FrameRegistration,
     read_observations,
     read_registration,
     read_template,
     write_registration,
 )
-from ..io.atomic import file_identity
-from ..io.ingest_store import IngestedLog, ingest_identity, load_ingested
-from ..io.run_folder import FrameProgress, RunFolder
-from ..io.run_layout import RunLayout
+from ..io.run.atomic import file_identity
+from ..io.run.folder import FrameProgress, RunFolder
+from ..io.run.ingest_store import IngestedLog, ingest_identity, load_ingested
+from ..io.run.layout import RunLayout
 from .common import stage_run
 from .registry import CLASSIFY_FRAME_TASK, StageContext, resolve
 from .staleness import recorded_config, same_config

@@ -17,9 +17,9 @@ from pathlib import Path
 from ..config import Config
 from ..executors import Executor
 from ..executors.serial import SerialExecutor
-from ..io.atomic import write_text
-from ..io.metrics import write_csv, write_metrics_json
-from ..io.run_layout import RunLayout
+from ..io.run.atomic import write_text
+from ..io.run.layout import RunLayout
+from ..io.run.metrics import write_csv, write_metrics_json
 from ..report.figures import draw_figures
 from ..report.gather import gather, gather_views
 from ..report.metrics import CLASS_COLUMNS, FRAME_COLUMNS, STATUS_COLUMNS, measure

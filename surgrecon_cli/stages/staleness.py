@@ -15,8 +15,8 @@ from __future__ import annotations
 from typing import Any
 
 from ..config import Config, to_dict
-from ..io.run_folder import RunFolder, config_value, plain
-from ..io.run_layout import RunLayout
+from ..io.run.folder import RunFolder, config_value, plain
+from ..io.run.layout import RunLayout
 from .registry import config_keys, spec, upstream_config_keys
 
 NOT_DONE = "not done"

@@ -5,7 +5,7 @@ point's 3D position uncertainty, RMS, metres; the labelled frame-0 cloud is writ
 classify),
 RUN/template/observations.npz (where each template point was seen at frame 0, for tracking;
 each point's 3D covariance, m², from image noise, and pose_covariance, from the cameras'
-pose errors, including the rigid error of a shared tracker body, core/noise.py) and
+pose errors, including the rigid error of a shared tracker body, core/noise/model.py) and
 RUN/template/summary.json (counts, pair plan, pixel_noise_px).
 """
 
@@ -18,20 +18,20 @@ from pathlib import Path
 import numpy as np
 
 from ..config import Config
-from ..core.noise import covariance_sigma, noise_from_report
-from ..core.template import STEPS, TemplateResult, build_template
+from ..core.noise.model import covariance_sigma, noise_from_report
+from ..core.template.build import STEPS, TemplateResult, build_template
 from ..errors import InputError
 from ..executors import Executor, mapper
 from ..executors.serial import SerialExecutor
-from ..io.artefacts import (
+from ..io.run.artefacts import (
     TemplateCloud,
     TemplateObservations,
     write_observations,
     write_template,
     write_template_summary,
 )
-from ..io.ingest_store import load_ingested
-from ..io.run_layout import RunLayout
+from ..io.run.ingest_store import load_ingested
+from ..io.run.layout import RunLayout
 from .common import stage_run
 from .registry import StageContext
 

@@ -38,7 +38,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as sla
 
 from ...errors import GeometryError
-from ..geometry import nearest_rotation
+from ..geometry.poses import nearest_rotation
 
 EPS_REL = 1e-6  # ours: Tikhonov weight relative to the mean diagonal of the system
 # ours: relative energy change of one iteration counted as converged (1e-4 costs ~17 % more

@@ -17,7 +17,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from ..geometry import fit_rigid
+from ..geometry.poses import fit_rigid
 
 SPINS = 12  # ours: turns about the least-spread axis (30 degrees apart)
 COARSE_STEPS = 4  # ours: ICP steps per candidate

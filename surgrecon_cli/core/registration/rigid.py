@@ -15,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..geometry import fit_rigid
+from ..geometry.poses import fit_rigid
 from .correspondences import MATCH_EPS, Matcher, match
 from .globalinit import global_align
 from .graph import mean_spacing as graph_spacing

@@ -1,0 +1,2 @@
+"""Point labels (static / shifting / deforming) and the frame's quality signal without
+ground truth."""

@@ -1,0 +1,102 @@
+"""Point classes and the ground-truth label rule the simulator's truth follows.
+
+With frame 0 as reference, a point is `static` if it moved less than `static_mm`;
+otherwise `deforming` if its neighbourhood (points within `neighbourhood_mm` at frame 0)
+does not follow one rigid motion (RMS residual of the best rigid fit above `rigid_rms_mm`),
+and `shifting` if it does. The simulator labels its truth with this rule and scoring uses it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from ..geometry.poses import fit_rigid
+
+STATIC, SHIFTING, DEFORMING, UNKNOWN = 0, 1, 2, 255
+CLASS_NAMES = {STATIC: "static", SHIFTING: "shifting", DEFORMING: "deforming"}
+
+# What the reprojection-error check (core/target/cloud.py) found for a point in a frame.
+INTRA, INTER, OUTLIER, UNOBSERVED = 0, 1, 2, 3
+STATUS_NAMES = {INTRA: "intra", INTER: "inter", OUTLIER: "outlier", UNOBSERVED: "unobserved"}
+
+
+def radius_neighbourhoods(points: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
+    """Neighbours of every point within `radius` (m), padded.
+
+    Returns index (N, K) int (padded with the point itself) and mask (N, K) bool.
+    """
+    tree = cKDTree(points)
+    lists = tree.query_ball_point(points, r=radius)
+    counts = np.fromiter((len(x) for x in lists), int, len(lists))
+    width = int(counts.max())
+    flat = np.concatenate([np.asarray(x, int) for x in lists])
+    rows = np.repeat(np.arange(len(points)), counts)
+    cols = np.arange(len(flat)) - np.repeat(np.cumsum(counts) - counts, counts)
+    index = np.repeat(np.arange(len(points))[:, None], width, axis=1)
+    index[rows, cols] = flat
+    mask = np.zeros((len(points), width), bool)
+    mask[rows, cols] = True
+    return index, mask
+
+
+def rigid_fit_residuals(
+    reference: np.ndarray, moved: np.ndarray, index: np.ndarray, mask: np.ndarray,
+    weights: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Residuals (N, K, 3) m (moved minus fitted; 0 for members left out) of the best
+    (weighted) rigid fit of each neighbourhood (index (N, K), mask (N, K)) from reference to
+    moved positions, and the members used (N, K) bool: those with a finite moved position
+    (and a positive finite weight, weights (P,) per point, if given)."""
+    src = reference[index]
+    dst = moved[index]
+    keep = mask & np.isfinite(dst).all(-1)
+    if weights is not None:
+        w_members = np.asarray(weights, float)[index]
+        keep &= np.isfinite(w_members) & (w_members > 0)
+        w = np.where(keep, w_members, 0.0)
+    else:
+        w = keep.astype(float)
+    dst = np.where(keep[..., None], dst, 0.0)
+    R, t = fit_rigid(src, dst, w)
+    pred = np.einsum("nij,nkj->nki", R, src) + t[:, None, :]
+    return np.where(keep[..., None], dst - pred, 0.0), keep
+
+
+def rigid_fit_rms(
+    reference: np.ndarray, moved: np.ndarray, index: np.ndarray, mask: np.ndarray
+) -> np.ndarray:
+    """RMS residual (N,) m of the best rigid fit of each neighbourhood (index (N, K), mask
+    (N, K)) from reference to moved positions. Members without a finite moved position are
+    left out; a neighbourhood with fewer than 3 members left gets NaN."""
+    residual, keep = rigid_fit_residuals(reference, moved, index, mask)
+    rms = np.sqrt((residual**2).sum((1, 2)) / np.maximum(keep.sum(1), 1.0))
+    return np.where(keep.sum(1) >= 3, rms, np.nan)
+
+
+def label_rule(
+    reference: np.ndarray,
+    moved: np.ndarray,
+    index: np.ndarray,
+    mask: np.ndarray,
+    static_mm: float,
+    rigid_rms_mm: float,
+) -> np.ndarray:
+    """Labels (N,) uint8 of points moved from `reference` (N, 3) to `moved` (N, 3), metres."""
+    moved_by = np.linalg.norm(moved - reference, axis=1)
+    labels = np.full(len(reference), STATIC, np.uint8)
+    dynamic = moved_by >= static_mm * 1e-3
+    if dynamic.any():
+        rms = rigid_fit_rms(reference, moved, index[dynamic], mask[dynamic])
+        labels[dynamic] = np.where(rms > rigid_rms_mm * 1e-3, DEFORMING, SHIFTING)
+    return labels
+
+
+def true_labels(
+    vertices: np.ndarray, static_mm: float, neighbourhood_mm: float, rigid_rms_mm: float
+) -> np.ndarray:
+    """Spec label rule over a sequence: vertices (T, V, 3) m -> labels (T, V) uint8."""
+    index, mask = radius_neighbourhoods(vertices[0], neighbourhood_mm * 1e-3)
+    return np.stack(
+        [label_rule(vertices[0], frame, index, mask, static_mm, rigid_rms_mm) for frame in vertices]
+    )

@@ -1,0 +1,2 @@
+"""Scores against the simulator's ground truth: template, registration, labels, contact and
+indentation."""

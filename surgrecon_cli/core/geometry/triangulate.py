@@ -1,0 +1,172 @@
+"""N-view triangulation: linear (DLT) then Gauss-Newton on the reprojection error.
+
+Observations are flat arrays (one row per observation) so that every step is vectorised
+over points: `point` (M,) index of the 3D point, `camera` (M,) camera index, `normalized`
+(M, 2) undistorted normalised coordinates.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .cameras import CameraModel, distortion_jacobians, project
+from .poses import invert_pose
+
+
+@dataclass(frozen=True)
+class Observations:
+    """Flat observation table: point (M,), camera (M,), pixels (M, 2), normalized (M, 2),
+    rgb (M, 3) uint8 colour seen."""
+
+    point: np.ndarray
+    camera: np.ndarray
+    pixels: np.ndarray
+    normalized: np.ndarray
+    rgb: np.ndarray
+
+    def subset(self, keep: np.ndarray) -> Observations:
+        return Observations(
+            self.point[keep],
+            self.camera[keep],
+            self.pixels[keep],
+            self.normalized[keep],
+            self.rgb[keep],
+        )
+
+    def renumbered(self, keep_point: np.ndarray) -> Observations:
+        """Observations of the kept points (bool (N,)), points renumbered 0..K-1."""
+        new_index = np.cumsum(keep_point) - 1
+        sub = self.subset(keep_point[self.point])
+        return Observations(new_index[sub.point], sub.camera, sub.pixels, sub.normalized, sub.rgb)
+
+    def mean_rgb(self, n_points: int) -> np.ndarray:
+        """Mean observed colour (N, 3) uint8 per point."""
+        count = np.maximum(np.bincount(self.point, minlength=n_points), 1)[:, None]
+        total = np.stack(
+            [
+                np.bincount(self.point, weights=self.rgb[:, k].astype(float), minlength=n_points)
+                for k in range(3)
+            ],
+            1,
+        )
+        return np.round(total / count).astype(np.uint8)
+
+
+@dataclass(frozen=True)
+class Triangulation:
+    """Points (N, 3) m; per point mean/max reprojection error (px), views, max ray angle (deg),
+    in_front (all depths > 0); per observation error_px (M,)."""
+
+    points: np.ndarray
+    mean_error_px: np.ndarray
+    max_error_px: np.ndarray
+    n_views: np.ndarray
+    angle_deg: np.ndarray
+    in_front: np.ndarray
+    error_px: np.ndarray
+
+
+def _world_to_camera(poses: np.ndarray) -> np.ndarray:
+    return invert_pose(poses)[:, :3, :]
+
+
+def triangulate_linear(obs: Observations, poses: np.ndarray, n_points: int) -> np.ndarray:
+    """DLT: the null vector of the stacked constraints x P3 - P1, y P3 - P2, per point."""
+    P = _world_to_camera(poses)[obs.camera]  # (M, 3, 4)
+    x, y = obs.normalized[:, 0:1], obs.normalized[:, 1:2]
+    rows = np.stack([x * P[:, 2] - P[:, 0], y * P[:, 2] - P[:, 1]], 1)  # (M, 2, 4)
+    AtA = np.zeros((n_points, 4, 4))
+    np.add.at(AtA, obs.point, np.einsum("mki,mkj->mij", rows, rows))
+    _, vecs = np.linalg.eigh(AtA)
+    h = vecs[:, :, 0]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return h[:, :3] / h[:, 3:4]
+
+
+def refine_points(
+    points: np.ndarray, obs: Observations, poses: np.ndarray, focal: np.ndarray,
+    iterations: int = 6, distortion: np.ndarray | None = None,
+) -> np.ndarray:
+    """Gauss-Newton on Σ ‖f_c D_v (π(R_c X + t_c) − x_v)‖² per point, damped: the pixel
+    error to first order, D_v (M, 2, 2) the lens distortion's Jacobian at each observation
+    (`cameras.distortion_jacobians`; None: identity, the undistorted-pixel error)."""
+    P = _world_to_camera(poses)
+    R, t = P[obs.camera, :, :3], P[obs.camera, :, 3]
+    w = focal[obs.camera][:, None]
+    D = np.broadcast_to(np.eye(2), (len(obs.point), 2, 2)) if distortion is None else distortion
+    X = points.copy()
+    for _ in range(iterations):
+        Xc = np.einsum("mij,mj->mi", R, X[obs.point]) + t
+        z = Xc[:, 2:3]
+        proj = Xc[:, :2] / z
+        r = np.einsum("mab,mb->ma", D, proj - obs.normalized) * w  # (M, 2) ≈ px
+        dproj = np.zeros((len(z), 2, 3))
+        dproj[:, 0, 0] = dproj[:, 1, 1] = 1 / z[:, 0]
+        dproj[:, :, 2] = -proj / z
+        J = np.einsum("mab,mbc,mcd->mad", D, dproj, R) * w[:, :, None]  # (M, 2, 3)
+        JtJ = np.zeros((len(X), 3, 3))
+        Jtr = np.zeros((len(X), 3))
+        np.add.at(JtJ, obs.point, np.einsum("mai,maj->mij", J, J))
+        np.add.at(Jtr, obs.point, np.einsum("mai,ma->mi", J, r))
+        JtJ += np.eye(3) * 1e-9 * np.trace(JtJ, axis1=1, axis2=2)[:, None, None] + np.eye(3) * 1e-12
+        X = X - np.linalg.solve(JtJ, Jtr[..., None])[..., 0]
+    return X
+
+
+def triangulate(
+    obs: Observations, poses: np.ndarray, models: list[CameraModel], n_points: int
+) -> Triangulation:
+    """Triangulate every point seen in >= 2 observations and measure its quality."""
+    focal = np.array([m.K[0, 0] for m in models])
+    X = triangulate_linear(obs, poses, n_points)
+    finite = np.isfinite(X).all(1)
+    X[~finite] = 0.0
+    X = refine_points(X, obs, poses, focal,
+                      distortion=distortion_jacobians(obs.normalized, obs.camera, models))
+    X[~finite] = np.nan
+    residual, depth = reprojection_residuals(X, obs, poses, models)
+    error = np.linalg.norm(residual, axis=1)
+    error[~np.isfinite(error)] = np.inf
+    n_views = np.bincount(obs.point, minlength=n_points)
+    mean_err: np.ndarray = np.bincount(obs.point, weights=np.minimum(error, 1e6),
+                                       minlength=n_points)
+    mean_err = mean_err / np.maximum(n_views, 1)
+    max_err = np.zeros(n_points)
+    np.maximum.at(max_err, obs.point, error)
+    in_front = np.ones(n_points, bool)
+    np.logical_and.at(in_front, obs.point, depth > 0)
+    return Triangulation(
+        X, mean_err, max_err, n_views, max_ray_angle(X, obs, poses), in_front, error
+    )
+
+
+def reprojection_residuals(points: np.ndarray, obs: Observations, poses: np.ndarray,
+                           models: list[CameraModel]) -> tuple[np.ndarray, np.ndarray]:
+    """Projected minus observed pixel (M, 2) px of every observation of points (N, 3) m, and
+    the point's depth (M,) m in that camera (NaN rows for non-finite points)."""
+    residual = np.full((len(obs.point), 2), np.nan)
+    depth = np.full(len(obs.point), -1.0)
+    for c in np.unique(obs.camera):
+        sel = obs.camera == c
+        uv, z = project(points[obs.point[sel]], poses[c], models[c])
+        residual[sel] = uv - obs.pixels[sel]
+        depth[sel] = z
+    return residual, depth
+
+
+def max_ray_angle(points: np.ndarray, obs: Observations, poses: np.ndarray) -> np.ndarray:
+    """Largest angle (deg) between any two viewing rays of each point (N,)."""
+    n = len(points)
+    rays = points[obs.point] - poses[obs.camera, :3, 3]
+    rays /= np.maximum(np.linalg.norm(rays, axis=1, keepdims=True), 1e-12)
+    # The largest angle is bounded through the mean ray: max angle to it, doubled; exact for
+    # two views and a tight bound for more, without forming all pairs.
+    mean = np.zeros((n, 3))
+    np.add.at(mean, obs.point, rays)
+    mean /= np.maximum(np.linalg.norm(mean, axis=1, keepdims=True), 1e-12)
+    cos = (rays * mean[obs.point]).sum(1).clip(-1, 1)
+    min_cos = np.ones(n)
+    np.minimum.at(min_cos, obs.point, cos)
+    return 2 * np.degrees(np.arccos(min_cos))

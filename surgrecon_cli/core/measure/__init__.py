@@ -1,0 +1,1 @@
+"""Tool-tissue contact and indentation measured from the registered clouds (issue 17)."""

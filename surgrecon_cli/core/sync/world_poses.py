@@ -1,0 +1,69 @@
+"""Pose streams in the world frame, through the TF tree (core/sync/tf_tree.py).
+
+A camera's pose is the chain from its optical frame to the world frame, whatever lies
+between (tracker -> marker -> hand-eye -> optical). The chain is sampled where it is
+measured, at the stamps of its dynamic edges, so that ingest interpolates it to image
+stamps exactly as it interpolates a pose topic. A pose message given in another frame is
+moved into the world through the tree at its own stamps.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ...errors import InputError, quoted
+from ..geometry.poses import make_pose, matrix_to_quat
+from .streams import PoseStream, validate_pose_stream
+from .tf_tree import TfTree
+
+
+def _stream(name: str, stamps_ns: np.ndarray, poses: np.ndarray) -> PoseStream:
+    """A validated stream from poses (M, 4, 4), dropping stamps where it is unknown (NaN)."""
+    valid = np.isfinite(poses).all(axis=(1, 2))
+    poses = poses[valid]
+    return validate_pose_stream(name, stamps_ns[valid], poses[:, :3, 3],
+                                matrix_to_quat(poses[:, :3, :3]))
+
+
+def chain_stream(tree: TfTree, world_frame: str, frame: str, span_ns: tuple[int, int],
+                 max_gap_ns: int, name: str) -> PoseStream:
+    """The pose of `frame` in `world_frame` sampled at its chain's dynamic stamps (the
+    union over the chain's dynamic edges); a chain of static edges only is constant, given
+    at the ends of `span_ns` (the log's time span). Raises InputError (naming both frames)
+    when they are not connected."""
+    source_edges, target_edges = tree.chain(world_frame, frame)
+    dynamic = [e.stream.stamps_ns for e in (*source_edges, *target_edges) if not e.static]
+    stamps = (np.unique(np.concatenate(dynamic)) if dynamic
+              else np.array(sorted(set(span_ns)), np.int64))
+    return _stream(name, stamps, tree.lookup(world_frame, frame, stamps, max_gap_ns))
+
+
+def transformed(stream: PoseStream, pose: np.ndarray, name: str) -> PoseStream:
+    """The stream `name` left-multiplied by a fixed pose (4, 4), e.g. the robot's base in
+    the world (`tool.base_to_world`)."""
+    return _stream(name, stream.stamps_ns, pose @ make_pose(stream.positions, stream.quats))
+
+
+def moved_by(stream: PoseStream, offset: np.ndarray, name: str) -> PoseStream:
+    """The stream `name` right-multiplied by a fixed pose (4, 4): the poses of a frame
+    rigidly attached to the stream's (e.g. a camera on the ECM, by its hand-eye pose)."""
+    return _stream(name, stream.stamps_ns, make_pose(stream.positions, stream.quats) @ offset)
+
+
+def stream_to_world(stream: PoseStream, name: str, frame: str, tree: TfTree | None,
+                    world_frame: str, max_gap_ns: int, what: str) -> PoseStream:
+    """A pose stream `name` (its topic) given in `frame`, in `world_frame`: unchanged when
+    `frame` is the world (or unnamed, ""); else composed with the tree's world <- frame
+    transform at each stamp. InputError naming both frames when the log has no tree
+    connecting them."""
+    if frame in ("", world_frame):
+        return stream
+    if tree is None or not tree.is_connected(world_frame, frame):
+        raise InputError(
+            f"{what}: poses on {name} are in frame {quoted(frame)}, not in topics.world_frame "
+            f"= {quoted(world_frame)}, and the log has no TF tree connecting the two; set "
+            f"topics.world_frame = {quoted(frame)} if that frame is your world, or record the "
+            "transform between them on /tf or /tf_static")
+    poses = make_pose(stream.positions, stream.quats)
+    world = tree.lookup(world_frame, frame, stream.stamps_ns, max_gap_ns) @ poses
+    return _stream(name, stream.stamps_ns, world)

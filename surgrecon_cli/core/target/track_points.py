@@ -1,0 +1,191 @@
+"""Where the template points are in a frame's images: tracks chained from the frame
+tracked from (small motion), guided by each camera's measured image motion, and points
+lost there re-acquired from the template's own images. Pure OpenCV/numpy on arrays.
+
+Per camera:
+1. chain: the points visible at their latest positions are tracked from the previous
+   image (where they were found there, else their projection). In the first camera that
+   can, they start at their latest position projected now or where they were (the prior
+   whose pilot sample tracks more points), moved by the image motion measured on that
+   pilot sample (core/tracking.track_adaptive); in every later camera, at their latest
+   positions moved by the scene's rigid motion that the first camera's tracks show
+   (`scene_motion`), without pilots. So a camera or scene moving 6-15 px a frame is
+   followed whether or not the poses say so, mostly by one forward pass at full
+   resolution;
+2. anchor: the points not found so (lost in the previous frame, newly back in view, or
+   failed) are tracked from the template's image of that camera, starting at their
+   template pixel moved by the template-to-now image motion fitted on the chained tracks
+   or, with too few of those (tracking lost), on ORB matches (core/target/reacquire.py):
+   points lost for a while come back. The chained tracks are kept as they are: tracked
+   again from the template's appearance after a sweep of 10 deg or more, KLT's
+   translation-only window is biased by the changed perspective and shading (measured on
+   `rig-sweep` after 4 frames: 0.35 px median, 1.1 px p95; chained 0.2 px, 0.6 px), more
+   than the chain's drift over the same frames.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from ...config import TargetConfig
+from ..geometry.cameras import CameraModel, in_image, project, undistort_pixels
+from ..geometry.poses import invert_pose
+from ..geometry.tool import ToolConfigs, tool_pixel_mask
+from ..noise.model import localisation_variance_px2
+from .reacquire import descriptor_motion
+from .tracking import TrackingView, apply_motion, image_motion, track_adaptive
+
+KLT_BORDER_PX = 8.0  # a track starts this far inside the image at least (px)
+MIN_SCENE_FIT = 12  # tracks of one camera needed to measure the scene's motion (PnP)
+SCENE_FIT_PX = 2.0  # RANSAC inlier bound of that fit (px)
+
+
+def visible_points(
+    points: np.ndarray,
+    camera: CameraModel,
+    pose: np.ndarray,
+    occlusion_depth_m: float,
+    cell_px: int = 8,
+    border: float = KLT_BORDER_PX,
+):
+    """Predicted pixels (N, 2) and visibility (N,) of points in one camera: in front, inside
+    the image (with a KLT border), and not behind other points of the cloud (a z-buffer on
+    `cell_px` cells, tolerance `occlusion_depth_m` m)."""
+    uv, z = project(points, pose, camera)
+    ok = (z > 0) & in_image(uv, camera, border) & np.isfinite(points).all(1)
+    cells_x = camera.width // cell_px + 1
+    cell = np.full(len(points), -1)
+    cell[ok] = (uv[ok, 1] // cell_px).astype(int) * cells_x + (uv[ok, 0] // cell_px).astype(int)
+    zbuf = np.full(cells_x * (camera.height // cell_px + 1), np.inf)
+    np.minimum.at(zbuf, cell[ok], z[ok])
+    ok[ok] &= z[ok] <= zbuf[cell[ok]] + occlusion_depth_m
+    return uv, ok
+
+
+def scene_motion(latest: np.ndarray, pixels: np.ndarray, model: CameraModel,
+                 pose: np.ndarray) -> tuple[np.ndarray, float] | None:
+    """The motion (4, 4) of the scene in the world that moves points at `latest` (K, 3) m
+    to where one camera (cam-to-world `pose`) found them, pixels (K, 2), robustly
+    (RANSAC PnP on the undistorted rays, SCENE_FIT_PX), with its inliers' 95th-percentile
+    residual px; None with fewer than MIN_SCENE_FIT inliers. A rig moving without the
+    poses saying so, or the scene moving as a whole, moves every camera's image by this
+    one motion: the tracks found in one camera predict the others'."""
+    if len(latest) < MIN_SCENE_FIT or not np.isfinite(pose).all():
+        return None
+    rays = undistort_pixels(pixels, model)
+    world_to_cam = invert_pose(pose)
+    rvec0 = cv2.Rodrigues(world_to_cam[:3, :3])[0]
+    focal = float(model.K[0, 0])
+    found, rvec, tvec, inliers = cv2.solvePnPRansac(
+        latest.astype(np.float64), rays.astype(np.float64), np.eye(3), None, rvec0.copy(),
+        world_to_cam[:3, 3].reshape(3, 1).copy(), useExtrinsicGuess=True,
+        reprojectionError=SCENE_FIT_PX / focal, iterationsCount=50,
+        flags=cv2.SOLVEPNP_ITERATIVE)
+    if not found or inliers is None or len(inliers) < MIN_SCENE_FIT:
+        return None
+    seen = np.eye(4)  # world -> camera as the tracks see it
+    seen[:3, :3], seen[:3, 3] = cv2.Rodrigues(rvec)[0], tvec.ravel()
+    motion = pose @ seen
+    moved = latest[inliers.ravel()] @ motion[:3, :3].T + motion[:3, 3]
+    error = np.linalg.norm(project(moved, pose, model)[0] - pixels[inliers.ravel()], axis=1)
+    return motion, float(np.percentile(error, 95))
+
+
+def _chain(latest: np.ndarray, prev: TrackingView, cur: TrackingView, prev_pose: np.ndarray,
+           cur_pose: np.ndarray, prev_pixels: np.ndarray, model: CameraModel,
+           cfg: TargetConfig, predicted: tuple[np.ndarray, float] | None = None,
+           ) -> tuple[np.ndarray, np.ndarray]:
+    """Step 1 for one camera: pixels (N, 2) (NaN = not found) and found (N,). `predicted`:
+    the scene's motion measured in another camera (`scene_motion`) and its residual px:
+    the guesses are the latest positions moved by it, without pilot tracks."""
+    n = len(latest)
+    guess, visible = visible_points(latest, model, cur_pose, cfg.occlusion_depth_m)
+    if predicted is not None:
+        motion = predicted[0]
+        guess = project(latest @ motion[:3, :3].T + motion[:3, 3], cur_pose, model)[0]
+        visible &= np.isfinite(guess).all(1) & in_image(np.nan_to_num(guess, nan=-1e9), model)
+    start = prev_pixels.copy()
+    missing = ~np.isfinite(start).all(1)
+    if missing.any() and np.isfinite(prev_pose).all():
+        start[missing] = project(latest[missing], prev_pose, model)[0]
+    visible &= np.isfinite(start).all(1) & in_image(start, model, KLT_BORDER_PX)
+    idx = np.flatnonzero(visible)
+    # Two priors, piloted: the latest position projected with the current pose (the poses
+    # know how the camera moved), or where the point was (its latest position is stale
+    # where the registration lagged, or the poses miss the motion: an untracked camera).
+    if predicted is not None:
+        tracked, ok, _ = track_adaptive(prev, cur, start[idx], guess[idx], cfg,
+                                        2.0 * max(predicted[1], 1.0))
+    else:
+        tracked, ok, _ = track_adaptive(prev, cur, start[idx], guess[idx], cfg,
+                                        float("nan"), alternative=start[idx])
+    pixels = np.full((n, 2), np.nan)
+    pixels[idx[ok]] = tracked[ok]
+    return pixels, np.isfinite(pixels).all(1)
+
+
+def _anchor(anchor: TrackingView, cur: TrackingView, anchor_pixels: np.ndarray,
+            pixels: np.ndarray, found: np.ndarray, model: CameraModel,
+            cfg: TargetConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Step 2 for one camera: the chained pixels (N, 2) / found (N,) with the points not
+    found re-acquired from the template's image, from where the image motion since the
+    template puts them: fitted to the chained tracks, or where they are too few (tracking
+    lost), to ORB matches between the two images (core/reacquire.descriptor_motion)."""
+    has = np.isfinite(anchor_pixels).all(1) & in_image(
+        np.nan_to_num(anchor_pixels, nan=-1e9), model, KLT_BORDER_PX)
+    pairs = has & found
+    motion = image_motion(anchor_pixels[pairs], pixels[pairs])
+    if motion is None:
+        motion = descriptor_motion(anchor, cur)
+    if motion is None:
+        return pixels, found
+    guess = apply_motion(motion, np.nan_to_num(anchor_pixels))
+    idx = np.flatnonzero(has & ~found & in_image(guess, model, KLT_BORDER_PX))
+    tracked, ok, _ = track_adaptive(anchor, cur, anchor_pixels[idx], guess[idx], cfg,
+                                    float("nan"))
+    pixels = pixels.copy()
+    pixels[idx[ok]] = tracked[ok]
+    return pixels, np.isfinite(pixels).all(1)
+
+
+def find_points(latest: np.ndarray, prev_views: list[TrackingView | None],
+                cur_views: list[TrackingView | None], prev_poses: np.ndarray,
+                cur_poses: np.ndarray, prev_pixels: np.ndarray, models: list[CameraModel],
+                tool_pose: np.ndarray, cfg: TargetConfig, tool_cfg: ToolConfigs,
+                anchor_views: list[TrackingView | None] | None = None,
+                anchor_pixels: np.ndarray | None = None):
+    """Pixels (N, C, 2) where the template points are found in the current images (NaN =
+    not found), found (N, C) bool and each found pixel's localisation variance (N, C) px²
+    (inf where not found).
+
+    latest (N, 3) m: positions at the previous frame; prev/cur views and poses (C, 4, 4)
+    per camera (None / NaN where unusable); prev_pixels (N, C, 2) where each point was
+    found in the previous images (NaN: not found); anchor_views / anchor_pixels (N, C, 2):
+    the template's images and pixels (None, or the same views as prev: no anchoring)."""
+    n, n_cams = len(latest), len(models)
+    pixels = np.full((n, n_cams, 2), np.nan)
+    found = np.zeros((n, n_cams), bool)
+    localisation = np.full((n, n_cams), np.inf)
+    predicted = None
+    for c in range(n_cams):
+        cur, prev = cur_views[c], prev_views[c]
+        if cur is None or prev is None:
+            continue
+        px, ok = _chain(latest, prev, cur, prev_poses[c], cur_poses[c], prev_pixels[:, c],
+                        models[c], cfg, predicted)
+        if predicted is None:
+            fit = ok & np.isfinite(latest).all(1)
+            predicted = scene_motion(latest[fit], px[fit], models[c], cur_poses[c])
+        anchor = None if anchor_views is None else anchor_views[c]
+        if anchor is not None and anchor is not prev and anchor_pixels is not None:
+            px, ok = _anchor(anchor, cur, anchor_pixels[:, c], px, ok, models[c], cfg)
+        rows = np.flatnonzero(ok)
+        keep = in_image(px[rows], models[c], 2.0)
+        keep &= ~tool_pixel_mask(px[rows], models[c], cur_poses[c], tool_pose, tool_cfg)
+        rows = rows[keep]
+        pixels[rows, c] = px[rows]
+        found[rows, c] = True
+        localisation[rows, c] = localisation_variance_px2(
+            cur.grey, px[rows], cfg.klt_window_px, cur.noise_sigma)
+    return pixels, found, localisation

@@ -1,0 +1,92 @@
+"""Colour SIFT features: keypoints, descriptors, undistorted coordinates and RGB per feature."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from ...config import TemplateConfig
+from ..geometry.cameras import CameraModel, undistort_pixels
+from ..target.tracking import specular_mask, specular_zone
+
+
+@dataclass(frozen=True)
+class Features:
+    """Features of one image: pixels (N, 2) distorted px, normalised (N, 2) undistorted,
+    descriptors (N, 128) float32, rgb (N, 3) uint8."""
+
+    pixels: np.ndarray
+    normalized: np.ndarray
+    descriptors: np.ndarray
+    rgb: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.pixels)
+
+    def subset(self, keep: np.ndarray) -> Features:
+        return Features(
+            self.pixels[keep], self.normalized[keep], self.descriptors[keep], self.rgb[keep]
+        )
+
+
+def no_features() -> Features:
+    """The features of an image without any (or of an unusable camera)."""
+    return Features(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros((0, 128), np.float32),
+                    np.zeros((0, 3), np.uint8))
+
+
+def sample_rgb(image: np.ndarray, pixels: np.ndarray) -> np.ndarray:
+    """Bilinear RGB (N, 3) uint8 of an image (H, W, 3) at pixels (N, 2)."""
+    if len(pixels) == 0:
+        return np.zeros((0, 3), np.uint8)
+    maps = pixels.astype(np.float32).reshape(-1, 1, 2)
+    out = cv2.remap(
+        image, maps[..., 0], maps[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
+    )
+    return out.reshape(-1, 3)
+
+
+def detect_features(image: np.ndarray, camera: CameraModel, cfg: TemplateConfig,
+                    exclude: np.ndarray | None = None) -> Features:
+    """SIFT on an RGB image (H, W, 3) uint8; `exclude` (H, W) bool masks pixels out (tool),
+    and so do saturated specular highlights (core/tracking.specular_zone): they move with
+    the light, so a feature there triangulates to no point of the tissue and is not tracked.
+
+    The contrast threshold is half OpenCV's default: endoscopic tissue is low-contrast and we
+    want hundreds to thousands of features per image (our choice, not the paper's). Images
+    wider than `cfg.detect_width_px` are searched downscaled by the smallest integer factor
+    s that brings them to it (area average; SIFT's finest octave, the image upsampled 2x,
+    then has 4/s² of the full image's pixels instead of 4x); the pixels are given in the
+    full image. `cfg.max_features`, `cfg.contrast_threshold`: SIFT's.
+    """
+    height, width = image.shape[:2]
+    small = image
+    scale = -(-width // cfg.detect_width_px) if cfg.detect_width_px else 1
+    if scale > 1:
+        size = (width // scale, height // scale)
+        small = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+        if exclude is not None:  # a pixel touching an excluded one is excluded
+            exclude = cv2.resize(exclude.astype(np.uint8), size, interpolation=cv2.INTER_AREA) > 0
+    gray = cv2.cvtColor(small, cv2.COLOR_RGB2GRAY)
+    highlight = specular_zone(specular_mask(small))
+    exclude = highlight if exclude is None else exclude | highlight
+    mask = (~exclude).astype(np.uint8) * 255
+    sift = cv2.SIFT.create(nfeatures=cfg.max_features, contrastThreshold=cfg.contrast_threshold)
+    keypoints, descriptors = sift.detectAndCompute(gray, mask)
+    if not keypoints:
+        return no_features()
+    pixels = np.array([k.pt for k in keypoints], dtype=np.float64)
+    # SIFT may return one location twice with different orientations: keep the first.
+    _, first = np.unique(np.round(pixels, 2), axis=0, return_index=True)
+    first = np.sort(first)
+    # pixel centres of the downscaled image back to the full image's
+    factor = np.array([width / gray.shape[1], height / gray.shape[0]])
+    pixels = (pixels[first] + 0.5) * factor - 0.5
+    return Features(
+        pixels,
+        undistort_pixels(pixels, camera),
+        descriptors[first].astype(np.float32),
+        sample_rgb(image, pixels),
+    )

@@ -1,0 +1,1 @@
+"""Exports of a run: an MCAP file Foxglove opens, TUM trajectories."""
