@@ -1,6 +1,7 @@
-"""core/measure/deformation.py + core/measure/indentation.py + core/evaluate/deformation_scoring.py on synthetic
-surfaces: indentations of known depth, area and volume are recovered; rigid motion and
-breathing give no indentation; a tool hovering 1 mm above the tissue gives no contact."""
+"""core/measure/deformation.py + core/measure/indentation.py +
+core/evaluate/deformation_scoring.py on synthetic surfaces: indentations of known depth,
+area and volume are recovered; rigid motion and breathing give no indentation; a tool
+hovering 1 mm above the tissue gives no contact."""
 
 from __future__ import annotations
 

@@ -12,7 +12,7 @@ from surgrecon_cli.io.run.layout import DESCRIBED_FILES, RunLayout
 from surgrecon_cli.stages import registry
 
 PACKAGE = Path(__file__).resolve().parents[1] / "surgrecon_cli"
-LAYOUT = PACKAGE / "io" / "run_layout.py"
+LAYOUT = PACKAGE / "io" / "run" / "layout.py"
 MAX_MODULE_LINES = 350
 # The simulator writes logs and ground truth, not run folders.
 SOURCES = [p for p in PACKAGE.rglob("*.py") if p != LAYOUT and "sim" not in p.parts]

@@ -232,7 +232,8 @@ class TargetConfig:
 
 @dataclass(frozen=True)
 class ClassifyConfig:
-    """Point classification (mm); thresholds are ours, see core/classify/rules.py for the reasoning."""
+    """Point classification (mm); thresholds are ours, see core/classify/rules.py for the
+    reasoning."""
 
     static_mm: float = _doc(
         1.0, "motion tolerance: a displacement below this (or below what the noise explains) "

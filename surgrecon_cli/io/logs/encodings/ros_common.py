@@ -53,8 +53,8 @@ def raw_image(msg: Any, ros: RosFlavor) -> list[Record]:
 
 def camera_info(msg: Any, ros: RosFlavor) -> list[Record]:
     """CameraInfo as recorded (full-resolution K and size, binning, ROI); the distortion
-    model name is checked and canonical (`core.geometry.distortion.distortion_model_name`: an unknown
-    model with non-zero coefficients raises, naming it)."""
+    model name is checked and canonical (`core.geometry.distortion.distortion_model_name`: an
+    unknown model with non-zero coefficients raises, naming it)."""
     K = np.asarray(getattr(msg, ros.k), dtype=float)
     D = np.asarray(getattr(msg, ros.d), dtype=float)
     roi = getattr(msg, "roi", None)
