@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import hashlib
 import logging
-import struct
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field, replace
 from functools import partial
@@ -24,7 +23,7 @@ from typing import Any
 
 import zstandard
 from mcap.exceptions import EndOfFile, InvalidMagic, McapError, RecordLengthLimitExceeded
-from mcap.records import Channel, DataEnd, Footer, McapRecord, Message, Schema
+from mcap.records import Channel, McapRecord, Message, Schema
 from mcap.stream_reader import CRCValidationError, StreamReader
 
 from ...config import TopicsConfig
@@ -35,13 +34,12 @@ from .encodings.registry import DESERIALIZERS, find_decoder, no_images_message, 
 from .log_input import resolve_log
 from .records import Record
 from .rosbag import bag_records, check_bag_magic, is_bag, read_along
+from .stream import STREAM_ERRORS, RecordStream, one_line
 from .topics import ROLE_KINDS, TopicRoles
 
 logger = logging.getLogger(__name__)
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
-_STREAM_ERRORS = (McapError, ValueError, struct.error, EOFError, OverflowError, MemoryError,
-                  zstandard.ZstdError, RuntimeError)
 _MAX_LISTED = 40
 
 
@@ -162,7 +160,7 @@ class LogReader:
                     if f.read() != MCAP_MAGIC:
                         return
                     summary = read_summary(BoundedFile(f, path.stat().st_size))
-            except (*_STREAM_ERRORS, OSError):
+            except (*STREAM_ERRORS, OSError):
                 return
             if summary is None or not summary[1]:
                 return
@@ -225,35 +223,20 @@ class LogReader:
                  ) -> Iterator[LogItem]:
         """The role items of one file's records; `pos()` is the bytes read of the file (of
         `size` bytes)."""
-        schemas: dict[int, Schema] = {}
+        stream = RecordStream(records, pos)
         channels: dict[int, _ChannelInfo] = {}
-        data_complete = False
-        while True:
-            try:
-                record = next(records)
-            except StopIteration:
-                break
-            except _STREAM_ERRORS as exc:
-                self._on_damage(exc, data_complete)
-                return
-            self.valid_bytes = self._offset + pos()
-            if isinstance(record, Schema):
-                schemas[record.id] = record
-            elif isinstance(record, Channel):
-                if record.id not in channels:
-                    channels[record.id] = self._open_channel(record, schemas)
-            elif isinstance(record, Message):
-                info = channels.get(record.channel_id)
-                if info is None:
-                    self._on_damage(McapError(f"message on unknown channel {record.channel_id}"),
-                                    data_complete)
-                    return
-                yield from self._message(info, record)
-            elif isinstance(record, DataEnd):
-                data_complete = True
-            elif isinstance(record, Footer):
-                self.valid_bytes = self._offset + size
-                break
+        for record in stream:
+            self.valid_bytes = self._offset + stream.valid
+            if isinstance(record, Channel):
+                channels[record.id] = self._open_channel(record, stream.schemas)
+            else:
+                yield from self._message(channels[record.channel_id], record)
+        self.valid_bytes = self._offset + (size if stream.footer else stream.valid)
+        if stream.unknown_channel is not None:
+            self._on_damage(McapError(f"message on unknown channel {stream.unknown_channel}"),
+                            stream.data_complete)
+        elif stream.error is not None:
+            self._on_damage(stream.error, stream.data_complete)
 
     def _open_channel(self, channel: Channel, schemas: dict[int, Schema]) -> _ChannelInfo:
         schema = schemas.get(channel.schema_id)
@@ -272,7 +255,7 @@ class LogReader:
                 info.deserialize = self._deserializers[channel.message_encoding].for_schema(schema)
             except Exception as exc:  # third-party schema parsers raise anything
                 raise InputError(f"{self.path}: schema {name!r} of topic {channel.topic} cannot "
-                                 f"be parsed ({_one_line(exc)})") from exc
+                                 f"be parsed ({one_line(exc)})") from exc
         return info
 
     def _message(self, info: _ChannelInfo, message: Message) -> Iterator[LogItem]:
@@ -285,7 +268,7 @@ class LogReader:
         except Exception as exc:  # third-party decoders raise anything on malformed bytes
             raise InputError(
                 f"{self.path}: message on {info.topic} at log time {message.log_time / 1e9:.6f} s "
-                f"does not decode as {info.schema_name} ({_one_line(exc)})") from exc
+                f"does not decode as {info.schema_name} ({one_line(exc)})") from exc
         for record in records:
             if self.use_log_time or record.stamp_ns <= 0:
                 self._note_log_time(info.topic, record.stamp_ns)
@@ -327,7 +310,7 @@ class LogReader:
         elif isinstance(exc, InvalidMagic):
             reason = "the closing magic bytes are wrong (corrupt end of file)"
         else:
-            reason = f"a record is malformed (corrupt data: {_one_line(exc)})"
+            reason = f"a record is malformed (corrupt data: {one_line(exc)})"
         if data_complete:
             logger.warning("%s: %s after the data section; all messages were read",
                            self.file, reason)
@@ -343,7 +326,3 @@ class LogReader:
             raise InputError(f"{self.file}: {self.damage}; re-copy or repair the log, or pass "
                              "--allow-truncated to use the data before the damage") from exc
 
-
-def _one_line(exc: BaseException) -> str:
-    text = " ".join(str(exc).split()) or type(exc).__name__
-    return text if len(text) <= 200 else text[:197] + "..."

@@ -18,13 +18,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-import zstandard
 from mcap.exceptions import McapError
 from mcap.records import (
     Channel,
     Chunk,
     ChunkIndex,
-    DataEnd,
     Footer,
     Header,
     Message,
@@ -36,12 +34,11 @@ from mcap.stream_reader import StreamReader
 from ...errors import InputError
 from .bounded import BoundedFile, as_stream, chunk_records, expand_chunks
 from .rosbag import bag_records, check_bag_magic, is_bag
+from .stream import STREAM_ERRORS, RecordStream, one_line
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 _FOOTER_AND_MAGIC = 9 + 20 + 8
 _MESSAGE_INDEX_OPCODE = 0x07
-_ERRORS = (McapError, ValueError, struct.error, EOFError, OverflowError, MemoryError,
-           zstandard.ZstdError, RuntimeError, KeyError, IndexError)
 
 SKIP, FIRST, ALL = "", "first", "all"
 """What `scan_mcap` delivers of a channel: nothing, its earliest message, every message."""
@@ -119,7 +116,7 @@ def scan_mcap(path: Path, select: Select, on_message: OnMessage) -> LogScan:
             summary = _read_summary(f, size)
             if summary is not None:
                 chunks = _plan(f, summary)
-        except _ERRORS:
+        except STREAM_ERRORS:
             chunks = None
         if summary is not None and chunks is not None:
             return _scan_indexed(path, f, header, summary, chunks, select, on_message)
@@ -135,7 +132,7 @@ def _header(f: BoundedFile) -> Header:
     try:
         record = next(StreamReader(as_stream(f), skip_magic=True,
                                    record_size_limit=f.size).records)
-    except (*_ERRORS, StopIteration):
+    except (*STREAM_ERRORS, StopIteration):
         return Header("", "")
     return record if isinstance(record, Header) else Header("", "")
 
@@ -253,9 +250,9 @@ def _scan_indexed(
             continue
         try:
             records = _chunk_at(f, ci)
-        except _ERRORS as exc:
+        except STREAM_ERRORS as exc:
             damage = (f"the chunk at byte {ci.chunk_start_offset} cannot be read "
-                      f"({_one_line(exc)}); it and later chunks were not read")
+                      f"({one_line(exc, 160)}); it and later chunks were not read")
             break
         for record in records:
             if not isinstance(record, Message) or record.channel_id not in wanted:
@@ -288,46 +285,33 @@ def _scan_records(path: Path, size: int, header: Header, records: Iterator, pos:
                   select: Select, on_message: OnMessage) -> LogScan:
     """Scan a file's records (MCAP streamed, or a bag's) in file order; `pos()` is the bytes
     read of its `size`."""
-    schemas: dict[int, Schema] = {}
-    channels: dict[int, Channel] = {}
+    stream = RecordStream(records, pos, through_data_end=False)
     modes: dict[int, str] = {}
     counts: dict[int, int] = {}
     first: dict[int, int] = {}
     last: dict[int, int] = {}
+    for record in stream:
+        if isinstance(record, Channel):
+            modes[record.id] = select(record, stream.schemas.get(record.schema_id))
+            continue
+        cid = record.channel_id
+        n = counts.get(cid, 0)
+        counts[cid] = n + 1
+        first[cid] = min(first.get(cid, record.log_time), record.log_time)
+        last[cid] = max(last.get(cid, record.log_time), record.log_time)
+        if modes[cid] == ALL or (modes[cid] == FIRST and n == 0):
+            ch = stream.channels[cid]
+            on_message(ch, stream.schemas.get(ch.schema_id), record)
     damage = None
-    valid = 0
-    while True:
-        try:
-            record = next(records)
-        except StopIteration:
-            break
-        except _ERRORS as exc:
-            t = max(last.values(), default=None)
-            when = f"log time {t / 1e9:.6f} s" if t is not None else "before any message"
-            damage = (f"valid data ends at byte {valid} of {size} ({when}): truncated or "
-                      f"corrupt ({_one_line(exc)})")
-            break
-        valid = pos()
-        if isinstance(record, Schema):
-            schemas[record.id] = record
-        elif isinstance(record, Channel):
-            if record.id not in channels:
-                channels[record.id] = record
-                modes[record.id] = select(record, schemas.get(record.schema_id))
-        elif isinstance(record, Message):
-            cid = record.channel_id
-            ch = channels.get(cid)
-            if ch is None:
-                damage = f"a message on unknown channel {cid} at byte {valid}; reading stopped"
-                break
-            n = counts.get(cid, 0)
-            counts[cid] = n + 1
-            first[cid] = min(first.get(cid, record.log_time), record.log_time)
-            last[cid] = max(last.get(cid, record.log_time), record.log_time)
-            if modes[cid] == ALL or (modes[cid] == FIRST and n == 0):
-                on_message(ch, schemas.get(ch.schema_id), record)
-        elif isinstance(record, DataEnd | Footer):
-            break
+    if stream.unknown_channel is not None:
+        damage = (f"a message on unknown channel {stream.unknown_channel} at byte "
+                  f"{stream.valid}; reading stopped")
+    elif stream.error is not None:
+        t = max(last.values(), default=None)
+        when = f"log time {t / 1e9:.6f} s" if t is not None else "before any message"
+        damage = (f"valid data ends at byte {stream.valid} of {size} ({when}): truncated or "
+                  f"corrupt ({one_line(stream.error, 160)})")
+    schemas, channels = stream.schemas, stream.channels
     out = tuple(_channel_scan(ch, schemas, counts.get(cid, 0), first.get(cid, -1),
                               last.get(cid, -1)) for cid, ch in sorted(channels.items()))
     return LogScan(path, size, header.profile, header.library, out, False, damage, schemas)
@@ -340,7 +324,3 @@ def _channel_scan(ch: Channel, schemas: dict[int, Schema], count: int, first: in
                        schema.encoding if schema else "", ch.message_encoding,
                        dict(ch.metadata), count, first, last)
 
-
-def _one_line(exc: BaseException) -> str:
-    text = " ".join(str(exc).split()) or type(exc).__name__
-    return text if len(text) <= 160 else text[:157] + "..."
