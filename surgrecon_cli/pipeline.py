@@ -50,8 +50,7 @@ STAGES = registry.NAMES
 Progress = Callable[[str, float], None]
 # Modules of the task functions, imported by parallel workers as they start.
 TASK_MODULES = ("surgrecon_cli.core.template.build", "surgrecon_cli.stages.register",
-                "surgrecon_cli.stages.classify", "surgrecon_cli.report.plots",
-                "surgrecon_cli.report.plots_evaluation", "surgrecon_cli.report.plots_deformation")
+                "surgrecon_cli.stages.classify", "surgrecon_cli.report.plots")
 
 
 def open_executor(config: Config) -> closing[Executor]:

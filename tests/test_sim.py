@@ -80,7 +80,7 @@ def test_label_rule_on_synthetic_motions():
 
 def test_pose_convention_names_match_the_conventions():
     """The CLI's light list of convention names is the simulator's table, in order."""
+    from surgrecon_cli.sim import POSE_CONVENTIONS
     from surgrecon_cli.sim.conventions import CONVENTIONS
-    from surgrecon_cli.sim.names import POSE_CONVENTIONS
 
     assert tuple(CONVENTIONS) == POSE_CONVENTIONS

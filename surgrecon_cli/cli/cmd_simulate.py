@@ -9,7 +9,7 @@ import click
 from click.core import ParameterSource
 
 from ..config import TopicsConfig
-from ..sim.names import LENSES, POSE_CONVENTIONS
+from ..sim import LENSES, POSE_CONVENTIONS
 from ..sim.variants import VARIANTS
 from .common import common_options
 

@@ -13,12 +13,11 @@ from typing import Any
 import numpy as np
 
 from ..config import Config
-from ..core.classify.labels import CLASS_NAMES, UNKNOWN
+from ..core.classify.labels import CLASS_COLOURS, CLASS_NAMES, STATUS_COLOURS, UNKNOWN
 from ..executors import Executor, Task
-from . import plots, plots_deformation, plots_evaluation
+from . import plots
 from .gather import CloudView, RunData
 from .metrics import CLASS_COLUMNS, STATUS_COLUMNS, Metrics, stage_seconds
-from .palette import CLASS_COLOURS, STATUS_COLOURS
 
 
 def cloud_key(frame: int) -> str:
@@ -103,7 +102,7 @@ def deformation_tasks(data: RunData, config: Config) -> list[Task]:
     label = (f"Hertz, E = {d.youngs_modulus_kpa:g} kPa, ν = {d.poisson_ratio:g}, "
              f"R = {config.tool.shaft_radius_m * 1e3:g} mm")
     tasks = [Task("deformation-over-time", partial(
-        plots_deformation.deformation_over_time, frames, series.contact,
+        plots.deformation_over_time, frames, series.contact,
         series.depth_under_tip_mm, np.nan_to_num(series.depth_sigma_mm),
         series.penetration_mm, series.area_mm2, force, label,
         truth.get("indentation_mm"), truth.get("area_mm2")))]
@@ -112,7 +111,7 @@ def deformation_tasks(data: RunData, config: Config) -> list[Task]:
         pose = data.log.tool_poses[deepest]
         inward_mm, deformed = data.deepest_field
         tasks.append(Task("deformation-map", partial(
-            plots_deformation.displacement_map, data.template[:, :2] * 1e3,
+            plots.displacement_map, data.template[:, :2] * 1e3,
             inward_mm, deformed, pose[:2, 3] * 1e3, pose[:2, 2],
             f"frame {deepest}: displacement, the rigid motion of each ring removed")))
     return tasks
@@ -154,17 +153,17 @@ def _evaluation_tasks(ev: dict[str, Any], errors: dict[str, np.ndarray],
             return np.array([np.nan if r.get(key) is None else r[key] for r in pf])
 
         tasks.append(Task("error-over-time", partial(
-            plots_evaluation.error_over_time, np.array([r["frame"] for r in pf]), get("median_mm"),
+            plots.error_over_time, np.array([r["frame"] for r in pf]), get("median_mm"),
             get("p95_mm"), get("max_mm"))))
         if "registration_error_mm" in errors:
             tasks.append(Task("error-histograms", partial(
-                plots_evaluation.error_histograms, sampled, list(errors["registration_error_mm"]))))
+                plots.error_histograms, sampled, list(errors["registration_error_mm"]))))
     labels = ev.get("labels")
     if labels and labels.get("overall"):
         o = labels["overall"]
         axes = o["confusion_axes"]
         tasks.append(Task("confusion", partial(
-            plots_evaluation.confusion, np.array(o["confusion"]), axes["rows"], axes["cols"])))
+            plots.confusion, np.array(o["confusion"]), axes["rows"], axes["cols"])))
         pf = labels["per_frame"]
         if pf:
             per_class = {name: np.array([r["per_class"][name]["f1"]
@@ -172,6 +171,6 @@ def _evaluation_tasks(ev: dict[str, Any], errors: dict[str, np.ndarray],
                                          for r in pf]) for name in CLASS_NAMES.values()}
             macro = np.array([np.nan if r["macro_f1"] is None else r["macro_f1"] for r in pf])
             tasks.append(Task("f1-over-time", partial(
-                plots_evaluation.f1_over_time, np.array([r["frame"] for r in pf]), per_class,
+                plots.f1_over_time, np.array([r["frame"] for r in pf]), per_class,
                 macro)))
     return tasks

@@ -2,7 +2,9 @@
 
 No pyplot and no global matplotlib state: every figure is a `matplotlib.figure.Figure`
 drawn in an `rc_context`, so importing this module (or a report) changes nothing for
-other code. Inputs are plain arrays (millimetres where the name says `_mm`).
+other code. Inputs are plain arrays (millimetres where the name says `_mm`, mm² and N
+likewise). Sections: the run's figures; contact and indentation (issue 17); scores against
+ground truth.
 """
 
 from __future__ import annotations
@@ -13,10 +15,11 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from matplotlib import rc_context
+from matplotlib.colors import LinearSegmentedColormap
 from matplotlib.figure import Figure
-from matplotlib.ticker import MaxNLocator
+from matplotlib.ticker import FuncFormatter, MaxNLocator
 
-from .palette import CLASS_COLOURS
+from ..core.classify.labels import CLASS_COLOURS
 
 if TYPE_CHECKING:
     from matplotlib.typing import RcKeyType
@@ -272,3 +275,196 @@ def quality_over_time(frames: np.ndarray, fractions: dict[str, np.ndarray],
     label_frame_axes(right, frames, "mm  /  ratio", "uncertainty and fit")
     right.legend(fontsize=8)
     return to_png(fig)
+
+
+# -- contact and indentation (issue 17) --------------------------------------------------------
+CONTACT_SHADE = "#f6e3e5"
+
+
+def _shade_contact(ax, frames: np.ndarray, contact: np.ndarray) -> None:
+    """Shade the frames in contact (half a frame either side)."""
+    for k, on in zip(frames, contact, strict=True):
+        if on:
+            ax.axvspan(k - 0.5, k + 0.5, color=CONTACT_SHADE, linewidth=0, zorder=0)
+
+
+def deformation_over_time(frames: np.ndarray, contact: np.ndarray, depth_mm: np.ndarray,
+                          depth_sigma_mm: np.ndarray, penetration_mm: np.ndarray,
+                          area_mm2: np.ndarray, force_n: np.ndarray | None = None,
+                          force_label: str = "", true_depth_mm: np.ndarray | None = None,
+                          true_area_mm2: np.ndarray | None = None) -> bytes:
+    """Per frame (T,): the depth under the tool tip along its axis (measured from the
+    reconstruction, ±2σ band) beside the tool's kinematic penetration below the frame-0
+    surface, the deformed area, and (when given) the force proxy; frames in contact shaded,
+    the simulator's truth as black markers when given."""
+    frames = np.asarray(frames)
+    panels = 3 if force_n is not None else 2
+    with rc_context(STYLE):
+        # fixed margins, not the constrained layout: it draws every figure twice
+        fig = Figure(figsize=(4.2 * panels + 1.0, 3.4))
+        fig.subplots_adjust(left=0.07 if panels == 2 else 0.05, right=0.98, bottom=0.27,
+                            top=0.92, wspace=0.25)
+        axes = fig.subplots(1, panels)
+        ax = axes[0]
+        _shade_contact(ax, frames, contact)
+        lo, hi = depth_mm - 2 * depth_sigma_mm, depth_mm + 2 * depth_sigma_mm
+        ax.fill_between(frames, lo, hi, color="#dbe6f1", label="±2σ", linewidth=0)
+        ax.plot(frames, depth_mm, color="#1f3b5a", marker="o", ms=3, label="measured")
+        ax.plot(frames, penetration_mm, color="#D1495B", linestyle="--", marker=".",
+                label="tip below frame-0 surface (kinematics)")
+        if true_depth_mm is not None:
+            ax.plot(frames, true_depth_mm, "kx", ms=5, label="truth")
+        top = np.nanmax(np.concatenate([depth_mm, hi, [1.0]]))
+        ax.set_ylim(min(-1.0, float(np.nanmin(np.concatenate([depth_mm, [0.0]])) - 0.5)),
+                    float(top) * 1.15 + 0.2)
+        label_frame_axes(ax, frames, "mm along the tool axis", "indentation at the tool tip")
+        ax.legend(loc="upper left", bbox_to_anchor=(-0.02, -0.17), ncol=2, fontsize=7)
+        ax = axes[1]
+        _shade_contact(ax, frames, contact)
+        ax.plot(frames, area_mm2, color="#59A14F", marker="o", ms=3, label="measured")
+        if true_area_mm2 is not None:
+            ax.plot(frames, true_area_mm2, "kx", ms=5, label="truth")
+        ax.set_ylim(bottom=0)
+        label_frame_axes(ax, frames, "mm²", "deformed area")
+        ax.legend(loc="upper left", bbox_to_anchor=(-0.02, -0.17), ncol=2, fontsize=7)
+        if force_n is not None:
+            ax = axes[2]
+            _shade_contact(ax, frames, contact)
+            ax.plot(frames, force_n, color="#8E6C8A", marker="o", ms=3)
+            ax.set_ylim(bottom=0)
+            label_frame_axes(ax, frames, "N (model output)", "force proxy")
+            ax.text(0.02, 0.97, force_label, transform=ax.transAxes, fontsize=7, va="top")
+        step = max(int(np.ceil(len(frames) / 10)), 1)  # narrow panels: at most ~10 ticks
+        for ax in axes:
+            ax.set_xticks(frames[::step])
+        return to_png(fig)
+
+
+def displacement_map(xy_mm: np.ndarray, inward_mm: np.ndarray, deformed: np.ndarray,
+                     tip_mm: np.ndarray | None, axis: np.ndarray | None, title: str) -> bytes:
+    """Top view (x-y, mm) of the template points coloured by their compensated
+    displacement into the tissue (mm), the deformed region ringed, the tool tip and the
+    direction of its shaft drawn (grey: the top view of 40 mm of it)."""
+    xy = np.asarray(xy_mm, float)
+    value = np.asarray(inward_mm, float)
+    ok = np.isfinite(value) & np.isfinite(xy).all(1)
+    with rc_context({**STYLE, "axes.grid": False}):
+        fig = Figure(figsize=(6.2, 4.8))
+        fig.subplots_adjust(left=0.12, right=0.97, bottom=0.1, top=0.93)
+        ax = fig.add_subplot()
+        if ok.any():
+            top = max(float(np.nanpercentile(np.abs(value[ok]), 99.5)), 0.5)
+            order = np.argsort(value[ok])  # deepest on top
+            art = ax.scatter(xy[ok][order, 0], xy[ok][order, 1], c=value[ok][order], s=7,
+                             cmap="RdBu_r", vmin=-top, vmax=top, linewidths=0, rasterized=True)
+            fig.colorbar(art, ax=ax, label="into the tissue along the normal (mm)", shrink=0.85)
+        ring = ok & np.asarray(deformed, bool)
+        if ring.any():
+            ax.scatter(xy[ring, 0], xy[ring, 1], s=16, facecolors="none", edgecolors="#222222",
+                       linewidths=0.4, label="deformed region")
+        if tip_mm is not None and np.isfinite(tip_mm).all():
+            ax.scatter([tip_mm[0]], [tip_mm[1]], marker="*", s=120, color="#F2A541",
+                       edgecolor="black", zorder=5, label="tool tip")
+            if axis is not None and np.isfinite(axis).all():
+                ax.plot([tip_mm[0], tip_mm[0] + 40 * axis[0]],
+                        [tip_mm[1], tip_mm[1] + 40 * axis[1]], color="#555555", lw=3,
+                        alpha=0.8, solid_capstyle="round", zorder=4, label="tool shaft")
+        ax.set_aspect("equal", adjustable="datalim")
+        ax.set_xlabel("x (mm)")
+        ax.set_ylabel("y (mm)")
+        ax.set_title(title, loc="left")
+        if ring.any() or tip_mm is not None:
+            ax.legend(loc="lower left", fontsize=7)
+        return to_png(fig)
+
+
+# -- scores against ground truth ---------------------------------------------------------------
+def error_over_time(frames: np.ndarray, median: np.ndarray, p95: np.ndarray, maximum: np.ndarray,
+                    limit_mm: float = 1.0) -> bytes:
+    """Registration error per frame: median, 95th percentile (band) and max, mm."""
+    with rc_context(STYLE):
+        fig = new_figure(7.5, 2.8)
+        ax = fig.add_subplot()
+        ax.fill_between(frames, median, p95, color="#dbe6f1", label="median–p95")
+        ax.plot(frames, median, color="#1f3b5a", marker="o", markersize=3, label="median")
+        ax.plot(frames, p95, color="#4C78A8", marker="o", markersize=3, label="p95")
+        ax.plot(frames, maximum, color="#D1495B", linestyle=":", marker=".", label="max")
+        ax.axhline(limit_mm, color="#333333", linestyle="--", linewidth=1,
+                   label=f"{limit_mm:g} mm (clinical)")
+        ax.set_yscale("log")
+        finite = np.concatenate([median, p95, maximum])
+        finite = finite[np.isfinite(finite) & (finite > 0)]
+        low = max(float(finite.min()) / 1.5, 1e-3) if finite.size else 1e-2
+        ax.set_ylim(min(low, limit_mm / 2), max(float(finite.max()) * 1.5 if finite.size else 1,
+                                                limit_mm * 2))
+        ax.yaxis.set_major_formatter(FuncFormatter(lambda y, _p: f"{y:g}"))
+        label_frame_axes(ax, frames, "error (mm, log scale)",
+                          "registration error vs. followed material point", legend=True)
+        return to_png(fig)
+
+
+def error_histograms(frames: np.ndarray, errors_mm: Sequence[np.ndarray],
+                     limit_mm: float = 1.0) -> bytes:
+    """Per-frame registration error distributions as stacked ridge lines (mm)."""
+    finite = [np.asarray(e, float)[np.isfinite(e)] for e in errors_mm]
+    everything = np.concatenate(finite) if finite else np.zeros(0)
+    top = max(float(np.percentile(everything, 99)) if everything.size else 1.0, limit_mm * 1.5)
+    edges = np.linspace(0, top, 60)
+    centres = (edges[1:] + edges[:-1]) / 2
+    cmap = LinearSegmentedColormap.from_list("ridge", ["#9ecae1", "#08306b"])
+    with rc_context({**STYLE, "axes.grid": False}):
+        fig = new_figure(7.5, min(1.2 + 0.32 * len(frames), 8.0))
+        ax = fig.add_subplot()
+        for i, e in enumerate(finite):
+            if not e.size:
+                continue
+            h = np.histogram(np.minimum(e, top), bins=edges)[0].astype(float)
+            h = h / max(h.max(), 1) * 1.6
+            base = -i
+            colour = cmap(i / max(len(frames) - 1, 1))
+            ax.fill_between(centres, base, base + h, color=colour, alpha=0.75, linewidth=0)
+            ax.plot(centres, base + h, color="white", linewidth=0.6)
+        ax.axvline(limit_mm, color="#D1495B", linestyle="--", linewidth=1)
+        ax.set_yticks([-i for i in range(len(frames))], [str(f) for f in frames], fontsize=7)
+        if len(frames) > 25:
+            for j, label in enumerate(ax.get_yticklabels()):
+                label.set_visible(j % max(len(frames) // 20, 1) == 0)
+        ax.set_ylabel("frame")
+        ax.set_xlabel(f"registration error (mm; > {top:.1f} in the last bin)")
+        ax.set_title("registration error per frame", loc="left")
+        ax.spines["left"].set_visible(False)
+        return to_png(fig)
+
+
+def confusion(matrix: np.ndarray, rows: Sequence[str], cols: Sequence[str]) -> bytes:
+    """Confusion matrix (rows truth, cols predicted): colour = row-normalised share,
+    text = count and share."""
+    m = np.asarray(matrix, float)
+    share = m / np.maximum(m.sum(1, keepdims=True), 1)
+    with rc_context({**STYLE, "axes.grid": False}):
+        fig = new_figure(4.6, 3.4)
+        ax = fig.add_subplot()
+        ax.imshow(share, cmap="Blues", vmin=0, vmax=1)
+        for i in range(m.shape[0]):
+            for j in range(m.shape[1]):
+                ax.text(j, i, f"{int(m[i, j])}\n{share[i, j]:.0%}", ha="center", va="center",
+                        fontsize=8, color="white" if share[i, j] > 0.55 else "#222222")
+        ax.set_xticks(range(len(cols)), cols, rotation=20)
+        ax.set_yticks(range(len(rows)), rows)
+        ax.set_xlabel("predicted")
+        ax.set_ylabel("truth")
+        ax.set_title("labels, frames 1..", loc="left")
+        return to_png(fig)
+
+
+def f1_over_time(frames: np.ndarray, per_class: dict[str, np.ndarray], macro: np.ndarray) -> bytes:
+    """Per-class F1 and macro-F1 per frame."""
+    with rc_context(STYLE):
+        fig = new_figure(7.5, 2.6)
+        ax = fig.add_subplot()
+        for name, values in per_class.items():
+            ax.plot(frames, values, color=CLASS_COLOURS[name], marker="o", markersize=3, label=name)
+        ax.plot(frames, macro, color="#222222", linewidth=2, label="macro-F1")
+        ax.set_ylim(-0.02, 1.02)
+        label_frame_axes(ax, frames, "F1", "label F1 per frame", legend=True)
+        return to_png(fig)

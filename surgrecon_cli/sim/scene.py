@@ -35,7 +35,7 @@ from typing import overload
 
 import numpy as np
 
-from .names import LENSES
+from . import LENSES
 
 
 @dataclass(frozen=True)

@@ -1,4 +1,5 @@
-"""Point classes and the ground-truth label rule the simulator's truth follows.
+"""Point classes and the ground-truth label rule the simulator's truth follows; the colour
+of each class and status in every output (report figures, Foxglove export).
 
 With frame 0 as reference, a point is `static` if it moved less than `static_mm`;
 otherwise `deforming` if its neighbourhood (points within `neighbourhood_mm` at frame 0)
@@ -100,3 +101,16 @@ def true_labels(
     return np.stack(
         [label_rule(vertices[0], frame, index, mask, static_mm, rigid_rms_mm) for frame in vertices]
     )
+
+
+# -- colours: one per class and status, for every output (report figures, Foxglove export) -----
+CLASS_COLOURS = {"static": "#4C78A8", "shifting": "#F2A541", "deforming": "#D1495B",
+                 "unknown": "#BAB0AC"}
+STATUS_COLOURS = {"intra": "#4C78A8", "inter": "#59A14F", "outlier": "#D1495B",
+                  "unobserved": "#BAB0AC"}
+
+
+def rgba255(hex_colour: str, alpha: int = 255) -> tuple[int, int, int, int]:
+    """"#RRGGBB" -> (r, g, b, a), each 0..255."""
+    value = hex_colour.lstrip("#")
+    return int(value[0:2], 16), int(value[2:4], 16), int(value[4:6], 16), alpha

@@ -27,16 +27,15 @@ from foxglove_schemas_protobuf.SpherePrimitive_pb2 import SpherePrimitive
 from google.protobuf.timestamp_pb2 import Timestamp
 
 from ...config import ToolConfig
-from ...core.classify.labels import CLASS_NAMES, UNKNOWN
+from ...core.classify.labels import CLASS_COLOURS, CLASS_NAMES, UNKNOWN, rgba255
 from ...core.geometry.cameras import CameraModel, in_image, project
 from ...core.geometry.tool import ray_segment_distance, tool_capsules, tool_name
-from ...report.palette import CLASS_COLOURS, rgba255
 from .foxglove_pack import color, points_annotation, pose, quaternion, timestamp, vector3
 
 WORLD_FRAME = "world"
 
 CLASS_LABELS = {**CLASS_NAMES, UNKNOWN: "unknown"}
-# Class colours (RGBA 0-255), those of the report's figures (report/palette.py).
+# Class colours (RGBA 0-255), those of the report's figures (core/classify/labels.py).
 CLASS_RGBA = {code: rgba255(CLASS_COLOURS[name]) for code, name in CLASS_LABELS.items()}
 ANNOTATION_STEP_PX = 1 / 16
 _TOOL_RGBA = (0.75, 0.78, 0.82, 0.6)
