@@ -352,6 +352,19 @@ def contact_section(data: RunData, config: Config, pngs: Mapping[str, bytes]) ->
             for r, k in zip(series.rows(), known, strict=True)]
     sec.add(rh.table(("frame", "contact", "clearance mm", "tolerance mm", "indentation mm",
                       "penetration mm", "area mm²", "volume mm³", "force N (model)"), rows))
+    extra = summary.get("extra_tools") or []
+    if extra:
+        sec.add(rh.paragraph("The table above is the `[tool]`'s; each `[[tools]]` tool is "
+                             "measured the same way, at its working end (per frame: "
+                             "metrics/deformation_tools.csv):", note=True))
+        sec.add(rh.table(("tool", "pose topic", "frames in contact", "deepest indentation",
+                          "largest area", "largest volume", "smallest clearance"),
+                         [(t.get("name", ""), t.get("pose", ""),
+                           _contact_frames(t, series.n_frames),
+                           _num(t.get("max_indentation_mm"), "mm"),
+                           _num(t.get("max_area_mm2"), "mm²"),
+                           _num(t.get("max_volume_mm3"), "mm³"),
+                           _num(t.get("min_clearance_mm"), "mm")) for t in extra]))
     scores = (data.evaluation or {}).get("deformation")
     if scores:
         sec.add(_scores(scores))
@@ -401,3 +414,12 @@ def _mm(value: Any, sigma: Any) -> str:
 
 def _share(value: Any) -> str:
     return "–" if value is None else f"{value:.1%}"
+
+
+def _contact_frames(tool: Mapping[str, Any], n_frames: int) -> str:
+    """How many frames a tool touches, from its onset to its last frame in contact."""
+    frames, onset, release = (tool.get("contact_frames") or [], tool.get("onset_frame"),
+                              tool.get("release_frame"))
+    if onset is None:
+        return "none"
+    return f"{len(frames)} (frames {onset}–{(release or n_frames) - 1})"
