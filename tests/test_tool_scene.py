@@ -1,5 +1,5 @@
-"""The Foxglove scene draws every tool as core/geometry/tool.py models it: the shaft and the jaw/wrist
-capsule beyond the kinematic frame, each tool in its own frame (`tool`, `tool_1`, ...)."""
+"""The Foxglove scene draws every tool as core/geometry/tool.py models it: the shaft and the
+jaw/wrist capsule beyond the kinematic frame, each tool in its own frame (`tool`, `tool_1`, ...)."""
 
 from __future__ import annotations
 

@@ -2,8 +2,9 @@
 the cameras' frusta, calibrations, images and image annotations.
 
 Frames: `world` (the tracker's), `camera_CC` (optical: x right, y down, z forward; CC the
-camera's index in the sorted id list) and each tool's (`core.geometry.tool.tool_name`: `tool`, `tool_1`,
-...; the kinematic frame, where core/geometry/tool.py's model of the shaft and jaw is drawn).
+camera's index in the sorted id list) and each tool's (`core.geometry.tool.tool_name`:
+`tool`, `tool_1`, ...; the kinematic frame, where core/geometry/tool.py's model of the
+shaft and jaw is drawn).
 """
 
 from __future__ import annotations
