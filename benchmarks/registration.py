@@ -18,7 +18,8 @@ Then a summary per family (means over seeds) and the goals of issue 14, met or n
 Ours: `surgrecon_cli.registration.register(src, tgt, src_rgb, tgt_rgb, config)` in process,
 defaults plus `--set` overrides of RegistrationConfig, timed (CPU time) after one warm-up
 call; that is `register_pair`, what `register-pair` runs (`--before` adds the shared
-`register` it ran before issue 28). Families stray_colour / stray_colour_partial (issue 28):
+`register` that the frame pipeline runs, without the colour-stray decision). Families
+stray_colour / stray_colour_partial:
 tuned on seeds 0-4, accepted on 100-104; their goals and colour decisions are printed last.
 Peers (binaries from --bcpd / SURGRECON_BCPD and --fast-rnrr / SURGRECON_FAST_RNRR; "not
 available" without them) run as subprocesses, see benchmarks/registration_peers.py for their
@@ -122,8 +123,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--variant", action="append", default=[], metavar="K=V[,K=V]",
                     help="an extra row of ours with these overrides on top of --set")
     ap.add_argument("--before", action="store_true",
-                    help="also a row 'before': the shared register() that register-pair ran "
-                    "before issue 28")
+                    help="also a row 'before': the shared register() (what the frame pipeline "
+                    "runs), without register_pair's colour-stray decision")
     ap.add_argument("--cap", type=float, default=300.0, help="time cap per peer run (s)")
     args = ap.parse_args(argv)
 
@@ -134,7 +135,7 @@ def main(argv: list[str] | None = None) -> int:
     for v in args.variant:
         configs[f"ours[{v}]"] = RegistrationConfig(**{**base, **parse_overrides(v.split(","))})
     warm = make_pair("tissue", 500, 0)
-    if args.before:  # the shared `register` at the same config: register-pair before issue 28
+    if args.before:  # the shared `register` at the same config
         configs["before"] = configs["ours"]
     for cfg in configs.values():
         run_ours(warm, cfg)  # imports, caches
