@@ -58,8 +58,15 @@ def child(run_dir: Path, gt_path: Path, mode: str) -> None:
     images, poses = log.frame_images(0), log.usable_poses(0)
     noise = noise_from_report(log.report, log.cameras, pixel_px=0.0)
     wall, cpu = time.perf_counter(), time.process_time()
-    result = build_template(images, list(log.models), poses, log.tool_poses[0],
-                            config.template, config.tool, noise=noise)
+    try:
+        from surgrecon_cli.core.template.build import BuildOptions, TemplateFrame
+    except ImportError:  # a `--baseline` source tree from before these were grouped
+        result = build_template(images, list(log.models), poses, log.tool_poses[0],
+                                config.template, config.tool, noise=noise)
+    else:
+        result = build_template(TemplateFrame(images, poses, log.tool_poses[0]),
+                                list(log.models), config.template, config.tool,
+                                BuildOptions(noise=noise))
     wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
     gt = load_ground_truth(gt_path)
     error_mm = map_to_surface(result.points, gt.vertices[0], gt.faces).distance * 1e3

@@ -15,6 +15,7 @@ from scipy.spatial import cKDTree
 from surgrecon_cli.core.registration import graph
 from surgrecon_cli.core.registration.admm import (
     AdmmProblem,
+    AdmmSettings,
     AdmmState,
     energy,
     factorise,
@@ -52,7 +53,7 @@ def fresh_state(prob: AdmmProblem) -> AdmmState:
 
 def solve(prob: AdmmProblem, mu: float = 2.0, **kwargs):
     factor = factorise(prob.D, prob.B, prob.L, prob.beta, mu, mu)
-    state, info, factor = run_admm(prob, fresh_state(prob), factor, **kwargs)
+    state, info, factor = run_admm(prob, fresh_state(prob), factor, AdmmSettings(**kwargs))
     return state.X, info, factor
 
 
@@ -118,7 +119,8 @@ def test_energy_decreases_to_the_minimum(l2_problem):
     state = fresh_state(l2_problem)
     energies = [energy(l2_problem, state.X)]
     for _ in range(6):
-        state, _, factor = run_admm(l2_problem, state, factor, max_iter=5, tol=0.0)
+        state, _, factor = run_admm(l2_problem, state, factor,
+                                   AdmmSettings(max_iter=5, tol=0.0))
         energies.append(energy(l2_problem, state.X))
     e_min = energy(l2_problem, direct_l2(l2_problem))
     assert energies[0] > 10 * e_min  # the identity is far from the targets

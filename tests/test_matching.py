@@ -13,6 +13,8 @@ from surgrecon_cli.core.geometry.poses import invert_pose
 from surgrecon_cli.core.template import matching
 from surgrecon_cli.core.template.features import Features
 from surgrecon_cli.core.template.matching import (
+    CameraView,
+    PairGates,
     build_tracks,
     epipolar_candidates,
     essential_matrix,
@@ -69,8 +71,13 @@ def scene():
                 perm=perm, fi=fi, fj=fj, truth=truth, rng=rng)
 
 
+def views(fi: Features, fj: Features, s: dict) -> tuple[CameraView, CameraView]:
+    """The two cameras of the scene `s` with features fi and fj."""
+    return CameraView(fi, s["pose_i"], FOCAL), CameraView(fj, s["pose_j"], FOCAL)
+
+
 def run(fi: Features, fj: Features, s: dict, depth_range=DEPTHS) -> set[tuple[int, int]]:
-    m = match_pair(fi, fj, s["pose_i"], s["pose_j"], FOCAL, FOCAL, RATIO, EPI_PX, depth_range)
+    m = match_pair(*views(fi, fj, s), PairGates(RATIO, EPI_PX, depth_range))
     return {(int(a), int(b)) for a, b in m}
 
 
@@ -191,8 +198,7 @@ def test_only_mutual_best_matches_are_kept(scene):
 def test_too_few_features_give_no_matches(scene):
     s = scene
     one = features(s["xi"][:1], s["desc"][:1])
-    assert match_pair(one, s["fj"], s["pose_i"], s["pose_j"], FOCAL, FOCAL, RATIO, EPI_PX,
-                      DEPTHS).shape == (0, 2)
+    assert match_pair(*views(one, s["fj"], s), PairGates(RATIO, EPI_PX, DEPTHS)).shape == (0, 2)
 
 
 # ---- tracks -------------------------------------------------------------------------------
@@ -264,8 +270,8 @@ def test_blocked_search_equals_the_dense_reference(scene, monkeypatch):
                     np.vstack([look_j, rng.uniform(0, 1, (325, 128))]))
     monkeypatch.setattr(matching, "BLOCK_CELLS", 7 * len(fj))
     assert len(matching.row_blocks(len(fi), len(fj))) == 43
-    got = {(int(a), int(b)) for a, b in match_pair(fi, fj, s["pose_i"], s["pose_j"], FOCAL,
-                                                    FOCAL, RATIO, 15.0, DEPTHS)}
+    got = {(int(a), int(b))
+           for a, b in match_pair(*views(fi, fj, s), PairGates(RATIO, 15.0, DEPTHS))}
     expected = dense_reference(fi, fj, s, 15.0)
     assert got == expected
     # non-trivial: most true pairs survive, some are lost to look-alikes

@@ -13,23 +13,28 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from surgrecon_cli.core.geometry.poses import fit_rigid
-from surgrecon_cli.core.registration.correspondences import build_matcher
+from surgrecon_cli.core.registration.correspondences import KnownPairs, build_matcher
 from surgrecon_cli.core.registration.graph import mean_spacing
-from surgrecon_cli.core.registration.rigid import MIN_KNOWN, rigid_prealign
+from surgrecon_cli.core.registration.rigid import (
+    MIN_KNOWN,
+    PrealignSettings,
+    SourcePoints,
+    rigid_prealign,
+)
 from surgrecon_cli.sim.pairs import dome
 
 UNIT = 5e-3  # the dome (metres) in normalised units of 5 mm, as the solver would see it
 
 
 def prealign(src, tgt, target_ids=None, observed=None):
-    matcher = build_matcher(tgt, len(src), None, 0.0, target_ids, None)
+    matcher = build_matcher(tgt, len(src), None, 0.0, KnownPairs(target_ids=target_ids))
     tree = cKDTree(tgt)
     spacing = mean_spacing(src)
     return rigid_prealign(
-        src, None, matcher, np.ones(len(src), bool) if observed is None else observed,
-        iterations=30, keep=0.8, spacing=spacing,
-        target_spacing=float(np.median(tree.query(tgt, k=2)[0][:, 1])), target_tree=tree,
-        gate=5 * spacing)
+        SourcePoints(src, None, np.ones(len(src), bool) if observed is None else observed),
+        matcher, tree, PrealignSettings(
+            iterations=30, keep=0.8, spacing=spacing,
+            target_spacing=float(np.median(tree.query(tgt, k=2)[0][:, 1])), gate=5 * spacing))
 
 
 def motion(rng, degrees: float, shift: float):

@@ -12,7 +12,7 @@ from surgrecon_cli.core.noise.model import NoiseModel
 from surgrecon_cli.core.target.cloud import INTER, INTRA, OUTLIER, UNOBSERVED, build_target
 from surgrecon_cli.core.target.frame_inputs import FrameInput, Rig, Sighting, TemplateData
 from surgrecon_cli.core.target.tracking import tracking_view
-from surgrecon_cli.core.template.build import build_template
+from surgrecon_cli.core.template.build import TemplateFrame, build_template
 from surgrecon_cli.sim.scene import SimConfig
 
 
@@ -25,7 +25,8 @@ def tracked():
     scene = render_frames(sim, [5, 6])
     cfg = Config()
     template = build_template(
-        scene.images[0], scene.models, scene.poses[0], scene.tool_poses[0], cfg.template, cfg.tool
+        TemplateFrame(scene.images[0], scene.poses[0], scene.tool_poses[0]), scene.models,
+        cfg.template, cfg.tool,
     )
     n, n_cams = len(template.points), len(scene.models)
     pixels = np.full((n, n_cams, 2), np.nan)

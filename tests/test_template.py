@@ -19,7 +19,7 @@ from surgrecon_cli.core.geometry.tool import (
     tool_image_mask,
 )
 from surgrecon_cli.core.geometry.triangulate import Observations, triangulate
-from surgrecon_cli.core.template.build import build_template
+from surgrecon_cli.core.template.build import TemplateFrame, build_template
 from surgrecon_cli.core.template.pairing import plan_pairs
 from surgrecon_cli.errors import GeometryError
 from surgrecon_cli.sim.scene import SimConfig
@@ -101,7 +101,8 @@ def test_template_accuracy_and_tool_removal(scene):
     cfg = Config()
     images = scene.images[0]
     tool_pose = scene.tool_poses[0]
-    result = build_template(images, scene.models, scene.poses[0], tool_pose, cfg.template, cfg.tool)
+    result = build_template(TemplateFrame(images, scene.poses[0], tool_pose), scene.models,
+                            cfg.template, cfg.tool)
     mapping = map_to_surface(result.points, scene.vertices[0], scene.faces)
     stats = distance_stats_mm(mapping.distance)
     assert len(result.points) >= 500
@@ -140,10 +141,9 @@ def test_template_needs_two_cameras(scene):
     images = [scene.images[0][0], None, None, None]
     with pytest.raises(GeometryError, match="usable camera"):
         build_template(
-            images,
+            TemplateFrame(images, scene.poses[0],
+                          make_pose(np.zeros(3), np.array([0, 0, 0, 1.0]))),
             scene.models,
-            scene.poses[0],
-            make_pose(np.zeros(3), np.array([0, 0, 0, 1.0])),
             cfg.template,
             cfg.tool,
         )
@@ -160,8 +160,8 @@ def test_template_without_one_camera_uses_the_others(scene, missing):
         images[1] = None
     else:
         poses[1] = np.nan
-    result = build_template(images, scene.models, poses, scene.tool_poses[0], cfg.template,
-                            cfg.tool)
+    result = build_template(TemplateFrame(images, poses, scene.tool_poses[0]), scene.models,
+                            cfg.template, cfg.tool)
     assert result.stats["features"][1] == 0
     assert all(1 not in pair for pair in result.plan.pairs)
     assert set(np.unique(result.observations.camera)) == {0, 2, 3}
@@ -194,8 +194,8 @@ def test_sequencing_matches_half_the_pairs_at_the_accuracy_of_all_pairs():
     scene = render_frames(SimConfig(cameras=6, frames=2, width=480, height=360, seed=3), [0])
     cfg = Config()
     results = {
-        all_pairs: build_template(scene.images[0], scene.models, scene.poses[0],
-                                  scene.tool_poses[0],
+        all_pairs: build_template(TemplateFrame(scene.images[0], scene.poses[0],
+                                                scene.tool_poses[0]), scene.models,
                                   replace(cfg.template, match_all_pairs=all_pairs), cfg.tool)
         for all_pairs in (True, False)
     }

@@ -12,7 +12,7 @@ from scenes import render_frames
 
 from surgrecon_cli.config import Config
 from surgrecon_cli.core.evaluate.scoring import distance_stats_mm, map_to_surface
-from surgrecon_cli.core.template.build import build_template
+from surgrecon_cli.core.template.build import BuildOptions, TemplateFrame, build_template
 from surgrecon_cli.core.template.gate import pair_minimums
 from surgrecon_cli.errors import GeometryError
 from surgrecon_cli.sim.scene import SimConfig
@@ -26,10 +26,10 @@ def small():
 
 def _build(scene, poses=None, **template):
     cfg = Config()
-    return build_template(scene.images[0], scene.models,
-                          scene.poses[0] if poses is None else poses, scene.tool_poses[0],
-                          replace(cfg.template, **template), cfg.tool,
-                          names=["left", "right", "cam2", "cam3"])
+    frame = TemplateFrame(scene.images[0], scene.poses[0] if poses is None else poses,
+                          scene.tool_poses[0])
+    return build_template(frame, scene.models, replace(cfg.template, **template), cfg.tool,
+                          BuildOptions(names=["left", "right", "cam2", "cam3"]))
 
 
 def test_minimum_follows_the_poorer_image():

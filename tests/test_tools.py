@@ -16,7 +16,7 @@ from surgrecon_cli.cli.main import main
 from surgrecon_cli.config import Config, ToolConfig, load_config
 from surgrecon_cli.core.geometry.poses import make_pose, point_to_segment_distance
 from surgrecon_cli.core.geometry.tool import points_near_tool, tool_capsules, tool_pixel_mask
-from surgrecon_cli.core.template.build import build_template
+from surgrecon_cli.core.template.build import TemplateFrame, build_template
 from surgrecon_cli.errors import ConfigError
 from surgrecon_cli.io.logs.records import PoseRecord
 from surgrecon_cli.io.run.ingest_store import load_ingested
@@ -103,8 +103,8 @@ def test_the_template_has_no_point_on_a_second_tool():
     points along its axis, with it none within its radius."""
     scene = render_frames(SimConfig(cameras=4, frames=2, width=300, height=250, seed=3), [0])
     cfg = Config()
-    plain = build_template(scene.images[0], scene.models, scene.poses[0], scene.tool_poses[0],
-                           cfg.template, cfg.tool)
+    plain = build_template(TemplateFrame(scene.images[0], scene.poses[0], scene.tool_poses[0]),
+                           scene.models, cfg.template, cfg.tool)
     median = np.median(plain.points, axis=0)
     centre = plain.points[np.argmin(np.linalg.norm(plain.points - median, axis=1))]
     across = make_pose(centre, np.array([0.0, np.sqrt(0.5), 0, np.sqrt(0.5)]))  # z along x
@@ -112,9 +112,9 @@ def test_the_template_has_no_point_on_a_second_tool():
                         jaw_width_m=0.004)
     a, b = tool_capsules(across, second)[0][:2]
     assert (point_to_segment_distance(plain.points, a, b) < 0.002).sum() >= 2
-    both = build_template(scene.images[0], scene.models, scene.poses[0],
-                          np.stack([scene.tool_poses[0], across]), cfg.template,
-                          (cfg.tool, second))
+    both = build_template(TemplateFrame(scene.images[0], scene.poses[0],
+                                        np.stack([scene.tool_poses[0], across])),
+                          scene.models, cfg.template, (cfg.tool, second))
     for a, b, radius in tool_capsules(across, second):
         assert (point_to_segment_distance(both.points, a, b) < radius).sum() == 0
     assert sum(both.stats["features"]) < sum(plain.stats["features"])  # masked before SIFT

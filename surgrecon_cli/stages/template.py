@@ -19,7 +19,13 @@ import numpy as np
 
 from ..config import Config
 from ..core.noise.model import covariance_sigma, noise_from_report
-from ..core.template.build import STEPS, TemplateResult, build_template
+from ..core.template.build import (
+    STEPS,
+    BuildOptions,
+    TemplateFrame,
+    TemplateResult,
+    build_template,
+)
 from ..errors import InputError
 from ..executors import Executor, mapper
 from ..executors.serial import SerialExecutor
@@ -52,16 +58,16 @@ def run_build_template(
             raise InputError(f"{run_dir}: the ingested log has no frames")
         images, poses = log.frame_images(0), log.usable_poses(0)
         result = build_template(
-            images,
+            TemplateFrame(images, poses, log.all_tool_poses(0)),
             list(log.models),
-            poses,
-            log.all_tool_poses(0),
             config.template,
             config.tool_configs(),
-            on_step=on_step,
-            map_calls=mapper(executor or SerialExecutor()),
-            noise=noise_from_report(log.report, log.cameras, pixel_px=0.0),
-            names=log.cameras,
+            BuildOptions(
+                on_step=on_step,
+                map_calls=mapper(executor or SerialExecutor()),
+                noise=noise_from_report(log.report, log.cameras, pixel_px=0.0),
+                names=log.cameras,
+            ),
         )
         for a, b, px in result.stats["disagreeing_groups"]:
             logger.warning("cameras %s and cameras %s are not linked: their images match "

@@ -164,25 +164,35 @@ def _energy(prob: AdmmProblem, DX: np.ndarray, BX: np.ndarray) -> float:
     return float(data + smooth)
 
 
+@dataclass(frozen=True)
+class AdmmSettings:
+    """How `run_admm` iterates: at most `max_iter` iterations, stopping tolerance `tol`
+    (normalised units), over-relaxation factor `relax`; `mu_growth` > 1 multiplies both
+    penalties every iteration while mu1 < `mu1_max`."""
+
+    max_iter: int
+    tol: float
+    relax: float = 1.6
+    mu_growth: float = 1.0
+    mu1_max: float = np.inf
+
+
 def run_admm(
     prob: AdmmProblem,
     state: AdmmState,
     factor: Factor,
-    *,
-    max_iter: int,
-    tol: float,
-    relax: float = 1.6,
-    mu_growth: float = 1.0,
-    mu1_max: float = np.inf,
+    settings: AdmmSettings,
 ) -> tuple[AdmmState, AdmmInfo, Factor]:
-    """Iterate until primal and dual RMS residuals are both below `tol` (normalised units).
+    """Iterate until primal and dual RMS residuals are both below `settings.tol`.
 
     `factor` must be `factorise(prob.D, prob.B, prob.L, prob.beta, mu1, mu2)`; rows of D with
     w = 0 carry no data term (their split absorbs the residual), so one factor serves every
-    outer step whatever the correspondences. `mu_growth` > 1 multiplies both penalties every
-    iteration while mu1 < `mu1_max`, rescaling the duals and refactorising each time.
+    outer step whatever the correspondences. With `settings.mu_growth` > 1 the duals are
+    rescaled and the matrix refactorised each time the penalties grow.
     Returns the new state, the info and the factor in use at the end.
     """
+    max_iter, tol, relax = settings.max_iter, settings.tol, settings.relax
+    mu_growth, mu1_max = settings.mu_growth, settings.mu1_max
     D, B, G, L = prob.D, prob.B, prob.G, prob.L
     n_data = len(G)
     # Both splits as one: rows [D; B] X - [G; 0] = [C; Z], multipliers [U1; U2], so that an

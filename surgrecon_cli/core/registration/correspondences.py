@@ -31,17 +31,27 @@ class Matcher:
     known: np.ndarray
 
 
+@dataclass(frozen=True)
+class KnownPairs:
+    """Correspondences known before matching: `target_ids` (M,) int, the source index each
+    target point is (-1 = unknown), and `landmarks` (L, 2) int (source, target) pairs; None =
+    none of that kind. Landmarks override template ids."""
+
+    target_ids: np.ndarray | None = None
+    landmarks: np.ndarray | None = None
+
+
 def build_matcher(
     target_q: np.ndarray,
     n_source: int,
     target_rgb: np.ndarray | None,
     colour_scale: float,
-    target_ids: np.ndarray | None,
-    landmarks: np.ndarray | None,
+    known_pairs: KnownPairs,
     usable: np.ndarray | None = None,
 ) -> Matcher:
     """Known pairs (landmarks override template ids) and a KD-tree over the other targets;
     `usable` (M,) bool: targets free matches may use (None = all; strays are left out)."""
+    target_ids, landmarks = known_pairs.target_ids, known_pairs.landmarks
     known = np.full(n_source, -1, np.int64)
     free = np.ones(len(target_q), bool) if usable is None else usable.copy()
     if target_ids is not None:

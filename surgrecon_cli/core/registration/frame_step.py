@@ -34,7 +34,7 @@ from ..noise.model import NoiseModel, covariance_sigma
 from ..target.cloud import TargetCloud, build_target, new_target_points
 from ..target.frame_inputs import FrameInput, Rig, Sighting, TemplateData
 from ..target.tracking import TrackingView
-from ..template.build import build_template
+from ..template.build import TemplateFrame, build_template
 from . import RegistrationResult, register
 from .rigid_fit import robust_rigid
 
@@ -307,8 +307,8 @@ class FrameRegistrar:
         """New features of the frame's `images` triangulated as in the template build, away
         from the tracked points (K, 3) m: (M, 3) m and colours (M, 3) uint8."""
         try:
-            fresh = build_template(images, self.rig.models, frame.poses,
-                                   frame.tool_pose, self.config.template, self.rig.tools)
+            fresh = build_template(TemplateFrame(images, frame.poses, frame.tool_pose),
+                                   self.rig.models, self.config.template, self.rig.tools)
         except GeometryError:
             return np.zeros((0, 3)), np.zeros((0, 3), np.uint8)
         return new_target_points(fresh.points, fresh.rgb, tracked,

@@ -14,6 +14,7 @@ All lengths in the solver's units.
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -58,9 +59,22 @@ def candidates(source: np.ndarray, target: np.ndarray) -> tuple[list[np.ndarray]
     return out, scale
 
 
-def _icp(pts: np.ndarray, target: np.ndarray, nearest: Nearest, A: np.ndarray, t: np.ndarray,
-         steps: int, keep: float) -> tuple[np.ndarray, np.ndarray, float]:
+@dataclass(frozen=True)
+class _Clouds:
+    """What every ICP run aligns: source points `pts` (P, 3), target points `target` (M, 3),
+    `nearest` looking moved points up in the target, and the fraction `keep` of the closest
+    pairs fitted (trimming)."""
+
+    pts: np.ndarray
+    target: np.ndarray
+    nearest: Nearest
+    keep: float
+
+
+def _icp(clouds: _Clouds, A: np.ndarray, t: np.ndarray,
+         steps: int) -> tuple[np.ndarray, np.ndarray, float]:
     """Trimmed point-to-point ICP of the similarity x -> A x + t (A = s R, s fixed)."""
+    pts, target, nearest, keep = clouds.pts, clouds.target, clouds.nearest, clouds.keep
     scale = float(np.cbrt(np.linalg.det(A)))
     for _ in range(steps):
         idx, d = nearest(pts @ A.T + t)
@@ -77,13 +91,13 @@ def global_align(pts: np.ndarray, target: np.ndarray, nearest: Nearest,
     candidates; `nearest(moved)` looks the moved points up in the target."""
     rotations, scale = candidates(pts, target)
     cs, ct = pts.mean(axis=0), target.mean(axis=0)
+    clouds = _Clouds(pts, target, nearest, keep)
     tried = []
     for R in rotations:
         A = scale * R
-        tried.append(_icp(pts, target, nearest, A, ct - A @ cs, COARSE_STEPS, keep))
+        tried.append(_icp(clouds, A, ct - A @ cs, COARSE_STEPS))
     tried.sort(key=lambda item: item[2])
-    refined = [_icp(pts, target, nearest, A, t, FINE_STEPS, keep)
-               for A, t, _ in tried[:KEEP_BEST]]
+    refined = [_icp(clouds, A, t, FINE_STEPS) for A, t, _ in tried[:KEEP_BEST]]
     A, t, cost = min(refined, key=lambda item: item[2])
-    A0, t0, cost0 = _icp(pts, target, nearest, np.eye(3), np.zeros(3), FINE_STEPS, keep)
+    A0, t0, cost0 = _icp(clouds, np.eye(3), np.zeros(3), FINE_STEPS)
     return (A, t) if cost < GLOBAL_MARGIN * cost0 else (A0, t0)

@@ -25,10 +25,10 @@ from scipy.spatial import cKDTree
 from ...config import RegistrationConfig
 from ...errors import GeometryError
 from . import graph
-from .admm import AdmmProblem, AdmmState, energy, factorise, run_admm
-from .correspondences import build_matcher, match
+from .admm import AdmmProblem, AdmmSettings, AdmmState, energy, factorise, run_admm
+from .correspondences import KnownPairs, build_matcher, match
 from .residuals import along_surface, surface_distance
-from .rigid import rigid_prealign, rigid_where_better
+from .rigid import PrealignSettings, SourcePoints, rigid_prealign, rigid_where_better
 from .surface import analyse_target, colour_weight
 
 Callback = Callable[[int, dict[str, Any]], None]
@@ -205,22 +205,24 @@ def register(
     if tgt_rgb is not None:
         colour_scale = (norm.mm(cfg.color_weight_mm) if cfg.color_weight_mm > 0 else
                         colour_weight(tq, tgt_rgb, tgt_tree, ~surf.stray, gate))
-    matcher = build_matcher(tq, n, tgt_rgb, colour_scale, ids, lm, usable=~surf.stray)
+    matcher = build_matcher(tq, n, tgt_rgb, colour_scale, KnownPairs(ids, lm),
+                            usable=~surf.stray)
     usable_idx = np.flatnonzero(~surf.stray)
     usable_tree = cKDTree(tq[usable_idx])
     mutual = cfg.mutual_spacings * max(norm.spacing, tgt_spacing)
 
     # --- rigid pre-alignment, X initialised to it ---
     t_rigid = time.perf_counter()
+    source = SourcePoints(q, src_rgb, observed)
     if cfg.rigid_iterations > 0:
-        R, t = rigid_prealign(q, src_rgb, matcher, observed, iterations=cfg.rigid_iterations,
-                              keep=cfg.rigid_trim, spacing=norm.spacing,
-                              target_spacing=tgt_spacing, target_tree=tgt_tree,
-                              gate=gate, support=support, global_init=cfg.global_init)
+        R, t = rigid_prealign(source, matcher, tgt_tree, PrealignSettings(
+            iterations=cfg.rigid_iterations, keep=cfg.rigid_trim, spacing=norm.spacing,
+            target_spacing=tgt_spacing, gate=gate, support=support,
+            global_init=cfg.global_init))
     else:
         R, t = np.eye(3), np.zeros(3)
-    rigid_nodes = rigid_where_better(q, src_rgb, matcher, observed, R, t, support,
-                                     interp_idx[:, 0], n_nodes)
+    rigid_nodes = rigid_where_better(source, matcher, (R, t), support, interp_idx[:, 0],
+                                     n_nodes)
     X: np.ndarray = np.zeros((n_nodes, 4, 3))
     X[:, :3, :] = np.where(rigid_nodes[:, None, None], R.T, np.eye(3))
     X[:, 3, :] = np.where(rigid_nodes[:, None], nodes_q @ R.T + t, nodes_q)
@@ -285,9 +287,9 @@ def register(
                            beta=cfg.beta, data_l1=data_l1, smooth_l1=smooth_l1)
         state, info, factor = run_admm(
             prob, AdmmState(X=X, U1=U1, U2=U2), factor,
-            max_iter=cfg.final_admm_iterations if last else cfg.admm_iterations, tol=tol,
-            relax=cfg.relaxation, mu_growth=cfg.mu_growth,
-            mu1_max=cfg.mu * MU_GROWTH_LIMIT)
+            AdmmSettings(max_iter=cfg.final_admm_iterations if last else cfg.admm_iterations,
+                         tol=tol, relax=cfg.relaxation, mu_growth=cfg.mu_growth,
+                         mu1_max=cfg.mu * MU_GROWTH_LIMIT))
         X, U1, U2 = state.X, state.U1, state.U2
         moved = D_full @ X
         res = np.linalg.norm(moved[rows[matched]] - G[matched], axis=1) * norm.unit * 1e3

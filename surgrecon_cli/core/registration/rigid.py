@@ -12,6 +12,8 @@ All lengths in the solver's normalised units.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -108,35 +110,55 @@ def point_costs(matcher: Matcher, moved: np.ndarray, rgb: np.ndarray | None,
     return d2 / (d2 + support**2)
 
 
+@dataclass(frozen=True)
+class SourcePoints:
+    """The source cloud in normalised units: positions `q` (N, 3), colours `rgb` (N, 3) or
+    None, and `observed` (N,) bool, the points with a data term."""
+
+    q: np.ndarray
+    rgb: np.ndarray | None
+    observed: np.ndarray
+
+
+@dataclass(frozen=True)
+class PrealignSettings:
+    """How `rigid_prealign` runs: at most `iterations` ICP steps fitting the closest `keep`
+    fraction of the pairs; lengths in normalised units: `spacing`, `target_spacing` the mean
+    point spacings of source and target, `gate` the correspondence distance gate, `support`
+    the robust cost's scale (0 = no check against the identity); `global_init` 'auto', 'on'
+    or 'off'."""
+
+    iterations: int
+    keep: float
+    spacing: float
+    target_spacing: float
+    gate: float
+    support: float = 0.0
+    global_init: str = "off"
+
+
 def rigid_prealign(
-    source_q: np.ndarray,
-    source_rgb: np.ndarray | None,
+    source: SourcePoints,
     matcher: Matcher,
-    observed: np.ndarray,
-    *,
-    iterations: int,
-    keep: float,
-    spacing: float,
-    target_spacing: float,
     target_tree: cKDTree,
-    gate: float,
-    support: float = 0.0,
-    global_init: str = "off",
+    settings: PrealignSettings,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Linear part A (3, 3) (a rotation, or s R after a global initialisation) and
     translation t (3,) with target ~ source @ A.T + t.
 
-    `observed` (N,) bool: source points with a data term; `spacing`, `target_spacing`: mean
-    point spacings; `target_tree` indexes the target positions; `gate`: the correspondence
-    distance gate; `support` > 0: the result is kept only if it beats the identity
-    significantly on the robust cost mean rho(d), rho = d^2 / (d^2 + support^2), d the
-    position + colour distance of each subsampled point to its nearest usable target (so it
-    cannot make things worse on that cost). `global_init`: 'auto' searches coarse rotations
-    and a scale (globalinit.py) when the clouds start far apart (GLOBAL_SPREAD), 'on'
-    always, 'off' never.
+    `target_tree` indexes the target positions. With `settings.support` > 0 the result is
+    kept only if it beats the identity significantly on the robust cost mean rho(d),
+    rho = d^2 / (d^2 + support^2), d the position + colour distance of each subsampled point
+    to its nearest usable target (so it cannot make things worse on that cost).
+    `settings.global_init`: 'auto' searches coarse rotations and a scale (globalinit.py)
+    when the clouds start far apart (GLOBAL_SPREAD), 'on' always, 'off' never.
     Pairs must pass a mutual check, then the closest `keep` fraction is fitted with Cauchy
     weights. Stops when a step moves the subsample by < 1 % of the point spacing (ours).
     """
+    source_q, source_rgb, observed = source.q, source.rgb, source.observed
+    iterations, keep, spacing = settings.iterations, settings.keep, settings.spacing
+    target_spacing, gate = settings.target_spacing, settings.gate
+    support, global_init = settings.support, settings.global_init
     known = np.flatnonzero((matcher.known >= 0) & observed)
     if len(known) >= MIN_KNOWN:
         return _l1_fit(source_q[known], matcher.target_q[matcher.known[known]])
@@ -207,13 +229,16 @@ def rigid_prealign(
     return A, t
 
 
-def rigid_where_better(q: np.ndarray, rgb: np.ndarray | None, matcher: Matcher,
-                       observed: np.ndarray, R: np.ndarray, t: np.ndarray, support: float,
+def rigid_where_better(source: SourcePoints, matcher: Matcher,
+                       motion: tuple[np.ndarray, np.ndarray], support: float,
                        owner: np.ndarray, n_nodes: int) -> np.ndarray:
-    """(M,) bool: nodes that start from the rigid pre-alignment; the others start from the
-    identity. A node keeps the rigid motion unless the robust cost (point_costs) of
-    its observed free points is lower without it: a rigid fit to a moving part must not
-    drag a static part along (ours). `owner` (N,): each point's nearest node."""
+    """(M,) bool: nodes that start from the rigid pre-alignment `motion` (R (3, 3), t (3,));
+    the others start from the identity. A node keeps the rigid motion unless the robust
+    cost (point_costs, scale `support`) of its observed free points is lower without it: a
+    rigid fit to a moving part must not drag a static part along (ours). `owner` (N,): each
+    point's nearest node."""
+    q, rgb, observed = source.q, source.rgb, source.observed
+    R, t = motion
     use = np.ones(n_nodes, bool)
     free = np.flatnonzero(observed & (matcher.known < 0))
     if support <= 0 or matcher.tree is None or len(free) == 0 or (

@@ -30,10 +30,16 @@ from ..noise.model import (
 )
 from .features import detect_features, no_features
 from .gate import group_disagreements, pair_minimums, unlinked_message
-from .matching import build_tracks, match_pair
+from .matching import CameraView, PairGates, build_tracks, match_pair
 from .outliers import surface_outliers
 from .pairing import PairPlan, PairPrediction, candidate_pairs, predict_pairs
-from .sequencing import all_pairs, sequenced, track_observations
+from .sequencing import (
+    RigFeatures,
+    SequenceGates,
+    all_pairs,
+    sequenced,
+    track_observations,
+)
 
 # ours: the tool mask casts a ray every 4 px of a 640 px wide image, the same angular
 # spacing at any width (at 1920 px: every 12 px, 9x fewer rays; the mask is dilated by it)
@@ -78,30 +84,49 @@ class TemplateResult:
     stats: dict
 
 
+@dataclass(frozen=True)
+class TemplateFrame:
+    """The frame a template is built from: images[c] (H, W, 3) uint8 RGB or None
+    (unusable), poses (C, 4, 4) camera-to-world, tool_pose (4, 4) tool tip in the world, or
+    (K, 4, 4) of several tools (NaN = unknown)."""
+
+    images: list[np.ndarray | None]
+    poses: np.ndarray
+    tool_pose: np.ndarray
+
+
+@dataclass(frozen=True)
+class BuildOptions:
+    """Optional inputs of `build_template`: `on_step(name)` is called as each of `STEPS` is
+    done; `map_calls` makes the independent calls (in parallel when it is an executor's);
+    `noise` the tracker's measured jitter and shared bodies (None = not known); `names` (C,)
+    name the cameras in messages (None: their indices)."""
+
+    on_step: Callable[[str], None] | None = None
+    map_calls: MapCalls = map_here
+    noise: NoiseModel | None = None
+    names: Sequence[str] | None = None
+
+
 def build_template(
-    images: list[np.ndarray | None],
+    frame: TemplateFrame,
     models: list[CameraModel],
-    poses: np.ndarray,
-    tool_pose: np.ndarray,
     cfg: TemplateConfig,
     tool_cfg: ToolConfigs,
-    on_step: Callable[[str], None] | None = None,
-    map_calls: MapCalls = map_here,
-    noise: NoiseModel | None = None,
-    names: Sequence[str] | None = None,
+    options: BuildOptions | None = None,
 ) -> TemplateResult:
-    """Build the template from one frame: images[c] (H, W, 3) uint8 RGB or None (unusable),
-    poses (C, 4, 4) camera-to-world, tool_pose (4, 4) tool tip in the world, or (K, 4, 4)
-    of several tools with a config each in `tool_cfg` (NaN = unknown);
-    `noise` (the tracker's measured jitter and shared bodies) makes each view's variance at
-    least what the pose error alone projects (`measured_covariances`) and adds a shared
-    body's rigid error.
+    """Build the template from one `frame`; `tool_cfg` has a config for each of its tools.
+    `options.noise` (the tracker's measured jitter and shared bodies) makes each view's
+    variance at least what the pose error alone projects (`measured_covariances`) and adds a
+    shared body's rigid error.
 
     The feature detection of each camera and the matching of each candidate pair are
-    independent calls, made through `map_calls` (in parallel when it is an executor's).
-    `on_step(name)` is called as each of `STEPS` is done; `names` (C,) name the cameras in
-    messages (default: their indices)."""
-    step = on_step or (lambda _name: None)
+    independent calls, made through `options.map_calls` (in parallel when it is an
+    executor's)."""
+    images, poses, tool_pose = frame.images, frame.poses, frame.tool_pose
+    opts = options or BuildOptions()
+    map_calls, noise, names = opts.map_calls, opts.noise, opts.names
+    step = opts.on_step or (lambda _name: None)
     usable = np.array(
         [im is not None and np.isfinite(p).all() for im, p in zip(images, poses, strict=True)]
     )
@@ -120,13 +145,14 @@ def build_template(
         models, np.where(usable[:, None, None], poses, np.eye(4)), usable, cfg.working_distance_m
     )
     focal = [m.K[0, 0] for m in models]
+    views = [CameraView(features[c], poses[c], focal[c]) for c in range(len(features))]
     pairs = candidate_pairs(prediction, cfg.min_view_overlap)
 
     def match_pairs(todo: list[tuple[int, int]]) -> list[np.ndarray]:
         return map_calls(match_pair, [
-            (features[i], features[j], poses[i], poses[j], focal[i], focal[j], cfg.ratio,
-             cfg.epipolar_px, (cfg.depth_range[0] * prediction.depth[i],
-                               cfg.depth_range[1] * prediction.depth[i]))
+            (views[i], views[j], PairGates(cfg.ratio, cfg.epipolar_px,
+                                           (cfg.depth_range[0] * prediction.depth[i],
+                                            cfg.depth_range[1] * prediction.depth[i])))
             for i, j in todo])
 
     if cfg.match_all_pairs:
@@ -134,9 +160,9 @@ def build_template(
     else:
         pose_px = (np.zeros(len(models)) if noise is None else
                    np.sqrt(noise.pose_variance_px2(prediction.depth, np.array(focal))))
-        matched = sequenced(features, poses, models, pairs, prediction, match_pairs,
-                            minimums, cfg.ratio, cfg.epipolar_px, pose_px,
-                            cfg.max_reprojection_px)
+        matched = sequenced(RigFeatures(features, poses, models), pairs, prediction,
+                            match_pairs, SequenceGates(minimums, cfg.ratio, cfg.epipolar_px,
+                                                       pose_px, cfg.max_reprojection_px))
     step("matches")
     plan = matched.plan
     track_ids, n_tracks = build_tracks([len(f) for f in features], matched.merges)
@@ -160,8 +186,8 @@ def build_template(
     )
     # The noise is measured on the geometrically good points; a point is then kept when the
     # depth accuracy its rays buy is good enough (not by a fixed triangulation angle).
-    pixel_px, cov, image_cov = measured_covariances(tri.points, obs, poses, models, good,
-                                                    images, noise)
+    pixel_px, cov, image_cov = measured_covariances(tri.points, obs, frame, models, good,
+                                                    noise)
     sigma = covariance_sigma(np.nan_to_num(cov, nan=np.inf))
     precise = np.isfinite(sigma) & (sigma <= cfg.max_sigma_mm * 1e-3)
     imprecise = good & ~precise
@@ -172,8 +198,8 @@ def build_template(
     off_surface[candidates] = surface_outliers(tri.points[candidates])
     keep = good & ~on_tool & ~off_surface
     obs_kept = obs.renumbered(keep)
-    disagree = group_disagreements(features, poses, np.array(focal), plan.groups, pairs,
-                                   cfg.min_pair_matches, cfg.epipolar_px)
+    disagree = group_disagreements(views, plan.groups, pairs, cfg.min_pair_matches,
+                                   cfg.epipolar_px)
     # Pose errors: per view (in `cov`), and a shared tracker body's, rigid for the body.
     pose_cov = cov[keep] - image_cov[keep]
     if noise is not None:
@@ -215,20 +241,21 @@ def build_template(
     )
 
 
-def measured_covariances(points: np.ndarray, obs: Observations, poses: np.ndarray,
+def measured_covariances(points: np.ndarray, obs: Observations, frame: TemplateFrame,
                          models: list[CameraModel], use: np.ndarray,
-                         images: list[np.ndarray | None],
                          noise: NoiseModel | None = None
                          ) -> tuple[float, np.ndarray, np.ndarray]:
     """Pixel noise σ_px (px) measured from the reprojection residuals of the points `use`
     (N,) bool (at least the localisation bound), and every point's covariance (N, 3, 3) m²
-    from its views, in all and from image noise alone. Each view's
+    from its views in `frame` (its images and poses), in all and from image noise alone.
+    Each view's
     variance is the larger of σ_px² and the Cramér-Rao bound of locating it in its image
     (core/noise/model.py) plus, for a camera not on a shared tracker body, the pose error the
     tracker's measured jitter projects at the point's depth: with two views the residuals
     only see the error across the epipolar line, and the triangulation absorbs much of
     the cameras' pose errors into the points (measured: 0.25 mm of tracker noise left
     0.50 px of residuals and a template 3x less accurate than they implied)."""
+    poses, images = frame.poses, frame.images
     residual, _ = reprojection_residuals(points, obs, poses, models)
     sel = use[obs.point]
     pixel_px = pixel_noise_from_residuals(residual[sel], obs.point[sel])

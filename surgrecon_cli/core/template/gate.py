@@ -35,7 +35,7 @@ import cv2
 import numpy as np
 
 from .features import Features
-from .matching import epipolar_distances_px, essential_matrix
+from .matching import CameraView, epipolar_distances_px, essential_matrix
 
 DESCRIPTOR_RATIO = 0.8  # Lowe's ratio for matching without poses
 DISAGREE_EPIPOLAR = 3.0  # ours: image-consistent matches this many x epipolar_px off disagree
@@ -63,12 +63,16 @@ def unlinked_message(counts: dict[tuple[int, int], int], minimums: np.ndarray,
             "check the calibration and poses")
 
 
-def group_disagreements(features: list[Features], poses: np.ndarray, focal: np.ndarray,
-                        groups: list[list[int]], pairs: list[tuple[int, int]], floor: int,
+def group_disagreements(views: list[CameraView], groups: list[list[int]],
+                        pairs: list[tuple[int, int]], floor: int,
                         epipolar_px: float) -> list[tuple[list[int], list[int], float]]:
     """Pairs of camera groups whose images agree but whose poses do not: (group a, group b,
     median epipolar distance px) for the candidate `pairs` (i, j) across two groups of two or
-    more cameras (see the module docstring); focal (C,) px."""
+    more cameras (see the module docstring); views (C,) each camera's features, pose and
+    focal length."""
+    features = [v.features for v in views]
+    poses = [v.pose for v in views]
+    focal = [v.focal for v in views]
     multi = [g for g in groups if len(g) >= 2]
     member = {c: k for k, g in enumerate(multi) for c in g}
     worst: dict[tuple[int, int], float] = {}

@@ -8,6 +8,7 @@ fundamental matrix is estimated): the Lowe ratio test is run among the candidate
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -110,20 +111,34 @@ def ray_depths(
         return np.where(denom > 1e-12, (b * e - c * d) / denom, np.nan)  # z of x̃ = (x, y, 1)
 
 
-def match_pair(
-    fi: Features,
-    fj: Features,
-    pose_i: np.ndarray,
-    pose_j: np.ndarray,
-    f_i: float,
-    f_j: float,
-    ratio: float,
-    epipolar_px: float,
-    depth_range: tuple[float, float],
-) -> np.ndarray:
-    """Indices (M, 2) of mutual, ratio-tested matches between two images that lie within
-    `epipolar_px` of each other's epipolar lines and triangulate inside `depth_range` (m)
-    of camera i: the candidates of a feature are a short epipolar segment, not a line."""
+@dataclass(frozen=True)
+class CameraView:
+    """One camera's image as matching sees it: its `features`, camera-to-world `pose`
+    (4, 4) and `focal` length (px, converting normalised units to pixels)."""
+
+    features: Features
+    pose: np.ndarray
+    focal: float
+
+
+@dataclass(frozen=True)
+class PairGates:
+    """What a pose-guided match between cameras i and j must pass: Lowe's `ratio`, lie
+    within `epipolar_px` (px) of each other's epipolar lines and triangulate inside
+    `depth_range` (near, far) m of camera i."""
+
+    ratio: float
+    epipolar_px: float
+    depth_range: tuple[float, float]
+
+
+def match_pair(view_i: CameraView, view_j: CameraView, gates: PairGates) -> np.ndarray:
+    """Indices (M, 2) of mutual, ratio-tested matches between the features of two images
+    that pass `gates`: the candidates of a feature are a short epipolar segment, not a
+    line."""
+    fi, fj, pose_i, pose_j = view_i.features, view_j.features, view_i.pose, view_j.pose
+    f_i, f_j = view_i.focal, view_j.focal
+    ratio, epipolar_px, depth_range = gates.ratio, gates.epipolar_px, gates.depth_range
     if len(fi) < 2 or len(fj) < 2:
         return np.zeros((0, 2), int)
     E = essential_matrix(pose_i, pose_j)

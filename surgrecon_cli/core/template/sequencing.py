@@ -65,16 +65,47 @@ def track_observations(features: list[Features], track_ids: list[np.ndarray]
     return TrackObservations(obs, np.concatenate(index).astype(int))
 
 
-def match_to_tracks(
-    features: list[Features], merges: list[Merge], poses: np.ndarray,
-    models: list[CameraModel], new: int, angle_deg: np.ndarray, ratio: float, gate_px: float,
-    max_reprojection_px: float,
-) -> list[Merge]:
+@dataclass(frozen=True)
+class RigFeatures:
+    """Per camera c: its `features[c]`, camera-to-world pose `poses[c]` (4, 4) and model
+    `models[c]`."""
+
+    features: list[Features]
+    poses: np.ndarray
+    models: list[CameraModel]
+
+
+@dataclass(frozen=True)
+class SequenceGates:
+    """What sequencing requires: `min_matches` (C, C) verified matches a pair needs to link;
+    Lowe's `ratio`; `epipolar_px` (px) the pair matching's epipolar tolerance; each camera's
+    pose error `pose_px` (C,) px (with `epipolar_px`, the point gate of matching to tracks);
+    `max_reprojection_px` (px) a track's views must reproject within to be matched to."""
+
+    min_matches: np.ndarray
+    ratio: float
+    epipolar_px: float
+    pose_px: np.ndarray
+    max_reprojection_px: float
+
+
+def track_gate_px(gates: SequenceGates, camera: int) -> float:
+    """The point gate (px) matching tracks to `camera`: GATE_EPIPOLAR x `epipolar_px` +
+    GATE_POSE_SIGMAS x the camera's pose error."""
+    return float(GATE_EPIPOLAR * gates.epipolar_px + GATE_POSE_SIGMAS * gates.pose_px[camera])
+
+
+def match_to_tracks(rig: RigFeatures, merges: list[Merge], new: int, angle_deg: np.ndarray,
+                    gates: SequenceGates) -> list[Merge]:
     """Matches of camera `new`'s features to the tracks the `merges` build, as merges from
     each track's view in the camera looking most like `new` (smallest view angle,
     angle_deg (C, C)). Tracks are triangulated (kept when every view reprojects within
-    `max_reprojection_px`), projected into `new` and matched within `gate_px` (px) of the
-    projection by descriptor (ratio test against all of `new`'s features, mutual best)."""
+    `gates.max_reprojection_px`), projected into `new` and matched within
+    `track_gate_px(gates, new)` (px) of the projection by descriptor (ratio test against
+    all of `new`'s features, mutual best)."""
+    features, poses, models = rig.features, rig.poses, rig.models
+    ratio, max_reprojection_px = gates.ratio, gates.max_reprojection_px
+    gate_px = track_gate_px(gates, new)
     track_ids, n_tracks = build_tracks([len(f) for f in features], merges)
     tracked = track_observations(features, track_ids)
     obs = tracked.observations
@@ -152,16 +183,13 @@ def all_pairs(pairs: list[tuple[int, int]], match_pairs: MatchPairs, conditionin
                      len(found), 0, {p: len(m) for p, m in found.items()})
 
 
-def sequenced(features: list[Features], poses: np.ndarray, models: list[CameraModel],
-              pairs: list[tuple[int, int]], prediction: PairPrediction,
-              match_pairs: MatchPairs, min_matches: np.ndarray, ratio: float, epipolar_px: float,
-              pose_px: np.ndarray, max_reprojection_px: float) -> MatchPlan:
-    """Only a spanning tree over the candidate `pairs` is matched (failed tree pairs
-    replaced, re-planning with the verified pairs first); cameras join in the tree's order,
-    each first matched to the tracks so far (`match_to_tracks`; gate GATE_EPIPOLAR x
-    `epipolar_px` + GATE_POSE_SIGMAS x the camera's pose error pose_px (C,) px), then merged
-    with its tree partner; a closing pass matches every camera to the tracks made after it
-    joined.
+def sequenced(rig: RigFeatures, pairs: list[tuple[int, int]], prediction: PairPrediction,
+              match_pairs: MatchPairs, gates: SequenceGates) -> MatchPlan:
+    """Only a spanning tree over the candidate `pairs` is matched (failed tree pairs, fewer
+    than `gates.min_matches`, replaced, re-planning with the verified pairs first); cameras
+    join in the tree's order, each first matched to the tracks so far (`match_to_tracks`;
+    gate `track_gate_px`), then merged with its tree partner; a closing pass matches every
+    camera to the tracks made after it joined.
 
     The tree maximises the predicted weight of a pair, shared view x conditioning (the
     matches expected; `plan_pairs` weighs verified pairs by matches x conditioning).
@@ -169,7 +197,7 @@ def sequenced(features: list[Features], poses: np.ndarray, models: list[CameraMo
     third of the points (measured, seeds 11, 21, 22): rejected."""
     predicted = prediction.overlap * prediction.conditioning
     conditioning, angle_deg = prediction.conditioning, prediction.angle_deg
-    gate_px = GATE_EPIPOLAR * epipolar_px + GATE_POSE_SIGMAS * pose_px
+    min_matches = gates.min_matches
     found: dict[tuple[int, int], np.ndarray] = {}
     candidate = np.zeros_like(predicted)
     for i, j in pairs:
@@ -188,8 +216,7 @@ def sequenced(features: list[Features], poses: np.ndarray, models: list[CameraMo
     merges: list[Merge] = []
     guided = 0
     def to_tracks(camera: int) -> list[Merge]:
-        return match_to_tracks(features, merges, poses, models, camera, angle_deg, ratio,
-                               float(gate_px[camera]), max_reprojection_px)
+        return match_to_tracks(rig, merges, camera, angle_deg, gates)
 
     for tree in trees:
         joined: list[int] = []
