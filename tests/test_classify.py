@@ -11,6 +11,7 @@ from gt_fixtures import true_field
 from surgrecon_cli.config import ClassifyConfig, load_config
 from surgrecon_cli.core.classify.labels import DEFORMING, SHIFTING, STATIC, UNKNOWN, true_labels
 from surgrecon_cli.core.classify.rules import (
+    RegisteredFrame,
     apply_hysteresis,
     classify_frame,
     classify_sequence,
@@ -61,8 +62,8 @@ def test_still_surface_is_static(measure):
     p = _patch()
     noisy = p + np.random.default_rng(1).normal(0, 0.05e-3, p.shape)
     nb = template_neighbourhoods(p, 5.0, 6, 128)
-    out = classify_frame(p, noisy, nb, dataclasses.replace(RULE, measure=measure),
-                         transforms=_identity(len(p)))
+    out = classify_frame(p, RegisteredFrame(noisy, _identity(len(p))), nb,
+                         dataclasses.replace(RULE, measure=measure))
     assert (out.labels == S).all()
     assert np.nanmax(out.displacement_mm) < 0.5
     assert np.isnan(out.deformation_mm).all()  # only moving points get a deformation measure
@@ -76,7 +77,7 @@ def test_pure_translation_and_rotation_are_shifting(measure):
     for R, t in [(np.eye(3), np.array([0.002, -0.001, 0.0025])),
                  (_rotation(np.array([0.3, 1.0, 0.2]), 8.0), np.array([0.0, 0.004, 0.001]))]:
         T = _rigid_transforms(len(p), R, t)
-        out = classify_frame(p, _apply(T, p), nb, cfg, transforms=T)
+        out = classify_frame(p, RegisteredFrame(_apply(T, p), T), nb, cfg)
         assert (out.labels == H).all(), np.bincount(out.labels)
         assert np.nanmax(out.deformation_mm) < 1e-6
 
@@ -100,7 +101,7 @@ def test_local_indentation_is_deforming_and_its_surroundings_static(measure, thr
     moved, T, _ = _indentation(p)
     cfg = dataclasses.replace(RULE, measure=measure, deform_mm=threshold)
     nb = template_neighbourhoods(p, cfg.neighbourhood_mm, cfg.min_neighbours, cfg.max_neighbours)
-    out = classify_frame(p, moved, nb, cfg, transforms=T)
+    out = classify_frame(p, RegisteredFrame(moved, T), nb, cfg)
     r = np.linalg.norm(p[:, :2], axis=1)
     assert (out.labels[r > 0.016] == S).all()          # dent < 0.04 mm out there
     core = r < 0.006
@@ -174,10 +175,10 @@ def test_unknown_positions_and_status_band():
     nb = template_neighbourhoods(p, 5.0, 6, 128)
     status = np.zeros(len(p), np.uint8)
     status[1::2] = 1  # inter-camera inliers: dynamic evidence
-    plain = classify_frame(p, moved, nb, RULE, status=status)
+    plain = classify_frame(p, RegisteredFrame(moved, status=status), nb, RULE)
     assert plain.labels[0] == U and (plain.labels[1:] == S).all()
-    banded = classify_frame(p, moved, nb, dataclasses.replace(RULE, status_band_mm=0.1),
-                            status=status)
+    banded = classify_frame(p, RegisteredFrame(moved, status=status), nb,
+                            dataclasses.replace(RULE, status_band_mm=0.1))
     assert (banded.labels[1::2] == H).all() and (banded.labels[2::2] == S).all()
 
 
@@ -185,9 +186,10 @@ def test_bad_inputs_raise_named_errors():
     p = _patch(50)
     nb = template_neighbourhoods(p, 5.0, 6, 128)
     with pytest.raises(GeometryError, match="registered positions"):
-        classify_frame(p, p[:10], nb, RULE)
+        classify_frame(p, RegisteredFrame(p[:10]), nb, RULE)
     with pytest.raises(GeometryError, match="transform_diff"):
-        classify_frame(p, p, nb, dataclasses.replace(RULE, measure="transform_diff"))
+        classify_frame(p, RegisteredFrame(p), nb,
+                       dataclasses.replace(RULE, measure="transform_diff"))
     with pytest.raises(GeometryError, match="NaN"):
         template_neighbourhoods(np.full((5, 3), np.nan), 5.0, 2, 4)
     with pytest.raises(ConfigError, match=r"classify\.status_band_mm"):

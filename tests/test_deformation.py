@@ -14,6 +14,7 @@ from surgrecon_cli.config import Config, ConfigError, load_config
 from surgrecon_cli.core.classify.rules import template_neighbourhoods
 from surgrecon_cli.core.evaluate.deformation_scoring import score_deformation
 from surgrecon_cli.core.measure.deformation import (
+    ReferenceSurface,
     compensated_field,
     surface_normals,
     surrounding_rings,
@@ -75,8 +76,8 @@ def _dent(points: np.ndarray, centre: int, depth: float) -> np.ndarray:
 def _run(sheet, frames: list[np.ndarray], poses: list[np.ndarray], sigma: float | None = None):
     points, nb, rings, normals = sheet
     sig = None if sigma is None else np.full((len(frames), len(points)), sigma)
-    return measure_sequence(points, np.stack(frames), sig, np.stack(poses), nb, rings,
-                            normals, CFG.deformation, CFG.tool)
+    return measure_sequence(ReferenceSurface(points, normals, nb, rings), np.stack(frames), sig,
+                            np.stack(poses), CFG.deformation, CFG.tool)
 
 
 def _true_area_volume(depth: float, threshold: float, cos: float) -> tuple[float, float]:
@@ -205,7 +206,8 @@ def test_hertz_force_and_the_force_column(sheet):
     cfg = dataclasses.replace(CFG.deformation, youngs_modulus_kpa=5.0)
     poses = np.stack([_pose(points[c] + 0.01 * TILT), _pose(points[c] - 0.003 * TILT)])
     frames = np.stack([points, _dent(points, c, 0.003)])
-    result = measure_sequence(points, frames, None, poses, nb, rings, normals, cfg, CFG.tool)
+    result = measure_sequence(ReferenceSurface(points, normals, nb, rings), frames, None, poses,
+                              cfg, CFG.tool)
     s = result.series
     assert s.force_n[0] == 0.0
     assert s.force_n[1] == pytest.approx(hertz_force(s.indentation_mm[1] * 1e-3, 0.004,

@@ -11,6 +11,7 @@ from surgrecon_cli.core.geometry.tool import push_out_of_tool
 from surgrecon_cli.core.registration import register
 from surgrecon_cli.core.registration.frame_step import DataTerm, register_with_contact
 from surgrecon_cli.core.target.tracking import (
+    TrackPrior,
     klt_levels_for,
     klt_track,
     track_adaptive,
@@ -50,7 +51,7 @@ def test_a_motion_beyond_the_chosen_depth_is_found_by_the_full_depth_retry():
     prev, cur = tracking_view(_texture(0.0)), tracking_view(_texture(14.0))
     g = np.arange(50.0, 150.0, 12.0)
     start = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
-    tracked, ok, moved = track_adaptive(prev, cur, start, start.copy(), cfg, motion_px=1.0)
+    tracked, ok, moved = track_adaptive(prev, cur, start, TrackPrior(start.copy(), 1.0), cfg)
     assert ok.mean() > 0.9
     err = np.abs(tracked[ok] - (start[ok] + [14.0, 0.0]))
     assert np.median(err) < 0.05
@@ -65,10 +66,10 @@ def test_of_two_priors_the_one_whose_pilot_tracks_more_points_is_used():
     g = np.arange(50.0, 150.0, 8.0)
     start = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
     stale = start - [60.0, 0.0]
-    _, ok_stale, _ = track_adaptive(prev, cur, start, stale, cfg, float("nan"))
+    _, ok_stale, _ = track_adaptive(prev, cur, start, TrackPrior(stale), cfg)
     assert ok_stale.mean() < 0.5
-    tracked, ok, _ = track_adaptive(prev, cur, start, stale, cfg, float("nan"),
-                                    alternative=start.copy())
+    tracked, ok, _ = track_adaptive(prev, cur, start,
+                                    TrackPrior(stale, alternative=start.copy()), cfg)
     assert ok.mean() > 0.9
     assert np.median(np.abs(tracked[ok] - (start[ok] + [14.0, 0.0]))) < 0.05
 
@@ -81,7 +82,7 @@ def test_the_chosen_depth_tracks_as_the_full_depth_on_a_simulated_frame_pair():
     rng = np.random.default_rng(0)
     start = rng.uniform([30, 30], [290, 226], (300, 2))
     full, ok_full = klt_track(prev, cur, start, start.copy(), cfg, cfg.klt_levels)
-    chosen, ok, _ = track_adaptive(prev, cur, start, start.copy(), cfg, motion_px=1.0)
+    chosen, ok, _ = track_adaptive(prev, cur, start, TrackPrior(start.copy(), 1.0), cfg)
     both = ok & ok_full
     assert both.sum() >= 0.95 * ok_full.sum()
     # Within the tracker's own stopping tolerance (an update below 0.01 px ends it).

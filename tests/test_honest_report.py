@@ -15,7 +15,12 @@ from synth_log import SynthSpec
 
 from surgrecon_cli.cli.main import main
 from surgrecon_cli.config import Config
-from surgrecon_cli.core.classify.quality import frame_quality, pooled_within_2sigma, verdict
+from surgrecon_cli.core.classify.quality import (
+    FrameFit,
+    frame_quality,
+    pooled_within_2sigma,
+    verdict,
+)
 from surgrecon_cli.io.run.folder import RunFolder
 from surgrecon_cli.io.run.ingest_store import load_ingested
 from surgrecon_cli.report.caveats import run_caveats
@@ -47,9 +52,9 @@ def test_residual_share_within_2sigma_is_measured():
     sigma = np.full(n, 1e-3)
     residual = np.array([0.0, 1e-3, 3e-3, 5e-3, np.nan])
     status = np.zeros(n, np.uint8)
-    q = frame_quality(1, status, None, sigma, residual, sigma, False, True)
+    q = frame_quality(1, FrameFit(status, sigma, residual, sigma, False, True))
     assert q.within_2sigma == pytest.approx(0.5) and q.with_target == 4
-    q2 = frame_quality(2, status, None, sigma, np.zeros(n), sigma, False, True)
+    q2 = frame_quality(2, FrameFit(status, sigma, np.zeros(n), sigma, False, True))
     share, _ = pooled_within_2sigma([q, q2])
     assert share == pytest.approx((2 + 5) / (4 + 5))
 

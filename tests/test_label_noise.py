@@ -15,6 +15,7 @@ from surgrecon_cli.core.classify.labels import (
 )
 from surgrecon_cli.core.classify.rules import (
     Evidence,
+    RegisteredFrame,
     classify_frame,
     departure_statistic,
     noise_scale,
@@ -53,7 +54,7 @@ def test_understated_noise_does_not_make_a_rigid_shift_deform():
     evidence = Evidence(sigma=np.full(n, np.sqrt(3) * stated), template_sigma=np.zeros(n),
                         measured=measured, measured_sigma=np.full(n, np.sqrt(3) * stated),
                         displacement_cov=cov, departure_cov=cov)
-    labels = classify_frame(template, measured, nb, cfg, evidence=evidence).labels
+    labels = classify_frame(template, RegisteredFrame(measured), nb, cfg, evidence=evidence).labels
     index, mask = radius_neighbourhoods(template, cfg.neighbourhood_mm * 1e-3)
     true = label_rule(template, truth, index, mask, cfg.static_mm, cfg.deform_mm)
     far = r2 > 0.010**2  # truly rigid: the dent is 2.5 mm wide

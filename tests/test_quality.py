@@ -13,7 +13,7 @@ from surgrecon_cli.core.classify.labels import (
     STATIC,
     UNOBSERVED,
 )
-from surgrecon_cli.core.classify.quality import frame_quality, unsupported_points
+from surgrecon_cli.core.classify.quality import FrameFit, frame_quality, unsupported_points
 
 
 def _frame(status, residual_ratio):
@@ -22,7 +22,7 @@ def _frame(status, residual_ratio):
     has = np.isin(status, (INTRA, INTER))
     residual = np.where(has, residual_ratio * sigma, np.nan)
     target_sigma = np.where(has, sigma, np.nan)
-    return frame_quality(3, status, None, sigma, residual, target_sigma, False, True)
+    return frame_quality(3, FrameFit(status, sigma, residual, target_sigma, False, True))
 
 
 def _labels(n):

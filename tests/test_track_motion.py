@@ -46,6 +46,10 @@ def _truth(scene, poses, points: np.ndarray, frame: int) -> np.ndarray:
     return uv, seen
 
 
+def _rig(scene, cfg: Config) -> Rig:
+    return Rig(list(scene.models), NoiseModel(0.3, 0.3, 0.0, 0.0), cfg.target, cfg.tool)
+
+
 def test_a_two_frame_sweep_keeps_the_visible_points_tracked(sweep):
     # Frame 2 -> 4, found at frame 2; their latest positions lag (those of frame 0: the
     # registration did not keep up), and the fixed poses do not say that anything moved.
@@ -58,8 +62,7 @@ def test_a_two_frame_sweep_keeps_the_visible_points_tracked(sweep):
     zeros = np.zeros((n, 3, 3))
     data = TemplateData(template, np.zeros((n, 3), np.uint8), zeros, zeros,
                         np.full((n, len(poses), 2), np.nan))
-    rig = Rig(list(scene.models), NoiseModel(0.3, 0.3, 0.0, 0.0), cfg.target, cfg.tool)
-    target = build_target(data, rig, template, Sighting(views[1], poses, start),
+    target = build_target(data, _rig(scene, cfg), template, Sighting(views[1], poses, start),
                           FrameInput(2, views[2], poses, scene.tool_poses[2]))
     found = np.isfinite(target.pixels).all(2)
     both = seen.all(1)
@@ -80,9 +83,10 @@ def test_points_lost_by_the_chain_are_reacquired_from_the_template_images(sweep)
     lost = np.arange(len(points)) % 2 == 0
     latest[lost] = np.nan
     prev[lost] = np.nan
-    pixels, found, _ = find_points(latest, views[1], views[2], poses, poses, prev,
-                                   scene.models, scene.tool_poses[2], cfg.target, cfg.tool,
-                                   anchor_views=views[0], anchor_pixels=pixels0)
+    pixels, found, _ = find_points(latest, Sighting(views[1], poses, prev),
+                                   FrameInput(2, views[2], poses, scene.tool_poses[2]),
+                                   _rig(scene, cfg), anchor_views=views[0],
+                                   anchor_pixels=pixels0)
     both = seen.all(1)
     assert (lost & both).sum() > 80
     assert found[lost & both].all(1).mean() >= 0.8
@@ -143,10 +147,11 @@ def test_points_are_reassociated_by_descriptor_when_every_track_was_lost(sweep):
     truth, seen = _truth(scene, poses, points, 2)
     n = len(points)
     lost = np.full((n, 3), np.nan)
-    pixels, found, _ = find_points(lost, views[1], views[2], poses, poses,
-                                   np.full((n, len(poses), 2), np.nan), scene.models,
-                                   scene.tool_poses[2], cfg.target, cfg.tool,
-                                   anchor_views=views[0], anchor_pixels=pixels0)
+    unseen = np.full((n, len(poses), 2), np.nan)
+    pixels, found, _ = find_points(lost, Sighting(views[1], poses, unseen),
+                                   FrameInput(2, views[2], poses, scene.tool_poses[2]),
+                                   _rig(scene, cfg), anchor_views=views[0],
+                                   anchor_pixels=pixels0)
     both = seen.all(1)
     assert both.sum() > 150
     assert found[both].all(1).mean() >= 0.8

@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..core.classify.labels import DEFORMING, SHIFTING, STATIC, STATUS_NAMES, UNKNOWN
-from ..core.classify.quality import FrameQuality, frame_quality
+from ..core.classify.quality import FrameFit, FrameQuality, frame_quality
 from ..io.run.artefacts import FrameRegistration
 
 SAMPLED_FRAMES = 200
@@ -117,9 +117,10 @@ class FrameAccumulator:
         self._lists["errors"][k] = reg.error
         self.tracking_px[k] = reg.tracking_px
         self.seconds[k] = [reg.seconds_target, reg.seconds_register]
-        self._lists["quality"].append(frame_quality(
-            k, status, labels, reg.sigma.astype(float), reg.residual.astype(float),
-            reg.target_sigma.astype(float), bool(reg.failed), bool(reg.converged), reg.error))
+        self._lists["quality"].append(frame_quality(k, FrameFit(
+            status, reg.sigma.astype(float), reg.residual.astype(float),
+            reg.target_sigma.astype(float), bool(reg.failed), bool(reg.converged), reg.error),
+            labels))
 
     def result(self) -> FrameFigures:
         lists = self._lists

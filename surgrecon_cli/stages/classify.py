@@ -25,11 +25,12 @@ import numpy as np
 from ..config import ClassifyConfig, Config
 from ..core.classify.hysteresis import HysteresisAhead, hysteresis_step
 from ..core.classify.labels import CLASS_NAMES, INTRA, STATIC, UNKNOWN
-from ..core.classify.quality import frame_quality, unsupported_points
+from ..core.classify.quality import FrameFit, frame_quality, unsupported_points
 from ..core.classify.rules import (
     Evidence,
     FrameClasses,
     Neighbourhoods,
+    RegisteredFrame,
     classify_frame,
     template_neighbourhoods,
 )
@@ -119,11 +120,11 @@ def classify_one_frame(run_dir: Path, frame: int, config: Config) -> int:
     evidence = frame_evidence(reg, reg.registered.astype(float), template_noise)
     registered, evidence = static_verdicts_checked(
         reg, template, template_noise, evidence, list(log.models), log.usable_poses(frame), cfg)
-    classes = classify_frame(template, registered, nb, cfg, transforms=transforms,
-                             status=reg.status, evidence=evidence)
-    quality = frame_quality(frame, reg.status, None, reg.sigma.astype(float),
-                            reg.residual.astype(float), reg.target_sigma.astype(float),
-                            bool(reg.failed), bool(reg.converged), reg.error)
+    classes = classify_frame(template, RegisteredFrame(registered, transforms, reg.status), nb,
+                             cfg, evidence=evidence)
+    quality = frame_quality(frame, FrameFit(
+        reg.status, reg.sigma.astype(float), reg.residual.astype(float),
+        reg.target_sigma.astype(float), bool(reg.failed), bool(reg.converged), reg.error))
     classes.labels[unsupported_points(quality, reg.status, classes.labels)] = UNKNOWN
     write_npz(layout.classified(frame), **_rows(classes, reg.status))
     return frame

@@ -20,7 +20,13 @@ from ..core.geometry.poses import make_pose
 from ..core.sync.streams import PoseStream, base_to_world_pose, fmt_stamp
 from ..core.sync.tf_samples import concat_samples
 from ..core.sync.tf_tree import TfTree, build_tf_tree
-from ..core.sync.world_poses import chain_stream, moved_by, stream_to_world, transformed
+from ..core.sync.world_poses import (
+    WorldTree,
+    chain_stream,
+    moved_by,
+    stream_to_world,
+    transformed,
+)
 from ..errors import InputError, quoted
 from ..io.logs.reader import LogReader
 from ..io.logs.transforms import read_transforms
@@ -61,8 +67,8 @@ def world_poses(ids: Sequence[str], cams: Sequence[CameraStreams], tool: Poses,
         if topics.camera_from_ecm and cam.poses is None and shared is not None:
             hand_eye = _hand_eye(topics.camera_from_ecm, index, len(ids))
             streams.append(moved_by(stream_to_world(
-                shared.validated(), shared.name, shared.frame, tree, world, gap_ns, what),
-                hand_eye, f"{shared.name} with topics.camera_from_ecm"))
+                shared.validated(), shared.name, shared.frame, WorldTree(tree, world, gap_ns),
+                what), hand_eye, f"{shared.name} with topics.camera_from_ecm"))
             sources[cid] = (f"{_topic_text(shared.name, shared.frame, world)}, then "
                             f"topics.camera_from_ecm[{index}]")
             continue
@@ -78,7 +84,7 @@ def world_poses(ids: Sequence[str], cams: Sequence[CameraStreams], tool: Poses,
                              f"topics.camera_pose = {topics.camera_pose!r}")
         frame = cam.poses.frame
         streams.append(stream_to_world(conflicts.topic(cid, cam.poses), cam.pose_topic, frame,
-                                       tree, world, gap_ns, what))
+                                       WorldTree(tree, world, gap_ns), what))
         sources[cid] = _topic_text(cam.pose_topic, frame, world)
         conflicts.chain(cid, frame)
     if not topics.tool_pose:
@@ -169,8 +175,8 @@ def _tool_stream(tool: Poses, on_tf: bool, frame: str, base_to_world: tuple[floa
     if base_to_world:  # the tip in the robot's base frame
         return (transformed(conflicts.topic(user, tool), base_to_world_pose(base_to_world),
                             tool.name), f"{tool.name} through {base_key}")
-    stream = stream_to_world(conflicts.topic(user, tool), tool.name, tool.frame, tree, world,
-                             gap_ns, what)
+    stream = stream_to_world(conflicts.topic(user, tool), tool.name, tool.frame,
+                             WorldTree(tree, world, gap_ns), what)
     conflicts.chain(user, tool.frame)
     return stream, _topic_text(tool.name, tool.frame, world)
 

@@ -30,7 +30,12 @@ from ..config import Config
 from ..config.schema import ExtraToolConfig
 from ..core.classify.rules import Neighbourhoods, template_neighbourhoods
 from ..core.geometry.tool import tool_name
-from ..core.measure.deformation import Rings, surface_normals, surrounding_rings
+from ..core.measure.deformation import (
+    ReferenceSurface,
+    Rings,
+    surface_normals,
+    surrounding_rings,
+)
 from ..core.measure.indentation import (
     FIELD_DTYPES,
     NOT_MEASURED,
@@ -85,6 +90,7 @@ def run_measure(run_dir: Path, config: Config,
         obs = read_observations(layout, n)
         template_sigma = covariance_sigma(obs.covariance + obs.pose_covariance)
         nb, rings, normals = geometry(template, log, config)
+        surface = ReferenceSurface(template, normals, nb, rings)
         figs: list[list[dict[str, float]]] = [[] for _ in config.tool_configs()]  # per tool
         scratch = {key: layout.measure_dir / f".deformation.{key}.tmp" for key in FIELD_DTYPES}
         layout.measure_dir.mkdir(parents=True, exist_ok=True)
@@ -97,9 +103,9 @@ def run_measure(run_dir: Path, config: Config,
                     reg = read_registration(layout, k, n)
                     positions = reg.registered.astype(float)
                     sigma = np.hypot(reg.sigma.astype(float), template_sigma)
-                frame_figs, rows = measure_tools(template, positions, sigma,
-                                                 log.all_tool_poses(k), nb, rings, normals,
-                                                 config.deformation, config.tool_configs())
+                frame_figs, rows = measure_tools(surface, positions, sigma,
+                                                 log.all_tool_poses(k), config.deformation,
+                                                 config.tool_configs())
                 for t, fig in enumerate(frame_figs):
                     figs[t].append(fig)
                 for key, value in rows.items():

@@ -58,11 +58,27 @@ class FrameQuality:
                 "converged": self.converged, "trustworthy": not self.warnings}
 
 
-def frame_quality(frame: int, status: np.ndarray, labels: np.ndarray | None,
-                  sigma: np.ndarray, residual: np.ndarray, target_sigma: np.ndarray,
-                  failed: bool, converged: bool, error: str = "") -> FrameQuality:
-    """Quality of frame k from its status (N,), labels (N,) (None before classify),
-    registered σ (N,) m, residual to target (N,) m and target σ (N,) m."""
+@dataclass(frozen=True)
+class FrameFit:
+    """One frame's registration as the quality figures read it: status (N,) reprojection
+    check codes, registered σ (N,) m, residual to target (N,) m, target σ (N,) m, whether
+    the registration failed (and why: `error`) and whether its solver converged."""
+
+    status: np.ndarray
+    sigma: np.ndarray
+    residual: np.ndarray
+    target_sigma: np.ndarray
+    failed: bool
+    converged: bool
+    error: str = ""
+
+
+def frame_quality(frame: int, fit: FrameFit, labels: np.ndarray | None = None
+                  ) -> FrameQuality:
+    """Quality of frame k from its registration `fit` and labels (N,) (None before
+    classify)."""
+    status, sigma, residual, target_sigma = fit.status, fit.sigma, fit.residual, fit.target_sigma
+    failed, converged = fit.failed, fit.converged
     n = max(len(status), 1)
     observed = float(np.isin(status, (INTRA, INTER)).sum() / n)
     unknown = float((labels == UNKNOWN).sum() / n) if labels is not None else float("nan")
@@ -75,7 +91,7 @@ def frame_quality(frame: int, status: np.ndarray, labels: np.ndarray | None,
     within = float((ratios <= 2.0).mean()) if has.any() else float("nan")
     warnings = []
     if failed:
-        warnings.append(f"frame {frame}: registration failed ({error}); all points unknown")
+        warnings.append(f"frame {frame}: registration failed ({fit.error}); all points unknown")
     else:
         if observed < MIN_OBSERVED:
             warnings.append(f"frame {frame}: only {observed:.0%} of the template was observed; "

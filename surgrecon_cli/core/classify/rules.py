@@ -107,6 +107,17 @@ class Evidence:
 
 
 @dataclass(frozen=True)
+class RegisteredFrame:
+    """One frame's registration: positions (N, 3) m T_i p̃_i (NaN = unknown), per-point
+    affines transforms (N, 3, 4) (needed by measure "transform_diff") and status (N,) the
+    reprojection check codes of core/target/cloud.py (None = displacement only)."""
+
+    positions: np.ndarray
+    transforms: np.ndarray | None = None
+    status: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
 class FrameClasses:
     """One frame: labels (N,) uint8, displacement_mm (N,) ‖T_i p̃_i − p_i‖ and
     deformation_mm (N,) the shifting/deforming measure (NaN where not computed)."""
@@ -240,19 +251,13 @@ def noise_scale(stat: np.ndarray, dof: np.ndarray) -> float:
                                       SCALE_QUANTILE)))
 
 
-def classify_frame(template: np.ndarray, registered: np.ndarray, nb: Neighbourhoods,
-                   cfg: ClassifyConfig, transforms: np.ndarray | None = None,
-                   status: np.ndarray | None = None,
-                   evidence: Evidence | None = None) -> FrameClasses:
-    """Label one frame.
-
-    template (N, 3) m frame-0 positions p_i; registered (N, 3) m positions T_i p̃_i (NaN =
-    unknown); transforms (N, 3, 4) per-point affines (needed by measure "transform_diff");
-    status (N,) reprojection check codes of core/target/cloud.py (None = displacement only);
-    evidence: the frame's uncertainties (None = plain thresholds, no noise).
-    """
+def classify_frame(template: np.ndarray, frame: RegisteredFrame, nb: Neighbourhoods,
+                   cfg: ClassifyConfig, evidence: Evidence | None = None) -> FrameClasses:
+    """Label one frame: template (N, 3) m frame-0 positions p_i; evidence the frame's
+    uncertainties (None = plain thresholds, no noise)."""
     template = _points(template, "template points")
-    registered = np.asarray(registered, float)
+    registered = np.asarray(frame.positions, float)
+    transforms, status = frame.transforms, frame.status
     n = len(template)
     if registered.shape != (n, 3):
         raise GeometryError(f"registered positions must be ({n}, 3), got {registered.shape}")
@@ -319,9 +324,9 @@ def classify_sequence(template: np.ndarray, registered: np.ndarray, cfg: Classif
     nb = nb or template_neighbourhoods(template, cfg.neighbourhood_mm, cfg.min_neighbours,
                                        cfg.max_neighbours)
     frames = [
-        classify_frame(template, registered[k], nb, cfg,
-                       None if transforms is None else transforms[k],
-                       None if status is None else status[k])
+        classify_frame(template, RegisteredFrame(registered[k],
+                                                 None if transforms is None else transforms[k],
+                                                 None if status is None else status[k]), nb, cfg)
         for k in range(len(registered))
     ]
     raw = np.stack([f.labels for f in frames])

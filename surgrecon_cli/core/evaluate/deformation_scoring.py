@@ -22,7 +22,7 @@ import numpy as np
 
 from ...config import Config
 from ..classify.rules import template_neighbourhoods
-from ..measure.deformation import surface_normals, surrounding_rings
+from ..measure.deformation import ReferenceSurface, surface_normals, surrounding_rings
 from ..measure.indentation import Deformation, DeformationSeries, contact_events, measure_sequence
 
 GOAL_FRAMES = 1
@@ -41,8 +41,8 @@ def true_deformation(vertices: np.ndarray, tool_poses: np.ndarray, viewpoint: np
     nb = template_neighbourhoods(v0, c.neighbourhood_mm, c.min_neighbours, c.max_neighbours)
     rings = surrounding_rings(v0, d.ring_inner_mm, d.ring_outer_mm, d.ring_points)
     normals = surface_normals(v0, nb, viewpoint)
-    return measure_sequence(v0, np.asarray(vertices, float), None, tool_poses, nb, rings,
-                            normals, d, config.tool)
+    return measure_sequence(ReferenceSurface(v0, normals, nb, rings),
+                            np.asarray(vertices, float), None, tool_poses, d, config.tool)
 
 
 def _event_error(measured: int | None, true: int | None) -> int | None:

@@ -69,6 +69,17 @@ class CompensatedField:
     centre_used: np.ndarray
 
 
+@dataclass(frozen=True)
+class ReferenceSurface:
+    """The frame-0 surface frames are measured against: points (N, 3) m, their unit normals
+    (N, 3), neighbourhoods (core/classify/rules.py) and rings (`surrounding_rings`)."""
+
+    points: np.ndarray
+    normals: np.ndarray
+    nb: Neighbourhoods
+    rings: Rings
+
+
 def voxel_subsample(points: np.ndarray, spacing_m: float) -> np.ndarray:
     """Indices (M,) of one point (the first) per cube of `spacing_m` of points (N, 3) m."""
     keys = np.floor(np.asarray(points, float) / spacing_m).astype(np.int64)

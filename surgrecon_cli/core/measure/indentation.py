@@ -35,9 +35,8 @@ from typing import Any
 import numpy as np
 
 from ...config import DeformationConfig, ToolConfig
-from ..classify.rules import Neighbourhoods
 from ..geometry.tool import working_end
-from .deformation import CompensatedField, Rings, compensated_field
+from .deformation import CompensatedField, ReferenceSurface, compensated_field
 from .dent import (
     deformed_region,
     patch_triangles,
@@ -118,31 +117,38 @@ class Deformation:
     field: DeformationField
 
 
-def measure_frame(reference: np.ndarray, positions: np.ndarray, sigma: np.ndarray | None,
-                  tool_pose: np.ndarray, nb: Neighbourhoods, rings: Rings, normals: np.ndarray,
-                  cfg: DeformationConfig, tool: ToolConfig) -> tuple[dict[str, float], dict]:
+@dataclass(frozen=True)
+class _FrameField:
+    """One frame's positions (N, 3) m, sigma (N,) m or None, `compensated_field`, inward (N,) m."""
+
+    positions: np.ndarray
+    sigma: np.ndarray | None
+    comp: CompensatedField
+    inward: np.ndarray
+
+
+def measure_frame(surface: ReferenceSurface, positions: np.ndarray, sigma: np.ndarray | None,
+                  tool_pose: np.ndarray, cfg: DeformationConfig, tool: ToolConfig
+                  ) -> tuple[dict[str, float], dict]:
     """`measure_tools` of one tool (pose (4, 4)): its figures and the field."""
-    figs, field = measure_tools(reference, positions, sigma, np.asarray(tool_pose)[None], nb,
-                                rings, normals, cfg, [tool])
+    figs, field = measure_tools(surface, positions, sigma, np.asarray(tool_pose)[None], cfg, [tool])
     return figs[0], field
 
 
-def measure_tools(reference: np.ndarray, positions: np.ndarray, sigma: np.ndarray | None,
-                  tool_poses: np.ndarray, nb: Neighbourhoods, rings: Rings, normals: np.ndarray,
-                  cfg: DeformationConfig, tools: Sequence[ToolConfig]
+def measure_tools(surface: ReferenceSurface, positions: np.ndarray, sigma: np.ndarray | None,
+                  tool_poses: np.ndarray, cfg: DeformationConfig, tools: Sequence[ToolConfig]
                   ) -> tuple[list[dict[str, float]], dict]:
     """One frame: each tool's figures {SERIES_KEYS: value} and the field {inward_mm,
-    magnitude_mm, sigma_mm, deformed (every tool's deformed region): (N,)}. reference (N, 3)
-    m frame-0 points, positions (N, 3) m (NaN: unknown), sigma (N,) m 3D RMS or None,
-    tool_poses (K, 4, 4) (NaN: unknown) with one config each, normals (N, 3) frame-0 unit
-    normals. A tool is measured at its working end (core/tool.working_end: the jaw's end
-    when it has one), along its shaft axis."""
-    n = len(reference)
-    comp = compensated_field(reference, positions, rings, sigma)
+    magnitude_mm, sigma_mm, deformed (every tool's deformed region): (N,)}. positions (N, 3)
+    m (NaN: unknown), sigma (N,) m 3D RMS or None, tool_poses (K, 4, 4) (NaN: unknown) with
+    one config each. A tool is measured at its working end (core/tool.working_end: the
+    jaw's end when it has one), along its shaft axis."""
+    comp = compensated_field(surface.points, positions, surface.rings, sigma)
     u = comp.displacement
-    inward = -(u * np.einsum("nij,nj->ni", comp.rotation, normals)).sum(1)
+    inward = -(u * np.einsum("nij,nj->ni", comp.rotation, surface.normals)).sum(1)
+    frame = _FrameField(positions, sigma, comp, inward)
     field = {"inward_mm": inward * 1e3, "magnitude_mm": np.linalg.norm(u, axis=1) * 1e3,
-             "sigma_mm": comp.sigma * 1e3, "deformed": np.zeros(n, bool)}
+             "sigma_mm": comp.sigma * 1e3, "deformed": np.zeros(len(surface.points), bool)}
     figs = []
     for tool_pose, tool in zip(np.asarray(tool_poses, float), tools, strict=True):
         fig = dict.fromkeys(SERIES_KEYS, float("nan"))
@@ -152,9 +158,7 @@ def measure_tools(reference: np.ndarray, positions: np.ndarray, sigma: np.ndarra
         if np.isfinite(tool_pose).all():
             _contact(fig, positions, sigma, tool_pose, tool, cfg)
             end, radius = working_end(tool_pose, tool)
-            deformed = _under_tool(fig, reference, positions, sigma, comp, inward, end, radius,
-                                   nb, rings, normals, cfg)
-            field["deformed"] |= deformed
+            field["deformed"] |= _under_tool(fig, surface, frame, end, radius, cfg)
         if cfg.youngs_modulus_kpa > 0:
             fig["force_n"] = float(hertz_force(fig["indentation_mm"] * 1e-3, radius,
                                                cfg.youngs_modulus_kpa * 1e3, cfg.poisson_ratio))
@@ -162,19 +166,17 @@ def measure_tools(reference: np.ndarray, positions: np.ndarray, sigma: np.ndarra
     return figs, field
 
 
-def _under_tool(fig: dict[str, float], reference: np.ndarray, positions: np.ndarray,
-                sigma: np.ndarray | None, comp: CompensatedField, inward: np.ndarray,
-                end: np.ndarray, radius: float, nb: Neighbourhoods, rings: Rings,
-                normals: np.ndarray, cfg: DeformationConfig) -> np.ndarray:
-    """Fill a tool's depth, indentation, area, volume and penetration figures (module
-    docstring) under its working end `end` (4, 4; z up the shaft) of `radius` m; returns its
-    deformed region (N,) bool."""
+def _under_tool(fig: dict[str, float], surface: ReferenceSurface, frame: _FrameField,
+                end: np.ndarray, radius: float, cfg: DeformationConfig) -> np.ndarray:
+    """Fill a tool's depth, indentation, area, volume and penetration figures (module docstring)
+    under its working end `end` (4, 4; z up the shaft) of `radius` m; returns its dent (N,) bool."""
+    positions, sigma, comp = frame.positions, frame.sigma, frame.comp
     u, axis = comp.displacement, end[:3, 2]
-    deformed = np.zeros(len(reference), bool)
+    deformed = np.zeros(len(surface.points), bool)
     tip = under_tip(positions, end, cfg.tip_radius_mm * 1e-3, radius)
     if len(tip.rows):
         fig["depth_under_tip_mm"] = value_at_axis(tip, -(u[tip.rows] @ axis)) * 1e3
-        normal_depth = value_at_axis(tip, inward[tip.rows]) * 1e3
+        normal_depth = value_at_axis(tip, frame.inward[tip.rows]) * 1e3
         if sigma is not None:
             s = comp.sigma[tip.rows] / np.sqrt(3.0)
             ok = np.isfinite(s)
@@ -188,8 +190,7 @@ def _under_tool(fig: dict[str, float], reference: np.ndarray, positions: np.ndar
             fig["indentation_mm"] = fig["depth_under_tip_mm"]
             fig["indentation_normal_mm"] = normal_depth
             fig["contact_point"] = float(seed)
-            deformed, fig["area_mm2"], fig["volume_mm3"] = _dent(
-                reference, positions, comp, rings, normals, seed, nb, sigma is not None, cfg)
+            deformed, fig["area_mm2"], fig["volume_mm3"] = _dent(surface, frame, seed, cfg)
     carried = under_tip(positions - u, end, cfg.tip_radius_mm * 1e-3, cfg.ring_inner_mm * 1e-3)
     if len(carried.rows):
         fig["penetration_mm"] = value_at_axis(carried, carried.h) * 1e3
@@ -215,25 +216,25 @@ def _contact(fig: dict[str, float], positions: np.ndarray, sigma: np.ndarray | N
     fig["contact"] = float(clearance[nearest] <= tolerance)
 
 
-def _dent(reference: np.ndarray, positions: np.ndarray, comp: CompensatedField, rings: Rings,
-          normals: np.ndarray, seed: int, nb: Neighbourhoods, noisy: bool,
-          cfg: DeformationConfig) -> tuple[np.ndarray, float, float]:
+def _dent(surface: ReferenceSurface, frame: _FrameField, seed: int, cfg: DeformationConfig
+          ) -> tuple[np.ndarray, float, float]:
     """The deformed region (N,) bool around the contact point `seed`, its area mm² and
     indented volume mm³. Inside the contact point's ring (frame-0 distance below
     ring_inner_mm) every point is compensated by that one ring's rigid motion (so that
     points nearer a breathing edge, whose own rings straddle it, do not join the dent);
     area and volume over the triangles of the frame-0 points that touch the region
     (core/measure/deformation.py)."""
+    reference, normals, comp = surface.points, surface.normals, frame.comp
     n = len(reference)
-    centre = int(rings.nearest[seed, 0])
+    centre = int(surface.rings.nearest[seed, 0])
     if not comp.centre_used[centre]:
         return np.zeros(n, bool), float("nan"), float("nan")
     R, t = comp.centre_rotation[centre], comp.centre_translation[centre]
     distance = np.linalg.norm(reference - reference[seed], axis=1)
     local = distance < cfg.ring_inner_mm * 1e-3
     u = np.full((n, 3), np.nan)
-    u[local] = positions[local] - (reference[local] @ R.T + t)
-    region = deformed_region(u, comp.sigma if noisy else None, seed, nb,
+    u[local] = frame.positions[local] - (reference[local] @ R.T + t)
+    region = deformed_region(u, None if frame.sigma is None else comp.sigma, seed, surface.nb,
                              cfg.threshold_mm * 1e-3, cfg.significance)
     if not region.any():
         return region, 0.0, 0.0
@@ -248,16 +249,15 @@ def _dent(reference: np.ndarray, positions: np.ndarray, comp: CompensatedField, 
             float((area * depth).sum()) * 1e9)
 
 
-def measure_sequence(reference: np.ndarray, positions: np.ndarray, sigma: np.ndarray | None,
-                     tool_poses: np.ndarray, nb: Neighbourhoods, rings: Rings,
-                     normals: np.ndarray, cfg: DeformationConfig, tool: ToolConfig
-                     ) -> Deformation:
+def measure_sequence(surface: ReferenceSurface, positions: np.ndarray,
+                     sigma: np.ndarray | None, tool_poses: np.ndarray, cfg: DeformationConfig,
+                     tool: ToolConfig) -> Deformation:
     """Every frame: positions (T, N, 3) m (frame 0 normally the reference itself), sigma
     (T, N) m or None, tool_poses (T, 4, 4) (module docstring)."""
     figs, fields_ = [], []
     for k in range(len(positions)):
-        fig, field = measure_frame(reference, positions[k], None if sigma is None else sigma[k],
-                                   tool_poses[k], nb, rings, normals, cfg, tool)
+        fig, field = measure_frame(surface, positions[k], None if sigma is None else sigma[k],
+                                   tool_poses[k], cfg, tool)
         figs.append(fig)
         fields_.append(field)
     stacked = DeformationField(**{key: np.stack([f[key] for f in fields_]).astype(

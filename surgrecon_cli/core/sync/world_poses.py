@@ -9,12 +9,24 @@ moved into the world through the tree at its own stamps.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from ...errors import InputError, quoted
 from ..geometry.poses import make_pose, matrix_to_quat
 from .streams import PoseStream, validate_pose_stream
 from .tf_tree import TfTree
+
+
+@dataclass(frozen=True)
+class WorldTree:
+    """How a pose reaches the world: the log's TF tree (None: the log has none), the world
+    frame's name and the longest gap (ns) a tree lookup interpolates over."""
+
+    tree: TfTree | None
+    world_frame: str
+    max_gap_ns: int
 
 
 def _stream(name: str, stamps_ns: np.ndarray, poses: np.ndarray) -> PoseStream:
@@ -50,12 +62,13 @@ def moved_by(stream: PoseStream, offset: np.ndarray, name: str) -> PoseStream:
     return _stream(name, stream.stamps_ns, make_pose(stream.positions, stream.quats) @ offset)
 
 
-def stream_to_world(stream: PoseStream, name: str, frame: str, tree: TfTree | None,
-                    world_frame: str, max_gap_ns: int, what: str) -> PoseStream:
-    """A pose stream `name` (its topic) given in `frame`, in `world_frame`: unchanged when
-    `frame` is the world (or unnamed, ""); else composed with the tree's world <- frame
-    transform at each stamp. InputError naming both frames when the log has no tree
-    connecting them."""
+def stream_to_world(stream: PoseStream, name: str, frame: str, world: WorldTree,
+                    what: str) -> PoseStream:
+    """A pose stream `name` (its topic) given in `frame`, in `world.world_frame`: unchanged
+    when `frame` is the world (or unnamed, ""); else composed with the tree's world <- frame
+    transform at each stamp. InputError naming both frames (`what`: whose poses) when the
+    log has no tree connecting them."""
+    tree, world_frame = world.tree, world.world_frame
     if frame in ("", world_frame):
         return stream
     if tree is None or not tree.is_connected(world_frame, frame):
@@ -65,5 +78,5 @@ def stream_to_world(stream: PoseStream, name: str, frame: str, tree: TfTree | No
             f"topics.world_frame = {quoted(frame)} if that frame is your world, or record the "
             "transform between them on /tf or /tf_static")
     poses = make_pose(stream.positions, stream.quats)
-    world = tree.lookup(world_frame, frame, stream.stamps_ns, max_gap_ns) @ poses
-    return _stream(name, stream.stamps_ns, world)
+    in_world = tree.lookup(world_frame, frame, stream.stamps_ns, world.max_gap_ns) @ poses
+    return _stream(name, stream.stamps_ns, in_world)

@@ -31,10 +31,11 @@ import numpy as np
 from ...config import TargetConfig
 from ..geometry.cameras import CameraModel, in_image, project, undistort_pixels
 from ..geometry.poses import invert_pose
-from ..geometry.tool import ToolConfigs, tool_pixel_mask
+from ..geometry.tool import tool_pixel_mask
 from ..noise.model import localisation_variance_px2
+from .frame_inputs import FrameInput, Rig, Sighting
 from .reacquire import descriptor_motion
-from .tracking import TrackingView, apply_motion, image_motion, track_adaptive
+from .tracking import TrackingView, TrackPrior, apply_motion, image_motion, track_adaptive
 
 KLT_BORDER_PX = 8.0  # a track starts this far inside the image at least (px)
 MIN_SCENE_FIT = 12  # tracks of one camera needed to measure the scene's motion (PnP)
@@ -92,20 +93,20 @@ def scene_motion(latest: np.ndarray, pixels: np.ndarray, model: CameraModel,
     return motion, float(np.percentile(error, 95))
 
 
-def _chain(latest: np.ndarray, prev: TrackingView, cur: TrackingView, prev_pose: np.ndarray,
-           cur_pose: np.ndarray, prev_pixels: np.ndarray, model: CameraModel,
-           cfg: TargetConfig, predicted: tuple[np.ndarray, float] | None = None,
-           ) -> tuple[np.ndarray, np.ndarray]:
-    """Step 1 for one camera: pixels (N, 2) (NaN = not found) and found (N,). `predicted`:
+def _chain(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig, c: int,
+           predicted: tuple[np.ndarray, float] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Step 1 for camera c: pixels (N, 2) (NaN = not found) and found (N,). `predicted`:
     the scene's motion measured in another camera (`scene_motion`) and its residual px:
     the guesses are the latest positions moved by it, without pilot tracks."""
-    n = len(latest)
+    prev, cur, prev_pose, cur_pose = base.views[c], frame.views[c], base.poses[c], frame.poses[c]
+    assert prev is not None and cur is not None  # find_points skips unusable cameras
+    model, cfg, n = rig.models[c], rig.cfg, len(latest)
     guess, visible = visible_points(latest, model, cur_pose, cfg.occlusion_depth_m)
     if predicted is not None:
         motion = predicted[0]
         guess = project(latest @ motion[:3, :3].T + motion[:3, 3], cur_pose, model)[0]
         visible &= np.isfinite(guess).all(1) & in_image(np.nan_to_num(guess, nan=-1e9), model)
-    start = prev_pixels.copy()
+    start = base.pixels[:, c].copy()
     missing = ~np.isfinite(start).all(1)
     if missing.any() and np.isfinite(prev_pose).all():
         start[missing] = project(latest[missing], prev_pose, model)[0]
@@ -115,23 +116,24 @@ def _chain(latest: np.ndarray, prev: TrackingView, cur: TrackingView, prev_pose:
     # know how the camera moved), or where the point was (its latest position is stale
     # where the registration lagged, or the poses miss the motion: an untracked camera).
     if predicted is not None:
-        tracked, ok, _ = track_adaptive(prev, cur, start[idx], guess[idx], cfg,
-                                        2.0 * max(predicted[1], 1.0))
+        prior = TrackPrior(guess[idx], 2.0 * max(predicted[1], 1.0))
     else:
-        tracked, ok, _ = track_adaptive(prev, cur, start[idx], guess[idx], cfg,
-                                        float("nan"), alternative=start[idx])
+        prior = TrackPrior(guess[idx], alternative=start[idx])
+    tracked, ok, _ = track_adaptive(prev, cur, start[idx], prior, cfg)
     pixels = np.full((n, 2), np.nan)
     pixels[idx[ok]] = tracked[ok]
     return pixels, np.isfinite(pixels).all(1)
 
 
 def _anchor(anchor: TrackingView, cur: TrackingView, anchor_pixels: np.ndarray,
-            pixels: np.ndarray, found: np.ndarray, model: CameraModel,
-            cfg: TargetConfig) -> tuple[np.ndarray, np.ndarray]:
-    """Step 2 for one camera: the chained pixels (N, 2) / found (N,) with the points not
-    found re-acquired from the template's image, from where the image motion since the
-    template puts them: fitted to the chained tracks, or where they are too few (tracking
-    lost), to ORB matches between the two images (core/reacquire.descriptor_motion)."""
+            pixels: np.ndarray, model: CameraModel, cfg: TargetConfig
+            ) -> tuple[np.ndarray, np.ndarray]:
+    """Step 2 for one camera: the chained pixels (N, 2) (NaN = not found) and found (N,),
+    with the points not found re-acquired from the template's image, from where the image
+    motion since the template puts them: fitted to the chained tracks, or where they are
+    too few (tracking lost), to ORB matches between the two images
+    (core/reacquire.descriptor_motion)."""
+    found = np.isfinite(pixels).all(1)
     has = np.isfinite(anchor_pixels).all(1) & in_image(
         np.nan_to_num(anchor_pixels, nan=-1e9), model, KLT_BORDER_PX)
     pairs = has & found
@@ -142,47 +144,44 @@ def _anchor(anchor: TrackingView, cur: TrackingView, anchor_pixels: np.ndarray,
         return pixels, found
     guess = apply_motion(motion, np.nan_to_num(anchor_pixels))
     idx = np.flatnonzero(has & ~found & in_image(guess, model, KLT_BORDER_PX))
-    tracked, ok, _ = track_adaptive(anchor, cur, anchor_pixels[idx], guess[idx], cfg,
-                                    float("nan"))
+    tracked, ok, _ = track_adaptive(anchor, cur, anchor_pixels[idx], TrackPrior(guess[idx]),
+                                    cfg)
     pixels = pixels.copy()
     pixels[idx[ok]] = tracked[ok]
     return pixels, np.isfinite(pixels).all(1)
 
 
-def find_points(latest: np.ndarray, prev_views: list[TrackingView | None],
-                cur_views: list[TrackingView | None], prev_poses: np.ndarray,
-                cur_poses: np.ndarray, prev_pixels: np.ndarray, models: list[CameraModel],
-                tool_pose: np.ndarray, cfg: TargetConfig, tool_cfg: ToolConfigs,
+def find_points(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig,
                 anchor_views: list[TrackingView | None] | None = None,
                 anchor_pixels: np.ndarray | None = None):
-    """Pixels (N, C, 2) where the template points are found in the current images (NaN =
-    not found), found (N, C) bool and each found pixel's localisation variance (N, C) px²
-    (inf where not found).
+    """Pixels (N, C, 2) where the template points are found in `frame`'s images (NaN = not
+    found), found (N, C) bool and each found pixel's localisation variance (N, C) px² (inf
+    where not found).
 
-    latest (N, 3) m: positions at the previous frame; prev/cur views and poses (C, 4, 4)
-    per camera (None / NaN where unusable); prev_pixels (N, C, 2) where each point was
-    found in the previous images (NaN: not found); anchor_views / anchor_pixels (N, C, 2):
-    the template's images and pixels (None, or the same views as prev: no anchoring)."""
+    latest (N, 3) m: positions at the base frame; `base`: the base frame's views, poses and
+    where each point was found in its images (NaN: not found); rig: the cameras, the target
+    config and the tools (masked out); anchor_views / anchor_pixels (N, C, 2): the
+    template's images and pixels (None, or the same views as the base: no anchoring)."""
+    models, cur_poses, cfg = rig.models, frame.poses, rig.cfg
     n, n_cams = len(latest), len(models)
     pixels = np.full((n, n_cams, 2), np.nan)
     found = np.zeros((n, n_cams), bool)
     localisation = np.full((n, n_cams), np.inf)
     predicted = None
     for c in range(n_cams):
-        cur, prev = cur_views[c], prev_views[c]
+        cur, prev = frame.views[c], base.views[c]
         if cur is None or prev is None:
             continue
-        px, ok = _chain(latest, prev, cur, prev_poses[c], cur_poses[c], prev_pixels[:, c],
-                        models[c], cfg, predicted)
+        px, ok = _chain(latest, base, frame, rig, c, predicted)
         if predicted is None:
             fit = ok & np.isfinite(latest).all(1)
             predicted = scene_motion(latest[fit], px[fit], models[c], cur_poses[c])
         anchor = None if anchor_views is None else anchor_views[c]
         if anchor is not None and anchor is not prev and anchor_pixels is not None:
-            px, ok = _anchor(anchor, cur, anchor_pixels[:, c], px, ok, models[c], cfg)
+            px, ok = _anchor(anchor, cur, anchor_pixels[:, c], px, models[c], cfg)
         rows = np.flatnonzero(ok)
         keep = in_image(px[rows], models[c], 2.0)
-        keep &= ~tool_pixel_mask(px[rows], models[c], cur_poses[c], tool_pose, tool_cfg)
+        keep &= ~tool_pixel_mask(px[rows], models[c], cur_poses[c], frame.tool_pose, rig.tools)
         rows = rows[keep]
         pixels[rows, c] = px[rows]
         found[rows, c] = True

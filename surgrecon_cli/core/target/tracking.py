@@ -180,13 +180,24 @@ def apply_motion(motion: np.ndarray, pixels: np.ndarray) -> np.ndarray:
     return pixels @ motion[:, :2].T + motion[:, 2]
 
 
+@dataclass(frozen=True)
+class TrackPrior:
+    """Where M tracks are expected in the current image (`track_adaptive`): guess (M, 2) px,
+    the motion to expect from it motion_px px (NaN = unknown) and alternative (M, 2) px
+    other guesses (or None)."""
+
+    guess: np.ndarray
+    motion_px: float = float("nan")
+    alternative: np.ndarray | None = None
+
+
 def track_adaptive(prev: TrackingView, cur: TrackingView, start: np.ndarray,
-                   guess: np.ndarray, cfg: TargetConfig, motion_px: float,
-                   alternative: np.ndarray | None = None,
+                   prior: TrackPrior, cfg: TargetConfig
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """`klt_track` with the pyramid depth chosen for an expected motion `motion_px` px
-    (`klt_levels_for`), and a safe fallback: the tracks that failed, or that moved from
-    their guess farther than the chosen depth reaches, are tracked again at the full depth.
+    """`klt_track` from `start` (M, 2) px with `prior`'s guesses, the pyramid depth chosen
+    for its expected motion `motion_px` px (`klt_levels_for`), and a safe fallback: the
+    tracks that failed, or that moved from their guess farther than the chosen depth
+    reaches, are tracked again at the full depth.
     An unknown motion (NaN) is measured first on every PILOT_STRIDE-th point, tracked
     PILOT_EXTRA_LEVELS deeper than the full depth: the guesses are corrected by the image
     motion those pilot tracks show (`image_motion`: a camera or scene that moved without
@@ -195,6 +206,7 @@ def track_adaptive(prev: TrackingView, cur: TrackingView, start: np.ndarray,
     poses), piloted too unless `guess`'s pilots track PILOT_ENOUGH of their points; the one
     whose pilot tracks more points is used. Returns tracked (M, 2), ok (M,) and each track's
     distance from its (corrected) guess (M,) px (NaN where not ok)."""
+    guess, motion_px, alternative = prior.guess, prior.motion_px, prior.alternative
     full = cfg.klt_levels
     if not np.isfinite(motion_px) and len(start) >= 2 * PILOT_STRIDE:
         pilot = slice(None, None, PILOT_STRIDE)
