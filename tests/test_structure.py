@@ -221,3 +221,35 @@ def test_config_keys_accumulate_along_the_pipeline():
     assert set(registry.config_keys("build-template")) >= {"topics", "tool", "template"}
     assert registry.upstream_config_keys("register") == registry.config_keys("build-template")
     assert "classify" not in registry.config_keys("register")
+
+
+# Core functions take at most this many parameters (self/cls not counted, keyword-only
+# counted): the run's state travels in small objects (core/target/frame_inputs.py, the
+# config dataclasses, FrameRegistrar), not as loose arguments.
+MAX_CORE_PARAMETERS = 6
+# The documented library calls: their extra parameters are keyword-only options a user passes.
+LIBRARY_CALLS = {"registration/register.py:register",
+                 "registration/pair.py:register_pair"}
+# Constructors of value types, built field by field (e.g. a camera model from a ROS CameraInfo).
+VALUE_CONSTRUCTORS = {"__init__", "from_camera_info"}
+
+
+def _parameter_count(fn: ast.FunctionDef | ast.AsyncFunctionDef) -> int:
+    a = fn.args
+    names = [p.arg for p in (*a.posonlyargs, *a.args, *a.kwonlyargs)]
+    return len([n for n in names if n not in ("self", "cls")]) + bool(a.vararg)
+
+
+def test_core_functions_take_few_parameters():
+    core = PACKAGE / "core"
+    offenders = []
+    for path in sorted(core.rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if not isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
+                continue
+            where = f"{path.relative_to(core).as_posix()}:{node.name}"
+            if where in LIBRARY_CALLS or node.name in VALUE_CONSTRUCTORS:
+                continue  # the library's options; a value type's fields
+            if _parameter_count(node) > MAX_CORE_PARAMETERS:
+                offenders.append(f"core/{where} takes {_parameter_count(node)}")
+    assert offenders == []
