@@ -81,6 +81,8 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=300, help="stereo pairs per folder")
     parser.add_argument("--workdir", type=Path, help="where the folders go (default: a temp dir)")
     args = parser.parse_args()
+    if args.workdir is not None:
+        args.workdir.mkdir(parents=True, exist_ok=True)
     root = Path(tempfile.mkdtemp(prefix="convert_speed_", dir=args.workdir))
     try:
         folders = make_folders(root, args.frames)
