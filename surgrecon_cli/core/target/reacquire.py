@@ -10,7 +10,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from .tracking import MIN_MOTION_FIT, TrackingView
+from .tracking import MIN_MOTION_FIT, TrackingView, image_motion
 
 ORB_FEATURES = 1500  # ours: features per image (a 640x512 endoscope image: ~1-2 k corners)
 ORB_RATIO = 0.8  # Lowe's ratio test on the two nearest Hamming distances
@@ -30,7 +30,7 @@ def orb_features(view: TrackingView) -> tuple[np.ndarray, np.ndarray]:
 
 
 def descriptor_motion(anchor: TrackingView, cur: TrackingView) -> np.ndarray | None:
-    """The image motion (2, 3) (a 2D similarity, as core/tracking.image_motion) from the
+    """The image motion (2, 3) (a 2D similarity, core/target/tracking.image_motion) from the
     anchor image to the current one, fitted robustly to ORB matches that pass the ratio
     test; None with fewer than MIN_MATCH_INLIERS matches agreeing on it."""
     pts_a, des_a = orb_features(anchor)
@@ -39,12 +39,5 @@ def descriptor_motion(anchor: TrackingView, cur: TrackingView) -> np.ndarray | N
         return None
     pairs = cv2.BFMatcher(cv2.NORM_HAMMING).knnMatch(des_a, des_c, k=2)
     good = [p[0] for p in pairs if len(p) == 2 and p[0].distance < ORB_RATIO * p[1].distance]
-    if len(good) < MIN_MATCH_INLIERS:
-        return None
-    src = pts_a[[m.queryIdx for m in good]].astype(np.float32)
-    dst = pts_c[[m.trainIdx for m in good]].astype(np.float32)
-    fit, inliers = cv2.estimateAffinePartial2D(src, dst, method=cv2.RANSAC,
-                                               ransacReprojThreshold=MATCH_FIT_PX)
-    if fit is None or inliers is None or int(inliers.sum()) < MIN_MATCH_INLIERS:
-        return None
-    return np.asarray(fit, float)
+    return image_motion(pts_a[[m.queryIdx for m in good]], pts_c[[m.trainIdx for m in good]],
+                        MATCH_FIT_PX, MIN_MATCH_INLIERS)

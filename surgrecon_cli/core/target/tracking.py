@@ -160,17 +160,18 @@ def expected_motion_px(moved: np.ndarray) -> float:
     return float(2.0 * np.percentile(moved, 95)) if len(moved) else float("nan")
 
 
-def image_motion(source: np.ndarray, moved: np.ndarray) -> np.ndarray | None:
+def image_motion(source: np.ndarray, moved: np.ndarray, fit_px: float = 2.0,
+                 min_inliers: int = MIN_MOTION_FIT) -> np.ndarray | None:
     """The image motion of a camera as a 2D similarity (2, 3) fitted robustly (RANSAC,
-    2 px) to pixels source (K, 2) found at moved (K, 2); None with fewer than
-    MIN_MOTION_FIT pairs or no fit. A camera sweeping over a distant surface moves its
-    image nearly as one similarity; the fit predicts where the other points went."""
-    if len(source) < MIN_MOTION_FIT:
+    inliers within `fit_px` px) to pixels source (K, 2) found at moved (K, 2); None with
+    fewer than `min_inliers` pairs agreeing on it. A camera sweeping over a distant surface
+    moves its image nearly as one similarity; the fit predicts where the other points went."""
+    if len(source) < min_inliers:
         return None
     fit, inliers = cv2.estimateAffinePartial2D(
         source.astype(np.float32), moved.astype(np.float32), method=cv2.RANSAC,
-        ransacReprojThreshold=2.0)
-    if fit is None or inliers is None or int(inliers.sum()) < MIN_MOTION_FIT:
+        ransacReprojThreshold=fit_px)
+    if fit is None or inliers is None or int(inliers.sum()) < min_inliers:
         return None
     return np.asarray(fit, float)
 
