@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..config import ClassifyConfig, Config
+from ..config import Config
 from ..core.classify.hysteresis import HysteresisAhead, hysteresis_step
 from ..core.classify.labels import CLASS_NAMES, INTRA, STATIC, UNKNOWN
 from ..core.classify.quality import FrameFit, frame_quality, unsupported_points
@@ -119,7 +119,7 @@ def classify_one_frame(run_dir: Path, frame: int, config: Config) -> int:
     log = load_ingested(layout.ingest_dir)
     evidence = frame_evidence(reg, reg.registered.astype(float), template_noise)
     registered, evidence = static_verdicts_checked(
-        reg, template, template_noise, evidence, list(log.models), log.usable_poses(frame), cfg)
+        reg, template_noise, evidence, list(log.models), log.usable_poses(frame))
     classes = classify_frame(template, RegisteredFrame(registered, transforms, reg.status), nb,
                              cfg, evidence=evidence)
     quality = frame_quality(frame, FrameFit(
@@ -163,16 +163,15 @@ def frame_evidence(reg: FrameRegistration, registered: np.ndarray,
                     displacement_cov=displacement, departure_cov=departure)
 
 
-def static_verdicts_checked(reg: FrameRegistration, template: np.ndarray,
-                            template_noise: TemplateNoise, evidence: Evidence,
-                            models: list[CameraModel], poses: np.ndarray,
-                            cfg: ClassifyConfig) -> tuple[np.ndarray, Evidence]:
+def static_verdicts_checked(reg: FrameRegistration, template_noise: TemplateNoise,
+                            evidence: Evidence, models: list[CameraModel],
+                            poses: np.ndarray) -> tuple[np.ndarray, Evidence]:
     """Registered positions (N, 3) m and evidence of a frame, where the reprojection check's
-    static verdicts (intra-camera inliers: target = frame-0 position) are contradicted by
-    the points' own views: a point whose tracked pixels re-triangulate (without a gate,
-    core/frame_noise.retriangulate) at least `static_mm` from its frame-0 position, and
-    significantly so under that position's covariance plus the template's, is measured
-    there instead. (The check tests every view alone with the pose error as per-view noise:
+    static verdicts (intra-camera inliers: target = frame-0 position) are replaced by what
+    the points' own views say: every such point whose tracked pixels re-triangulate
+    (without a gate, core/noise/frame_noise.retriangulate) is measured there, with that
+    position's covariance plus the template's, and the classification's significance test
+    decides. (The check tests every view alone with the pose error as per-view noise:
     with a narrow stereo baseline, motion along the line of sight moves each view by less
     than that noise, but their disparity by far more than the image noise; on the stereo
     simulator a third of truly deforming points were called static that way.)"""
