@@ -33,6 +33,11 @@ ToolConfigs = ToolConfig | Sequence[ToolConfig]
 _AXES = {"x": 0, "y": 1, "z": 2}
 
 
+def tool_list(cfgs: ToolConfigs) -> list[ToolConfig]:
+    """The tools' configs as a list (one config or a sequence of them)."""
+    return [cfgs] if isinstance(cfgs, ToolConfig) else list(cfgs)
+
+
 def tool_name(index: int) -> str:
     """How outputs name tool `index` in `Config.tool_configs()` order: `tool` for the `[tool]`,
     `tool_K` for the K-th `[[tools]]` table (K from 1)."""
@@ -71,7 +76,7 @@ def working_end(tool_pose: np.ndarray, cfg: ToolConfig) -> tuple[np.ndarray, flo
 def tool_capsules(tool_poses: ToolPoses, cfgs: ToolConfigs) -> list[Capsule]:
     """Every capsule (shaft, jaw) of the tools whose pose is finite."""
     poses = np.asarray(tool_poses, float).reshape(-1, 4, 4)
-    configs = [cfgs] if isinstance(cfgs, ToolConfig) else list(cfgs)
+    configs = tool_list(cfgs)
     if len(configs) != len(poses):
         raise ValueError(f"{len(poses)} tool poses but {len(configs)} tool configs")
     out: list[Capsule] = []
@@ -89,7 +94,7 @@ def tool_capsules(tool_poses: ToolPoses, cfgs: ToolConfigs) -> list[Capsule]:
 
 def _margins(cfgs: ToolConfigs, attribute: str) -> float:
     """The largest margin of the tools (one margin per mask/cut)."""
-    configs = [cfgs] if isinstance(cfgs, ToolConfig) else list(cfgs)
+    configs = tool_list(cfgs)
     return max((float(getattr(c, attribute)) for c in configs), default=0.0)
 
 
@@ -100,7 +105,7 @@ def push_out_of_tool(points: np.ndarray, tool_pose: ToolPoses, cfg: ToolConfigs
     presses the tissue), tool after tool. Returns inside (N,) bool (inside any) and the
     pushed points (N, 3)."""
     poses = np.asarray(tool_pose, float).reshape(-1, 4, 4)
-    configs = [cfg] if isinstance(cfg, ToolConfig) else list(cfg)
+    configs = tool_list(cfg)
     inside = np.zeros(len(points), bool)
     pushed = np.array(points, dtype=float)
     for pose, config in zip(poses, configs, strict=True):
