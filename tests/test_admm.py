@@ -138,6 +138,29 @@ def test_zero_weight_rows_carry_no_data(l2_problem):
     np.testing.assert_allclose(X_a, X_b, rtol=0, atol=1e-9)
 
 
+def test_one_factor_serves_outer_steps_with_other_data(l2_problem):
+    """register's path: one factor (with its stacked operators) reused, warm-started, for a
+    second problem with other targets, weights and smoothness: it ends at that problem's
+    direct least-squares solution, as a fresh factorisation does; the reported energy is the
+    energy of the returned X."""
+    rng = np.random.default_rng(5)
+    w = l2_problem.w.copy()
+    w[rng.choice(np.flatnonzero(w > 0), 8, replace=False)] = 0.0
+    second = AdmmProblem(**{**l2_problem.__dict__, "w": w, "alpha": 0.1,
+                            "G": l2_problem.G + rng.normal(0, 0.05, l2_problem.G.shape)})
+    factor = factorise(l2_problem.D, l2_problem.B, l2_problem.L, 0.0, 1.0, 1.0)
+    state, info, factor = run_admm(l2_problem, fresh_state(l2_problem), factor,
+                                   AdmmSettings(max_iter=5, tol=0.0))
+    assert info.energy == pytest.approx(energy(l2_problem, state.X), rel=1e-12)
+    state, info, _ = run_admm(second, state, factor, AdmmSettings(max_iter=3000, tol=1e-12))
+    assert info.converged and info.factorisations == 0
+    assert info.energy == pytest.approx(energy(second, state.X), rel=1e-12)
+    X_fresh, *_ = solve(second, mu=1.0, max_iter=3000, tol=1e-12)
+    exact = direct_l2(second, tikhonov=factor.eps / 2)
+    np.testing.assert_allclose(state.X, exact, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(X_fresh, exact, rtol=0, atol=1e-9)
+
+
 # ---- l1: a sharp step is kept, l2 smooths it ----------------------------------------------
 
 NX, NY, STEP = 10, 3, 1.0  # a 10 x 3 grid of unit spacing; the half x >= 5 moves 1 unit in z

@@ -14,13 +14,14 @@ comparison). Splits C = DX - G and Z = BX with scaled multipliers U1, U2:
 
 The matrix depends only on the graph, the observed rows of D and mu: it is factorised once
 per run (sparse LU in symmetric mode with a minimum-degree ordering) and reused for all
-iterations and all three coordinate columns. `eps` (ours) is a tiny Tikhonov pull of every
-unknown, linear parts and translations, towards the rigid pre-alignment X0: it only decides
-the directions no term sees (the derivative of the motion along the surface normal, and a
-part of the graph that no data reaches, which therefore stays where the rigid step put it
-instead of drifting by an arbitrary translation) and keeps the system definite; a system
-that is still singular raises. Over-relaxation (Boyd et al. 2011, sec. 3.4.3) speeds
-convergence; the factor is ours.
+iterations, all outer steps and all three coordinate columns; the stacked operator [D; B]
+and its penalty-scaled transpose are built with it (`factorise`). `eps` (ours) is a tiny
+Tikhonov pull of every unknown, linear parts and translations, towards the rigid
+pre-alignment X0: it only decides the directions no term sees (the derivative of the motion
+along the surface normal, and a part of the graph that no data reaches, which therefore
+stays where the rigid step put it instead of drifting by an arbitrary translation) and keeps
+the system definite; a system that is still singular raises. Over-relaxation (Boyd et al.
+2011, sec. 3.4.3) speeds convergence; the factor is ours.
 
 Stopping (Boyd et al. 2011, sec. 3.3.1, with our tolerances): the primal residual RMS is
 below `tol`, no node moved by more than `tol` in the last iteration (a max, not an RMS, so
@@ -86,6 +87,7 @@ class AdmmInfo:
     energy_change: float  # relative energy change in the last iteration
     factorisations: int
     converged: bool
+    energy: float  # E(X) of the returned X (`energy`), normalised units
 
 
 def shrink_rows(v: np.ndarray, tau: np.ndarray) -> np.ndarray:
@@ -108,12 +110,17 @@ def _prox(v: np.ndarray, weight: np.ndarray, mu: np.ndarray, l1: np.ndarray) -> 
 
 @dataclass(frozen=True)
 class Factor:
-    """The factorised X-step matrix for given penalties (mu1, mu2); `eps` its Tikhonov weight."""
+    """The factorised X-step matrix for given penalties (mu1, mu2); `eps` its Tikhonov weight.
+    With it, what every iteration multiplies by: stacked = [D; B] (P + E, 4M), back =
+    [mu1 Dᵀ, mu2 Bᵀ] (4M, P + E) and the penalty of each stacked row, mu (P + E,)."""
 
     solve: Callable[[np.ndarray], np.ndarray]
     eps: float
     mu1: float
     mu2: float
+    stacked: sp.csr_matrix
+    back: sp.csr_matrix
+    mu: np.ndarray
 
 
 def factorise(D: sp.csr_matrix, B: sp.csr_matrix, L: sp.csr_matrix, beta: float, mu1: float,
@@ -133,7 +140,9 @@ def factorise(D: sp.csr_matrix, B: sp.csr_matrix, L: sp.csr_matrix, beta: float,
         raise GeometryError(
             f"registration system is singular (smallest LU pivot {pivots.min():.3g}, "
             f"largest {pivots.max():.3g})")
-    return Factor(solve=lu.solve, eps=eps, mu1=mu1, mu2=mu2)
+    stacked = sp.vstack([D, B], format="csr")
+    back, mu = _scaled(stacked, D.shape[0], mu1, mu2)
+    return Factor(solve=lu.solve, eps=eps, mu1=mu1, mu2=mu2, stacked=stacked, back=back, mu=mu)
 
 
 def _sq(v: np.ndarray) -> float:
@@ -186,9 +195,10 @@ def run_admm(
     """Iterate until primal and dual RMS residuals are both below `settings.tol`.
 
     `factor` must be `factorise(prob.D, prob.B, prob.L, prob.beta, mu1, mu2)`; rows of D with
-    w = 0 carry no data term (their split absorbs the residual), so one factor serves every
-    outer step whatever the correspondences. With `settings.mu_growth` > 1 the duals are
-    rescaled and the matrix refactorised each time the penalties grow.
+    w = 0 carry no data term (their split absorbs the residual), so one factor (with its
+    stacked operators) serves every outer step whatever the correspondences. With
+    `settings.mu_growth` > 1 the duals are rescaled and the matrix refactorised each time the
+    penalties grow.
     Returns the new state, the info and the factor in use at the end.
     """
     max_iter, tol, relax = settings.max_iter, settings.tol, settings.relax
@@ -196,13 +206,13 @@ def run_admm(
     D, B, G, L = prob.D, prob.B, prob.G, prob.L
     n_data = len(G)
     # Both splits as one: rows [D; B] X - [G; 0] = [C; Z], multipliers [U1; U2], so that an
-    # iteration is one sparse product each way and one prox over all rows.
-    stacked = sp.vstack([D, B], format="csr")
+    # iteration is one sparse product each way (factor.stacked, factor.back) and one prox
+    # over all rows.
     offset = np.concatenate([G, np.zeros((B.shape[0], 3))])
     weight = np.concatenate([prob.w, prob.alpha * prob.c])
     l1 = np.repeat([prob.data_l1, prob.smooth_l1], [n_data, B.shape[0]])
     solve, eps, mu1, mu2 = factor.solve, factor.eps, factor.mu1, factor.mu2
-    back, mu = _scaled(stacked, n_data, mu1, mu2)
+    stacked, back, mu = factor.stacked, factor.back, factor.mu
     n_fact = 0
     X, U = state.X, np.concatenate([state.U1, state.U2])
     SX = stacked @ X
@@ -238,13 +248,13 @@ def run_admm(
             U = U / mu_growth
             mu1, mu2 = mu1 * mu_growth, mu2 * mu_growth
             factor = factorise(D, B, L, prob.beta, mu1, mu2)
-            solve, eps = factor.solve, factor.eps
-            back, mu = _scaled(stacked, n_data, mu1, mu2)
+            solve, eps, back, mu = factor.solve, factor.eps, factor.back, factor.mu
             n_fact += 1
     if not np.isfinite(X).all():
         raise GeometryError("registration system gave a non-finite solution")
     U1, U2 = U[:n_data], U[n_data:]
     converged = bool(primal < tol and step < tol and change < ENERGY_RTOL)
     info = AdmmInfo(iterations=it, primal=float(primal), dual=float(dual), step=step,
-                    energy_change=float(change), factorisations=n_fact, converged=converged)
+                    energy_change=float(change), factorisations=n_fact, converged=converged,
+                    energy=float(e_prev))
     return AdmmState(X=X, U1=U1, U2=U2), info, factor
