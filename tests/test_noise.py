@@ -12,7 +12,7 @@ from surgrecon_cli.core.geometry.triangulate import (
     reprojection_residuals,
     triangulate,
 )
-from surgrecon_cli.core.noise.frame_noise import tracking_excess_px2
+from surgrecon_cli.core.noise.frame_noise import tracking_excess_px2, triangulate_found
 from surgrecon_cli.core.noise.model import (
     NoiseModel,
     covariance_sigma,
@@ -152,9 +152,10 @@ def test_frame_tracking_excess_measures_the_error_beyond_the_model():
     pixels[obs.point, obs.camera] = obs.pixels
     found = np.isfinite(pixels).all(2)
     zero = np.zeros(found.shape)
+    multi = triangulate_found(found, pixels, models, poses)
     for model_px, expected in ((0.1, 0.4**2 - 0.1**2), (0.4, 0.0)):
         noise = NoiseModel(pixel_px=model_px, tracking_px=0.0, tracker_position_m=0.0,
                            tracker_rotation_rad=0.0)
-        excess, measured = tracking_excess_px2(found, pixels, zero, models, poses, noise)
+        excess, measured = tracking_excess_px2(multi, zero, models, noise)
         assert abs(measured - 0.4) <= 0.05, measured
         assert abs(excess - expected) <= 0.03, (model_px, excess)

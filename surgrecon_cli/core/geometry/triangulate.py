@@ -57,7 +57,8 @@ class Observations:
 @dataclass(frozen=True)
 class Triangulation:
     """Points (N, 3) m; per point mean/max reprojection error (px), views, max ray angle (deg),
-    in_front (all depths > 0); per observation error_px (M,)."""
+    in_front (all depths > 0); per observation error_px (M,), the residual (M, 2) px and the
+    depth (M,) m of `reprojection_residuals`."""
 
     points: np.ndarray
     mean_error_px: np.ndarray
@@ -66,6 +67,20 @@ class Triangulation:
     angle_deg: np.ndarray
     in_front: np.ndarray
     error_px: np.ndarray
+    residual_px: np.ndarray
+    depth: np.ndarray
+
+    def of_points(self, keep_point: np.ndarray, point: np.ndarray) -> Triangulation:
+        """The triangulation of the kept points (bool (N,)) alone, numbered as
+        `Observations.renumbered` numbers them; point (M,): each observation's point. Every
+        point is triangulated from its own observations only, so this is what triangulating
+        the kept points' observations gives."""
+        rows = keep_point[point]
+        return Triangulation(
+            self.points[keep_point], self.mean_error_px[keep_point],
+            self.max_error_px[keep_point], self.n_views[keep_point],
+            self.angle_deg[keep_point], self.in_front[keep_point], self.error_px[rows],
+            self.residual_px[rows], self.depth[rows])
 
 
 def _world_to_camera(poses: np.ndarray) -> np.ndarray:
@@ -138,8 +153,8 @@ def triangulate(
     in_front = np.ones(n_points, bool)
     np.logical_and.at(in_front, obs.point, depth > 0)
     return Triangulation(
-        X, mean_err, max_err, n_views, max_ray_angle(X, obs, poses), in_front, error
-    )
+        X, mean_err, max_err, n_views, max_ray_angle(X, obs, poses), in_front, error, residual,
+        depth)
 
 
 def reprojection_residuals(points: np.ndarray, obs: Observations, poses: np.ndarray,

@@ -13,10 +13,12 @@ can see) is added to every tracked pixel's localisation variance. Pure numpy; no
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from ..geometry.cameras import CameraModel, undistort_pixels, view_distortion_jacobians
-from ..geometry.triangulate import Observations, reprojection_residuals, triangulate
+from ..geometry.triangulate import Observations, Triangulation, triangulate
 from .model import (
     NoiseModel,
     body_pose_covariance,
@@ -39,19 +41,43 @@ def tracked_observations(found: np.ndarray, pixels: np.ndarray,
     return Observations(rows, cams, px, normalized, np.zeros((len(rows), 3), np.uint8))
 
 
-def tracking_excess_px2(found: np.ndarray, pixels: np.ndarray, localisation: np.ndarray,
-                        models: list[CameraModel], poses: np.ndarray,
-                        noise: NoiseModel) -> tuple[float, float]:
-    """(excess variance px², measured σ_k px) of a frame's tracked pixels: found (N, C)
-    bool, pixels (N, C, 2) px, localisation (N, C) px² the tracking bound of each found
-    pixel, poses (C, 4, 4) (module docstring). (0, NaN) with fewer than MIN_POINTS points
-    found by >= 2 cameras."""
+@dataclass(frozen=True)
+class MultiView:
+    """A frame's points found by >= 2 cameras, re-triangulated from their tracked pixels
+    without any gate: their rows idx (K,) among the frame's points, their observations
+    (points numbered 0..K-1 in the order of idx) and their triangulation."""
+
+    idx: np.ndarray
+    obs: Observations
+    tri: Triangulation
+
+    def of_rows(self, rows: np.ndarray) -> tuple[Observations, Triangulation]:
+        """Observations and triangulation of the points `rows` (ascending, a subset of idx),
+        numbered 0..len(rows)-1: what triangulating them alone gives."""
+        keep = np.isin(self.idx, rows)
+        return self.obs.renumbered(keep), self.tri.of_points(keep, self.obs.point)
+
+
+def triangulate_found(found: np.ndarray, pixels: np.ndarray, models: list[CameraModel],
+                      poses: np.ndarray) -> MultiView:
+    """The points found (N, C) bool by >= 2 cameras, triangulated from their pixels
+    (N, C, 2) px at camera poses (C, 4, 4): once per frame, for the frame's noise
+    (`tracking_excess_px2`) and the target's reprojection check (core/target/cloud.py)."""
     idx = np.flatnonzero(found.sum(1) >= 2)
+    obs = tracked_observations(found[idx], pixels[idx], models)
+    return MultiView(idx, obs, triangulate(obs, poses, models, len(idx)))
+
+
+def tracking_excess_px2(multi: MultiView, localisation: np.ndarray, models: list[CameraModel],
+                        noise: NoiseModel) -> tuple[float, float]:
+    """(excess variance px², measured σ_k px) of a frame's tracked pixels: multi the points
+    found by >= 2 cameras (`triangulate_found`), localisation (N, C) px² the tracking bound
+    of each found pixel (module docstring). (0, NaN) with fewer than MIN_POINTS such
+    points."""
+    idx, obs, tri = multi.idx, multi.obs, multi.tri
     if len(idx) < MIN_POINTS:
         return 0.0, float("nan")
-    obs = tracked_observations(found[idx], pixels[idx], models)
-    tri = triangulate(obs, poses, models, len(idx))
-    residual, depth = reprojection_residuals(tri.points, obs, poses, models)
+    residual, depth = tri.residual_px, tri.depth
     measured = pixel_noise_from_residuals(residual, obs.point)
     focal = np.array([m.K[0, 0] for m in models])[obs.camera]
     predicted = noise.tracked_view_variance_px2(
@@ -78,11 +104,10 @@ def retriangulate(found: np.ndarray, pixels: np.ndarray, models: list[CameraMode
     positions = np.full((n, 3), np.nan)
     image_cov = np.full((n, 3, 3), np.nan)
     pose_cov = np.full((n, 3, 3), np.nan)
-    idx = np.flatnonzero(found.sum(1) >= 2)
+    multi = triangulate_found(found, pixels, models, poses)
+    idx, obs, tri = multi.idx, multi.obs, multi.tri
     if len(idx) == 0:
         return positions, image_cov, pose_cov
-    obs = tracked_observations(found[idx], pixels[idx], models)
-    tri = triangulate(obs, poses, models, len(idx))
     ok = tri.in_front & np.isfinite(tri.points).all(1)
     at = np.nan_to_num(tri.points[obs.point])
     focal = np.array([m.K[0, 0] for m in models])[obs.camera]

@@ -31,7 +31,12 @@ from ..classify.labels import INTER, INTRA, OUTLIER, STATUS_NAMES, UNOBSERVED
 from ..geometry.cameras import project, view_distortion_jacobians
 from ..geometry.tool import points_near_tool
 from ..geometry.triangulate import triangulate
-from ..noise.frame_noise import tracked_observations, tracking_excess_px2
+from ..noise.frame_noise import (
+    MultiView,
+    tracked_observations,
+    tracking_excess_px2,
+    triangulate_found,
+)
 from ..noise.model import (
     NoiseModel,
     body_pose_covariance,
@@ -121,9 +126,12 @@ def intra_distances(template: TemplateData, tracks: Tracks, rig: Rig,
     return d2
 
 
-def reprojection_check(template: TemplateData, tracks: Tracks, rig: Rig, poses: np.ndarray):
+def reprojection_check(template: TemplateData, tracks: Tracks, rig: Rig, poses: np.ndarray,
+                       multi: MultiView | None = None):
     """Split points by the reprojection-error check (gate at `rig.cfg.significance`, the
-    frame's noise in `rig.noise`), cameras posed by poses (C, 4, 4).
+    frame's noise in `rig.noise`), cameras posed by poses (C, 4, 4). `multi`: the points
+    found by >= 2 cameras already triangulated from `tracks` (`triangulate_found`; None:
+    triangulated here).
 
     Returns status (N,), positions (N, 3) (template position for intra, re-triangulated for
     inter, NaN otherwise) and the covariances (N, 3, 3) m² of those positions from image
@@ -152,14 +160,19 @@ def reprojection_check(template: TemplateData, tracks: Tracks, rig: Rig, poses: 
     candidates = np.flatnonzero(~intra & (views >= 2))
     use = found[candidates].copy()
     focal = np.array([m.K[0, 0] for m in models])
-    for _attempt in range(2):  # second attempt without each point's worst view
+    for attempt in range(2):  # second attempt without each point's worst view
         keep = use.sum(1) >= 2
         idx, use = candidates[keep], use[keep]
         if len(idx) == 0:
             break
-        obs = tracked_observations(use, pixels[idx], models)
+        if attempt == 0:  # every view of each point: the frame's triangulation of them
+            if multi is None:
+                multi = triangulate_found(found, pixels, models, poses)
+            obs, tri = multi.of_rows(idx)
+        else:
+            obs = tracked_observations(use, pixels[idx], models)
+            tri = triangulate(obs, poses, models, len(idx))
         rows, cams = obs.point, obs.camera
-        tri = triangulate(obs, poses, models, len(idx))
         at = np.nan_to_num(tri.points[rows])
         J, z = projection_jacobians(at, poses[cams], focal[cams],
                                     view_distortion_jacobians(at, cams, poses, models))
@@ -203,14 +216,16 @@ def build_target(template: TemplateData, rig: Rig, latest: np.ndarray, base: Sig
     tracks = Tracks(*find_points(latest, base, frame, rig, anchor, template.pixels))
     found, poses = tracks.found, frame.poses
     # The bound is a floor: what the frame's re-triangulated residuals show beyond the
-    # model is localisation error too (core/noise/frame_noise.py).
-    excess, _ = tracking_excess_px2(found, tracks.pixels, tracks.localisation, rig.models,
-                                    poses, rig.noise)
+    # model is localisation error too (core/noise/frame_noise.py). One triangulation of the
+    # points seen twice serves that and the reprojection check.
+    multi = triangulate_found(found, tracks.pixels, rig.models, poses)
+    excess, _ = tracking_excess_px2(multi, tracks.localisation, rig.models, rig.noise)
     tracks.localisation[found] += excess
     if found.any():
         rig = replace(rig, noise=replace(
             rig.noise, tracking_px=float(np.sqrt(np.median(tracks.localisation[found])))))
-    status, positions, covariances, pose_part = reprojection_check(template, tracks, rig, poses)
+    status, positions, covariances, pose_part = reprojection_check(template, tracks, rig, poses,
+                                                                   multi)
     # Tissue is pushed away by the tool, so visibility is judged in the images (mask);
     # a re-triangulated point inside the tool's capsule is a tool point, not tissue.
     on_tool = (status == INTER) & points_near_tool(np.nan_to_num(positions), frame.tool_pose,
