@@ -87,14 +87,29 @@ def _world_to_camera(poses: np.ndarray) -> np.ndarray:
     return invert_pose(poses)[:, :3, :]
 
 
+def _point_sums(point: np.ndarray, values: np.ndarray, n_points: int) -> np.ndarray:
+    """Per-point sums (N, K) of per-observation values (K, M), point (M,) their point."""
+    return np.stack([np.bincount(point, weights=v, minlength=n_points) for v in values], axis=1)
+
+
+def _symmetric_sums(point: np.ndarray, rows: np.ndarray, n_points: int) -> np.ndarray:
+    """Per-point Σ rowsᵀ rows (N, K, K) of the observations' rows (R, K, M) (observations
+    last: every product below runs over M contiguous values)."""
+    k = rows.shape[1]
+    i, j = np.triu_indices(k)
+    upper = _point_sums(point, (rows[:, i] * rows[:, j]).sum(axis=0), n_points)
+    out = np.empty((n_points, k, k))
+    out[:, i, j] = upper
+    out[:, j, i] = upper
+    return out
+
+
 def triangulate_linear(obs: Observations, poses: np.ndarray, n_points: int) -> np.ndarray:
     """DLT: the null vector of the stacked constraints x P3 - P1, y P3 - P2, per point."""
-    P = _world_to_camera(poses)[obs.camera]  # (M, 3, 4)
-    x, y = obs.normalized[:, 0:1], obs.normalized[:, 1:2]
-    rows = np.stack([x * P[:, 2] - P[:, 0], y * P[:, 2] - P[:, 1]], 1)  # (M, 2, 4)
-    AtA = np.zeros((n_points, 4, 4))
-    np.add.at(AtA, obs.point, np.einsum("mki,mkj->mij", rows, rows))
-    _, vecs = np.linalg.eigh(AtA)
+    P = np.moveaxis(_world_to_camera(poses)[obs.camera], 0, -1)  # (3, 4, M)
+    x, y = obs.normalized[:, 0], obs.normalized[:, 1]
+    rows = np.stack([x * P[2] - P[0], y * P[2] - P[1]])  # (2, 4, M)
+    _, vecs = np.linalg.eigh(_symmetric_sums(obs.point, rows, n_points))
     h = vecs[:, :, 0]
     with np.errstate(divide="ignore", invalid="ignore"):
         return h[:, :3] / h[:, 3:4]
@@ -107,24 +122,26 @@ def refine_points(
     """Gauss-Newton on Σ ‖f_c D_v (π(R_c X + t_c) − x_v)‖² per point, damped: the pixel
     error to first order, D_v (M, 2, 2) the lens distortion's Jacobian at each observation
     (`cameras.distortion_jacobians`; None: identity, the undistorted-pixel error)."""
-    P = _world_to_camera(poses)
-    R, t = P[obs.camera, :, :3], P[obs.camera, :, 3]
-    w = focal[obs.camera][:, None]
-    D = np.broadcast_to(np.eye(2), (len(obs.point), 2, 2)) if distortion is None else distortion
-    X = points.copy()
+    # Observations last (K, ..., M): every step is a product of M contiguous values.
+    P = _world_to_camera(poses)[obs.camera]
+    R = np.ascontiguousarray(np.moveaxis(P[:, :, :3], 0, -1))  # (3, 3, M)
+    t = np.ascontiguousarray(P[:, :, 3].T)  # (3, M)
+    w = focal[obs.camera]
+    D = (np.eye(2)[:, :, None] if distortion is None
+         else np.ascontiguousarray(np.moveaxis(distortion, 0, -1)))  # (2, 2, M)
+    seen = np.ascontiguousarray(obs.normalized.T)  # (2, M)
+    n = len(points)
+    X = np.array(points, dtype=float)
     for _ in range(iterations):
-        Xc = np.einsum("mij,mj->mi", R, X[obs.point]) + t
-        z = Xc[:, 2:3]
-        proj = Xc[:, :2] / z
-        r = np.einsum("mab,mb->ma", D, proj - obs.normalized) * w  # (M, 2) ≈ px
-        dproj = np.zeros((len(z), 2, 3))
-        dproj[:, 0, 0] = dproj[:, 1, 1] = 1 / z[:, 0]
-        dproj[:, :, 2] = -proj / z
-        J = np.einsum("mab,mbc,mcd->mad", D, dproj, R) * w[:, :, None]  # (M, 2, 3)
-        JtJ = np.zeros((len(X), 3, 3))
-        Jtr = np.zeros((len(X), 3))
-        np.add.at(JtJ, obs.point, np.einsum("mai,maj->mij", J, J))
-        np.add.at(Jtr, obs.point, np.einsum("mai,ma->mi", J, r))
+        Xc = (R * X[obs.point].T[None]).sum(axis=1) + t  # (3, M)
+        z = Xc[2]
+        proj = Xc[:2] / z
+        r = (D * (proj - seen)[None]).sum(axis=1) * w  # (2, M) ≈ px
+        # ∂π/∂X R = [R_0 - x R_2; R_1 - y R_2] / z (rows of R), then D and the focal length
+        dR = (R[:2] - proj[:, None] * R[2:3]) * (w / z)  # (2, 3, M)
+        J = (D[:, :, None] * dR[None]).sum(axis=1)  # (2, 3, M)
+        JtJ = _symmetric_sums(obs.point, J, n)
+        Jtr = _point_sums(obs.point, (J * r[:, None]).sum(axis=0), n)
         JtJ += np.eye(3) * 1e-9 * np.trace(JtJ, axis1=1, axis2=2)[:, None, None] + np.eye(3) * 1e-12
         X = X - np.linalg.solve(JtJ, Jtr[..., None])[..., 0]
     return X
