@@ -206,21 +206,22 @@ def in_image(uv: np.ndarray, camera: CameraModel, border: float = 0.0) -> np.nda
         )
 
 
-def undistort_pixels(uv: np.ndarray, camera: CameraModel) -> np.ndarray:
+def undistort_pixels(uv: np.ndarray, camera: CameraModel, polish: bool = True) -> np.ndarray:
     """Distorted pixels (N, 2) -> normalised undistorted coordinates (N, 2), the inverse of
-    `project` (see `undistort_normalized`)."""
+    `project` (see `undistort_normalized`, also for `polish`)."""
     uv = np.asarray(uv, float).reshape(-1, 2)
     if len(uv) == 0:
         return np.zeros((0, 2))
     xy_d = (uv - camera.K[:2, 2]) @ np.linalg.inv(camera.K[:2, :2]).T
-    return undistort_normalized(xy_d, camera.dist, camera.model)
+    return undistort_normalized(xy_d, camera.dist, camera.model, polish)
 
 
 def pixel_rays(
-    uv: np.ndarray, camera: CameraModel, cam_to_world: np.ndarray
+    uv: np.ndarray, camera: CameraModel, cam_to_world: np.ndarray, polish: bool = True
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Rays through distorted pixels (N, 2): origin (3,) and unit directions (N, 3) in world."""
-    xy = undistort_pixels(uv, camera)
+    """Rays through distorted pixels (N, 2): origin (3,) and unit directions (N, 3) in world
+    (`polish`: see `undistort_normalized`)."""
+    xy = undistort_pixels(uv, camera, polish)
     d = np.concatenate([xy, np.ones((len(xy), 1))], axis=1)
     d = d @ cam_to_world[:3, :3].T
     d /= np.linalg.norm(d, axis=1, keepdims=True)

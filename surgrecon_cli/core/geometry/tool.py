@@ -159,12 +159,13 @@ def tool_pixel_mask(
     tool_pose: ToolPoses,
     cfg: ToolConfigs,
 ) -> np.ndarray:
-    """(N,) bool: pixels (N, 2) whose rays hit a tool capsule inflated by the px margin."""
+    """(N,) bool: pixels (N, 2) whose rays hit a tool capsule inflated by the px margin (rays
+    at pixel accuracy: OpenCV's undistortion without the Newton polish)."""
     capsules = tool_capsules(tool_pose, cfg)
     out = np.zeros(len(pixels), bool)
     if not capsules or len(pixels) == 0:
         return out
-    origin, dirs = pixel_rays(pixels, camera, cam_to_world)
+    origin, dirs = pixel_rays(pixels, camera, cam_to_world, polish=False)
     margin_px = _margins(cfg, "mask_margin_px")
     for a, b, radius in capsules:
         dist, s = ray_segment_distance(origin, dirs, a, b)
