@@ -1,7 +1,8 @@
-"""Per-frame cost of the register stage beside its floor on this machine (issue 15).
+"""Per-frame cost of the register stage beside its floor on this machine (issues 15, 27).
 
     .venv/bin/python benchmarks/frame_cost.py [--cases 640x512:2 640x512:5 1280x1024:2]
-        [--frames 6] [--seed 7] [--workdir /tmp/surgrecon-frame-cost] [--before SRC]
+        [--frames 6] [--seed 7] [--floor-levels 1] [--workdir /tmp/surgrecon-frame-cost]
+        [--before SRC]
 
 `--before SRC`: also measure the register stage of another surgrecon source tree (e.g. the
 base commit: `git worktree add /tmp/base 1405d84`, then `--before /tmp/base`) on the same
@@ -15,7 +16,9 @@ exist in WORKDIR), then on one thread (BLAS and OpenCV, as a worker):
 
 - measured, in a child process per tree: `stages.register.register_frame` of frames
   1..F-1 in order (the register stage with 1 worker: the process caches warm as they are
-  in a worker; "before" runs first, "after" then rewrites the frames), per frame: total,
+  in a worker; "before" runs first, "after" then rewrites the frames), timed over frames
+  2..F-1 (frame 1 pays the process's one-time set-up: imports, the registrar, the
+  template's views), per frame: total,
   and its target part (tracking, reprojection check) and registration part as the frame
   step reports them; "rest" = total - both (loading inputs, decoding, writing).
 - floor, in this process, the irreducible parts of one frame, timed on the same data:
@@ -87,21 +90,27 @@ def prepare(workdir: Path, width: int, height: int, cameras: int, frames: int,
 
 
 def measured(run: Path, frames: int, config: Config) -> dict[str, float]:
-    """Per-frame CPU seconds of the register stage (1 worker) and its parts; wall seconds."""
+    """Per-frame CPU seconds of the register stage (1 worker) and its parts over frames
+    2..frames-1 (frame 1 registered first, untimed: the process's warm-up); wall seconds."""
     from surgrecon_cli.stages.register import register_frame
 
+    if frames < 3:
+        raise SystemExit("--frames must be at least 3 (frame 1 warms up, 2.. are timed)")
     total = target = solve = 0.0
-    wall = time.perf_counter()
+    wall = 0.0
     for k in range(1, frames):
-        start = time.process_time()
+        start, start_wall = time.process_time(), time.perf_counter()
         out = register_frame(run, k, config)
-        total += time.process_time() - start
         if "failed" in out:
             raise SystemExit(f"{run}: frame {k} failed: {out['failed']}")
+        if k == 1:
+            continue
+        total += time.process_time() - start
+        wall += time.perf_counter() - start_wall
         target += out["seconds_target"]
         solve += out["seconds_register"]
-    n = frames - 1
-    wall_total = (time.perf_counter() - wall) / n
+    n = frames - 2
+    wall_total = wall / n
     # The frame step reports wall seconds; scale them to CPU with the run's CPU/wall ratio.
     scale = (total / n) / wall_total
     parts = {"target": target / n * scale, "registration": solve / n * scale}
@@ -205,7 +214,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--cases", nargs="+", default=["640x512:2", "640x512:5", "1280x1024:2"],
                         help="WIDTHxHEIGHT:CAMERAS")
-    parser.add_argument("--frames", type=int, default=6)
+    parser.add_argument("--frames", type=int, default=6,
+                        help="frames of each simulated log (frames 2..F-1 are timed)")
     parser.add_argument("--seed", type=int, default=7)
     parser.add_argument("--floor-levels", type=int, default=1)
     parser.add_argument("--workdir", type=Path, default=Path("/tmp/surgrecon-frame-cost"))
