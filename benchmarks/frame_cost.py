@@ -1,14 +1,16 @@
 """Per-frame cost of the register stage beside its floor on this machine (issues 15, 27).
 
     .venv/bin/python benchmarks/frame_cost.py [--cases 640x512:2 640x512:5 1280x1024:2]
-        [--frames 6] [--seed 7] [--floor-levels 1] [--workdir /tmp/surgrecon-frame-cost]
-        [--before SRC]
+        [--frames 6] [--seed 7] [--floor-levels 1] [--repeat 1]
+        [--workdir /tmp/surgrecon-frame-cost] [--before SRC]
 
 `--before SRC`: also measure the register stage of another surgrecon source tree (e.g. the
 base commit: `git worktree add /tmp/base 1405d84`, then `--before /tmp/base`) on the same
 run folders, in a child process with PYTHONPATH=SRC, printed as a "before" row above this
 tree's "after" row, both against the same floor (this tree is measured in a child process
-too, so that both start cold alike).
+too, so that both start cold alike). `--repeat N`: each tree is measured N times,
+interleaved (before, after, before, ...), and the run with the smallest CPU total is
+printed: on a shared machine, the least disturbed one.
 
 For every case (size:cameras): `surgrecon simulate LOG --width W --height H --cameras C
 --frames F --seed S`, `surgrecon ingest` and `surgrecon build-template` (reused when they
@@ -218,6 +220,9 @@ def main() -> None:
                         help="frames of each simulated log (frames 2..F-1 are timed)")
     parser.add_argument("--seed", type=int, default=7)
     parser.add_argument("--floor-levels", type=int, default=1)
+    parser.add_argument("--repeat", type=int, default=1,
+                        help="measure each tree this many times (interleaved), keep the least "
+                             "disturbed (smallest CPU total)")
     parser.add_argument("--workdir", type=Path, default=Path("/tmp/surgrecon-frame-cost"))
     parser.add_argument("--before", type=Path, help="surgrecon source tree measured as before")
     parser.add_argument("--measure", type=Path, help=argparse.SUPPRESS)  # child: one run
@@ -244,7 +249,11 @@ def main() -> None:
             print(f"{case:>12} | not measured: {exc.cmd[1]} failed", flush=True)
             continue
         codes = ([("before", args.before)] if args.before else []) + [("after", None)]
-        rows = [(label, measured_by(code, run, args.frames)) for label, code in codes]
+        runs: dict[str, list[dict[str, float]]] = {label: [] for label, _ in codes}
+        for _ in range(args.repeat):  # interleaved, so that both see the same load
+            for label, code in codes:
+                runs[label].append(measured_by(code, run, args.frames))
+        rows = [(label, min(runs[label], key=lambda m: m["total"])) for label, _ in codes]
         t = tracking_floor(run, args.floor_levels, config.target.klt_window_px)
         r = registration_floor(run, args.frames - 1, config)
         for label, m in rows:
