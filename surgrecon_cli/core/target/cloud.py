@@ -118,7 +118,7 @@ def intra_distances(template: TemplateData, tracks: Tracks, rig: Rig,
             continue
         e, J, variance = _view_terms(template.points[rows], rows, c, tracks, rig, poses)
         cov = np.nan_to_num(template.covariance[rows], nan=0.0)
-        S = np.einsum("mai,mij,mbj->mab", J, cov, J) + variance[:, None, None] * np.eye(2)
+        S = (J @ cov) @ np.swapaxes(J, 1, 2) + variance[:, None, None] * np.eye(2)
         det = S[:, 0, 0] * S[:, 1, 1] - S[:, 0, 1] * S[:, 1, 0]
         quad = (S[:, 1, 1] * e[:, 0] ** 2 - 2 * S[:, 0, 1] * e[:, 0] * e[:, 1]
                 + S[:, 0, 0] * e[:, 1] ** 2) / np.maximum(det, 1e-300)
