@@ -159,3 +159,31 @@ def test_frame_tracking_excess_measures_the_error_beyond_the_model():
         excess, measured = tracking_excess_px2(multi, zero, models, noise)
         assert abs(measured - 0.4) <= 0.05, measured
         assert abs(excess - expected) <= 0.03, (model_px, excess)
+
+
+def test_one_triangulation_serves_any_subset_of_points():
+    """The frame's points are triangulated once (`triangulate_found`, distorted lenses, 2-4
+    views a point, some points seen once): the part of it for a subset of the points is what
+    triangulating that subset's views alone gives, and near the true points."""
+    rng = np.random.default_rng(11)
+    points = np.column_stack([rng.uniform(-0.01, 0.01, (300, 2)), rng.uniform(-0.002, 0.002, 300)])
+    models, poses = _rig(4)
+    models = [CameraModel(m.K, np.array([-0.2, 0.05, 0.001, -0.001, 0.0]), m.width, m.height)
+              for m in models]
+    obs = _observe(points, models, poses, 0.3, rng)
+    pixels = np.full((len(points), 4, 2), np.nan)
+    pixels[obs.point, obs.camera] = obs.pixels
+    found = rng.uniform(size=(len(points), 4)) < 0.6
+    pixels[~found] = np.nan
+    multi = triangulate_found(found, pixels, models, poses)
+    assert np.array_equal(multi.idx, np.flatnonzero(found.sum(1) >= 2))
+    rows = multi.idx[rng.uniform(size=len(multi.idx)) < 0.4]
+    sub_obs, sub_tri = multi.of_rows(rows)
+    alone = triangulate_found(found[rows], pixels[rows], models, poses)
+    np.testing.assert_array_equal(sub_obs.point, alone.obs.point)
+    np.testing.assert_array_equal(sub_obs.camera, alone.obs.camera)
+    np.testing.assert_allclose(sub_tri.points, alone.tri.points, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(sub_tri.error_px, alone.tri.error_px, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(sub_tri.residual_px, alone.tri.residual_px, rtol=0, atol=1e-9)
+    np.testing.assert_array_equal(sub_tri.in_front, alone.tri.in_front)
+    assert np.median(np.linalg.norm(sub_tri.points - points[rows], axis=1)) < 1e-4

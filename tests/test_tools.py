@@ -194,3 +194,31 @@ def test_a_tools_clearance_counts_its_jaw():
     shaft_only = ToolConfig(shaft_axis="-z")
     assert np.nanmin(tool_clearance(plane, pose, shaft_only)) == pytest.approx(0.03)
     assert np.isnan(tool_clearance(plane, np.full((4, 4), np.nan), arm)).all()
+
+
+def test_mask_rays_without_the_polish_mask_the_same_pixels():
+    """The mask casts its rays with OpenCV's undistortion alone (no Newton polish): on a
+    strongly distorted lens they still reproject onto their pixels far below a pixel, and
+    every pixel of a dense grid is masked as with the exactly inverted rays."""
+    from surgrecon_cli.core.geometry.cameras import CameraModel, pixel_rays, project
+    from surgrecon_cli.core.geometry.tool import ray_segment_distance
+
+    model = CameraModel(np.array([[300.0, 0, 160], [0, 300.0, 120], [0, 0, 1]]),
+                        np.array([-0.3, 0.1, 0.001, -0.001, 0.0]), 320, 240)
+    camera_pose = make_pose(np.array([0.0, 0, 0.1]), np.array([1.0, 0, 0, 0]))
+    tilted = make_pose(np.array([0.01, 0.005, 0.0]),
+                       np.array([0.9, 0.3, 0.2, 0.1]) / np.linalg.norm([0.9, 0.3, 0.2, 0.1]))
+    u, v = np.meshgrid(np.arange(0, 320, 0.7), np.arange(0, 240, 0.7))
+    px = np.column_stack([u.ravel(), v.ravel()])
+    origin, rays = pixel_rays(px, model, camera_pose, polish=False)
+    back, _ = project(origin + 0.05 * rays, camera_pose, model)
+    assert np.abs(back - px).max() < 1e-6
+    cfg = ToolConfig()
+    mask = tool_pixel_mask(px, model, camera_pose, tilted, cfg)
+    origin, exact = pixel_rays(px, model, camera_pose, polish=True)
+    expected = np.zeros(len(px), bool)
+    for a, b, radius in tool_capsules(tilted, cfg):
+        dist, s = ray_segment_distance(origin, exact, a, b)
+        expected |= dist <= radius + cfg.mask_margin_px * s / model.K[0, 0]
+    assert 0.02 < expected.mean() < 0.8  # the tool is in view, not all of it
+    np.testing.assert_array_equal(mask, expected)
