@@ -99,20 +99,26 @@ def epipolar_distances_px(E: np.ndarray, xi: np.ndarray, xj: np.ndarray, f_i: fl
 
 
 def _first_per_group(group: np.ndarray, value: np.ndarray, n_groups: int):
-    """Per group id: index of the smallest value and the two smallest values (inf if none)."""
-    order = np.lexsort((value, group))
+    """Per group id: index of the smallest value (the first such on ties) and the two
+    smallest values (inf if none). O(n) but one stable integer sort of `group`."""
+    order = np.argsort(group, kind="stable")
     g, v = group[order], value[order]
-    start = np.ones(len(g), bool)
-    start[1:] = g[1:] != g[:-1]
-    best_pos = np.flatnonzero(start)
     best_idx = np.full(n_groups, -1)
     best = np.full(n_groups, np.inf)
     second = np.full(n_groups, np.inf)
-    best_idx[g[best_pos]] = order[best_pos]
-    best[g[best_pos]] = v[best_pos]
-    has_second = best_pos + 1 < len(g)
-    has_second[has_second] &= ~start[best_pos[has_second] + 1]
-    second[g[best_pos[has_second]]] = v[best_pos[has_second] + 1]
+    if len(g) == 0:
+        return best_idx, best, second
+    starts = np.flatnonzero(np.concatenate([[True], g[1:] != g[:-1]]))
+    lowest = np.minimum.reduceat(v, starts)
+    segment = np.repeat(np.arange(len(starts)), np.diff(np.append(starts, len(g))))
+    at_min = np.flatnonzero(v == lowest[segment])
+    first = at_min[np.concatenate([[True], segment[at_min[1:]] != segment[at_min[:-1]]])]
+    rest = v.copy()
+    rest[first] = np.inf
+    ids = g[starts]
+    best_idx[ids] = order[first]
+    best[ids] = lowest
+    second[ids] = np.minimum.reduceat(rest, starts)
     return best_idx, best, second
 
 
