@@ -59,8 +59,9 @@ def epipolar_candidates(
     u1 = np.cross(t_unit, [1.0, 0.0, 0.0] if abs(t_unit[0]) < 0.9 else [0.0, 1.0, 0.0])
     u1 /= np.linalg.norm(u1)
     u2 = np.cross(t_unit, u1)
+    hj = np.column_stack([xj, np.ones(len(xj))])
     normal_i = np.column_stack([xi, np.ones(len(xi))]) @ E.T  # (Ni, 3), = t × R x̃_i
-    normal_j = np.cross(t, np.column_stack([xj, np.ones(len(xj))]))  # (Nj, 3)
+    normal_j = np.cross(t, hj)  # (Nj, 3)
     angle_i = np.mod(np.arctan2(normal_i @ u2, normal_i @ u1), np.pi)
     angle_j = np.mod(np.arctan2(normal_j @ u2, normal_j @ u1), np.pi)
     length = np.sqrt(scale2)
@@ -80,7 +81,11 @@ def epipolar_candidates(
     ia = np.repeat(np.arange(len(xi)), count)
     within = np.arange(len(ia)) - np.repeat(np.cumsum(count) - count, count)
     jb = order[(lo[ia] + within) % n_j]
-    keep = epipolar_distances_px(E, xi[ia], xj[jb], f_i, f_j) <= tol_px
+    # the symmetric distance (`epipolar_distances_px`) from per-point lines and norms
+    norm_j = np.linalg.norm(normal_i[:, :2], axis=1)  # of the lines in j
+    norm_i = np.linalg.norm((hj @ E)[:, :2], axis=1)  # of the lines in i
+    alg = np.abs(np.einsum("ij,ij->i", normal_i[ia], hj[jb]))
+    keep = 0.5 * alg * (f_j / norm_j[ia] + f_i / norm_i[jb]) <= tol_px
     ia, jb = ia[keep], jb[keep]
     by_pair = np.lexsort((jb, ia))
     return ia[by_pair], jb[by_pair]
