@@ -283,8 +283,7 @@ def test_blocked_search_equals_the_dense_reference(scene, monkeypatch):
 
 def random_pose(rng: np.random.Generator, centre: np.ndarray) -> np.ndarray:
     """Camera-to-world pose at `centre` looking at about the origin, rolled at random."""
-    pose = look_at(centre, rng.normal(0.0, 0.01, 3), up=tuple(rng.normal(0.0, 1.0, 3)))
-    return pose
+    return look_at(centre, rng.normal(0.0, 0.01, 3), up=tuple(rng.normal(0.0, 1.0, 3)))
 
 
 @pytest.mark.parametrize("motion", ["sideways", "forward", "oblique", "tiny"])

@@ -69,6 +69,7 @@ def epipolar_candidates(
     across_j = np.linalg.norm(normal_j, axis=1) / length  # B_j
     with np.errstate(divide="ignore"):
         sin_max = 2.0 * tol_px / (across_i * f_i + across_j.min() * f_j)
+    # half-width of the band (rad), widened against rounding; pi: every point of j
     half = np.where(sin_max < 1.0, np.arcsin(np.minimum(sin_max, 1.0)) * 1.0001 + 1e-9, np.pi)
     order = np.argsort(angle_j, kind="stable")
     sorted_j = angle_j[order]
@@ -105,7 +106,7 @@ def epipolar_distances_px(E: np.ndarray, xi: np.ndarray, xj: np.ndarray, f_i: fl
 
 def _first_per_group(group: np.ndarray, value: np.ndarray, n_groups: int):
     """Per group id: index of the smallest value (the first such on ties) and the two
-    smallest values (inf if none). O(n) but one stable integer sort of `group`."""
+    smallest values (inf if none): one stable sort of `group`, then linear passes."""
     order = np.argsort(group, kind="stable")
     g, v = group[order], value[order]
     best_idx = np.full(n_groups, -1)
