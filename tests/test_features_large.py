@@ -25,7 +25,7 @@ def _texture(width: int, height: int) -> np.ndarray:
 
 def test_a_shift_is_recovered_in_full_image_pixels():
     cfg = replace(Config().template, detect_width_px=1280)
-    width, height = 2 * cfg.detect_width_px + 100, 600  # searched at a third of its size
+    width, height = 2 * cfg.detect_width_px + 100, 600  # searched at 1280 px wide (/2.08)
     base = _texture(width + 40, height + 40)
     first = np.ascontiguousarray(base[20:20 + height, 20:20 + width])
     dx, dy = SHIFT.astype(int)

@@ -276,3 +276,68 @@ def test_blocked_search_equals_the_dense_reference(scene, monkeypatch):
     assert got == expected
     # non-trivial: most true pairs survive, some are lost to look-alikes
     assert 30 <= len(got & s["truth"]) < 60
+
+
+# ---- band search and lazy distances against brute force ---------------------------------
+
+
+def random_pose(rng: np.random.Generator, centre: np.ndarray) -> np.ndarray:
+    """Camera-to-world pose at `centre` looking at about the origin, rolled at random."""
+    return look_at(centre, rng.normal(0.0, 0.01, 3), up=tuple(rng.normal(0.0, 1.0, 3)))
+
+
+@pytest.mark.parametrize("motion", ["sideways", "forward", "oblique", "tiny"])
+def test_band_search_returns_exactly_the_brute_force_candidates(motion):
+    """Random points, two cameras in each kind of relative motion (the epipole far outside
+    the image, inside it, in between; a 0.1 mm baseline), two focal lengths: the pairs the
+    band search returns are exactly those every-pair testing finds within the tolerance."""
+    rng = np.random.default_rng({"sideways": 1, "forward": 2, "oblique": 3, "tiny": 4}[motion])
+    centre_i = np.array([0.0, -0.06, 0.02])
+    step = {"sideways": [0.03, 0.0, 0.0], "forward": [0.0, 0.02, -0.005],
+            "oblique": [0.02, 0.015, 0.01], "tiny": [1e-4, 0.0, 0.0]}[motion]
+    pose_i = random_pose(rng, centre_i)
+    pose_j = random_pose(rng, centre_i + np.array(step))
+    E = essential_matrix(pose_i, pose_j)
+    f_i, f_j = 700.0, 1100.0
+    xi = rng.uniform(-0.4, 0.4, (500, 2))
+    xj = rng.uniform(-0.4, 0.4, (600, 2))
+    hi = np.column_stack([xi, np.ones(len(xi))])
+    hj = np.column_stack([xj, np.ones(len(xj))])
+    lines_j, lines_i = hi @ E.T, hj @ E
+    alg = np.abs(lines_j @ hj.T)  # (Ni, Nj) |x_j' E x_i|
+    distance = 0.5 * alg * (f_j / np.linalg.norm(lines_j[:, :2], axis=1)[:, None]
+                            + f_i / np.linalg.norm(lines_i[:, :2], axis=1)[None, :])
+    for tol in (0.5, 2.0, 20.0):
+        ia, jb = epipolar_candidates(E, xi, xj, f_i, f_j, tol)
+        expected = np.argwhere(distance <= tol)  # row-major: sorted by ia, then jb
+        assert len(expected) > 30
+        np.testing.assert_array_equal(np.column_stack([ia, jb]), expected)
+
+
+def test_lazy_ratio_matches_equal_the_dense_rule():
+    """SIFT-like descriptors (integers 0..255; look-alike rows, exact duplicates for ties)
+    and random candidate sets: the matches equal those of the rule on the whole distance
+    matrix (best candidate; runner-up = nearest other feature of j, candidate or not;
+    mutual among candidates, earliest row on ties)."""
+    rng = np.random.default_rng(5)
+    db = rng.integers(0, 256, (300, 128)).astype(np.float32)
+    da = rng.integers(0, 256, (250, 128)).astype(np.float32)
+    near = rng.integers(0, 300, 150)
+    da[:150] = np.clip(db[near] + rng.integers(-12, 13, (150, 128)), 0, 255)
+    da[150:160] = da[140:150]  # identical rows: ties between rows
+    db[290:] = db[near[:10]]  # identical columns: ties within a row
+    cand = rng.random((250, 300)) < 0.08
+    cand[np.arange(150), near] = rng.random(150) < 0.8  # most true pairs are candidates
+    cand[200:] = False  # rows without candidates
+    ia, jb = np.nonzero(cand)
+    got = matching.ratio_mutual_matches(da, db, ia, jb, 0.8)
+    d2 = ((da[:, None, :].astype(float) - db[None]) ** 2).sum(-1)
+    in_cand = np.where(cand, d2, np.inf)
+    expected = []
+    for a in np.flatnonzero(cand.any(1)):
+        b = int(np.argmin(in_cand[a]))
+        runner_up = np.delete(d2[a], b).min()
+        if d2[a, b] < 0.8**2 * runner_up and int(np.argmin(in_cand[:, b])) == a:
+            expected.append((a, b))
+    assert len(expected) > 40
+    np.testing.assert_array_equal(got, np.array(expected).reshape(-1, 2))

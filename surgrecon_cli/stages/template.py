@@ -28,6 +28,7 @@ from ..core.template.build import (
 )
 from ..errors import InputError
 from ..executors import Executor, mapper
+from ..executors.heap import kept_heap
 from ..executors.serial import SerialExecutor
 from ..io.run.artefacts import (
     TemplateCloud,
@@ -57,18 +58,19 @@ def run_build_template(
         if log.n_frames == 0:
             raise InputError(f"{run_dir}: the ingested log has no frames")
         images, poses = log.frame_images(0), log.usable_poses(0)
-        result = build_template(
-            TemplateFrame(images, poses, log.all_tool_poses(0)),
-            list(log.models),
-            config.template,
-            config.tool_configs(),
-            BuildOptions(
-                on_step=on_step,
-                map_calls=mapper(executor or SerialExecutor()),
-                noise=noise_from_report(log.report, log.cameras, pixel_px=0.0),
-                names=log.cameras,
-            ),
-        )
+        with kept_heap():  # SIFT's scale spaces, ~0.5 GB a 1080p image, reuse the memory
+            result = build_template(
+                TemplateFrame(images, poses, log.all_tool_poses(0)),
+                list(log.models),
+                config.template,
+                config.tool_configs(),
+                BuildOptions(
+                    on_step=on_step,
+                    map_calls=mapper(executor or SerialExecutor()),
+                    noise=noise_from_report(log.report, log.cameras, pixel_px=0.0),
+                    names=log.cameras,
+                ),
+            )
         for a, b, px in result.stats["disagreeing_groups"]:
             logger.warning("cameras %s and cameras %s are not linked: their images match "
                            "(matches found without the poses) but their poses put those "

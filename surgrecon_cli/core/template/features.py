@@ -56,16 +56,16 @@ def detect_features(image: np.ndarray, camera: CameraModel, cfg: TemplateConfig,
 
     The contrast threshold is half OpenCV's default: endoscopic tissue is low-contrast and we
     want hundreds to thousands of features per image (our choice, not the paper's). Images
-    wider than `cfg.detect_width_px` are searched downscaled by the smallest integer factor
-    s that brings them to it (area average; SIFT's finest octave, the image upsampled 2x,
-    then has 4/s² of the full image's pixels instead of 4x); the pixels are given in the
-    full image. `cfg.max_features`, `cfg.contrast_threshold`: SIFT's.
+    wider than `cfg.detect_width_px` are searched downscaled to exactly that width, by a
+    factor s = width / detect_width_px (area average, aspect kept; SIFT's finest octave,
+    the image upsampled 2x, then has 4/s² of the full image's pixels instead of 4x); the
+    pixels are given in the full image. `cfg.max_features`, `cfg.contrast_threshold`:
+    SIFT's.
     """
     height, width = image.shape[:2]
     small = image
-    scale = -(-width // cfg.detect_width_px) if cfg.detect_width_px else 1
-    if scale > 1:
-        size = (width // scale, height // scale)
+    if 0 < cfg.detect_width_px < width:
+        size = (cfg.detect_width_px, max(1, round(height * cfg.detect_width_px / width)))
         small = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
         if exclude is not None:  # a pixel touching an excluded one is excluded
             exclude = cv2.resize(exclude.astype(np.uint8), size, interpolation=cv2.INTER_AREA) > 0

@@ -37,33 +37,59 @@ def epipolar_candidates(
     E: np.ndarray, xi: np.ndarray, xj: np.ndarray, f_i: float, f_j: float, tol_px: float
 ) -> tuple[np.ndarray, np.ndarray]:
     """All pairs (ia, jb) of normalised points xi (Ni, 2), xj (Nj, 2) whose symmetric epipolar
-    distance is at most `tol_px` (focal lengths f convert normalised units to pixels); ia
-    ascending.
+    distance is at most `tol_px` (focal lengths f convert normalised units to pixels); sorted
+    by ia, then jb.
 
-    A float32 pass over the algebraic error x_j^T E x_i, in blocks of rows, with a per-row
-    bound that never misses a pair, then the exact distance on the few survivors.
+    Every point lies on one epipolar plane (the plane through both camera centres and its
+    ray); with E = [t]x R its normal, in camera j, is E x̃_i for a point of i and t × x̃_j
+    for a point of j, perpendicular to the baseline t. Two points at plane angle difference
+    Δ (about the baseline) are at least 0.5 |sin Δ| (A_i f_i + B_j f_j) px from each other's
+    epipolar lines, where A, B (≥ 0, normalised units) are the components of their rays
+    across the baseline. So the points of j are sorted by plane angle once and each point
+    of i takes, by binary search, the band of angles that bound allows (using the smallest
+    B_j of image j); the exact distance then decides among the band's points. The band
+    never misses a pair: the result is that of testing every pair.
     """
-    hi = np.column_stack([xi, np.ones(len(xi))])
+    empty = np.zeros(0, int)
+    scale2 = 0.5 * float((E * E).sum())  # |t|² of E = [t]x R
+    if len(xi) == 0 or len(xj) == 0 or scale2 == 0.0:
+        return empty, empty.copy()
+    t = np.linalg.svd(E)[0][:, 2] * np.sqrt(scale2)  # E^T t = 0
+    t_unit = t / np.linalg.norm(t)
+    u1 = np.cross(t_unit, [1.0, 0.0, 0.0] if abs(t_unit[0]) < 0.9 else [0.0, 1.0, 0.0])
+    u1 /= np.linalg.norm(u1)
+    u2 = np.cross(t_unit, u1)
     hj = np.column_stack([xj, np.ones(len(xj))])
-    lines_j = hi @ E.T  # epipolar lines in image j of the points of i (Ni, 3)
-    lines_i = hj @ E  # lines in image i of the points of j (Nj, 3)
-    nj = np.linalg.norm(lines_j[:, :2], axis=1)
-    ni = np.linalg.norm(lines_i[:, :2], axis=1)
-    # distance = 0.5 |alg| (f_j / nj[i] + f_i / ni[j]) >= 0.5 |alg| (f_j / nj[i] + f_i / max ni)
-    bound = (tol_px / (0.5 * (f_j / nj + f_i / ni.max(initial=0.0))) * 1.0001).astype(np.float32)
-    lines32, hj32 = lines_j.astype(np.float32), hj.T.astype(np.float32)
-    found = []
-    blocks = row_blocks(len(xi), len(xj))
-    size = (blocks[0].stop if blocks else 0, len(xj))
-    buffer, screen = np.empty(size, np.float32), np.empty(size, bool)
-    for rows in blocks:
-        alg = np.abs(lines32[rows] @ hj32, out=buffer[: rows.stop - rows.start])  # (block, Nj)
-        ia, jb = np.nonzero(np.less_equal(alg, bound[rows, None], out=screen[: len(alg)]))
-        found.append((ia + rows.start, jb))
-    ia = np.concatenate([f[0] for f in found]) if found else np.zeros(0, int)
-    jb = np.concatenate([f[1] for f in found]) if found else np.zeros(0, int)
-    keep = epipolar_distances_px(E, xi[ia], xj[jb], f_i, f_j) <= tol_px
-    return ia[keep], jb[keep]
+    normal_i = np.column_stack([xi, np.ones(len(xi))]) @ E.T  # (Ni, 3), = t × R x̃_i
+    normal_j = np.cross(t, hj)  # (Nj, 3)
+    angle_i = np.mod(np.arctan2(normal_i @ u2, normal_i @ u1), np.pi)
+    angle_j = np.mod(np.arctan2(normal_j @ u2, normal_j @ u1), np.pi)
+    length = np.sqrt(scale2)
+    across_i = np.linalg.norm(normal_i, axis=1) / length  # A_i
+    across_j = np.linalg.norm(normal_j, axis=1) / length  # B_j
+    with np.errstate(divide="ignore"):
+        sin_max = 2.0 * tol_px / (across_i * f_i + across_j.min() * f_j)
+    # half-width of the band (rad), widened against rounding; pi: every point of j
+    half = np.where(sin_max < 1.0, np.arcsin(np.minimum(sin_max, 1.0)) * 1.0001 + 1e-9, np.pi)
+    order = np.argsort(angle_j, kind="stable")
+    sorted_j = angle_j[order]
+    n_j = len(xj)
+    wrapped = np.concatenate([sorted_j - np.pi, sorted_j, sorted_j + np.pi])
+    whole = half >= 0.5 * np.pi
+    lo = np.where(whole, n_j, np.searchsorted(wrapped, angle_i - half, side="left"))
+    hi = np.where(whole, 2 * n_j, np.searchsorted(wrapped, angle_i + half, side="right"))
+    count = hi - lo
+    ia = np.repeat(np.arange(len(xi)), count)
+    within = np.arange(len(ia)) - np.repeat(np.cumsum(count) - count, count)
+    jb = order[(lo[ia] + within) % n_j]
+    # the symmetric distance (`epipolar_distances_px`) from per-point lines and norms
+    norm_j = np.linalg.norm(normal_i[:, :2], axis=1)  # of the lines in j
+    norm_i = np.linalg.norm((hj @ E)[:, :2], axis=1)  # of the lines in i
+    alg = np.abs(np.einsum("ij,ij->i", normal_i[ia], hj[jb]))
+    keep = 0.5 * alg * (f_j / norm_j[ia] + f_i / norm_i[jb]) <= tol_px
+    ia, jb = ia[keep], jb[keep]
+    by_pair = np.lexsort((jb, ia))
+    return ia[by_pair], jb[by_pair]
 
 
 def epipolar_distances_px(E: np.ndarray, xi: np.ndarray, xj: np.ndarray, f_i: float,
@@ -79,20 +105,26 @@ def epipolar_distances_px(E: np.ndarray, xi: np.ndarray, xj: np.ndarray, f_i: fl
 
 
 def _first_per_group(group: np.ndarray, value: np.ndarray, n_groups: int):
-    """Per group id: index of the smallest value and the two smallest values (inf if none)."""
-    order = np.lexsort((value, group))
+    """Per group id: index of the smallest value (the first such on ties) and the two
+    smallest values (inf if none): one stable sort of `group`, then linear passes."""
+    order = np.argsort(group, kind="stable")
     g, v = group[order], value[order]
-    start = np.ones(len(g), bool)
-    start[1:] = g[1:] != g[:-1]
-    best_pos = np.flatnonzero(start)
     best_idx = np.full(n_groups, -1)
     best = np.full(n_groups, np.inf)
     second = np.full(n_groups, np.inf)
-    best_idx[g[best_pos]] = order[best_pos]
-    best[g[best_pos]] = v[best_pos]
-    has_second = best_pos + 1 < len(g)
-    has_second[has_second] &= ~start[best_pos[has_second] + 1]
-    second[g[best_pos[has_second]]] = v[best_pos[has_second] + 1]
+    if len(g) == 0:
+        return best_idx, best, second
+    starts = np.flatnonzero(np.concatenate([[True], g[1:] != g[:-1]]))
+    lowest = np.minimum.reduceat(v, starts)
+    segment = np.repeat(np.arange(len(starts)), np.diff(np.append(starts, len(g))))
+    at_min = np.flatnonzero(v == lowest[segment])
+    first = at_min[np.concatenate([[True], segment[at_min[1:]] != segment[at_min[:-1]]])]
+    rest = v.copy()
+    rest[first] = np.inf
+    ids = g[starts]
+    best_idx[ids] = order[first]
+    best[ids] = lowest
+    second[ids] = np.minimum.reduceat(rest, starts)
     return best_idx, best, second
 
 
@@ -157,38 +189,40 @@ def ratio_mutual_matches(
     Row a's match is its nearest candidate; the Lowe ratio test judges it against every
     other b: the runner-up is the second-best candidate or the best non-candidate,
     whichever is closer (a lone candidate would otherwise always pass). It must also be the
-    nearest candidate of its b (mutual). Squared distances are computed in blocks of rows
-    (`row_blocks`), never as one Na x Nb matrix; the column bests merge across blocks."""
+    nearest candidate of its b (mutual). The squared distances of the candidate pairs are
+    computed pair by pair; a row's distances to every b only for the rows still matched
+    after the mutual check and the ratio test among candidates (in blocks of rows,
+    `row_blocks`, never as one Na x Nb matrix)."""
     rows_with, ia = np.unique(ia, return_inverse=True)  # a row without candidates never matches
     da = da[rows_with]
     n_a, n_b = len(da), len(db)
-    sq_a_all, sq_b = (da * da).sum(1), (db * db).sum(1)
-    best_b = np.full(n_a, -1)
-    passes = np.zeros(n_a, bool)
-    col_d2 = np.full(n_b, np.inf)
-    col_row = np.full(n_b, -1)
-    bounds = np.searchsorted(ia, [(r.start, r.stop) for r in row_blocks(n_a, n_b)])
-    for (lo, hi), rows in zip(bounds, row_blocks(n_a, n_b), strict=True):
-        # |x|² + |y|² - 2 x.y; the row's |x|² is added only where a value is used.
-        part = da[rows] @ db.T
-        part *= -2.0
-        part += sq_b
-        sq_a = sq_a_all[rows].astype(float)
-        a, b = ia[lo:hi] - rows.start, jb[lo:hi]
-        d2 = np.maximum(part[a, b] + sq_a[a], 0.0)
-        best_c, best, second = _first_per_group(a, d2, len(sq_a))
-        part[a, b] = np.inf
-        second = np.minimum(second, np.maximum(part.min(axis=1) + sq_a, 0.0))
-        has = best_c >= 0
-        best_b[rows] = np.where(has, b[np.maximum(best_c, 0)], -1)
-        passes[rows] = has & (best < (ratio**2) * second)  # squared distances
-        col_c, col_best, _ = _first_per_group(b, d2, n_b)
-        better = col_best < col_d2  # strict: on a tie the earlier row stays, as in one pass
-        col_d2[better] = col_best[better]
-        col_row[better] = a[col_c[better]] + rows.start
+    if n_a == 0 or n_b == 0:
+        return np.zeros((0, 2), int)
+    sq_a, sq_b = (da * da).sum(1).astype(float), (db * db).sum(1)
+    # |x|² + |y|² - 2 x.y, as float32 up to the row's |x|² (added in float64)
+    part = np.empty(len(ia), np.float32)
+    step = max(1, BLOCK_CELLS // da.shape[1])
+    for s in range(0, len(ia), step):
+        a, b = ia[s:s + step], jb[s:s + step]
+        part[s:s + step] = np.einsum("ij,ij->i", da[a], db[b]) * np.float32(-2.0) + sq_b[b]
+    d2 = np.maximum(part + sq_a[ia], 0.0)
+    best_c, best, second = _first_per_group(ia, d2, n_a)
+    col_c, _, _ = _first_per_group(jb, d2, n_b)  # ties: the earliest row
+    col_row = np.where(col_c >= 0, ia[np.maximum(col_c, 0)], -1)
+    best_b = jb[best_c]  # every row has a candidate
     rows_all = np.arange(n_a)
-    keep = passes & (col_row[np.maximum(best_b, 0)] == rows_all)
-    return np.column_stack([rows_with[keep], best_b[keep]])
+    alive = (col_row[best_b] == rows_all) & (best < (ratio**2) * second)
+    # the best non-candidate can still be closer than the second candidate: every b
+    check = np.flatnonzero(alive)
+    for rows in row_blocks(len(check), n_b):
+        r = check[rows]
+        full = da[r] @ db.T
+        full *= -2.0
+        full += sq_b
+        full[np.arange(len(r)), best_b[r]] = np.inf
+        runner = np.maximum(full.min(axis=1) + sq_a[r], 0.0)
+        alive[r] &= best[r] < (ratio**2) * runner
+    return np.column_stack([rows_with[alive], best_b[alive]])
 
 
 def build_tracks(
