@@ -117,7 +117,7 @@ def test_error_estimate_is_within_10x_of_the_true_error_and_says_what_it_sees(pa
     true_median = np.median(np.linalg.norm(res.registered - pair.truth, axis=1)) * 1e3
     median, p95, sees = error_estimate_mm(res, pair.source)
     assert true_median / 10 < median < 10 * true_median and p95 >= median
-    assert "along" in sees and "colour" in sees
+    assert "along" in sees and "colour" in sees and "cannot be seen" in sees
 
 
 def test_without_colour_the_estimate_counts_the_motion_a_slide_could_hide():

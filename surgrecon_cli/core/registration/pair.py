@@ -176,7 +176,8 @@ def error_estimate_mm(result: RegistrationResult,
     along = result.along_surface
     if along is not None and np.isfinite(along).any():
         est = np.hypot(est, np.nan_to_num(along) * 1e3)
-        sees = "across the surface, and along it from colour"
+        sees = ("across the surface, and along it from colour (a slide where the texture "
+                "is flat, or onto a look-alike texture, cannot be seen)")
     else:
         est = np.hypot(est, np.linalg.norm(result.registered - source, axis=1) * 1e3)
         sees = ("across the surface; along it (no colour) a slide cannot be seen, so it "
