@@ -23,9 +23,8 @@ from surgrecon_cli.sim.pairs_stray import stray_colour_pair
 GATE_M = 5e-3
 
 
-def _decide(pair):
-    use = ~analyse_target(pair.target, cKDTree(pair.target)).stray
-    return decide_colour(pair.target, pair.target_rgb, use, GATE_M)
+def _decide(pair):  # as register_pair decides: on every target point
+    return decide_colour(pair.target, pair.target_rgb, np.ones(len(pair.target), bool), GATE_M)
 
 
 def test_colour_decision_is_the_same_from_1k_to_100k_points_and_0_to_30_percent_strays():
