@@ -78,6 +78,11 @@ def test_pair_config_replaces_only_the_defaults():
     assert cfg.outer_iterations > default.outer_iterations  # dense: more outer steps
     assert pair_config(default, 2000).outer_iterations == default.outer_iterations
     assert pair_config(RegistrationConfig(outer_iterations=3), 20000).outer_iterations == 3
+    # the mutual check never narrower than a quarter of the 5 mm gate, however dense
+    for spacing_m in (0.1e-3, 0.4e-3, 1e-3):
+        wide = pair_config(default, 5000, spacing_m).mutual_spacings * spacing_m
+        assert wide >= 0.25 * default.max_correspondence_mm * 1e-3 - 1e-12
+    assert pair_config(default, 5000, 1e-3).mutual_spacings > default.mutual_spacings
 
 
 def test_unsupported_points_follow_near_supported_ones_and_keep_their_own_far_away():

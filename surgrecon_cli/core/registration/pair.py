@@ -43,21 +43,34 @@ FOLLOW_REACH = (0.02, 0.05)
 # the matches that slide along the texture (worst seed at 5k 0.195 -> 0.175 mm, at 20k 0.161
 # -> 0.096 mm; 1.5 spacings: 0.26 / 0.56 mm) while still dropping matches onto the rim of a
 # cut target (with no mutual check the cut 5k pair goes from 0.18-0.28 to 0.20-0.29 mm and
-# the 2k one from 0.31-0.52 to 0.38-0.56 mm); above PAIR_DENSE_POINTS, 8 outer steps
-# instead of 6 let the matches slide further (20k worst seed 0.096 -> 0.083 mm)
+# the 2k one from 0.31-0.52 to 0.38-0.56 mm), and never narrower than MUTUAL_GATE_FRACTION
+# of the correspondence gate (1.25 mm, what 5 target spacings are at 20k points: 2 mm at 5k;
+# at 100k points 5 spacings are 0.73 mm and leave tuning seeds 0 / 1 at 0.162 / 0.081 mm,
+# the floor at 0.069 / 0.050 mm); above PAIR_DENSE_POINTS, 8 outer steps instead of 6 let
+# the matches slide further (20k worst seed 0.096 -> 0.083 mm)
 PAIR_SETTINGS: dict[str, float] = {"max_nodes": 250, "rigid_iterations": 10,
                                    "mutual_spacings": 5.0}
+MUTUAL_GATE_FRACTION = 0.25
 PAIR_DENSE_POINTS = 5000
 PAIR_DENSE_OUTER = 8
 
 
-def pair_config(cfg: RegistrationConfig, n_source: int) -> RegistrationConfig:
-    """`cfg` with `register_pair`'s settings for colour-decided matches (PAIR_SETTINGS, and
+def pair_config(cfg: RegistrationConfig, n_source: int,
+                target_spacing_m: float = 0.0) -> RegistrationConfig:
+    """`cfg` with `register_pair`'s settings for colour-decided matches (PAIR_SETTINGS, the
+    mutual check at least MUTUAL_GATE_FRACTION x max_correspondence_mm wide given the
+    target's median nearest-neighbour spacing in metres (`register` counts the mutual
+    check in the larger of it and the source's spacing; 0 = unknown: no floor), and
     PAIR_DENSE_OUTER outer steps above PAIR_DENSE_POINTS source points) in place of the
     fields left at their defaults; a field the caller set to another value is kept."""
     default = RegistrationConfig()
+    settings = dict(PAIR_SETTINGS)
+    if target_spacing_m > 0:
+        floor_m = MUTUAL_GATE_FRACTION * cfg.max_correspondence_mm * 1e-3
+        settings["mutual_spacings"] = max(settings["mutual_spacings"],
+                                          floor_m / target_spacing_m)
     changes: dict[str, Any] = {
-        key: type(getattr(default, key))(value) for key, value in PAIR_SETTINGS.items()
+        key: type(getattr(default, key))(value) for key, value in settings.items()
         if getattr(cfg, key) == getattr(default, key)}
     if n_source > PAIR_DENSE_POINTS and cfg.outer_iterations == default.outer_iterations:
         changes["outer_iterations"] = PAIR_DENSE_OUTER
@@ -142,7 +155,8 @@ def register_pair(
         assert decision is not None
         cfg = dataclasses.replace(cfg, color_weight_mm=decision.weight_mm)
     if colour_on:
-        cfg = pair_config(cfg, len(src))
+        assert decision is not None
+        cfg = pair_config(cfg, len(src), decision.spacing_m)
     result = register(src, tgt[keep], s_rgb if colour_on else None,
                       t_rgb[keep] if colour_on and t_rgb is not None else None, cfg, **extras)
     supported = (result.supported if result.supported is not None
