@@ -12,8 +12,9 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
+from surgrecon_cli.config import RegistrationConfig
 from surgrecon_cli.core.registration.colour import decide_colour
-from surgrecon_cli.core.registration.pair import error_estimate_mm, follow_supported
+from surgrecon_cli.core.registration.pair import error_estimate_mm, follow_supported, pair_config
 from surgrecon_cli.core.registration.surface import analyse_target
 from surgrecon_cli.registration import register_pair
 from surgrecon_cli.sim.pairs_catalog import make_pair
@@ -22,9 +23,8 @@ from surgrecon_cli.sim.pairs_stray import stray_colour_pair
 GATE_M = 5e-3
 
 
-def _decide(pair):
-    use = ~analyse_target(pair.target, cKDTree(pair.target)).stray
-    return decide_colour(pair.target, pair.target_rgb, use, GATE_M)
+def _decide(pair):  # as register_pair decides: on every target point
+    return decide_colour(pair.target, pair.target_rgb, np.ones(len(pair.target), bool), GATE_M)
 
 
 def test_colour_decision_is_the_same_from_1k_to_100k_points_and_0_to_30_percent_strays():
@@ -51,6 +51,38 @@ def test_flat_colour_with_random_strays_is_not_used():
     flat[pair.target_outlier] = rng.uniform(0, 1, (int(pair.target_outlier.sum()), 3))
     use = ~analyse_target(pair.target, cKDTree(pair.target)).stray
     assert decide_colour(pair.target, flat, use, GATE_M).weight_mm == 0.0
+
+
+@pytest.mark.parametrize("strays", [0.0, 0.2])
+def test_colour_is_used_with_and_without_strays_and_registers_within_the_goals(strays):
+    # issue 28's 2k goals (median <= 0.5 mm, p95 <= 1.5 mm), and far below doing nothing
+    pair = stray_colour_pair(2000, 102, strays=strays)
+    res = register_pair(pair.source, pair.target, pair.source_rgb, pair.target_rgb)
+    assert "more than" in res.stats[0]["colour_reason"]
+    assert res.stats[0]["colour_weight_mm"] > 0
+    err = np.linalg.norm(res.registered - pair.truth, axis=1) * 1e3
+    still = np.linalg.norm(pair.source - pair.truth, axis=1) * 1e3
+    assert np.median(err) < min(0.5, 0.35 * np.median(still))
+    assert np.percentile(err, 95) < 1.5
+    if strays:  # strays are left out of the target, not matched
+        assert res.stats[0]["colour_strays"] > 0.5 * pair.target_outlier.sum()
+        free = res.correspondences[res.correspondences >= 0]
+        assert pair.target_outlier[free].mean() < 0.02
+
+
+def test_pair_config_replaces_only_the_defaults():
+    cfg = pair_config(RegistrationConfig(max_nodes=600), 20000)
+    default = RegistrationConfig()
+    assert cfg.max_nodes == 600  # set by the caller: kept
+    assert cfg.rigid_iterations < default.rigid_iterations
+    assert cfg.outer_iterations > default.outer_iterations  # dense: more outer steps
+    assert pair_config(default, 2000).outer_iterations == default.outer_iterations
+    assert pair_config(RegistrationConfig(outer_iterations=3), 20000).outer_iterations == 3
+    # the mutual check never narrower than a quarter of the 5 mm gate, however dense
+    for spacing_m in (0.1e-3, 0.4e-3, 1e-3):
+        wide = pair_config(default, 5000, spacing_m).mutual_spacings * spacing_m
+        assert wide >= 0.25 * default.max_correspondence_mm * 1e-3 - 1e-12
+    assert pair_config(default, 5000, 1e-3).mutual_spacings > default.mutual_spacings
 
 
 def test_unsupported_points_follow_near_supported_ones_and_keep_their_own_far_away():
@@ -89,7 +121,7 @@ def test_error_estimate_is_within_10x_of_the_true_error_and_says_what_it_sees(pa
     true_median = np.median(np.linalg.norm(res.registered - pair.truth, axis=1)) * 1e3
     median, p95, sees = error_estimate_mm(res, pair.source)
     assert true_median / 10 < median < 10 * true_median and p95 >= median
-    assert "along" in sees and "colour" in sees
+    assert "along" in sees and "colour" in sees and "cannot be seen" in sees
 
 
 def test_without_colour_the_estimate_counts_the_motion_a_slide_could_hide():

@@ -45,13 +45,15 @@ SAMPLES = 3000  # points the medians are taken over (a spread subset)
 class ColourDecision:
     """weight_mm: mm per RGB unit (0 = colour not used); gradient (RGB units per mm) and
     noise s (RGB units per point) of the texture measured on the agreeing points; agree (M,)
-    bool: target points whose colour agrees with their neighbourhood; reason: one phrase."""
+    bool: target points whose colour agrees with their neighbourhood; reason: one phrase;
+    spacing_m: median nearest-neighbour distance of the agreeing points (m, 0 = unknown)."""
 
     weight_mm: float
     gradient: float
     noise: float
     agree: np.ndarray
     reason: str
+    spacing_m: float = 0.0
 
 
 def _spread(idx: np.ndarray) -> np.ndarray:
@@ -72,19 +74,22 @@ def colour_agreement(xyz: np.ndarray, rgb: np.ndarray, use: np.ndarray) -> np.nd
     return agree
 
 
-def texture_line(xyz: np.ndarray, rgb: np.ndarray) -> tuple[float, float]:
-    """(g RGB units per metre, s RGB units per point) of clean points (step 2)."""
+def texture_line(xyz: np.ndarray, rgb: np.ndarray) -> tuple[float, float, float]:
+    """(g RGB units per metre, s RGB units per point, median nearest-neighbour distance m)
+    of clean points (step 2)."""
     k = min(FIT_RANKS + 1, len(xyz))
     pts = _spread(np.arange(len(xyz)))
     d, nn = cKDTree(xyz).query(xyz[pts], k=k)
     r2 = np.median(d[:, 1:] ** 2, axis=0)
     c2 = np.median(np.sum((rgb[pts, None, :] - rgb[nn[:, 1:]]) ** 2, axis=2), axis=0)
+    spacing = float(np.sqrt(r2[0]))
     ranks = max(MIN_RANKS, int(np.sum(r2 <= (FIT_REACH_SPACINGS**2) * r2[0])))
     r2, c2 = r2[:ranks], c2[:ranks]
     if not r2[-1] > r2[0]:  # coincident points: no distances to fit over
-        return 0.0, 0.0
+        return 0.0, 0.0, spacing
     slope, intercept = np.polyfit(r2, c2, 1)
-    return float(np.sqrt(max(slope, 0.0))), float(np.sqrt(max(intercept, 0.0) / 2.0))
+    return (float(np.sqrt(max(slope, 0.0))), float(np.sqrt(max(intercept, 0.0) / 2.0)),
+            spacing)
 
 
 def decide_colour(xyz: np.ndarray, rgb: np.ndarray, use: np.ndarray,
@@ -94,9 +99,9 @@ def decide_colour(xyz: np.ndarray, rgb: np.ndarray, use: np.ndarray,
     agree = colour_agreement(xyz, rgb, use)
     if agree.sum() < 2 * MIN_RANKS + 2:
         return ColourDecision(0.0, 0.0, 0.0, agree, "too few points to measure the texture")
-    g, s = texture_line(xyz[agree], rgb[agree])
+    g, s, h = texture_line(xyz[agree], rgb[agree])
     if g <= 0 or g * reach_m <= COLOUR_SNR * np.sqrt(2.0) * s:
         return ColourDecision(0.0, g * 1e-3, s, agree,
-                              "the texture changes less than its noise over the gate")
+                              "the texture changes less than its noise over the gate", h)
     return ColourDecision(float(COLOUR_GAIN / g) * 1e3, g * 1e-3, s, agree,
-                          "the texture changes by more than its noise over the gate")
+                          "the texture changes by more than its noise over the gate", h)

@@ -10,7 +10,9 @@ Around the shared `register` (also the frame pipeline's), without changing it:
    rigidly (a translation) with its supported neighbourhood, so beside a static supported
    part it stays put; farther (FOLLOW_REACH) it keeps `register`'s own motion (smoothness
    plus a weak pull towards not moving).
-3. an error estimate that says what it can see (`error_estimate_mm`).
+3. with colour used, solver settings of its own (`pair_config`) in place of the fields the
+   caller left at their defaults;
+4. an error estimate that says what it can see (`error_estimate_mm`).
 Inputs and outputs in metres, like `register`.
 """
 
@@ -25,7 +27,6 @@ from scipy.spatial import cKDTree
 from ...config import RegistrationConfig
 from .colour import ColourDecision, decide_colour
 from .register import RegistrationResult, _colours, _points, register
-from .surface import analyse_target
 
 FOLLOW_NEIGHBOURS = 16  # ours: supported neighbours an unsupported point moves with
 # ours: an unsupported point follows its supported neighbourhood in full within 2 % of the
@@ -35,6 +36,45 @@ FOLLOW_NEIGHBOURS = 16  # ours: supported neighbours an unsupported point moves 
 # (+0.18 mm with a full follow out to 5 % fading to not moving at 10 %), and colourless
 # partial shapes keep the solver's extrapolated motion far from their support
 FOLLOW_REACH = (0.02, 0.05)
+# ours, tuned on stray_colour / stray_colour_partial / stray_colour_30 seeds 0-4, 1k-20k
+# points (benchmarks/registration.py --variant): with colour deciding the matches, 250 nodes
+# and 10 rigid ICP steps (the colour-decided outer steps find what the rigid step does not)
+# cut the 5k time from 0.36 to 0.26 s; a mutual check 5 spacings wide instead of 3 keeps
+# the matches that slide along the texture (worst seed at 5k 0.195 -> 0.175 mm, at 20k 0.161
+# -> 0.096 mm; 1.5 spacings: 0.26 / 0.56 mm) while still dropping matches onto the rim of a
+# cut target (with no mutual check the cut 5k pair goes from 0.18-0.28 to 0.20-0.29 mm and
+# the 2k one from 0.31-0.52 to 0.38-0.56 mm), and never narrower than MUTUAL_GATE_FRACTION
+# of the correspondence gate (1.25 mm, what 5 target spacings are at 20k points: 2 mm at 5k;
+# at 100k points 5 spacings are 0.73 mm and leave tuning seeds 0 / 1 at 0.162 / 0.081 mm,
+# the floor at 0.069 / 0.050 mm); above PAIR_DENSE_POINTS, 8 outer steps instead of 6 let
+# the matches slide further (20k worst seed 0.096 -> 0.083 mm)
+PAIR_SETTINGS: dict[str, float] = {"max_nodes": 250, "rigid_iterations": 10,
+                                   "mutual_spacings": 5.0}
+MUTUAL_GATE_FRACTION = 0.25
+PAIR_DENSE_POINTS = 5000
+PAIR_DENSE_OUTER = 8
+
+
+def pair_config(cfg: RegistrationConfig, n_source: int,
+                target_spacing_m: float = 0.0) -> RegistrationConfig:
+    """`cfg` with `register_pair`'s settings for colour-decided matches (PAIR_SETTINGS, the
+    mutual check at least MUTUAL_GATE_FRACTION x max_correspondence_mm wide given the
+    target's median nearest-neighbour spacing in metres (`register` counts the mutual
+    check in the larger of it and the source's spacing; 0 = unknown: no floor), and
+    PAIR_DENSE_OUTER outer steps above PAIR_DENSE_POINTS source points) in place of the
+    fields left at their defaults; a field the caller set to another value is kept."""
+    default = RegistrationConfig()
+    settings = dict(PAIR_SETTINGS)
+    if target_spacing_m > 0:
+        floor_m = MUTUAL_GATE_FRACTION * cfg.max_correspondence_mm * 1e-3
+        settings["mutual_spacings"] = max(settings["mutual_spacings"],
+                                          floor_m / target_spacing_m)
+    changes: dict[str, Any] = {
+        key: type(getattr(default, key))(value) for key, value in settings.items()
+        if getattr(cfg, key) == getattr(default, key)}
+    if n_source > PAIR_DENSE_POINTS and cfg.outer_iterations == default.outer_iterations:
+        changes["outer_iterations"] = PAIR_DENSE_OUTER
+    return dataclasses.replace(cfg, **changes)
 
 
 def follow_supported(source: np.ndarray, registered: np.ndarray, supported: np.ndarray,
@@ -61,11 +101,11 @@ def follow_supported(source: np.ndarray, registered: np.ndarray, supported: np.n
 
 
 def _keep_targets(n_target: int, decision: ColourDecision | None, target_ids: Any,
-                  landmarks: Any, use: np.ndarray) -> np.ndarray:
+                  landmarks: Any) -> np.ndarray:
     """Target indices passed on: all but the colour strays (points with a known pair stay)."""
     keep = np.ones(n_target, bool)
     if decision is not None:
-        keep = ~use | decision.agree
+        keep = decision.agree.copy()
     if target_ids is not None:
         keep |= np.asarray(target_ids) >= 0
     if landmarks is not None and len(landmarks):
@@ -81,8 +121,9 @@ def register_pair(
     config: RegistrationConfig | None = None,
     **extras: Any,
 ) -> RegistrationResult:
-    """`register` with the colour decided robustly and unsupported points following their
-    supported neighbours (module docstring). extras: register's target_ids, weights,
+    """`register` with the colour decided robustly, its own solver settings when colour is
+    used (`pair_config`) and unsupported points following their supported neighbours
+    (module docstring). extras: register's target_ids, weights,
     landmarks, callback. stats[0] gains colour_reason, colour_strays (target points left
     out), colour_gradient_per_mm, colour_noise and followed (points that followed)."""
     cfg = config or RegistrationConfig()
@@ -92,10 +133,14 @@ def register_pair(
     t_rgb = _colours("target_rgb", target_rgb, len(tgt))
     decision = None
     if s_rgb is not None and t_rgb is not None and len(tgt) >= 3:
-        use = ~analyse_target(tgt, cKDTree(tgt)).stray
+        # every target point takes part: a geometric stray (off the surface) that agrees
+        # with its neighbourhood's colour is left to `register`'s own stray test, and
+        # leaving geometric strays out first changes the weight by < 15 % on the stray and
+        # noisy tissues (1k-20k points) for a second surface analysis (0.02 s at 5k)
+        use = np.ones(len(tgt), bool)
         decision = decide_colour(tgt, t_rgb, use, cfg.max_correspondence_mm * 1e-3)
         keep = _keep_targets(len(tgt), decision, extras.get("target_ids"),
-                             extras.get("landmarks"), use)
+                             extras.get("landmarks"))
     else:
         keep = np.arange(len(tgt))
     ids, lm = extras.get("target_ids"), extras.get("landmarks")
@@ -109,6 +154,9 @@ def register_pair(
     if colour_on and cfg.color_weight_mm <= 0:
         assert decision is not None
         cfg = dataclasses.replace(cfg, color_weight_mm=decision.weight_mm)
+    if colour_on:
+        assert decision is not None
+        cfg = pair_config(cfg, len(src), decision.spacing_m)
     result = register(src, tgt[keep], s_rgb if colour_on else None,
                       t_rgb[keep] if colour_on and t_rgb is not None else None, cfg, **extras)
     supported = (result.supported if result.supported is not None
@@ -145,7 +193,8 @@ def error_estimate_mm(result: RegistrationResult,
     along = result.along_surface
     if along is not None and np.isfinite(along).any():
         est = np.hypot(est, np.nan_to_num(along) * 1e3)
-        sees = "across the surface, and along it from colour"
+        sees = ("across the surface, and along it from colour (a slide where the texture "
+                "is flat, or onto a look-alike texture, cannot be seen)")
     else:
         est = np.hypot(est, np.linalg.norm(result.registered - source, axis=1) * 1e3)
         sees = ("across the surface; along it (no colour) a slide cannot be seen, so it "
