@@ -64,7 +64,7 @@ def test_not_fooled_by_smooth_non_rigid_motion():
 
 
 def test_robust_to_lost_tracks_and_missing_points():
-    ref, cur, found = synthetic_tracks(0.2, amplitude_px=3.0, lost=0.05, seed=1)
+    ref, cur, found = synthetic_tracks(0.2, amplitude_px=0.5, lost=0.05, seed=1)
     found[:, ::7, 1] = False
     cur[:, ::11, 0] = np.nan
     assert local_motion_sigma_px(ref, cur, found) == pytest.approx(0.2, rel=0.15)

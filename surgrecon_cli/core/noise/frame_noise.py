@@ -29,6 +29,7 @@ from .model import (
 )
 
 MIN_POINTS = 20  # ours: fewer points seen twice measure no frame noise (excess 0)
+REJECT = 4.0  # ours: a track beyond this many σ from its neighbours' motion is lost
 NEIGHBOURS = 24  # ours: tracks in a track's affine motion fit (6 parameters; 4x over-determined)
 
 
@@ -107,34 +108,37 @@ def retriangulate(found: np.ndarray, pixels: np.ndarray, models: list[CameraMode
 
 
 def local_motion_residuals(reference: np.ndarray, current: np.ndarray,
-                           neighbours: int = NEIGHBOURS) -> np.ndarray:
+                           neighbours: int = NEIGHBOURS,
+                           weight: np.ndarray | None = None) -> np.ndarray:
     """Standardised residuals (M, 2) px of one camera's tracks against their neighbours'
     motion: reference (M, 2) px where each track started (the template's pixel), current
-    (M, 2) px where it is now. Each track's motion is predicted by a least-squares affine
-    fit (6 parameters) of the motions of its `neighbours` nearest tracks (by reference
-    pixel), itself left out; the prediction error r has variance σ² (1 + h) for a track
-    error σ (per axis) shared by all tracks, h = x₀ᵀ (XᵀX)⁻¹ x₀ the leverage of the left-out
-    track in its neighbours' fit (equivalently the in-sample residual over √(1 − h_ii)),
-    so r / √(1 + h) has variance σ². NaN rows where a fit is degenerate; (0, 2) with fewer
-    than neighbours + 1 tracks."""
+    (M, 2) px where it is now; weight (M,) 0/1: tracks that may serve as neighbours (None:
+    all). Each track's motion is predicted by a least-squares affine fit (6 parameters) of
+    the motions of its `neighbours` nearest tracks (by reference pixel), itself left out;
+    the prediction error r has variance σ² (1 + h) for a track error σ (per axis) shared
+    by all tracks, h = x₀ᵀ (XᵀWX)⁻¹ x₀ the leverage of the left-out track in its
+    neighbours' fit (equivalently: the in-sample residual over √(1 − h_ii)), so r / √(1 + h)
+    has variance σ². NaN rows where a fit has fewer than 6 neighbours or is degenerate;
+    (0, 2) with fewer than neighbours + 1 tracks."""
     ref = np.asarray(reference, float).reshape(-1, 2)
     motion = np.asarray(current, float).reshape(-1, 2) - ref
     m = len(ref)
     if m < neighbours + 1:
         return np.zeros((0, 2))
+    w_all = np.ones(m) if weight is None else np.asarray(weight, float)
     _, idx = cKDTree(ref).query(ref, k=neighbours + 1)
     idx = idx[:, 1:]  # the nearest is the track itself: left out
+    w = w_all[idx]  # (M, K)
     offset = ref[idx] - ref[:, None, :]  # (M, K, 2): neighbours about the track
     scale = np.maximum(np.abs(offset).max((1, 2)), 1e-9)[:, None, None]
     X = np.concatenate([offset / scale, np.ones((m, neighbours, 1))], axis=2)  # (M, K, 3)
-    XtX = np.einsum("mki,mkj->mij", X, X)
+    XtX = np.einsum("mk,mki,mkj->mij", w, X, X)
     out = np.full((m, 2), np.nan)
-    det = np.linalg.det(XtX)
-    ok = np.abs(det) > 1e-9
+    ok = (w.sum(1) >= 6) & (np.abs(np.linalg.det(XtX)) > 1e-6)
     if not ok.any():
         return out
     inv = np.linalg.inv(XtX[ok])
-    coef = np.einsum("mij,mkj,mkd->mid", inv, X[ok], motion[idx[ok]])  # (M', 3, 2)
+    coef = np.einsum("mij,mk,mkj,mkd->mid", inv, w[ok], X[ok], motion[idx[ok]])  # (M', 3, 2)
     predicted = coef[:, 2]  # the affine at the track (offset 0) is its constant term
     leverage = inv[:, 2, 2]  # x₀ = (0, 0, 1)
     out[ok] = (motion[ok] - predicted) / np.sqrt(1.0 + leverage)[:, None]
@@ -147,20 +151,31 @@ def local_motion_sigma_px(reference: np.ndarray, current: np.ndarray, found: np.
     reference (N, C, 2) px where the tracks started (NaN = none), current (F, N, C, 2) or
     (N, C, 2) px where they are in F frames, found (F, N, C) or (N, C) bool. The robust
     (MAD) scale, over every track, camera and frame, of the standardised residuals of
-    `local_motion_residuals` (a smooth non-rigid motion is absorbed by the local affine
-    fits, a lost track by the MAD). NaN with fewer than MIN_POINTS residuals."""
+    `local_motion_residuals`: a smooth non-rigid motion is absorbed by the local affine
+    fits; lost tracks (beyond REJECT σ) are left out of their neighbours' fits and the
+    residuals computed again (twice). NaN with fewer than MIN_POINTS residuals."""
     ref = np.asarray(reference, float)
     cur = np.asarray(current, float)
     seen = np.asarray(found, bool)
     if cur.ndim == 3:
         cur, seen = cur[None], seen[None]
-    residuals = []
+    sets = []
     for f in range(cur.shape[0]):
         for c in range(cur.shape[2]):
-            use = seen[f, :, c] & np.isfinite(ref[:, c]).all(1) & np.isfinite(cur[f, :, c]).all(1)
-            residuals.append(local_motion_residuals(ref[use, c], cur[f, use, c], neighbours))
-    r = np.concatenate(residuals) if residuals else np.zeros((0, 2))
-    r = r[np.isfinite(r).all(1)]
-    if len(r) < MIN_POINTS:
-        return float("nan")
-    return robust_sigma(r)
+            use = (seen[f, :, c] & np.isfinite(ref[:, c]).all(1)
+                   & np.isfinite(cur[f, :, c]).all(1))
+            if use.sum() > neighbours:
+                sets.append((ref[use, c], cur[f, use, c]))
+    weights = [None] * len(sets)
+    sigma = float("nan")
+    for _ in range(3):
+        residuals = [local_motion_residuals(r, c, neighbours, w)
+                     for (r, c), w in zip(sets, weights, strict=True)]
+        stacked = np.concatenate(residuals) if residuals else np.zeros((0, 2))
+        stacked = stacked[np.isfinite(stacked).all(1)]
+        if len(stacked) < MIN_POINTS:
+            return float("nan")
+        sigma = robust_sigma(stacked)
+        weights = [np.nan_to_num(np.abs(r).max(1), nan=np.inf) <= REJECT * sigma
+                   for r in residuals]
+    return sigma
