@@ -31,7 +31,11 @@ from ..classify.labels import INTER, INTRA, OUTLIER, STATUS_NAMES, UNOBSERVED
 from ..geometry.cameras import project, view_distortion_jacobians
 from ..geometry.tool import points_near_tool
 from ..geometry.triangulate import triangulate
-from ..noise.frame_noise import tracked_observations, tracking_excess_px2
+from ..noise.frame_noise import (
+    local_motion_sigma_px,
+    tracked_observations,
+    tracking_excess_px2,
+)
 from ..noise.model import (
     NoiseModel,
     body_pose_covariance,
@@ -206,6 +210,11 @@ def build_target(template: TemplateData, rig: Rig, latest: np.ndarray, base: Sig
     # model is localisation error too (core/noise/frame_noise.py).
     excess, _ = tracking_excess_px2(found, tracks.pixels, tracks.localisation, rig.models,
                                     poses, rig.noise)
+    # Two views see only the error that differs between them; each camera's tracks against
+    # their neighbours' motion measure all of it (core/noise/frame_noise.py).
+    tracking = local_motion_sigma_px(template.pixels, tracks.pixels, found)
+    if found.any() and np.isfinite(tracking):
+        excess = max(excess, tracking**2 - float(np.median(tracks.localisation[found])))
     tracks.localisation[found] += excess
     if found.any():
         rig = replace(rig, noise=replace(
