@@ -189,15 +189,16 @@ def rigid_tracking_px(models: tuple[CameraModel, ...], template_px: np.ndarray,
     return _mad_sigma(np.concatenate(distances), centre=False)
 
 
-def ground_truth_tracking_px(true_poses: np.ndarray, models: list[CameraModel],
-                             vertices: np.ndarray, faces: np.ndarray, template_px: np.ndarray,
-                             tracked_px: np.ndarray) -> float:
-    """Tracking σ (px) from the simulator's truth (module docstring): true camera poses
-    (F + 1, C, 4, 4) and surface vertices (F + 1, C, V, 3) m at each camera's image of frames
-    0..F, faces (F', 3), template pixels (N, C, 2) and tracked pixels (F, N, C, 2)."""
+def ground_truth_tracking_errors(true_poses: np.ndarray, models: list[CameraModel],
+                                 vertices: np.ndarray, faces: np.ndarray,
+                                 template_px: np.ndarray, tracked_px: np.ndarray) -> np.ndarray:
+    """Tracking errors (F, N, C, 2) px from the simulator's truth (module docstring; NaN
+    where not tracked): true camera poses (F + 1, C, 4, 4) and surface vertices
+    (F + 1, C, V, 3) m at each camera's image of frames 0..F, faces (F', 3), template pixels
+    (N, C, 2) and tracked pixels (F, N, C, 2)."""
     import open3d as o3d
 
-    errors = []
+    errors = np.full(tracked_px.shape, np.nan)
     for c in range(template_px.shape[1]):
         seen = np.flatnonzero(np.isfinite(template_px[:, c]).all(1))
         scene = o3d.t.geometry.RaycastingScene()
@@ -217,8 +218,18 @@ def ground_truth_tracking_px(true_poses: np.ndarray, models: list[CameraModel],
         for k in range(1, len(true_poses)):
             material = np.einsum("mj,mjd->md", bary, vertices[k, c][corners])
             expected, _ = project(material, true_poses[k, c], models[c])
-            errors.append(tracked_px[k - 1, seen[ok], c] - expected)
-    err = np.concatenate(errors) if errors else np.zeros((0, 2))
+            errors[k - 1, seen[ok], c] = tracked_px[k - 1, seen[ok], c] - expected
+    return errors
+
+
+def ground_truth_tracking_px(true_poses: np.ndarray, models: list[CameraModel],
+                             vertices: np.ndarray, faces: np.ndarray, template_px: np.ndarray,
+                             tracked_px: np.ndarray) -> float:
+    """Tracking σ (px, per axis, 1.4826 MAD) of `ground_truth_tracking_errors` (same
+    arguments) over frames, points and cameras."""
+    err = ground_truth_tracking_errors(true_poses, models, vertices, faces, template_px,
+                                       tracked_px).reshape(-1, 2)
+    err = err[np.isfinite(err).all(1)]
     return float(np.sqrt(np.mean([_mad_sigma(err[:, a], centre=False) ** 2 for a in (0, 1)])))
 
 

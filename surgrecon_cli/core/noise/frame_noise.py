@@ -14,7 +14,6 @@ can see) is added to every tracked pixel's localisation variance. Pure numpy; no
 from __future__ import annotations
 
 import numpy as np
-
 from scipy.spatial import cKDTree
 
 from ..geometry.cameras import CameraModel, undistort_pixels, view_distortion_jacobians
@@ -93,11 +92,16 @@ def retriangulate(found: np.ndarray, pixels: np.ndarray, models: list[CameraMode
     focal = np.array([m.K[0, 0] for m in models])[obs.camera]
     J, z = projection_jacobians(at, poses[obs.camera], focal,
                                 view_distortion_jacobians(at, obs.camera, poses, models))
-    image = noise.tracked_view_variance_px2(z, focal, np.full(len(z), noise.tracking_px**2),
+    independent_px2 = max(noise.tracking_px**2 - noise.tracking_shared_px**2, 0.0)
+    image = noise.tracked_view_variance_px2(z, focal, np.full(len(z), independent_px2),
                                             pose=False)
     independent = image + np.where(noise.on_shared_body(obs.camera), 0.0,
                                    noise.pose_variance_px2(z, focal))
     cov = point_covariances(obs.point, J, image, len(idx))
+    if noise.tracking_shared_px > 0:
+        first = np.unique(obs.point, return_index=True)[1]  # each point's first view
+        cov = cov + noise.lateral_covariance(np.nan_to_num(tri.points),
+                                             poses[obs.camera[first], :3, 3], focal[first])
     body = body_pose_covariance(np.nan_to_num(tri.points), obs.point, obs.camera,
                                 poses[:, :3, 3], noise)
     pose = point_covariances(obs.point, J, independent, len(idx)) - cov + body
@@ -145,37 +149,58 @@ def local_motion_residuals(reference: np.ndarray, current: np.ndarray,
     return out
 
 
-def local_motion_sigma_px(reference: np.ndarray, current: np.ndarray, found: np.ndarray,
-                          neighbours: int = NEIGHBOURS) -> float:
-    """Tracking localisation noise σ (px, per axis) measured from the tracks themselves:
-    reference (N, C, 2) px where the tracks started (NaN = none), current (F, N, C, 2) or
-    (N, C, 2) px where they are in F frames, found (F, N, C) or (N, C) bool. The robust
-    (MAD) scale, over every track, camera and frame, of the standardised residuals of
-    `local_motion_residuals`: a smooth non-rigid motion is absorbed by the local affine
-    fits; lost tracks (beyond REJECT σ) are left out of their neighbours' fits and the
-    residuals computed again (twice). NaN with fewer than MIN_POINTS residuals."""
+def local_motion_noise_px(reference: np.ndarray, current: np.ndarray, found: np.ndarray,
+                          neighbours: int = NEIGHBOURS) -> tuple[float, float]:
+    """Tracking localisation noise (σ, σ_shared) px per axis, measured from the tracks
+    themselves: reference (N, C, 2) px where the tracks started (NaN = none), current
+    (F, N, C, 2) or (N, C, 2) px where they are in F frames, found (F, N, C) or (N, C) bool.
+
+    σ: the robust (MAD) scale, over every track, camera and frame, of the standardised
+    residuals of `local_motion_residuals`: a smooth non-rigid motion is absorbed by the
+    local affine fits; lost tracks (beyond REJECT σ) are left out of their neighbours' fits
+    and the residuals computed again (twice). σ_shared: the part of σ common to a point's
+    views (the same pixel error in each; for a stereo pair, an error across the line of
+    sight that no disparity shows), from pairs of views of one point: half their sum has
+    variance σ_s² + σ_i²/2, half their difference σ_i²/2, over every pair of cameras
+    (0 without pairs). (NaN, 0) with fewer than MIN_POINTS residuals."""
     ref = np.asarray(reference, float)
     cur = np.asarray(current, float)
     seen = np.asarray(found, bool)
     if cur.ndim == 3:
         cur, seen = cur[None], seen[None]
-    sets = []
-    for f in range(cur.shape[0]):
-        for c in range(cur.shape[2]):
-            use = (seen[f, :, c] & np.isfinite(ref[:, c]).all(1)
-                   & np.isfinite(cur[f, :, c]).all(1))
-            if use.sum() > neighbours:
-                sets.append((ref[use, c], cur[f, use, c]))
-    weights = [None] * len(sets)
+    n_frames, _, n_cams = seen.shape
+    use = seen & np.isfinite(ref).all(2)[None] & np.isfinite(cur).all(3)
+    sets = [(f, c) for f in range(n_frames) for c in range(n_cams)
+            if use[f, :, c].sum() > neighbours]
+    weights: list[np.ndarray | None] = [None] * len(sets)
+    out = np.full(cur.shape, np.nan)
     sigma = float("nan")
     for _ in range(3):
-        residuals = [local_motion_residuals(r, c, neighbours, w)
-                     for (r, c), w in zip(sets, weights, strict=True)]
-        stacked = np.concatenate(residuals) if residuals else np.zeros((0, 2))
+        for (f, c), w in zip(sets, weights, strict=True):
+            rows = use[f, :, c]
+            out[f, rows, c] = local_motion_residuals(ref[rows, c], cur[f, rows, c],
+                                                     neighbours, w)
+        stacked = out.reshape(-1, 2)
         stacked = stacked[np.isfinite(stacked).all(1)]
         if len(stacked) < MIN_POINTS:
-            return float("nan")
+            return float("nan"), 0.0
         sigma = robust_sigma(stacked)
-        weights = [np.nan_to_num(np.abs(r).max(1), nan=np.inf) <= REJECT * sigma
-                   for r in residuals]
-    return sigma
+        weights = [np.nan_to_num(np.abs(out[f, use[f, :, c], c]).max(1), nan=np.inf)
+                   <= REJECT * sigma for f, c in sets]
+    halves = [(out[..., a, :] + sign * out[..., b, :]) / 2.0
+              for a in range(n_cams) for b in range(a + 1, n_cams) for sign in (1.0, -1.0)]
+    if not halves:
+        return sigma, 0.0
+    both = [h[np.isfinite(h).all(-1) & (np.abs(h).max(-1) <= REJECT * sigma)] for h in halves]
+    total, difference = np.concatenate(both[0::2]), np.concatenate(both[1::2])
+    if min(len(total), len(difference)) < MIN_POINTS:
+        return sigma, 0.0
+    shared2 = robust_sigma(total) ** 2 - robust_sigma(difference) ** 2
+    return sigma, float(np.sqrt(np.clip(shared2, 0.0, sigma**2)))
+
+
+def local_motion_sigma_px(reference: np.ndarray, current: np.ndarray, found: np.ndarray,
+                          neighbours: int = NEIGHBOURS) -> float:
+    """Tracking localisation noise σ (px, per axis) measured from the tracks themselves
+    (`local_motion_noise_px`, same arguments)."""
+    return local_motion_noise_px(reference, current, found, neighbours)[0]

@@ -51,13 +51,16 @@ class NoiseModel:
     """Measured noise of a run (1σ, per axis): pixel_px image noise at frame 0 (px),
     tracking_px the median tracking (patch localisation) noise of a frame (px, reported;
     each view uses its own), tracker_position_m (m) and tracker_rotation_rad (rad) pose
-    jitter of the navigation tracker."""
+    jitter of the navigation tracker; tracking_shared_px (px) the part of tracking_px
+    common to a point's views (core/noise/frame_noise.local_motion_noise_px): it moves a
+    re-triangulated point across the line of sight, not along it."""
 
     pixel_px: float
     tracking_px: float
     tracker_position_m: float
     tracker_rotation_rad: float
     shared_body: tuple[bool, ...] = ()  # per camera index: shares its tracker body
+    tracking_shared_px: float = 0.0
 
     def pose_variance_px2(self, depth_m: np.ndarray, focal_px: np.ndarray) -> np.ndarray:
         """Pixel variance (px²) one view gets from the tracker's pose error, at depth (M,) m
@@ -93,6 +96,17 @@ class NoiseModel:
                - np.einsum("ni,nj->nij", r, r))
         return self.tracker_position_m**2 * eye + self.tracker_rotation_rad**2 * rot
 
+
+    def lateral_covariance(self, points: np.ndarray, centres: np.ndarray,
+                           focal_px: np.ndarray) -> np.ndarray:
+        """(N, 3, 3) m²: the shared tracking error of points (N, 3) m seen from camera
+        centres (N, 3) m with focal lengths (N,) px: (z σ_shared / f)² (I − d dᵀ), d the unit
+        line of sight (the same pixel error in every view moves the point across it)."""
+        r = np.asarray(points, float) - np.asarray(centres, float)
+        dist = np.maximum(np.linalg.norm(r, axis=1), 1e-9)
+        d = r / dist[:, None]
+        scale = (dist * self.tracking_shared_px / np.asarray(focal_px, float)) ** 2
+        return scale[:, None, None] * (np.eye(3)[None] - np.einsum("ni,nj->nij", d, d))
 
 
 def robust_sigma(values: np.ndarray) -> float:

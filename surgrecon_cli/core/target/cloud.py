@@ -32,7 +32,7 @@ from ..geometry.cameras import project, view_distortion_jacobians
 from ..geometry.tool import points_near_tool
 from ..geometry.triangulate import triangulate
 from ..noise.frame_noise import (
-    local_motion_sigma_px,
+    local_motion_noise_px,
     tracked_observations,
     tracking_excess_px2,
 )
@@ -212,13 +212,14 @@ def build_target(template: TemplateData, rig: Rig, latest: np.ndarray, base: Sig
                                     poses, rig.noise)
     # Two views see only the error that differs between them; each camera's tracks against
     # their neighbours' motion measure all of it (core/noise/frame_noise.py).
-    tracking = local_motion_sigma_px(template.pixels, tracks.pixels, found)
+    tracking, shared = local_motion_noise_px(template.pixels, tracks.pixels, found)
     if found.any() and np.isfinite(tracking):
         excess = max(excess, tracking**2 - float(np.median(tracks.localisation[found])))
     tracks.localisation[found] += excess
     if found.any():
         rig = replace(rig, noise=replace(
-            rig.noise, tracking_px=float(np.sqrt(np.median(tracks.localisation[found])))))
+            rig.noise, tracking_px=float(np.sqrt(np.median(tracks.localisation[found]))),
+            tracking_shared_px=shared if np.isfinite(tracking) else 0.0))
     status, positions, covariances, pose_part = reprojection_check(template, tracks, rig, poses)
     # Tissue is pushed away by the tool, so visibility is judged in the images (mask);
     # a re-triangulated point inside the tool's capsule is a tool point, not tissue.
