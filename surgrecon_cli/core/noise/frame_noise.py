@@ -92,19 +92,16 @@ def retriangulate(found: np.ndarray, pixels: np.ndarray, models: list[CameraMode
     focal = np.array([m.K[0, 0] for m in models])[obs.camera]
     J, z = projection_jacobians(at, poses[obs.camera], focal,
                                 view_distortion_jacobians(at, obs.camera, poses, models))
-    independent_px2 = max(noise.tracking_px**2 - noise.tracking_shared_px**2, 0.0)
-    image = noise.tracked_view_variance_px2(z, focal, np.full(len(z), independent_px2),
-                                            pose=False)
+    image = noise.independent_view_variance_px2(noise.tracked_view_variance_px2(
+        z, focal, np.full(len(z), noise.tracking_px**2), pose=False))
     independent = image + np.where(noise.on_shared_body(obs.camera), 0.0,
                                    noise.pose_variance_px2(z, focal))
-    cov = point_covariances(obs.point, J, image, len(idx))
-    if noise.tracking_shared_px > 0:
-        first = np.unique(obs.point, return_index=True)[1]  # each point's first view
-        cov = cov + noise.lateral_covariance(np.nan_to_num(tri.points),
-                                             poses[obs.camera[first], :3, 3], focal[first])
+    lateral = noise.lateral_covariance(np.nan_to_num(tri.points), obs.point, obs.camera,
+                                       poses[:, :3, 3], np.array([m.K[0, 0] for m in models]))
+    cov = point_covariances(obs.point, J, image, len(idx)) + lateral
     body = body_pose_covariance(np.nan_to_num(tri.points), obs.point, obs.camera,
                                 poses[:, :3, 3], noise)
-    pose = point_covariances(obs.point, J, independent, len(idx)) - cov + body
+    pose = point_covariances(obs.point, J, independent, len(idx)) + lateral - cov + body
     positions[idx[ok]] = tri.points[ok]
     image_cov[idx[ok]] = cov[ok]
     pose_cov[idx[ok]] = pose[ok]

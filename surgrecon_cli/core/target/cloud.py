@@ -178,8 +178,12 @@ def reprojection_check(template: TemplateData, tracks: Tracks, rig: Rig, poses: 
         scaled[rows, cams] = tri.error_px**2 / variance
         worst_scaled = np.max(scaled, axis=1)
         good = tri.in_front & (worst_scaled <= bound) & np.isfinite(tri.points).all(1)
-        cov = point_covariances(rows, J, image_only, len(idx))
-        cov_all = point_covariances(rows, J, independent, len(idx))
+        # The tracking error the views share moves the point across its line of sight.
+        lateral = noise.lateral_covariance(np.nan_to_num(tri.points), rows, cams,
+                                           poses[:, :3, 3], focal)
+        shared2 = image_only - noise.independent_view_variance_px2(image_only)
+        cov = point_covariances(rows, J, image_only - shared2, len(idx)) + lateral
+        cov_all = point_covariances(rows, J, independent - shared2, len(idx)) + lateral
         status[idx[good]] = INTER
         positions[idx[good]] = tri.points[good]
         covariances[idx[good]] = cov[good]
