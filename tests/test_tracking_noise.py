@@ -1,13 +1,20 @@
-"""The tracking-noise estimator (core/noise/frame_noise.local_motion_sigma_px) on synthetic
-tracks whose localisation noise is injected, so the expected σ is known exactly."""
+"""The tracking-noise estimator (core/noise/frame_noise.local_motion_noise_px) on synthetic
+tracks whose localisation noise is injected, so the expected σ is known exactly; and the
+registration artefact that carries its shared part."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from surgrecon_cli.core.noise.frame_noise import local_motion_sigma_px
+from surgrecon_cli.core.noise.frame_noise import local_motion_noise_px, local_motion_sigma_px
 from surgrecon_cli.core.noise.model import robust_sigma
+from surgrecon_cli.io.run.artefacts import (
+    FrameRegistration,
+    read_registration,
+    write_registration,
+)
+from surgrecon_cli.io.run.layout import RunLayout
 
 
 def smooth_motion(xy: np.ndarray, amplitude_px: float) -> np.ndarray:
@@ -68,3 +75,41 @@ def test_robust_to_lost_tracks_and_missing_points():
     found[:, ::7, 1] = False
     cur[:, ::11, 0] = np.nan
     assert local_motion_sigma_px(ref, cur, found) == pytest.approx(0.2, rel=0.15)
+
+
+def test_shared_part_of_the_error_is_separated():
+    """An error common to a point's two views (the same shift in each) is the shared part;
+    each view's own error is not: both injected, both recovered."""
+    rng = np.random.default_rng(4)
+    ref, cur, found = synthetic_tracks(0.1, amplitude_px=0.5, seed=5)
+    sigma, shared = local_motion_noise_px(ref, cur, found)
+    assert shared < 0.3 * sigma
+    common = rng.normal(0.0, 0.3, (cur.shape[0], cur.shape[1], 1, 2))
+    sigma, shared = local_motion_noise_px(ref, cur + common, found)
+    assert sigma == pytest.approx(np.hypot(0.1, 0.3), rel=0.15)
+    assert shared == pytest.approx(0.3, rel=0.15)
+
+
+def test_registration_written_without_the_shared_part_reads_as_zero(tmp_path):
+    """Run folders registered before tracking_shared_px existed still read."""
+    n = 5
+    f32 = np.float32
+    reg = FrameRegistration(
+        transforms=np.tile(np.eye(3, 4, dtype=f32), (n, 1, 1)),
+        registered=np.zeros((n, 3), f32), target=np.zeros((n, 3), f32),
+        status=np.zeros(n, np.uint8), views=np.full(n, 2, np.uint8),
+        residual=np.zeros(n, f32), sigma=np.zeros(n, f32), target_sigma=np.zeros(n, f32),
+        target_covariance=np.zeros((n, 3, 3), f32),
+        target_pose_covariance=np.zeros((n, 3, 3), f32), support_mm=np.ones(n, f32),
+        pixels=np.zeros((n, 2, 2), f32), tracking_px=0.2, base=0, converged=True,
+        failed=False, error="", seconds_target=0.1, seconds_register=0.1, new_points=0,
+        contact_points=0, tracking_shared_px=0.15)
+    layout = RunLayout(tmp_path)
+    layout.registration(1).parent.mkdir(parents=True, exist_ok=True)
+    write_registration(layout, 1, reg)
+    assert read_registration(layout, 1, n).tracking_shared_px == pytest.approx(0.15)
+    with np.load(layout.registration(1)) as z:
+        old = {k: z[k] for k in z.files if k != "tracking_shared_px"}
+    np.savez(layout.registration(1), **old)
+    back = read_registration(layout, 1, n)
+    assert back.tracking_shared_px == 0.0 and back.tracking_px == pytest.approx(0.2)

@@ -108,7 +108,8 @@ def _view_terms(points: np.ndarray, rows: np.ndarray, camera: int, tracks: Track
 def intra_distances(template: TemplateData, tracks: Tracks, rig: Rig,
                     poses: np.ndarray) -> np.ndarray:
     """Squared Mahalanobis distance (N, C) of each found pixel from the projection of the
-    point's frame-0 position, with covariance J Σ_p Jᵀ + s² I; inf where not found."""
+    point's frame-0 position, with covariance J Σ_p Jᵀ + s² I (s² without the tracking
+    error the views share); inf where not found."""
     found = tracks.found
     d2 = np.full(found.shape, np.inf)
     for c in range(found.shape[1]):
@@ -116,6 +117,10 @@ def intra_distances(template: TemplateData, tracks: Tracks, rig: Rig,
         if len(rows) == 0:
             continue
         e, J, variance = _view_terms(template.points[rows], rows, c, tracks, rig, poses)
+        # Without the tracking error a point's views share: a shared error fails the test
+        # and the point is re-triangulated (it moves across the line of sight only), while
+        # with it each view alone lets motion along the line of sight pass as static.
+        variance = rig.noise.independent_view_variance_px2(variance)
         cov = np.nan_to_num(template.covariance[rows], nan=0.0)
         S = np.einsum("mai,mij,mbj->mab", J, cov, J) + variance[:, None, None] * np.eye(2)
         det = S[:, 0, 0] * S[:, 1, 1] - S[:, 0, 1] * S[:, 1, 0]
