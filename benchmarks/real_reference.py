@@ -18,11 +18,13 @@ calibration (intrinsics and the relative pose of the two cameras at each frame).
   inliers, then the normalised 8-point least squares on them; RANSAC's own model alone is
   fitted to 8 tracks and scatters the residuals by frame); a track's distance to its
   epipolar line is its tracking error across that line (the frame-0 pixel's own error
-  moves with the track). σ = 1.4826 median |d| over tracks, cameras and frames (the 7
-  parameters fitted to hundreds of tracks take ~1 % of it).
+  moves with the track). σ = 1.4826 median |d| over a frame's tracks and cameras (the 7
+  parameters fitted to hundreds of tracks take ~1 % of it), then the median over frames, as
+  the run reports its tracking_px.
 - `ground_truth_tracking_px` (simulator only): each camera's frame-0 pixel cast onto the true
   surface with the true pose, the material point it hits followed to frame k and projected
-  with the true pose there, against the pixel tracked at frame k: σ = 1.4826 MAD per axis.
+  with the true pose there, against the pixel tracked at frame k: σ = 1.4826 MAD per axis
+  in each frame, then the median over frames.
 - `reference_positions`: a dense reference of every template point over time: DIS optical
   flow on camera 0 (frame to frame, kept where forward-backward agree within 0.5 px) and
   StereoSGBM depth on each rectified pair, back in the world frame with camera 0's pose.
@@ -165,28 +167,29 @@ def rigid_tracking_px(models: tuple[CameraModel, ...], template_px: np.ndarray,
                       tracked_px: np.ndarray) -> float:
     """Tracking σ (px) of a rigid scene from epipolar residuals (module docstring): template
     pixels (N, C, 2) at frame 0 and tracked pixels (F, N, C, 2) at frames 1..F (NaN = none)."""
-    distances = []
-    for c in range(template_px.shape[1]):
-        m = models[c]
-        for cur in tracked_px[:, :, c]:
+    per_frame = []
+    for cur_frame in tracked_px:
+        distances = []
+        for c, m in enumerate(models[:template_px.shape[1]]):
+            cur = cur_frame[:, c]
             ok = np.isfinite(template_px[:, c]).all(1) & np.isfinite(cur).all(1)
             if ok.sum() < 20:
                 continue
             p0, pk = (cv2.undistortPoints(np.ascontiguousarray(p[ok], np.float64).reshape(
                 -1, 1, 2), m.K, m.dist, P=m.K).reshape(-1, 2) for p in (template_px[:, c], cur))
             _, inlier = cv2.findFundamentalMat(p0, pk, cv2.FM_RANSAC, 1.0, 0.999)
-            use = inlier is not None and inlier.ravel() > 0
-            if inlier is None or use.sum() < 20:
+            if inlier is None or (inlier.ravel() > 0).sum() < 20:
                 continue
+            use = inlier.ravel() > 0
             F, _ = cv2.findFundamentalMat(p0[use], pk[use], cv2.FM_8POINT)
             if F is None or F.shape != (3, 3):
                 continue
             lines = np.column_stack([p0, np.ones(len(p0))]) @ F.T  # epipolar lines in image k
             d = (np.column_stack([pk, np.ones(len(pk))]) * lines).sum(1)
             distances.append(d / np.maximum(np.hypot(lines[:, 0], lines[:, 1]), 1e-12))
-    if not distances:
-        return float("nan")
-    return _mad_sigma(np.concatenate(distances), centre=False)
+        if distances:
+            per_frame.append(_mad_sigma(np.concatenate(distances), centre=False))
+    return float(np.median(per_frame)) if per_frame else float("nan")
 
 
 def ground_truth_tracking_errors(true_poses: np.ndarray, models: list[CameraModel],
@@ -225,12 +228,18 @@ def ground_truth_tracking_errors(true_poses: np.ndarray, models: list[CameraMode
 def ground_truth_tracking_px(true_poses: np.ndarray, models: list[CameraModel],
                              vertices: np.ndarray, faces: np.ndarray, template_px: np.ndarray,
                              tracked_px: np.ndarray) -> float:
-    """Tracking σ (px, per axis, 1.4826 MAD) of `ground_truth_tracking_errors` (same
-    arguments) over frames, points and cameras."""
-    err = ground_truth_tracking_errors(true_poses, models, vertices, faces, template_px,
-                                       tracked_px).reshape(-1, 2)
-    err = err[np.isfinite(err).all(1)]
-    return float(np.sqrt(np.mean([_mad_sigma(err[:, a], centre=False) ** 2 for a in (0, 1)])))
+    """Tracking σ (px, per axis) of `ground_truth_tracking_errors` (same arguments): the
+    median over frames of each frame's 1.4826 MAD over points and cameras (as the run
+    reports its tracking_px: the median of its frames')."""
+    errors = ground_truth_tracking_errors(true_poses, models, vertices, faces, template_px,
+                                          tracked_px)
+    per_frame = []
+    for err in errors.reshape(len(errors), -1, 2):
+        err = err[np.isfinite(err).all(1)]
+        if len(err):
+            per_frame.append(np.sqrt(np.mean([_mad_sigma(err[:, a], centre=False) ** 2
+                                              for a in (0, 1)])))
+    return float(np.median(per_frame)) if per_frame else float("nan")
 
 
 def reference_positions(log: IngestedLog, pixels0: np.ndarray,
