@@ -15,7 +15,8 @@ checkout). One table, a row per log:
 - trk run: the tracking noise the run measured (summary noise.tracking_px, the median over
   frames); trk rigid: real logs only, an independent check on a rigid scene (the SurgT clip;
   real_reference.rigid_tracking_px, epipolar residuals of the tracks); trk truth: simulator
-  only, the tracks against the true motion (real_reference.ground_truth_tracking_px);
+  only, the tracks against the true motion (real_reference.ground_truth_tracking_px); both
+  over every camera, as the run;
   trk/check: trk run over trk truth (simulator) or trk rigid (real);
 - tracked / outlier: mean share of template points observed / outliers, frames 1 on;
 - static / shifting / deforming / unknown: label shares over point-frames, frames 1 on;
@@ -160,8 +161,8 @@ def measure(name: str, run: Path, variant: str | None, seed: int | None,
     row: dict[str, Any] = {"name": name, "sigma_run": summary["noise"]["pixel_px"]}
     row["sigma_ncc"] = ncc_localisation_px(log, obs.pixels[obs.camera == 0])
     row["trk_run"] = summary["noise"].get("tracking_px")
-    template_px = obs.pixels_by_camera(n, len(log.models))[:, :2]
-    tracked = tracked_pixels(layout, n, log.n_frames)[:, :, :2]
+    template_px = obs.pixels_by_camera(n, len(log.models))  # every camera, as the run
+    tracked = tracked_pixels(layout, n, log.n_frames)
     if variant is not None and seed is not None:
         row["trk_truth"] = truth_tracking(variant, seed, frames, template_px, tracked)
     else:
