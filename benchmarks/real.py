@@ -12,6 +12,12 @@ checkout). One table, a row per log:
 - σ NCC: an independent localisation check on the same images (benchmarks/real_reference:
   NCC row offsets on the rectified frame-0 pair), and its ratio to σ run;
 - σ truth: simulator only, the localisation error against the true geometry;
+- trk run: the tracking noise the run measured (summary noise.tracking_px, the median over
+  frames); trk rigid: real logs only, an independent check on a rigid scene (the SurgT clip;
+  real_reference.rigid_tracking_px, epipolar residuals of the tracks); trk truth: simulator
+  only, the tracks against the true motion (real_reference.ground_truth_tracking_px); both
+  over every camera, as the run;
+  trk/check: trk run over trk truth (simulator) or trk rigid (real);
 - tracked / outlier: mean share of template points observed / outliers, frames 1 on;
 - static / shifting / deforming / unknown: label shares over point-frames, frames 1 on;
   "deform|lab" the share of labelled point-frames called deforming;
@@ -40,12 +46,18 @@ from typing import Any
 import numpy as np
 from real_reference import (
     ground_truth_localisation_px,
+    ground_truth_tracking_px,
     ncc_localisation_px,
     reference_positions,
+    rigid_tracking_px,
 )
 
 from surgrecon_cli.core.classify.labels import DEFORMING, SHIFTING, STATIC, UNKNOWN
-from surgrecon_cli.io.run.artefacts import read_observations, read_template
+from surgrecon_cli.io.run.artefacts import (
+    read_observations,
+    read_registration,
+    read_template,
+)
 from surgrecon_cli.io.run.ingest_store import load_ingested
 from surgrecon_cli.io.run.layout import RunLayout
 from surgrecon_cli.io.run.ply import read_ply
@@ -117,6 +129,27 @@ def truth_sigma(variant: str, seed: int, frames: int, obs: Any) -> float:
                                         builder.mesh.faces, both)
 
 
+def tracked_pixels(layout: RunLayout, n: int, n_frames: int) -> np.ndarray:
+    """(F, N, C, 2) px: where each template point was tracked in frames 1..F (NaN = not)."""
+    return np.stack([read_registration(layout, k, n).pixels for k in range(1, n_frames)])
+
+
+def truth_tracking(variant: str, seed: int, frames: int, template_px: np.ndarray,
+                   tracked: np.ndarray) -> float:
+    from surgrecon_cli.sim.simulate import LogBuilder
+    from surgrecon_cli.sim.variants import variant_config
+
+    builder = LogBuilder(variant_config(variant, seed=seed, frames=frames))
+    cams = range(template_px.shape[1])
+    stamps = [[builder.image_stamp(k, c) for c in cams] for k in range(len(tracked) + 1)]
+    poses = np.array([[builder.motion.camera_pose(c, t) for c, t in zip(cams, row,
+                                                                         strict=True)]
+                      for row in stamps])
+    vertices = np.array([[builder.motion.tissue_vertices(t) for t in row] for row in stamps])
+    return ground_truth_tracking_px(poses, builder.models, vertices, builder.mesh.faces,
+                                    template_px, tracked)
+
+
 def measure(name: str, run: Path, variant: str | None, seed: int | None,
             frames: int, log_path: Path) -> dict[str, Any]:
     layout = RunLayout(run)
@@ -127,6 +160,15 @@ def measure(name: str, run: Path, variant: str | None, seed: int | None,
     quality = summary.get("quality", {}).get("per_frame", [])
     row: dict[str, Any] = {"name": name, "sigma_run": summary["noise"]["pixel_px"]}
     row["sigma_ncc"] = ncc_localisation_px(log, obs.pixels[obs.camera == 0])
+    row["trk_run"] = summary["noise"].get("tracking_px")
+    template_px = obs.pixels_by_camera(n, len(log.models))  # every camera, as the run
+    tracked = tracked_pixels(layout, n, log.n_frames)
+    if variant is not None and seed is not None:
+        row["trk_truth"] = truth_tracking(variant, seed, frames, template_px, tracked)
+    else:
+        row["trk_rigid"] = rigid_tracking_px(log.models, template_px, tracked)
+    check = row.get("trk_truth", row.get("trk_rigid"))
+    row["trk_ratio"] = row["trk_run"] / check if row["trk_run"] and check else None
     row["sigma_truth"] = (truth_sigma(variant, seed, frames, obs)
                           if variant is not None and seed is not None else None)
     row["tracked"] = float(np.mean([q["observed_fraction"] for q in quality]))
@@ -183,6 +225,8 @@ def truth_label_checks(layout: RunLayout, n_frames: int, log_path: Path) -> dict
 
 COLUMNS = (("sigma_run", "σ run", ".3f"), ("sigma_ncc", "σ NCC", ".3f"),
            ("ratio", "run/NCC", ".2f"), ("sigma_truth", "σ truth", ".3f"),
+           ("trk_run", "trk run", ".3f"), ("trk_rigid", "trk rigid", ".3f"),
+           ("trk_truth", "trk truth", ".3f"), ("trk_ratio", "trk/check", ".2f"),
            ("tracked", "tracked", ".1%"), ("outlier", "outlier", ".1%"),
            ("static", "static", ".1%"), ("shifting", "shift", ".1%"),
            ("deforming", "deform", ".1%"), ("unknown", "unknown", ".1%"),

@@ -177,7 +177,8 @@ def static_verdicts_checked(reg: FrameRegistration, template_noise: TemplateNois
     simulator a third of truly deforming points were called static that way.)"""
     intra = reg.status == INTRA
     found = np.isfinite(reg.pixels).all(2) & intra[:, None]
-    noise = replace(template_noise.model, tracking_px=float(reg.tracking_px))
+    noise = replace(template_noise.model, tracking_px=float(reg.tracking_px),
+                    tracking_shared_px=float(reg.tracking_shared_px))
     position, image_cov, pose_cov = retriangulate(found, reg.pixels.astype(float), models,
                                                   poses, noise)
     seen = intra & np.isfinite(position).all(1)

@@ -16,6 +16,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from ..geometry.cameras import CameraModel, undistort_pixels, view_distortion_jacobians
 from ..geometry.triangulate import Observations, Triangulation, triangulate
@@ -25,9 +26,12 @@ from .model import (
     pixel_noise_from_residuals,
     point_covariances,
     projection_jacobians,
+    robust_sigma,
 )
 
 MIN_POINTS = 20  # ours: fewer points seen twice measure no frame noise (excess 0)
+REJECT = 4.0  # ours: a track beyond this many σ from its neighbours' motion is lost
+NEIGHBOURS = 24  # ours: tracks in a track's affine motion fit (6 parameters; 4x over-determined)
 
 
 def tracked_observations(found: np.ndarray, pixels: np.ndarray,
@@ -113,15 +117,112 @@ def retriangulate(found: np.ndarray, pixels: np.ndarray, models: list[CameraMode
     focal = np.array([m.K[0, 0] for m in models])[obs.camera]
     J, z = projection_jacobians(at, poses[obs.camera], focal,
                                 view_distortion_jacobians(at, obs.camera, poses, models))
-    image = noise.tracked_view_variance_px2(z, focal, np.full(len(z), noise.tracking_px**2),
-                                            pose=False)
+    image = noise.independent_view_variance_px2(noise.tracked_view_variance_px2(
+        z, focal, np.full(len(z), noise.tracking_px**2), pose=False))
     independent = image + np.where(noise.on_shared_body(obs.camera), 0.0,
                                    noise.pose_variance_px2(z, focal))
-    cov = point_covariances(obs.point, J, image, len(idx))
+    lateral = noise.lateral_covariance(np.nan_to_num(tri.points), obs.point, obs.camera,
+                                       poses[:, :3, 3], np.array([m.K[0, 0] for m in models]))
+    cov = point_covariances(obs.point, J, image, len(idx)) + lateral
     body = body_pose_covariance(np.nan_to_num(tri.points), obs.point, obs.camera,
                                 poses[:, :3, 3], noise)
-    pose = point_covariances(obs.point, J, independent, len(idx)) - cov + body
+    pose = point_covariances(obs.point, J, independent, len(idx)) + lateral - cov + body
     positions[idx[ok]] = tri.points[ok]
     image_cov[idx[ok]] = cov[ok]
     pose_cov[idx[ok]] = pose[ok]
     return positions, image_cov, pose_cov
+
+
+def local_motion_residuals(reference: np.ndarray, current: np.ndarray,
+                           neighbours: int = NEIGHBOURS,
+                           weight: np.ndarray | None = None) -> np.ndarray:
+    """Standardised residuals (M, 2) px of one camera's tracks against their neighbours'
+    motion: reference (M, 2) px where each track started (the template's pixel), current
+    (M, 2) px where it is now; weight (M,) 0/1: tracks that may serve as neighbours (None:
+    all). Each track's motion is predicted by a least-squares affine fit (6 parameters) of
+    the motions of its `neighbours` nearest tracks (by reference pixel), itself left out;
+    the prediction error r has variance σ² (1 + h) for a track error σ (per axis) shared
+    by all tracks, h = x₀ᵀ (XᵀWX)⁻¹ x₀ the leverage of the left-out track in its
+    neighbours' fit (equivalently: the in-sample residual over √(1 − h_ii)), so r / √(1 + h)
+    has variance σ². NaN rows where a fit has fewer than 6 neighbours or is degenerate;
+    (0, 2) with fewer than neighbours + 1 tracks."""
+    ref = np.asarray(reference, float).reshape(-1, 2)
+    motion = np.asarray(current, float).reshape(-1, 2) - ref
+    m = len(ref)
+    if m < neighbours + 1:
+        return np.zeros((0, 2))
+    w_all = np.ones(m) if weight is None else np.asarray(weight, float)
+    _, idx = cKDTree(ref).query(ref, k=neighbours + 1)
+    idx = idx[:, 1:]  # the nearest is the track itself: left out
+    w = w_all[idx]  # (M, K)
+    offset = ref[idx] - ref[:, None, :]  # (M, K, 2): neighbours about the track
+    scale = np.maximum(np.abs(offset).max((1, 2)), 1e-9)[:, None, None]
+    X = np.concatenate([offset / scale, np.ones((m, neighbours, 1))], axis=2)  # (M, K, 3)
+    XtX = np.einsum("mk,mki,mkj->mij", w, X, X)
+    out = np.full((m, 2), np.nan)
+    ok = (w.sum(1) >= 6) & (np.abs(np.linalg.det(XtX)) > 1e-6)
+    if not ok.any():
+        return out
+    inv = np.linalg.inv(XtX[ok])
+    coef = np.einsum("mij,mk,mkj,mkd->mid", inv, w[ok], X[ok], motion[idx[ok]])  # (M', 3, 2)
+    predicted = coef[:, 2]  # the affine at the track (offset 0) is its constant term
+    leverage = inv[:, 2, 2]  # x₀ = (0, 0, 1)
+    out[ok] = (motion[ok] - predicted) / np.sqrt(1.0 + leverage)[:, None]
+    return out
+
+
+def local_motion_noise_px(reference: np.ndarray, current: np.ndarray, found: np.ndarray,
+                          neighbours: int = NEIGHBOURS) -> tuple[float, float]:
+    """Tracking localisation noise (σ, σ_shared) px per axis, measured from the tracks
+    themselves: reference (N, C, 2) px where the tracks started (NaN = none), current
+    (F, N, C, 2) or (N, C, 2) px where they are in F frames, found (F, N, C) or (N, C) bool.
+
+    σ: the robust (MAD) scale, over every track, camera and frame, of the standardised
+    residuals of `local_motion_residuals`: a smooth non-rigid motion is absorbed by the
+    local affine fits; lost tracks (beyond REJECT σ) are left out of their neighbours' fits
+    and the residuals computed again (twice). σ_shared: the part of σ common to a point's
+    views (the same pixel error in each; for a stereo pair, an error across the line of
+    sight that no disparity shows), from pairs of views of one point: half their sum has
+    variance σ_s² + σ_i²/2, half their difference σ_i²/2, over every pair of cameras
+    (0 without pairs). (NaN, 0) with fewer than MIN_POINTS residuals."""
+    ref = np.asarray(reference, float)
+    cur = np.asarray(current, float)
+    seen = np.asarray(found, bool)
+    if cur.ndim == 3:
+        cur, seen = cur[None], seen[None]
+    n_frames, _, n_cams = seen.shape
+    use = seen & np.isfinite(ref).all(2)[None] & np.isfinite(cur).all(3)
+    sets = [(f, c) for f in range(n_frames) for c in range(n_cams)
+            if use[f, :, c].sum() > neighbours]
+    weights: list[np.ndarray | None] = [None] * len(sets)
+    out = np.full(cur.shape, np.nan)
+    sigma = float("nan")
+    for _ in range(3):
+        for (f, c), w in zip(sets, weights, strict=True):
+            rows = use[f, :, c]
+            out[f, rows, c] = local_motion_residuals(ref[rows, c], cur[f, rows, c],
+                                                     neighbours, w)
+        stacked = out.reshape(-1, 2)
+        stacked = stacked[np.isfinite(stacked).all(1)]
+        if len(stacked) < MIN_POINTS:
+            return float("nan"), 0.0
+        sigma = robust_sigma(stacked)
+        weights = [np.nan_to_num(np.abs(out[f, use[f, :, c], c]).max(1), nan=np.inf)
+                   <= REJECT * sigma for f, c in sets]
+    halves = [(out[..., a, :] + sign * out[..., b, :]) / 2.0
+              for a in range(n_cams) for b in range(a + 1, n_cams) for sign in (1.0, -1.0)]
+    if not halves:
+        return sigma, 0.0
+    both = [h[np.isfinite(h).all(-1) & (np.abs(h).max(-1) <= REJECT * sigma)] for h in halves]
+    total, difference = np.concatenate(both[0::2]), np.concatenate(both[1::2])
+    if min(len(total), len(difference)) < MIN_POINTS:
+        return sigma, 0.0
+    shared2 = robust_sigma(total) ** 2 - robust_sigma(difference) ** 2
+    return sigma, float(np.sqrt(np.clip(shared2, 0.0, sigma**2)))
+
+
+def local_motion_sigma_px(reference: np.ndarray, current: np.ndarray, found: np.ndarray,
+                          neighbours: int = NEIGHBOURS) -> float:
+    """Tracking localisation noise σ (px, per axis) measured from the tracks themselves
+    (`local_motion_noise_px`, same arguments)."""
+    return local_motion_noise_px(reference, current, found, neighbours)[0]

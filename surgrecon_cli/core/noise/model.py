@@ -51,13 +51,16 @@ class NoiseModel:
     """Measured noise of a run (1σ, per axis): pixel_px image noise at frame 0 (px),
     tracking_px the median tracking (patch localisation) noise of a frame (px, reported;
     each view uses its own), tracker_position_m (m) and tracker_rotation_rad (rad) pose
-    jitter of the navigation tracker."""
+    jitter of the navigation tracker; tracking_shared_px (px) the part of tracking_px
+    common to a point's views (core/noise/frame_noise.local_motion_noise_px): it moves a
+    re-triangulated point across the line of sight, not along it."""
 
     pixel_px: float
     tracking_px: float
     tracker_position_m: float
     tracker_rotation_rad: float
     shared_body: tuple[bool, ...] = ()  # per camera index: shares its tracker body
+    tracking_shared_px: float = 0.0
 
     def pose_variance_px2(self, depth_m: np.ndarray, focal_px: np.ndarray) -> np.ndarray:
         """Pixel variance (px²) one view gets from the tracker's pose error, at depth (M,) m
@@ -93,6 +96,32 @@ class NoiseModel:
                - np.einsum("ni,nj->nij", r, r))
         return self.tracker_position_m**2 * eye + self.tracker_rotation_rad**2 * rot
 
+
+    def lateral_covariance(self, points: np.ndarray, point_index: np.ndarray,
+                           cameras: np.ndarray, centres: np.ndarray,
+                           focal_px: np.ndarray) -> np.ndarray:
+        """(N, 3, 3) m²: the shared tracking error (`tracking_shared_px`) of points (N, 3) m
+        with views point_index (M,) / cameras (M,) (camera centres (C, 3) m, focal lengths
+        (C,) px): the same pixel error in every view moves a point across its line of sight
+        d (from its first view's camera), by (r σ_shared / f)² (I − d dᵀ) at range r.
+        Zero for points without a view."""
+        out = np.zeros((len(points), 3, 3))
+        if self.tracking_shared_px <= 0 or len(point_index) == 0:
+            return out
+        first_view = np.unique(point_index, return_index=True)[1]
+        rows, cams = point_index[first_view], cameras[first_view]
+        r = np.asarray(points, float)[rows] - np.asarray(centres, float)[cams]
+        dist = np.maximum(np.linalg.norm(r, axis=1), 1e-9)
+        d = r / dist[:, None]
+        scale = (dist * self.tracking_shared_px / np.asarray(focal_px, float)[cams]) ** 2
+        out[rows] = scale[:, None, None] * (np.eye(3)[None] - np.einsum("ni,nj->nij", d, d))
+        return out
+
+    def independent_view_variance_px2(self, variance_px2: np.ndarray) -> np.ndarray:
+        """Pixel variance (M,) px² of views (M,) px² without the tracking error their point's
+        views share (`lateral_covariance` carries it); at least the pixel noise."""
+        return np.maximum(np.asarray(variance_px2, float) - self.tracking_shared_px**2,
+                          self.pixel_px**2)
 
 
 def robust_sigma(values: np.ndarray) -> float:

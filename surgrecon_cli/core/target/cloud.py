@@ -33,6 +33,7 @@ from ..geometry.tool import points_near_tool
 from ..geometry.triangulate import triangulate
 from ..noise.frame_noise import (
     MultiView,
+    local_motion_noise_px,
     tracked_observations,
     tracking_excess_px2,
     triangulate_found,
@@ -109,7 +110,8 @@ def _view_terms(points: np.ndarray, rows: np.ndarray, camera: int, tracks: Track
 def intra_distances(template: TemplateData, tracks: Tracks, rig: Rig,
                     poses: np.ndarray) -> np.ndarray:
     """Squared Mahalanobis distance (N, C) of each found pixel from the projection of the
-    point's frame-0 position, with covariance J Σ_p Jᵀ + s² I; inf where not found."""
+    point's frame-0 position, with covariance J Σ_p Jᵀ + s² I (s² without the tracking
+    error the views share); inf where not found."""
     found = tracks.found
     d2 = np.full(found.shape, np.inf)
     for c in range(found.shape[1]):
@@ -117,6 +119,10 @@ def intra_distances(template: TemplateData, tracks: Tracks, rig: Rig,
         if len(rows) == 0:
             continue
         e, J, variance = _view_terms(template.points[rows], rows, c, tracks, rig, poses)
+        # Without the tracking error a point's views share: a shared error fails the test
+        # and the point is re-triangulated (it moves across the line of sight only), while
+        # with it each view alone lets motion along the line of sight pass as static.
+        variance = rig.noise.independent_view_variance_px2(variance)
         cov = np.nan_to_num(template.covariance[rows], nan=0.0)
         S = (J @ cov) @ np.swapaxes(J, 1, 2) + variance[:, None, None] * np.eye(2)
         det = S[:, 0, 0] * S[:, 1, 1] - S[:, 0, 1] * S[:, 1, 0]
@@ -187,8 +193,12 @@ def reprojection_check(template: TemplateData, tracks: Tracks, rig: Rig, poses: 
         scaled[rows, cams] = tri.error_px**2 / variance
         worst_scaled = np.max(scaled, axis=1)
         good = tri.in_front & (worst_scaled <= bound) & np.isfinite(tri.points).all(1)
-        cov = point_covariances(rows, J, image_only, len(idx))
-        cov_all = point_covariances(rows, J, independent, len(idx))
+        # The tracking error the views share moves the point across its line of sight.
+        lateral = noise.lateral_covariance(np.nan_to_num(tri.points), rows, cams,
+                                           poses[:, :3, 3], focal)
+        shared2 = image_only - noise.independent_view_variance_px2(image_only)
+        cov = point_covariances(rows, J, image_only - shared2, len(idx)) + lateral
+        cov_all = point_covariances(rows, J, independent - shared2, len(idx)) + lateral
         status[idx[good]] = INTER
         positions[idx[good]] = tri.points[good]
         covariances[idx[good]] = cov[good]
@@ -220,10 +230,16 @@ def build_target(template: TemplateData, rig: Rig, latest: np.ndarray, base: Sig
     # points seen twice serves that and the reprojection check.
     multi = triangulate_found(found, tracks.pixels, rig.models, poses)
     excess, _ = tracking_excess_px2(multi, tracks.localisation, rig.models, rig.noise)
+    # Two views see only the error that differs between them; each camera's tracks against
+    # their neighbours' motion measure all of it (core/noise/frame_noise.py).
+    tracking, shared = local_motion_noise_px(template.pixels, tracks.pixels, found)
+    if found.any() and np.isfinite(tracking):
+        excess = max(excess, tracking**2 - float(np.median(tracks.localisation[found])))
     tracks.localisation[found] += excess
     if found.any():
         rig = replace(rig, noise=replace(
-            rig.noise, tracking_px=float(np.sqrt(np.median(tracks.localisation[found])))))
+            rig.noise, tracking_px=float(np.sqrt(np.median(tracks.localisation[found]))),
+            tracking_shared_px=shared if np.isfinite(tracking) else 0.0))
     status, positions, covariances, pose_part = reprojection_check(template, tracks, rig, poses,
                                                                    multi)
     # Tissue is pushed away by the tool, so visibility is judged in the images (mask);

@@ -8,7 +8,7 @@ against the template and fail in one line naming the file and the stage to re-ru
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, fields
+from dataclasses import MISSING, dataclass, fields
 from pathlib import Path
 from typing import Any
 
@@ -162,7 +162,8 @@ class FrameRegistration:
     without one); sigma (N,) m RMS uncertainty of the registered position; target_sigma
     (N,) m; target_covariance (N, 3, 3) m² from image noise; target_pose_covariance
     (N, 3, 3) m² from pose errors; support_mm (N,) distance to the nearest point with
-    data; pixels (N, C, 2) tracked positions; tracking_px the frame's tracking noise;
+    data; pixels (N, C, 2) tracked positions; tracking_px the frame's tracking noise, of
+    which tracking_shared_px is common to a point's views (0 in files written without it);
     base the frame it was tracked and registered from; converged, failed, error say how
     the solve went; seconds_* its timings; new_points, contact_points its counts.
     """
@@ -188,6 +189,7 @@ class FrameRegistration:
     seconds_register: float
     new_points: int
     contact_points: int
+    tracking_shared_px: float = 0.0
 
     @property
     def has_target(self) -> np.ndarray:
@@ -224,14 +226,16 @@ def read_registration(layout: RunLayout, frame: int, n_points: int) -> FrameRegi
                             "target_covariance": (n, 3, 3),
                             "target_pose_covariance": (n, 3, 3)}, "register")
     kinds = {f.name: f.type for f in fields(FrameRegistration)}
-    missing = [k for k in kinds if k not in z]
+    optional = {f.name for f in fields(FrameRegistration) if f.default is not MISSING}
+    missing = [k for k in kinds if k not in z and k not in optional]
     if missing:
         raise RunFolderError(f"{path}: no {', '.join(missing)} (written by an older "
                              "surgrecon?); re-run register")
     values: dict[str, Any] = {}
     for key, kind in kinds.items():
         cast = _SCALARS.get(str(kind))
-        values[key] = cast(z[key].item()) if cast else z[key]
+        if key in z:
+            values[key] = cast(z[key].item()) if cast else z[key]
     return FrameRegistration(**values)
 
 
