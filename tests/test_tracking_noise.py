@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from surgrecon_cli.core.noise.frame_noise import local_motion_noise_px, local_motion_sigma_px
+from surgrecon_cli.core.noise.frame_noise import local_motion_noise_px
 from surgrecon_cli.core.noise.model import robust_sigma
 from surgrecon_cli.io.run.artefacts import (
     FrameRegistration,
@@ -47,7 +47,7 @@ def synthetic_tracks(sigma_px: float, amplitude_px: float, frames: int = 3,
 @pytest.mark.parametrize("sigma", [0.1, 0.2, 0.5])
 def test_recovers_injected_sigma(sigma: float):
     ref, cur, found = synthetic_tracks(sigma, amplitude_px=0.5)
-    assert local_motion_sigma_px(ref, cur, found) == pytest.approx(sigma, rel=0.15)
+    assert local_motion_noise_px(ref, cur, found)[0] == pytest.approx(sigma, rel=0.15)
 
 
 def global_affine_sigma(ref: np.ndarray, cur: np.ndarray) -> float:
@@ -65,16 +65,16 @@ def test_not_fooled_by_smooth_non_rigid_motion():
     and with noise the injected σ is still found."""
     ref, cur, found = synthetic_tracks(0.0, amplitude_px=1.0)
     assert global_affine_sigma(ref[:, 0], cur[-1, :, 0]) > 1.0
-    assert local_motion_sigma_px(ref, cur, found) < 0.1
+    assert local_motion_noise_px(ref, cur, found)[0] < 0.1
     ref, cur, found = synthetic_tracks(0.3, amplitude_px=1.0, seed=2)
-    assert local_motion_sigma_px(ref, cur, found) == pytest.approx(0.3, rel=0.15)
+    assert local_motion_noise_px(ref, cur, found)[0] == pytest.approx(0.3, rel=0.15)
 
 
 def test_robust_to_lost_tracks_and_missing_points():
     ref, cur, found = synthetic_tracks(0.2, amplitude_px=0.5, lost=0.05, seed=1)
     found[:, ::7, 1] = False
     cur[:, ::11, 0] = np.nan
-    assert local_motion_sigma_px(ref, cur, found) == pytest.approx(0.2, rel=0.15)
+    assert local_motion_noise_px(ref, cur, found)[0] == pytest.approx(0.2, rel=0.15)
 
 
 def test_shared_part_of_the_error_is_separated():

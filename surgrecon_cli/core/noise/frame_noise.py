@@ -114,7 +114,8 @@ def retriangulate(found: np.ndarray, pixels: np.ndarray, models: list[CameraMode
         return positions, image_cov, pose_cov
     ok = tri.in_front & np.isfinite(tri.points).all(1)
     at = np.nan_to_num(tri.points[obs.point])
-    focal = np.array([m.K[0, 0] for m in models])[obs.camera]
+    focal_px = np.array([m.K[0, 0] for m in models])
+    focal = focal_px[obs.camera]
     J, z = projection_jacobians(at, poses[obs.camera], focal,
                                 view_distortion_jacobians(at, obs.camera, poses, models))
     image = noise.independent_view_variance_px2(noise.tracked_view_variance_px2(
@@ -122,7 +123,7 @@ def retriangulate(found: np.ndarray, pixels: np.ndarray, models: list[CameraMode
     independent = image + np.where(noise.on_shared_body(obs.camera), 0.0,
                                    noise.pose_variance_px2(z, focal))
     lateral = noise.lateral_covariance(np.nan_to_num(tri.points), obs.point, obs.camera,
-                                       poses[:, :3, 3], np.array([m.K[0, 0] for m in models]))
+                                       poses[:, :3, 3], focal_px)
     cov = point_covariances(obs.point, J, image, len(idx)) + lateral
     body = body_pose_covariance(np.nan_to_num(tri.points), obs.point, obs.camera,
                                 poses[:, :3, 3], noise)
@@ -220,9 +221,3 @@ def local_motion_noise_px(reference: np.ndarray, current: np.ndarray, found: np.
     shared2 = robust_sigma(total) ** 2 - robust_sigma(difference) ** 2
     return sigma, float(np.sqrt(np.clip(shared2, 0.0, sigma**2)))
 
-
-def local_motion_sigma_px(reference: np.ndarray, current: np.ndarray, found: np.ndarray,
-                          neighbours: int = NEIGHBOURS) -> float:
-    """Tracking localisation noise σ (px, per axis) measured from the tracks themselves
-    (`local_motion_noise_px`, same arguments)."""
-    return local_motion_noise_px(reference, current, found, neighbours)[0]

@@ -188,7 +188,7 @@ def reprojection_check(template: TemplateData, tracks: Tracks, rig: Rig, poses: 
             z, focal[cams], localisation[idx[rows], cams], pose=False)
         pose_variance = noise.pose_variance_px2(z, focal[cams])
         variance = image_only + pose_variance
-        independent = image_only + np.where(noise.on_shared_body(cams), 0.0, pose_variance)
+        own_pose = np.where(noise.on_shared_body(cams), 0.0, pose_variance)
         scaled = np.full(use.shape, -np.inf)
         scaled[rows, cams] = tri.error_px**2 / variance
         worst_scaled = np.max(scaled, axis=1)
@@ -196,9 +196,9 @@ def reprojection_check(template: TemplateData, tracks: Tracks, rig: Rig, poses: 
         # The tracking error the views share moves the point across its line of sight.
         lateral = noise.lateral_covariance(np.nan_to_num(tri.points), rows, cams,
                                            poses[:, :3, 3], focal)
-        shared2 = image_only - noise.independent_view_variance_px2(image_only)
-        cov = point_covariances(rows, J, image_only - shared2, len(idx)) + lateral
-        cov_all = point_covariances(rows, J, independent - shared2, len(idx)) + lateral
+        image_independent = noise.independent_view_variance_px2(image_only)
+        cov = point_covariances(rows, J, image_independent, len(idx)) + lateral
+        cov_all = point_covariances(rows, J, image_independent + own_pose, len(idx)) + lateral
         status[idx[good]] = INTER
         positions[idx[good]] = tri.points[good]
         covariances[idx[good]] = cov[good]
