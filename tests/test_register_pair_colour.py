@@ -10,12 +10,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from scipy.spatial import cKDTree
 
 from surgrecon_cli.config import RegistrationConfig
 from surgrecon_cli.core.registration.colour import decide_colour
 from surgrecon_cli.core.registration.pair import error_estimate_mm, follow_supported, pair_config
-from surgrecon_cli.core.registration.surface import analyse_target
 from surgrecon_cli.registration import register_pair
 from surgrecon_cli.sim.pairs_catalog import make_pair
 from surgrecon_cli.sim.pairs_stray import stray_colour_pair
@@ -24,7 +22,7 @@ GATE_M = 5e-3
 
 
 def _decide(pair):  # as register_pair decides: on every target point
-    return decide_colour(pair.target, pair.target_rgb, np.ones(len(pair.target), bool), GATE_M)
+    return decide_colour(pair.target, pair.target_rgb, GATE_M)
 
 
 def test_colour_decision_is_the_same_from_1k_to_100k_points_and_0_to_30_percent_strays():
@@ -49,8 +47,7 @@ def test_flat_colour_with_random_strays_is_not_used():
     rng = np.random.default_rng(0)
     flat = np.clip(0.6 + rng.normal(0, 4 / 255, pair.target_rgb.shape), 0, 1)
     flat[pair.target_outlier] = rng.uniform(0, 1, (int(pair.target_outlier.sum()), 3))
-    use = ~analyse_target(pair.target, cKDTree(pair.target)).stray
-    assert decide_colour(pair.target, flat, use, GATE_M).weight_mm == 0.0
+    assert decide_colour(pair.target, flat, GATE_M).weight_mm == 0.0
 
 
 @pytest.mark.parametrize("strays", [0.0, 0.2])
@@ -136,7 +133,7 @@ def test_without_colour_the_estimate_counts_the_motion_a_slide_could_hide():
 
 def test_coincident_target_points_leave_colour_out():
     rng = np.random.default_rng(5)
-    d = decide_colour(np.zeros((60, 3)), rng.uniform(0, 1, (60, 3)), np.ones(60, bool), GATE_M)
+    d = decide_colour(np.zeros((60, 3)), rng.uniform(0, 1, (60, 3)), GATE_M)
     assert d.weight_mm == 0.0
 
 

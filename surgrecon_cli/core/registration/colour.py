@@ -60,18 +60,14 @@ def _spread(idx: np.ndarray) -> np.ndarray:
     return idx[:: max(len(idx) // SAMPLES, 1)]
 
 
-def colour_agreement(xyz: np.ndarray, rgb: np.ndarray, use: np.ndarray) -> np.ndarray:
-    """(M,) bool: points of `use` whose colour agrees with their neighbourhood (step 1)."""
-    idx = np.flatnonzero(use)
-    agree = np.zeros(len(xyz), bool)
+def colour_agreement(xyz: np.ndarray, rgb: np.ndarray) -> np.ndarray:
+    """(M,) bool: points whose colour agrees with their neighbourhood (step 1)."""
     k = AGREE_NEIGHBOURS + 1
-    if len(idx) < 2 * k:
-        agree[idx] = True
-        return agree
-    nn = cKDTree(xyz[idx]).query(xyz[idx], k=k)[1][:, 1:]
-    e = np.linalg.norm(rgb[idx] - np.median(rgb[idx][nn], axis=1), axis=1)
-    agree[idx] = e <= AGREE_FACTOR * max(float(np.median(e)), 1e-6)
-    return agree
+    if len(xyz) < 2 * k:
+        return np.ones(len(xyz), bool)
+    nn = cKDTree(xyz).query(xyz, k=k)[1][:, 1:]
+    e = np.linalg.norm(rgb - np.median(rgb[nn], axis=1), axis=1)
+    return e <= AGREE_FACTOR * max(float(np.median(e)), 1e-6)
 
 
 def texture_line(xyz: np.ndarray, rgb: np.ndarray) -> tuple[float, float, float]:
@@ -92,11 +88,11 @@ def texture_line(xyz: np.ndarray, rgb: np.ndarray) -> tuple[float, float, float]
             spacing)
 
 
-def decide_colour(xyz: np.ndarray, rgb: np.ndarray, use: np.ndarray,
-                  reach_m: float) -> ColourDecision:
-    """The colour decision for target points xyz (M, 3) m with colours rgb (M, 3) 0..1;
-    `use` (M,) bool: points measured (not geometric strays); reach_m: correspondence gate."""
-    agree = colour_agreement(xyz, rgb, use)
+def decide_colour(xyz: np.ndarray, rgb: np.ndarray, reach_m: float) -> ColourDecision:
+    """The colour decision for target points xyz (M, 3) m with colours rgb (M, 3) 0..1 (every
+    point measured: strays are told apart by their colour, step 1); reach_m: correspondence
+    gate."""
+    agree = colour_agreement(xyz, rgb)
     if agree.sum() < 2 * MIN_RANKS + 2:
         return ColourDecision(0.0, 0.0, 0.0, agree, "too few points to measure the texture")
     g, s, h = texture_line(xyz[agree], rgb[agree])

@@ -137,8 +137,7 @@ def register_pair(
         # with its neighbourhood's colour is left to `register`'s own stray test, and
         # leaving geometric strays out first changes the weight by < 15 % on the stray and
         # noisy tissues (1k-20k points) for a second surface analysis (0.02 s at 5k)
-        use = np.ones(len(tgt), bool)
-        decision = decide_colour(tgt, t_rgb, use, cfg.max_correspondence_mm * 1e-3)
+        decision = decide_colour(tgt, t_rgb, cfg.max_correspondence_mm * 1e-3)
         keep = _keep_targets(len(tgt), decision, extras.get("target_ids"),
                              extras.get("landmarks"))
     else:
