@@ -159,13 +159,14 @@ def local_motion_residuals(reference: np.ndarray, current: np.ndarray,
     offset = ref[idx] - ref[:, None, :]  # (M, K, 2): neighbours about the track
     scale = np.maximum(np.abs(offset).max((1, 2)), 1e-9)[:, None, None]
     X = np.concatenate([offset / scale, np.ones((m, neighbours, 1))], axis=2)  # (M, K, 3)
-    XtX = np.einsum("mk,mki,mkj->mij", w, X, X)
+    WXt = np.swapaxes(X * w[:, :, None], 1, 2)  # (M, 3, K): batched products, not einsums
+    XtX = WXt @ X
     out = np.full((m, 2), np.nan)
     ok = (w.sum(1) >= 6) & (np.abs(np.linalg.det(XtX)) > 1e-6)
     if not ok.any():
         return out
     inv = np.linalg.inv(XtX[ok])
-    coef = np.einsum("mij,mk,mkj,mkd->mid", inv, w[ok], X[ok], motion[idx[ok]])  # (M', 3, 2)
+    coef = inv @ (WXt[ok] @ motion[idx[ok]])  # (M', 3, 2)
     predicted = coef[:, 2]  # the affine at the track (offset 0) is its constant term
     leverage = inv[:, 2, 2]  # x₀ = (0, 0, 1)
     out[ok] = (motion[ok] - predicted) / np.sqrt(1.0 + leverage)[:, None]
