@@ -1,11 +1,17 @@
 """Hour-long logs (issue 27, item 4): one register worker registering >= 10,000 frames.
 
     .venv/bin/python benchmarks/register_long.py [--steps 10000] [--frames 20] [--cameras 3]
-        [--size 320x256] [--seed 7] [--block 500] [--workdir /tmp/surgrecon-register-long]
+        [--variant default] [--size 320x256] [--seed 7] [--block 500]
+        [--workdir /tmp/surgrecon-register-long]
 
-A small simulated log (`surgrecon simulate --frames F --cameras C`, ingested, its template
-built; reused when present in WORKDIR) is registered by one process, on one thread, as a
-register worker does it: `stages.register.register_frame(RUN, k, config)` for
+An hour of a 30 Hz stereo endoscope (108,000 frames):
+
+    .venv/bin/python benchmarks/register_long.py --steps 108000 --variant stereo --cameras 2 \
+        --block 6000
+
+A small simulated log (`surgrecon simulate --variant V --frames F --cameras C`, ingested,
+its template built; reused when present in WORKDIR) is registered by one process, on one
+thread, as a register worker does it: `stages.register.register_frame(RUN, k, config)` for
 k = 1, 2, ..., F-1, 1, 2, ... until `--steps` frames are done (each call reads its base
 from the run folder, keeps its process caches, and writes RUN/registration/k.npz). Printed
 per block of `--block` frames: CPU seconds a frame and the process's resident set (RSS,
@@ -37,16 +43,18 @@ def rss_mb() -> float:
     return float("nan")
 
 
-def prepare(workdir: Path, frames: int, cameras: int, size: str, seed: int) -> Path:
+def prepare(workdir: Path, variant: str, frames: int, cameras: int, size: str,
+            seed: int) -> Path:
     """The simulated, ingested run with its template (made once)."""
     width, height = size.split("x")
-    name = f"f{frames}c{cameras}-{size}-s{seed}"
+    name = f"{variant}-f{frames}c{cameras}-{size}-s{seed}"
     log, run = workdir / f"{name}.mcap", workdir / name
     exe = surgrecon_executable()
     if not log.is_file():
-        subprocess.run([exe, "simulate", str(log), "--frames", str(frames), "--cameras",
-                        str(cameras), "--width", width, "--height", height, "--seed",
-                        str(seed), "-q"], check=True, stdout=subprocess.DEVNULL)
+        subprocess.run([exe, "simulate", str(log), "--variant", variant, "--frames",
+                        str(frames), "--cameras", str(cameras), "--width", width,
+                        "--height", height, "--seed", str(seed), "-q"],
+                       check=True, stdout=subprocess.DEVNULL)
     if not RunLayout(run).template_ply.is_file():
         subprocess.run([exe, "ingest", str(log), "-o", str(run), "--force", "-q"], check=True)
         subprocess.run([exe, "build-template", str(run), "-q"], check=True)
@@ -58,13 +66,15 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=10_000)
     parser.add_argument("--frames", type=int, default=20)
     parser.add_argument("--cameras", type=int, default=3)
+    parser.add_argument("--variant", default="default",
+                        help="simulator preset (surgrecon simulate --variant)")
     parser.add_argument("--size", default="320x256")
     parser.add_argument("--seed", type=int, default=7)
     parser.add_argument("--block", type=int, default=500)
     parser.add_argument("--workdir", type=Path, default=Path("/tmp/surgrecon-register-long"))
     args = parser.parse_args()
     args.workdir.mkdir(parents=True, exist_ok=True)
-    run = prepare(args.workdir, args.frames, args.cameras, args.size, args.seed)
+    run = prepare(args.workdir, args.variant, args.frames, args.cameras, args.size, args.seed)
     cv2.setNumThreads(1)
     threadpool_limits(limits=1)
     config = Config()
