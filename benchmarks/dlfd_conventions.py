@@ -25,6 +25,8 @@ from dlfd_mcap import (
     FPS,
     GEOMETRY,
     PAIRS,
+    arm_corrections,
+    arms_in_world,
     base2_in_base1,
     camera_in_base1,
     camera_model,
@@ -116,6 +118,26 @@ def errors(d: dict, conv: Convention, marks: list[dict]) -> np.ndarray:
     return np.array(out)
 
 
+def corrected_lateral(d: dict, marks: list[dict], fits: dict) -> np.ndarray:
+    """(M, 2): lateral px of each mark (as `errors`, chosen convention) without and with its
+    pair's and arm's image-fitted translation (`dlfd_mcap.arm_corrections`); NaN for a
+    mark whose pair was not fitted."""
+    out = np.full((len(marks), 2), np.nan)
+    for i, m in enumerate(marks):
+        k, arm = int(m["camera"][1]), 1 if m["instrument"] == "right" else 2
+        if (k, arm) not in fits:
+            continue
+        pose = arms_in_world(d, m["frame"])[arm - 1]
+        s0, s1 = np.array(m["shaft"], float)
+        u = (s1 - s0) / np.linalg.norm(s1 - s0)
+        for j, move in enumerate((np.eye(4), fits[(k, arm)].move)):
+            p = move @ pose
+            uv, _ = project(p[None, :3, 3], camera_in_base1(d, m["camera"]),
+                            camera_model(d, m["camera"]))
+            out[i, j] = abs(u[0] * (uv[0] - s0)[1] - u[1] * (uv[0] - s0)[0])
+    return out
+
+
 def coverage(d: dict, marks: list[dict], config: Path) -> tuple[int, int, dict[str, float]]:
     """With the chosen convention and `config`'s tool geometry: how many of the marked points
     (tips and shaft points) lie in their instrument's mask, of how many, and the share of each
@@ -164,6 +186,17 @@ def main() -> None:
         config = Path(tmp) / "dlfd.toml"
         config.write_text(CONFIG.format(**GEOMETRY))
         hit, total, share = coverage(d, marks, config)
+    fits = arm_corrections(d, 0)
+    lateral = corrected_lateral(d, marks, fits)
+    print("per pair and arm, the shaft fitted to the frame-0 images (translation, mm): "
+          + ", ".join(f"p{k} arm {r} {np.round(f.move[:3, 3] * 1e3, 1).tolist()}"
+                      for (k, r), f in fits.items()))
+    for m, (before, after) in zip(marks, lateral, strict=True):
+        print(f"  {m['camera']} frame {m['frame']} {m['instrument']:5s} instrument: lateral "
+              f"{before:5.1f} -> {after:5.1f} px")
+    print(f"lateral px median / worst: {np.median(lateral[:, 0]):.1f} / "
+          f"{lateral[:, 0].max():.1f} -> {np.median(lateral[:, 1]):.1f} / "
+          f"{lateral[:, 1].max():.1f}")
     print(f"masks of the written config: {hit} of {total} marked tip and shaft points inside; "
           "share of the image masked at frame 93: "
           + ", ".join(f"{c} {100 * v:.0f} %" for c, v in share.items()))

@@ -44,8 +44,10 @@ import cv2
 import numpy as np
 import scipy.io
 
+from surgrecon_cli.config import ToolConfig
 from surgrecon_cli.core.geometry.cameras import CameraModel
 from surgrecon_cli.core.geometry.poses import matrix_to_quat, nearest_rotation
+from surgrecon_cli.core.geometry.tool_fit import fit_tool_offset
 from surgrecon_cli.io.logs.records import CameraInfoRecord, ImageRecord, PoseRecord
 from surgrecon_cli.sim.log_writer import write_log
 
@@ -83,6 +85,7 @@ jaw_width_m = {jaw_width_m}
 mask_margin_px = {mask_margin_px}
 margin_m = {margin_m}
 """
+INSTRUMENT_RADIUS_M = 0.004  # dVRK's 8 mm instruments
 GEOMETRY = {"radius_m": 0.01, "jaw_length_m": 0.05, "jaw_width_m": 0.024, "mask_margin_px": 6,
             "margin_m": 0.01}
 
@@ -220,6 +223,33 @@ def camera_in_base1(d: dict, cam: str, fuse: bool = True) -> np.ndarray:
     he = d["hand_eye"]
     T = _mean_pose([he[(1, k)], base2_in_base1(he) @ he[(2, k)]]) if fuse else he[(1, k)]
     return T @ d["calib"][k]["right_in_left"] if cam.endswith("r") else T
+
+
+def arms_in_world(d: dict, frame: int) -> np.ndarray:
+    """Both arms' shaft frames (2, 4, 4) in the world (robot 1's base) at video frame `frame`."""
+    world = {1: np.eye(4), 2: base2_in_base1(d["hand_eye"])}
+    return np.stack([world[r] @ shaft_pose(d["arms"][r - 1, sample_at(frame / FPS, d)])
+                     for r in (1, 2)])
+
+
+def arm_corrections(d: dict, frame: int, pairs: tuple[int, ...] = PAIRS,
+                    radius_m: float = INSTRUMENT_RADIUS_M) -> dict:
+    """{(pair k, arm r): ToolOffsetFit}: per pair and arm, the translation (world, m) that lays
+    the arm's shaft on the dark instrument in the pair's two images at video frame `frame`
+    (`fit_tool_offset`, translation only): that pair's and arm's hand-eye error as the images
+    measure it. One move per pair for both arms does not fit (docs/dlfd.md)."""
+    tools = arms_in_world(d, frame)
+    out = {}
+    for k in pairs:
+        cams = [f"p{k}{s[0]}" for s in SIDES]
+        grays = [cv2.imdecode(np.frombuffer(next(_jpegs(d, k, s, frame, 1))[1], np.uint8),
+                              cv2.IMREAD_GRAYSCALE) for s in SIDES]
+        models = [camera_model(d, c) for c in cams]
+        poses = np.stack([camera_in_base1(d, c) for c in cams])
+        for r in (1, 2):
+            out[(k, r)] = fit_tool_offset(grays, models, poses, tools[r - 1:r], [ToolConfig()],
+                                          radius_m=radius_m, max_turn_deg=0.0)
+    return out
 
 
 def _tf(t: int, parent: str, child: str, T: np.ndarray) -> PoseRecord:

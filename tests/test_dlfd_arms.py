@@ -80,3 +80,16 @@ def test_shipped_frames_build_a_template_clear_of_both_arms(bench, data, tmp_pat
     gaps = check.clearance(run, config)
     assert sum(n > 0 for n, _ in gaps.values()) >= 4  # two pairs link at defaults
     assert min(min(g) for _, g in gaps.values()) >= 1.0  # mm, every camera, both arms
+
+
+def test_shafts_fitted_to_pair_2s_images_follow_the_marks(bench, data):
+    """Pair 2's hand-eye error puts both arms 18-35 px off the marked shafts; the per-arm
+    translation fitted to the frame-0 images (tool_fit) brings every pair-2 mark, including
+    frame 170's (not fitted), within 12 px (1 px ~ 0.45 mm)."""
+    conv, mcap, _ = bench
+    d, marks = data
+    fits = mcap.arm_corrections(d, 0, pairs=(2,))
+    pair2 = [m for m in marks if m["camera"].startswith("p2")]
+    lateral = conv.corrected_lateral(d, pair2, fits)
+    assert lateral[:, 0].min() > 15  # the hand-eye placement: every pair-2 mark far off
+    assert lateral[:, 1].max() < 12
