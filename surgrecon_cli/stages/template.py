@@ -12,7 +12,7 @@ RUN/template/summary.json (counts, pair plan, pixel_noise_px).
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -111,7 +111,7 @@ def pipeline_step(ctx: StageContext, progress: Callable[[float], None]) -> None:
                        on_step=lambda name: progress((STEPS.index(name) + 1) / len(STEPS)))
 
 
-def unlinked_report(groups: list[list[int]], stats: dict, names: list[str]) -> list[str]:
+def unlinked_report(groups: list[list[int]], stats: dict, names: Sequence[str]) -> list[str]:
     """One line per camera in no verified pair (it gives no template point), naming its
     best pair and that pair's verified matches against the gate; and one line when the
     cameras form several linked groups, which reconstruct in their own poses' frames
