@@ -21,28 +21,37 @@ import numpy as np
 from surgrecon_cli.config import load_config
 from surgrecon_cli.core.geometry.cameras import project
 from surgrecon_cli.core.geometry.poses import point_to_segment_distance
-from surgrecon_cli.core.geometry.tool import tool_capsules, tool_image_mask
+from surgrecon_cli.core.geometry.tool import camera_tool_poses, tool_capsules, tool_image_mask
 from surgrecon_cli.io.run.artefacts import read_observations, read_template
 from surgrecon_cli.io.run.ingest_store import load_ingested
 from surgrecon_cli.io.run.layout import RunLayout
 
 
+def _as_seen(log, cfgs) -> np.ndarray:
+    """(C, K, 4, 4): each camera's view of the tools at frame 0 (with `camera_offsets`)."""
+    tools = log.all_tool_poses(0)
+    per_camera = camera_tool_poses(tools, cfgs, list(log.cameras))
+    return np.repeat(tools[None], len(log.cameras), 0) if per_camera is None else per_camera
+
+
 def clearance(run: Path, config_path: Path) -> dict[str, tuple[int, list[float]]]:
     """Per camera: how many frame-0 template points it observed, and per tool the smallest
-    distance (mm) from one of them to the tool model's surface (negative = inside; inf =
+    distance (mm) from one of them to the tool model's surface as that camera sees it
+    (`camera_offsets`) (negative = inside; inf =
     none observed)."""
     layout = RunLayout(run)
     log = load_ingested(layout.ingest_dir)
     cfgs = load_config(config_path).tool_configs()
     points = read_template(layout).points
     obs = read_observations(layout, len(points))
+    tools = _as_seen(log, cfgs)
     out = {}
     for c, cam in enumerate(log.cameras):
         seen = points[np.unique(obs.point[obs.camera == c])]
         out[cam] = (len(seen), [
             min((float((point_to_segment_distance(seen, a, b) - r).min()) * 1e3
                  for a, b, r in tool_capsules(pose, cfg) if len(seen)), default=np.inf)
-            for pose, cfg in zip(log.all_tool_poses(0), cfgs, strict=True)])
+            for pose, cfg in zip(tools[c], cfgs, strict=True)])
     return out
 
 
@@ -54,7 +63,7 @@ def figure(run: Path, config_path: Path, camera: str, png: Path) -> None:
     cfgs = load_config(config_path).tool_configs()
     c = log.cameras.index(camera)
     image = log.load_image(0, c)[:, :, ::-1].copy()
-    for pose, cfg, colour in zip(log.all_tool_poses(0), cfgs, ((0, 0, 255), (0, 255, 0)),
+    for pose, cfg, colour in zip(_as_seen(log, cfgs)[c], cfgs, ((0, 0, 255), (0, 255, 0)),
                                  strict=False):
         mask = tool_image_mask(log.models[c], log.poses[0, c], pose, cfg, step=1)
         image[mask] = (0.5 * image[mask] + 0.5 * np.array(colour)).astype(np.uint8)

@@ -21,15 +21,15 @@ from pathlib import Path
 
 import numpy as np
 from dlfd_mcap import (
-    CONFIG,
+    CAMERAS,
     FPS,
-    GEOMETRY,
     PAIRS,
     arm_corrections,
     arms_in_world,
     base2_in_base1,
     camera_in_base1,
     camera_model,
+    config_text,
     load,
     load_shipped,
     sample_at,
@@ -38,7 +38,7 @@ from dlfd_mcap import (
 
 from surgrecon_cli.config import load_config
 from surgrecon_cli.core.geometry.cameras import project
-from surgrecon_cli.core.geometry.tool import tool_image_mask, tool_pixel_mask
+from surgrecon_cli.core.geometry.tool import camera_tool_poses, tool_image_mask, tool_pixel_mask
 
 MARKS = Path(__file__).resolve().parents[1] / "tests" / "data" / "dlfd" / "marks.json"
 
@@ -150,17 +150,21 @@ def coverage(d: dict, marks: list[dict], config: Path) -> tuple[int, int, dict[s
         return np.stack([world[r] @ shaft_pose(d["arms"][r - 1, sample_at(frame / FPS, d)])
                          for r in (1, 2)])
 
+    def seen(frame: int, cam: str) -> np.ndarray:  # with the config's camera_offsets
+        per_camera = camera_tool_poses(poses(frame), cfgs, CAMERAS)
+        return poses(frame) if per_camera is None else per_camera[CAMERAS.index(cam)]
+
     hit = total = 0
     for m in marks:
         k = 0 if m["instrument"] == "right" else 1
         pixels = np.array([m["tip"], *m["shaft"]], float)
-        pose = poses(m["frame"])[k]
+        pose = seen(m["frame"], m["camera"])[k]
         inside = tool_pixel_mask(pixels, camera_model(d, m["camera"]),
                                  camera_in_base1(d, m["camera"]), pose, cfgs[k])
         hit, total = hit + int(inside.sum()), total + len(pixels)
     share = {}
     for cam in sorted({m["camera"] for m in marks}):
-        mask = tool_image_mask(camera_model(d, cam), camera_in_base1(d, cam), poses(93), cfgs)
+        mask = tool_image_mask(camera_model(d, cam), camera_in_base1(d, cam), seen(93, cam), cfgs)
         share[cam] = float(mask.mean())
     return hit, total, share
 
@@ -182,14 +186,12 @@ def main() -> None:
         e = errors(d, conv, marks)
         cells = [f"{np.median(e[:, i]):6.1f} /{np.max(e[:, i]):6.1f}" for i in range(3)]
         print(f"{conv.name:40s} " + " ".join(f"{c:>13s}" for c in cells))
-    with tempfile.TemporaryDirectory() as tmp:
-        config = Path(tmp) / "dlfd.toml"
-        config.write_text(CONFIG.format(**GEOMETRY))
-        hit, total, share = coverage(d, marks, config)
     fits = arm_corrections(d, 0)
     lateral = corrected_lateral(d, marks, fits)
-    print("per pair and arm, the shaft fitted to the frame-0 images (translation, mm): "
-          + ", ".join(f"p{k} arm {r} {np.round(f.move[:3, 3] * 1e3, 1).tolist()}"
+    print("per pair and arm, the shaft fitted to the frame-0 images (translation mm; contrast "
+          "grey levels, without -> with): "
+          + ", ".join(f"p{k} arm {r} {np.round(f.move[:3, 3] * 1e3, 1).tolist()} "
+                      f"({f.contrast_at_zero:.0f} -> {f.contrast:.0f})"
                       for (k, r), f in fits.items()))
     for m, (before, after) in zip(marks, lateral, strict=True):
         print(f"  {m['camera']} frame {m['frame']} {m['instrument']:5s} instrument: lateral "
@@ -197,9 +199,14 @@ def main() -> None:
     print(f"lateral px median / worst: {np.median(lateral[:, 0]):.1f} / "
           f"{lateral[:, 0].max():.1f} -> {np.median(lateral[:, 1]):.1f} / "
           f"{lateral[:, 1].max():.1f}")
-    print(f"masks of the written config: {hit} of {total} marked tip and shaft points inside; "
-          "share of the image masked at frame 93: "
-          + ", ".join(f"{c} {100 * v:.0f} %" for c, v in share.items()))
+    with tempfile.TemporaryDirectory() as tmp:
+        config = Path(tmp) / "dlfd.toml"
+        for name, fitted in (("without camera_offsets", {}), ("of the written config", fits)):
+            config.write_text(config_text(fitted))
+            hit, total, share = coverage(d, marks, config)
+            print(f"masks {name}: {hit} of {total} marked tip and shaft points inside; share "
+                  "of the image masked at frame 93: "
+                  + ", ".join(f"{c} {100 * v:.0f} %" for c, v in share.items()))
 
 
 if __name__ == "__main__":

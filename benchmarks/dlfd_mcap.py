@@ -67,14 +67,17 @@ tool_pose = "/PSM1/shaft_pose"
 joint_states = ""
 
 [tool]
-# the shaft from the kinematic point up to the RCM, the jaws beyond it; both wider than the
-# instrument by the hand-eye results' disagreement (8-15 mm in pair 2)
+# the shaft from the kinematic point up to the RCM, the jaws beyond it; each camera sees the
+# arm moved by its pair's camera_offsets (the shaft fitted to the images: the pairs' hand-eye
+# results disagree by 12-26 mm); radius = the 4 mm instrument + 4 mm, about the worst lateral
+# error left after that fit (10 px, 4.7 mm), plus the 6 px margin
 shaft_radius_m = {radius_m}
 jaw_offset_m = 0.0
 jaw_length_m = {jaw_length_m}
 jaw_width_m = {jaw_width_m}
 mask_margin_px = {mask_margin_px}
 margin_m = {margin_m}
+camera_offsets = {offsets_1}
 
 [[tools]]
 pose = "/PSM2/shaft_pose"
@@ -84,9 +87,11 @@ jaw_length_m = {jaw_length_m}
 jaw_width_m = {jaw_width_m}
 mask_margin_px = {mask_margin_px}
 margin_m = {margin_m}
+camera_offsets = {offsets_2}
 """
 INSTRUMENT_RADIUS_M = 0.004  # dVRK's 8 mm instruments
-GEOMETRY = {"radius_m": 0.01, "jaw_length_m": 0.05, "jaw_width_m": 0.024, "mask_margin_px": 6,
+MIN_CONTRAST = 40.0  # grey levels summed over a pair's two images: the shaft was found
+GEOMETRY = {"radius_m": 0.008, "jaw_length_m": 0.05, "jaw_width_m": 0.02, "mask_margin_px": 6,
             "margin_m": 0.01}
 
 
@@ -285,8 +290,22 @@ def _jpegs(d: dict, k: int, side: str, first: int, frames: int):
                 yield f, jpeg.tobytes()
 
 
-def build(d: dict, name: str, frames: int, first: int, out: Path) -> tuple[Path, Path]:
-    """Write OUT/NAME.mcap (video frames first .. first + frames - 1) and OUT/NAME.toml."""
+def config_text(fits: dict, geometry: dict | None = None) -> str:
+    """The log's config: tool geometry (`GEOMETRY`) and, per arm, each pair's cameras'
+    `camera_offsets` from `arm_corrections` fits (those that found the shaft: contrast at
+    least `MIN_CONTRAST`)."""
+    offsets = {r: [f"{cam} {' '.join(f'{v:.4f}' for v in fit.move[:3, 3])}"
+                   for (k, arm), fit in sorted(fits.items()) if arm == r
+                   and fit.contrast >= MIN_CONTRAST for cam in (f"p{k}l", f"p{k}r")]
+               for r in (1, 2)}
+    return CONFIG.format(**(geometry or GEOMETRY),
+                         **{f"offsets_{r}": json.dumps(v) for r, v in offsets.items()})
+
+
+def build(d: dict, name: str, frames: int, first: int, out: Path, fit_shafts: bool = True
+          ) -> tuple[Path, Path]:
+    """Write OUT/NAME.mcap (video frames first .. first + frames - 1) and OUT/NAME.toml (with
+    the arms' per-camera offsets fitted to frame `first`'s images unless not `fit_shafts`)."""
     out.mkdir(parents=True, exist_ok=True)
     messages: list = [("/tf_static", T0, _tf(T0, "world", "PSM1_base", np.eye(4))),
                       ("/tf_static", T0, _tf(T0, "world", "PSM2_base",
@@ -310,7 +329,7 @@ def build(d: dict, name: str, frames: int, first: int, out: Path) -> tuple[Path,
     log = out / f"{name}.mcap"
     write_log(log, messages, "ros2")
     config = out / f"{name}.toml"
-    config.write_text(CONFIG.format(**GEOMETRY))
+    config.write_text(config_text(arm_corrections(d, first) if fit_shafts else {}))
     return log, config
 
 

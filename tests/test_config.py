@@ -94,6 +94,8 @@ def test_every_numeric_key_has_bounds_that_hold_its_default():
             default = getattr(getattr(Config(), section.name), f.name)
             if isinstance(default, bool) or not isinstance(default, int | float | tuple):
                 continue
+            if "str" in str(f.type):  # a list of strings (tool.camera_offsets: checked as parsed)
+                continue
             low, high = f.metadata["bounds"]
             assert all(low <= v <= high for v in (default if isinstance(default, tuple)
                                                   else (default,))), (section.name, f.name)

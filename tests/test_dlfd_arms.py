@@ -62,7 +62,7 @@ def test_the_written_config_masks_the_marked_tips_and_shafts(bench, data, tmp_pa
     conv, mcap, _ = bench
     d, marks = data
     config = tmp_path / "dlfd.toml"
-    config.write_text(mcap.CONFIG.format(**mcap.GEOMETRY), encoding="utf-8")
+    config.write_text(mcap.config_text({}), encoding="utf-8")
     hit, total, share = conv.coverage(d, marks, config)
     assert total == 3 * len(marks) and hit >= 0.9 * total
     assert max(share.values()) < 0.45  # the masks leave the images' tissue

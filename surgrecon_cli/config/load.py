@@ -29,7 +29,8 @@ def _coerce(value: Any, annotation: Any, key: str) -> Any:
     origin = typing.get_origin(annotation)
     if origin is tuple:
         _require(isinstance(value, list | tuple), key, f"expected a list, got {value!r}")
-        return tuple(_coerce(v, float, key) for v in value)
+        item = (typing.get_args(annotation) or (float,))[0]
+        return tuple(_coerce(v, item, key) for v in value)
     if annotation is float:
         _require(
             isinstance(value, int | float) and not isinstance(value, bool),

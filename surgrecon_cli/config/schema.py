@@ -3,6 +3,7 @@ metadata "doc") and range checks (`ConfigError` naming the key) in `__post_init_
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 from .fields import _doc, _require, check_bounds
@@ -72,6 +73,14 @@ class IngestConfig:
         check_bounds(self, "ingest")
 
 
+def _is_number(word: str) -> bool:
+    try:
+        value = float(word)
+    except ValueError:
+        return False
+    return math.isfinite(value)
+
+
 @dataclass(frozen=True)
 class ToolConfig:
     """Tool model: a shaft cylinder from the tip along the tool frame's +z axis (`shaft_axis`),
@@ -97,8 +106,16 @@ class ToolConfig:
         0.0015, "3D points closer than radius + margin to the shaft axis are dropped (m)",
         bounds=(0, 0.1)
     )
+    camera_offsets: tuple[str, ...] = _doc(
+        (), "per camera, the tool's translation as that camera sees it (its hand-eye error): "
+        "[\"CAMERA X Y Z\", ...] in the world (m); empty = none")
 
     def __post_init__(self) -> None:
+        for entry in self.camera_offsets:
+            words = entry.split()
+            _require(len(words) == 4 and all(_is_number(w) and abs(float(w)) <= 10
+                                             for w in words[1:]),
+                     "tool.camera_offsets", f"expected \"CAMERA X Y Z\", got {entry!r}")
         _require(self.shaft_radius_m > 0, "tool.shaft_radius_m", "must be > 0")
         _require(self.shaft_length_m > 0, "tool.shaft_length_m", "must be > 0")
         _require(

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from ..config import Config
+from ..core.geometry.tool import camera_tool_poses
 from ..core.noise.model import covariance_sigma, noise_from_report
 from ..core.template.build import (
     STEPS,
@@ -37,7 +38,7 @@ from ..io.run.artefacts import (
     write_template,
     write_template_summary,
 )
-from ..io.run.ingest_store import load_ingested
+from ..io.run.ingest_store import IngestedLog, load_ingested
 from ..io.run.layout import RunLayout
 from .common import stage_run
 from .registry import StageContext
@@ -60,7 +61,7 @@ def run_build_template(
         images, poses = log.frame_images(0), log.usable_poses(0)
         with kept_heap():  # SIFT's scale spaces, ~0.5 GB a 1080p image, reuse the memory
             result = build_template(
-                TemplateFrame(images, poses, log.all_tool_poses(0)),
+                TemplateFrame(images, poses, tools_as_seen(log, config, 0)),
                 list(log.models),
                 config.template,
                 config.tool_configs(),
@@ -137,3 +138,14 @@ def unlinked_report(groups: list[list[int]], stats: dict, names: Sequence[str]) 
                      "cameras' poses, so a pose or calibration disagreement between the "
                      "groups goes unchecked")
     return lines
+
+
+def tools_as_seen(log: IngestedLog, config: Config, frame: int) -> np.ndarray:
+    """The tools' poses at `frame`: (K, 4, 4) in the world, or (C, K, 4, 4) per camera when
+    a tool has `camera_offsets` (`camera_tool_poses`)."""
+    tools = log.all_tool_poses(frame)
+    try:
+        per_camera = camera_tool_poses(tools, config.tool_configs(), list(log.cameras))
+    except ValueError as exc:
+        raise InputError(str(exc)) from exc
+    return tools if per_camera is None else per_camera

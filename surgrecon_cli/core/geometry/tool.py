@@ -92,6 +92,40 @@ def tool_capsules(tool_poses: ToolPoses, cfgs: ToolConfigs) -> list[Capsule]:
     return out
 
 
+def camera_tool_poses(tool_poses: ToolPoses, cfgs: ToolConfigs, cameras: Sequence[str]
+                      ) -> np.ndarray | None:
+    """Each camera's view of the tools (C, K, 4, 4): the tools' world poses (K, 4, 4) (or one
+    (4, 4)) moved by their `camera_offsets` entry for that camera (a hand-eye error measured
+    per camera, e.g. with `tool_fit`), unmoved for a camera without one; None when no tool
+    has any. Raises ValueError for an entry naming a camera not in `cameras`."""
+    configs = tool_list(cfgs)
+    if not any(c.camera_offsets for c in configs):
+        return None
+    poses = np.asarray(tool_poses, float).reshape(-1, 4, 4)
+    out = np.repeat(poses[None], len(cameras), axis=0)
+    index = {name: c for c, name in enumerate(cameras)}
+    for k, cfg in enumerate(configs):
+        for entry in cfg.camera_offsets:
+            name, *xyz = entry.split()
+            if name not in index:
+                raise ValueError(f"tool.camera_offsets names camera {name!r}; the log's cameras "
+                                 f"are {', '.join(cameras)}")
+            out[index[name], k, :3, 3] += np.array(xyz, float)
+    return out
+
+
+def flatten_camera_tools(tool_poses: np.ndarray, cfgs: ToolConfigs
+                         ) -> tuple[np.ndarray, list[ToolConfig]]:
+    """Per-camera tool poses (C, K, 4, 4) -> every camera's view of every tool as tools of
+    their own (C K, 4, 4) with their configs, for 3D tests that must clear all of them; shared
+    poses ((K, 4, 4) or (4, 4)) pass through."""
+    configs = tool_list(cfgs)
+    poses = np.asarray(tool_poses, float)
+    if poses.ndim < 4:
+        return poses.reshape(-1, 4, 4), configs
+    return poses.reshape(-1, 4, 4), configs * poses.shape[0]
+
+
 def _margins(cfgs: ToolConfigs, attribute: str) -> float:
     """The largest margin of the tools (one margin per mask/cut)."""
     configs = tool_list(cfgs)

@@ -16,7 +16,12 @@ import numpy as np
 from ...config import TemplateConfig
 from ...errors import GeometryError
 from ..geometry.cameras import CameraModel, project, view_distortion_jacobians
-from ..geometry.tool import ToolConfigs, points_near_tool, tool_image_mask
+from ..geometry.tool import (
+    ToolConfigs,
+    flatten_camera_tools,
+    points_near_tool,
+    tool_image_mask,
+)
 from ..geometry.triangulate import Observations, reprojection_residuals, triangulate
 from ..noise.model import (
     NoiseModel,
@@ -88,7 +93,8 @@ class TemplateResult:
 class TemplateFrame:
     """The frame a template is built from: images[c] (H, W, 3) uint8 RGB or None
     (unusable), poses (C, 4, 4) camera-to-world, tool_pose (4, 4) tool tip in the world, or
-    (K, 4, 4) of several tools (NaN = unknown)."""
+    (K, 4, 4) of several tools (NaN = unknown), or (C, K, 4, 4) each camera's view of them
+    (`camera_tool_poses`: masked per camera, points dropped near any camera's view)."""
 
     images: list[np.ndarray | None]
     poses: np.ndarray
@@ -132,7 +138,10 @@ def build_template(
     )
     if usable.sum() < 2:
         raise GeometryError(f"frame 0 has {int(usable.sum())} usable camera(s); need >= 2")
-    detect = [(images[c], models[c], cfg, tool_image_mask(models[c], poses[c], tool_pose, tool_cfg,
+    per_camera = np.asarray(tool_pose).ndim == 4
+    detect = [(images[c], models[c], cfg, tool_image_mask(models[c], poses[c],
+                                                          tool_pose[c] if per_camera else tool_pose,
+                                                          tool_cfg,
                                step=max(MASK_STEP_PX, round(MASK_STEP_PX * models[c].width
                                                             / MASK_STEP_WIDTH_PX))))
               for c in np.flatnonzero(usable)]
@@ -192,7 +201,8 @@ def build_template(
     precise = np.isfinite(sigma) & (sigma <= cfg.max_sigma_mm * 1e-3)
     imprecise = good & ~precise
     good &= precise
-    on_tool = points_near_tool(np.nan_to_num(tri.points), tool_pose, tool_cfg) & good
+    on_tool = points_near_tool(np.nan_to_num(tri.points),
+                               *flatten_camera_tools(tool_pose, tool_cfg)) & good
     off_surface = np.zeros_like(good)
     candidates = np.flatnonzero(good & ~on_tool)
     off_surface[candidates] = surface_outliers(tri.points[candidates])
