@@ -15,7 +15,12 @@ from synth_log import MS, T0, SynthSpec
 from surgrecon_cli.cli.main import main
 from surgrecon_cli.config import Config, ToolConfig, load_config
 from surgrecon_cli.core.geometry.poses import make_pose, point_to_segment_distance
-from surgrecon_cli.core.geometry.tool import points_near_tool, tool_capsules, tool_pixel_mask
+from surgrecon_cli.core.geometry.tool import (
+    camera_tool_poses,
+    points_near_tool,
+    tool_capsules,
+    tool_pixel_mask,
+)
 from surgrecon_cli.core.template.build import TemplateFrame, build_template
 from surgrecon_cli.errors import ConfigError
 from surgrecon_cli.io.logs.records import PoseRecord
@@ -118,6 +123,37 @@ def test_the_template_has_no_point_on_a_second_tool():
     for a, b, radius in tool_capsules(across, second):
         assert (point_to_segment_distance(both.points, a, b) < radius).sum() == 0
     assert sum(both.stats["features"]) < sum(plain.stats["features"])  # masked before SIFT
+
+
+def test_camera_offsets_move_a_tool_in_the_cameras_that_see_it_there():
+    """The kinematics put a second tool 5 cm off where every camera sees it (a hand-eye
+    error, `camera_offsets`): the template is masked and cleared at the seen place."""
+    scene = render_frames(SimConfig(cameras=4, frames=2, width=300, height=250, seed=3), [0])
+    cfg = Config()
+    plain = build_template(TemplateFrame(scene.images[0], scene.poses[0], scene.tool_poses[0]),
+                           scene.models, cfg.template, cfg.tool)
+    median = np.median(plain.points, axis=0)
+    centre = plain.points[np.argmin(np.linalg.norm(plain.points - median, axis=1))]
+    seen = make_pose(centre, np.array([0.0, np.sqrt(0.5), 0, np.sqrt(0.5)]))
+    kinematic = seen.copy()
+    kinematic[:3, 3] += [0.05, 0.0, 0.0]
+    names = [f"cam{c}" for c in range(len(scene.models))]
+    second = ToolConfig(shaft_radius_m=0.002, shaft_length_m=0.01, jaw_length_m=0.01,
+                        jaw_width_m=0.004, camera_offsets=tuple(f"{n} -0.05 0 0" for n in names))
+    tools = np.stack([scene.tool_poses[0], kinematic])
+    assert camera_tool_poses(tools, (cfg.tool, replace(second, camera_offsets=())), names) is None
+    with pytest.raises(ValueError, match="camera 'cam0'"):
+        camera_tool_poses(tools, (cfg.tool, second), names[1:])
+    per_camera = camera_tool_poses(tools, (cfg.tool, second), names)
+    assert per_camera.shape == (len(names), 2, 4, 4)
+    np.testing.assert_allclose(per_camera[:, 1], np.broadcast_to(seen, (len(names), 4, 4)),
+                               atol=1e-12)
+    np.testing.assert_allclose(per_camera[:, 0], np.broadcast_to(tools[0], (len(names), 4, 4)))
+    moved = build_template(TemplateFrame(scene.images[0], scene.poses[0], per_camera),
+                           scene.models, cfg.template, (cfg.tool, second))
+    for a, b, radius in tool_capsules(seen, second):
+        assert (point_to_segment_distance(plain.points, a, b) < radius).sum() >= 1
+        assert (point_to_segment_distance(moved.points, a, b) < radius).sum() == 0
 
 
 def test_info_proposes_every_dvrk_arm_and_its_config_runs(tmp_path: Path):
