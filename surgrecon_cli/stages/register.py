@@ -48,6 +48,7 @@ from ..io.run.layout import RunLayout
 from .common import stage_run
 from .registry import CLASSIFY_FRAME_TASK, StageContext, resolve
 from .staleness import recorded_config, same_config
+from .template import tools_as_seen
 
 logger = logging.getLogger(__name__)
 
@@ -131,8 +132,10 @@ def register_frame(run_dir: Path, frame: int, config: Config) -> dict:
     base = _load_base(layout, log, base_frame(frame, every), every, template)
     new_every = config.target.new_points_every
     images = log.frame_images(frame) if new_every and frame % new_every == 0 else None
+    seen = tools_as_seen(log, config, frame)
     inputs = FrameInput(frame, frame_views(log, frame), log.usable_poses(frame),
-                        log.all_tool_poses(frame), images)
+                        log.all_tool_poses(frame), images,
+                        camera_tool_pose=seen if seen.ndim == 4 else None)
     seconds_views = time.perf_counter() - start  # counted with the target: its images
     try:
         result = registrar.step(inputs, base)

@@ -307,7 +307,7 @@ class FrameRegistrar:
         """New features of the frame's `images` triangulated as in the template build, away
         from the tracked points (K, 3) m: (M, 3) m and colours (M, 3) uint8."""
         try:
-            fresh = build_template(TemplateFrame(images, frame.poses, frame.tool_pose),
+            fresh = build_template(TemplateFrame(images, frame.poses, frame.seen_tools),
                                    self.rig.models, self.config.template, self.rig.tools)
         except GeometryError:
             return np.zeros((0, 3)), np.zeros((0, 3), np.uint8)

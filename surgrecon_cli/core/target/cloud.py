@@ -29,7 +29,7 @@ from scipy.stats import chi2
 
 from ..classify.labels import INTER, INTRA, OUTLIER, STATUS_NAMES, UNOBSERVED
 from ..geometry.cameras import project, view_distortion_jacobians
-from ..geometry.tool import points_near_tool
+from ..geometry.tool import flatten_camera_tools, points_near_tool
 from ..geometry.triangulate import triangulate
 from ..noise.frame_noise import (
     MultiView,
@@ -244,8 +244,8 @@ def build_target(template: TemplateData, rig: Rig, latest: np.ndarray, base: Sig
                                                                    multi)
     # Tissue is pushed away by the tool, so visibility is judged in the images (mask);
     # a re-triangulated point inside the tool's capsule is a tool point, not tissue.
-    on_tool = (status == INTER) & points_near_tool(np.nan_to_num(positions), frame.tool_pose,
-                                                   rig.tools)
+    on_tool = (status == INTER) & points_near_tool(
+        np.nan_to_num(positions), *flatten_camera_tools(frame.seen_tools, rig.tools))
     status[on_tool] = OUTLIER
     positions[on_tool] = np.nan
     covariances[on_tool] = np.nan

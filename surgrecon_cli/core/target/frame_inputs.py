@@ -44,13 +44,22 @@ class FrameInput:
     """One frame: its index, per camera its image prepared for tracking (core/tracking.
     tracking_view; None where unusable), camera-to-world poses (C, 4, 4) (NaN where
     unusable), every tool's pose (K, 4, 4) (NaN = unknown) and, when new features are to be
-    triangulated into its target, its RGB images (H, W, 3) uint8 (else None)."""
+    triangulated into its target, its RGB images (H, W, 3) uint8 (else None);
+    `camera_tool_pose` (C, K, 4, 4): each camera's view of the tools (`tool.camera_offsets`),
+    None = every camera sees them at `tool_pose`."""
 
     index: int
     views: list[TrackingView | None]
     poses: np.ndarray
     tool_pose: np.ndarray
     images: list[np.ndarray | None] | None = None
+    camera_tool_pose: np.ndarray | None = None
+
+    @property
+    def seen_tools(self) -> np.ndarray:
+        """The tools as the cameras see them, for masks and tool-point removal: (C, K, 4, 4)
+        per camera, or the shared (K, 4, 4)."""
+        return self.tool_pose if self.camera_tool_pose is None else self.camera_tool_pose
 
 
 @dataclass(frozen=True)

@@ -181,7 +181,8 @@ def find_points(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig,
             px, ok = _anchor(anchor, cur, anchor_pixels[:, c], px, models[c], cfg)
         rows = np.flatnonzero(ok)
         keep = in_image(px[rows], models[c], 2.0)
-        keep &= ~tool_pixel_mask(px[rows], models[c], cur_poses[c], frame.tool_pose, rig.tools)
+        tools = frame.tool_pose if frame.camera_tool_pose is None else frame.camera_tool_pose[c]
+        keep &= ~tool_pixel_mask(px[rows], models[c], cur_poses[c], tools, rig.tools)
         rows = rows[keep]
         pixels[rows, c] = px[rows]
         found[rows, c] = True
