@@ -12,6 +12,7 @@ from one of them to each arm's model surface; exit 1 when one is under 1 mm.
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from pathlib import Path
 
@@ -89,6 +90,9 @@ def main() -> None:
     if args.png:
         figure(args.run, args.config, args.camera, args.png)
         print(f"wrote {args.png}")
+    stats = json.loads(RunLayout(args.run).template_summary.read_text())["stats"]
+    print(f"template: {stats['points']} points; {stats['removed_tool']} dropped in 3D for lying "
+          "within radius + margin_m of a tool")
     worst = np.inf
     for cam, (n, gaps) in clearance(args.run, args.config).items():
         print(f"{cam}: {n} template points observed; closest to arm 1 / arm 2 model: "

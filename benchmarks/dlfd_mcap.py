@@ -70,7 +70,8 @@ joint_states = ""
 # the shaft from the kinematic point up to the RCM, the jaws beyond it; each camera sees the
 # arm moved by its pair's camera_offsets (the shaft fitted to the images: the pairs' hand-eye
 # results disagree by 12-26 mm); radius = the 4 mm instrument + 4 mm, about the worst lateral
-# error left after that fit (10 px, 4.7 mm), plus the 6 px margin
+# error left after that fit (10 px, 4.7 mm), plus the 6 px margin; margin_m at its default:
+# the masks, not the 3D drop, keep the template off the instruments
 shaft_radius_m = {radius_m}
 jaw_offset_m = 0.0
 jaw_length_m = {jaw_length_m}
@@ -92,7 +93,7 @@ camera_offsets = {offsets_2}
 INSTRUMENT_RADIUS_M = 0.004  # dVRK's 8 mm instruments
 MIN_CONTRAST = 40.0  # grey levels summed over a pair's two images: the shaft was found
 GEOMETRY = {"radius_m": 0.008, "jaw_length_m": 0.05, "jaw_width_m": 0.02, "mask_margin_px": 6,
-            "margin_m": 0.01}
+            "margin_m": 0.0015}
 
 
 def _show(repo: Path, path: str, dest: Path) -> Path:
