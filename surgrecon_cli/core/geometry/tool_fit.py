@@ -26,8 +26,8 @@ from ...config import ToolConfig
 from .cameras import CameraModel, project
 from .tool import shaft_axis, tool_list
 
-INSIDE = (-0.5, 0.0, 0.5)  # samples across the shaft, in radii from its axis
-OUTSIDE = 1.8  # the strips beside the silhouette, radii from the axis
+INSIDE = (-0.6, 0.0, 0.6)  # samples across the shaft, in radii from its axis
+OUTSIDE = 1.4  # the strips just beside the silhouette, radii from the axis
 
 
 @dataclass(frozen=True)
