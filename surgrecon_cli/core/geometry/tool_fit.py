@@ -1,17 +1,18 @@
-"""Where the instruments really are in a camera group's images: a translation of the tools
-relative to the cameras from the shafts' silhouettes.
+"""Where the instruments really are in a camera group's images: a move of the tools relative
+to the cameras, from the shafts' silhouettes.
 
 Robot kinematics place a tool in the world through a hand-eye calibration per camera (or
 camera group); when those calibrations disagree by several mm, one world frame cannot put
 the tool model on the instrument in every camera. A laparoscopic instrument's shaft is a
 long dark cylinder: in every image of the group it is darker than the tissue on both sides
-of it. For candidate translations d of all tools (the same d for every tool and camera of
-the group: it is the group's hand-eye error), each shaft's axis is moved by d, sampled along
-its length and projected; the contrast at a sample is the darker of the two strips just
-outside the instrument's silhouette minus the strip inside it (grey levels). The offset
-that maximises the summed contrast over the group's cameras and tools is searched on a
-coarse grid, then refined on a fine one. Translation only: the rotation of a hand-eye error
-moves a tool a few mm at most over the instruments' distance from the cameras.
+of it. For candidate moves of the given tools (one move for all of them and every camera of
+the group), each shaft's axis is moved, sampled along its length and projected; the contrast
+at a sample is the darker of the two strips just outside the instrument's silhouette minus
+the strip on it (grey levels). The move that maximises the summed contrast is searched as a
+translation on a coarse grid, then refined (Powell), with a rotation when allowed. Along a
+single shaft a translation is barely seen: fit tools whose shafts are not parallel together,
+or read only the component across the shaft. When the hand-eye errors differ per robot (as
+in d-lfd), fit each robot's tool on its own (docs/dlfd.md).
 """
 
 from __future__ import annotations
