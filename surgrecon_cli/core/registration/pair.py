@@ -57,18 +57,23 @@ PAIR_SETTINGS: dict[str, float] = {"max_nodes": 250, "rigid_iterations": 10,
                                    "mutual_spacings": 5.0}
 MUTUAL_GATE_FRACTION = 0.25
 # ours: with colour used, each supported point's motion is scaled by the share of it
-# (STAY_SHARES) whose colour + surface misfit, summed over its STAY_NEIGHBOURS nearest
-# points, is lowest (then averaged over the same neighbours): the colour-decided matches
-# of static tissue next to moving tissue settle where the smoothness dragged it (the
-# nearest match in position + colour is biased towards where the point already is), and
-# comparing the hypotheses "moved" / "half moved" / "not moved" on the target's smoothed
-# colour field has no such bias. On stray_colour_partial 5k tuning seeds 0-4 the worst
-# 5 mm cell goes from +0.48 to +0.40 mm over doing nothing (mean; supported cells from
-# +0.50 to +0.30 at worst) and the median from 0.175-0.279 to 0.151-0.275 mm; on
-# stray_colour 5k from 0.145-0.172 to 0.121-0.141 mm (32 neighbours or shares {0, 1}: less)
+# (STAY_SHARES) whose colour + surface misfit, summed over about STAY_NEIGHBOURS nearby
+# points, is lowest (then averaged over its neighbours): the colour-decided matches of
+# static tissue next to moving tissue settle where the smoothness dragged it (the nearest
+# match in position + colour is biased towards where the point already is), and comparing
+# the hypotheses "moved" / "half moved" / "not moved" on the target's smoothed colour
+# field has no such bias. Tuned on stray_colour / stray_colour_partial seeds 0-4: at 5k the
+# partial pair's worst 5 mm cell goes from +0.48 to +0.35 mm over doing nothing (mean over
+# seeds; supported cells from up to +0.50 to up to +0.38), the median from 0.175-0.279 to
+# 0.150-0.274 mm, stray_colour's from 0.145-0.172 to 0.12-0.15 mm; 32 neighbours, shares
+# {0, 1}, 5 shares, a scale of 1.5 or 6 noises, or the distance across the local plane in
+# place of the nearest distance: no better. The misfits are taken on every 2nd supported
+# point, at most STAY_SAMPLES of them, so a neighbourhood spans the same part of the
+# surface at any density (100k: p95 0.24-0.36 -> 0.27-0.39 mm; on all points it was 0.28-0.41)
 STAY_SHARES = (1.0, 0.5, 0.0)  # in this order: a tie (no data near) keeps the motion
 STAY_NEIGHBOURS = 64
-STAY_STRIDE = 2  # ours: misfits on every 2nd supported point (same figures, half the time)
+STAY_STRIDE = 2
+STAY_SAMPLES = 2500
 STAY_TARGET_NEIGHBOURS = 8  # target points the colour field is smoothed over
 STAY_TAU_NOISE = 3.0  # robust scale of the misfit, in colour-noise units
 PAIR_DENSE_POINTS = 5000
@@ -127,7 +132,8 @@ def stay_where_better(source: np.ndarray, registered: np.ndarray, supported: np.
     module constants): for positions source + share x (registered - source) (N, 3) m, the
     misfit of a point is u = |rgb - target colour smoothed at it|^2 + (gradient x distance to
     the nearest target point)^2 (RGB units), robust rho = u / (u + (STAY_TAU_NOISE x
-    noise)^2), summed over the supported of its STAY_NEIGHBOURS nearest source points.
+    noise)^2), on a spread sample of the supported points (STAY_STRIDE, STAY_SAMPLES),
+    summed over about STAY_NEIGHBOURS sample points near each.
     target (M, 3) m and target_rgb (M, 3) 0..1: the agreeing target points; colours 0..1."""
     n = len(source)
     if not supported.any() or len(target) < STAY_TARGET_NEIGHBOURS:
@@ -137,24 +143,32 @@ def stay_where_better(source: np.ndarray, registered: np.ndarray, supported: np.
     g = decision.gradient * 1e3  # RGB units per metre
     tau2 = (STAY_TAU_NOISE * max(decision.noise, 1e-6)) ** 2
     move = registered - source
-    costs = np.zeros((len(STAY_SHARES), n))
-    sup = np.flatnonzero(supported)[::STAY_STRIDE]  # neighbourhood sums need not see all
-    counted = np.zeros(n)
-    counted[sup] = 1.0
+    have = np.flatnonzero(supported)
+    # misfits on a spread sample of the supported points (every 2nd, or STAY_SAMPLES at most:
+    # the neighbourhoods then span the same part of the surface at any density)
+    sample = have[:: max(STAY_STRIDE, len(have) // STAY_SAMPLES)]
+    m = len(sample)
+    costs = np.zeros((m, len(STAY_SHARES)))
     for a, share in enumerate(STAY_SHARES):
-        d, j = tree.query(source[sup] + share * move[sup], k=STAY_TARGET_NEIGHBOURS)
+        d, j = tree.query(source[sample] + share * move[sample], k=STAY_TARGET_NEIGHBOURS)
         w = np.exp(-0.5 * (d / h) ** 2) + 1e-12
         smoothed = np.einsum("nk,nkc->nc", w, target_rgb[j]) / w.sum(axis=1)[:, None]
-        u = ((source_rgb[sup] - smoothed) ** 2).sum(axis=1) + (g * d[:, 0]) ** 2
-        costs[a, sup] = u / (u + tau2)
-    # a sum over about STAY_NEIGHBOURS points as two means over 4x fewer (a quarter the time)
-    k = min(STAY_NEIGHBOURS // 4, n)
-    nb = cKDTree(source).query(source, k=k)[1].reshape(n, k)
-    mean = sparse.csr_matrix((np.full(n * k, 1.0 / k), nb.ravel(), np.arange(0, n * k + 1, k)),
-                             shape=(n, n))  # row i: the mean over i's k nearest points
-    per_point = (mean @ costs.T) / np.maximum(mean @ counted, 1.0 / k)[:, None]
-    best = np.asarray(STAY_SHARES)[np.argmin(mean @ per_point, axis=1)]
-    return np.asarray(mean @ (mean @ best))
+        u = ((source_rgb[sample] - smoothed) ** 2).sum(axis=1) + (g * d[:, 0]) ** 2
+        costs[:, a] = u / (u + tau2)
+    # a sum over about STAY_NEIGHBOURS sample points as two means over 8x fewer
+    k = min(STAY_NEIGHBOURS // 8, m)
+    sample_tree = cKDTree(source[sample])
+    mean = _mean_operator(sample_tree.query(source[sample], k=k)[1].reshape(m, k), m)
+    best = np.asarray(STAY_SHARES)[np.argmin(mean @ (mean @ costs), axis=1)]
+    nb = sample_tree.query(source, k=k)[1].reshape(n, k)
+    return np.asarray(_mean_operator(nb, m) @ (mean @ best))
+
+
+def _mean_operator(nb: np.ndarray, m: int) -> sparse.csr_matrix:
+    """(P, m) sparse: row i the mean over the columns nb[i] (P, k)."""
+    p, k = nb.shape
+    return sparse.csr_matrix((np.full(p * k, 1.0 / k), nb.ravel(), np.arange(0, p * k + 1, k)),
+                             shape=(p, m))
 
 
 def _keep_targets(n_target: int, decision: ColourDecision | None, target_ids: Any,
