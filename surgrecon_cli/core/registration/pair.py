@@ -69,7 +69,7 @@ MUTUAL_GATE_FRACTION = 0.25
 # {0, 1}, 5 shares, a scale of 1.5 or 6 noises, or the distance across the local plane in
 # place of the nearest distance: no better. The misfits are taken on every 2nd supported
 # point, at most STAY_SAMPLES of them, so a neighbourhood spans the same part of the
-# surface at any density (100k: p95 0.24-0.36 -> 0.27-0.39 mm; on all points it was 0.28-0.41)
+# surface at any density (100k: p95 0.24-0.36 -> 0.27-0.39 mm; every 2nd point: 0.28-0.41)
 STAY_SHARES = (1.0, 0.5, 0.0)  # in this order: a tie (no data near) keeps the motion
 STAY_NEIGHBOURS = 64
 STAY_STRIDE = 2
