@@ -171,6 +171,17 @@ def _mean_operator(nb: np.ndarray, m: int) -> sparse.csr_matrix:
                              shape=(p, m))
 
 
+def _known_sources(n: int, target_ids: Any, landmarks: Any) -> np.ndarray:
+    """(n,) bool: source points with a known pair (template ids, landmarks)."""
+    known = np.zeros(n, bool)
+    if target_ids is not None:
+        ids = np.asarray(target_ids)
+        known[ids[(ids >= 0) & (ids < n)]] = True
+    if landmarks is not None and len(landmarks):
+        known[np.asarray(landmarks)[:, 0]] = True
+    return known
+
+
 def _keep_targets(n_target: int, decision: ColourDecision | None, target_ids: Any,
                   landmarks: Any) -> np.ndarray:
     """Target indices passed on: all but the colour strays (points with a known pair stay)."""
@@ -236,10 +247,14 @@ def register_pair(
     transforms = result.transforms.copy()
     registered = result.registered
     share = np.ones(len(src))
-    if colour_on and decision is not None and s_rgb is not None and t_rgb is not None:
+    # only where the texture was found to carry the motion (a colour weight forced on a flat
+    # texture would let the test undo true motion); points with a known pair keep theirs
+    if (colour_on and decision is not None and decision.weight_mm > 0 and s_rgb is not None
+            and t_rgb is not None):
         agree = decision.agree
         share = stay_where_better(src, registered, supported, s_rgb, tgt[agree], t_rgb[agree],
                                   decision)
+        share[_known_sources(len(src), ids, lm)] = 1.0
         registered = src + share[:, None] * (registered - src)
         identity = np.concatenate([np.eye(3), np.zeros((3, 1))], axis=1)
         transforms = share[:, None, None] * transforms + (1 - share[:, None, None]) * identity
