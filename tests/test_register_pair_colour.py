@@ -13,7 +13,12 @@ import pytest
 
 from surgrecon_cli.config import RegistrationConfig
 from surgrecon_cli.core.registration.colour import decide_colour
-from surgrecon_cli.core.registration.pair import error_estimate_mm, follow_supported, pair_config
+from surgrecon_cli.core.registration.pair import (
+    error_estimate_mm,
+    follow_supported,
+    pair_config,
+    stay_where_better,
+)
 from surgrecon_cli.registration import register_pair
 from surgrecon_cli.sim.pairs_catalog import make_pair
 from surgrecon_cli.sim.pairs_stray import stray_colour_pair
@@ -149,3 +154,24 @@ def test_known_pairs_keep_the_callers_target_indices_when_strays_are_left_out():
     assert list(res.correspondences[[0, 10, 3]]) == [5, stray, 7]
     free = res.correspondences[res.correspondences >= 0]
     assert free.max() < m and pair.target_outlier[free].mean() < 0.02
+
+
+def test_static_tissue_dragged_along_the_surface_goes_back_and_moving_tissue_keeps_its_motion():
+    # registered = the simulator's truth, except static tissue (true motion < 0.05 mm) slid
+    # 0.6 mm along the surface, as the shared solver drags it next to moving tissue
+    pair = stray_colour_pair(5000, 102)
+    d = _decide(pair)
+    move = np.linalg.norm(pair.truth - pair.source, axis=1)
+    static, moving = move < 0.05e-3, move > 1e-3
+    assert static.sum() > 300 and moving.sum() > 300
+    centred = pair.source - pair.source.mean(0)
+    normal = np.linalg.svd(centred, full_matrices=False)[2][2]
+    along = np.cross(normal, [1.0, 0.0, 0.0])
+    registered = pair.truth + np.where(static[:, None], 0.6e-3 * along / np.linalg.norm(along),
+                                       0.0)
+    share = stay_where_better(pair.source, registered, np.ones(len(pair.source), bool),
+                              pair.source_rgb, pair.target[d.agree], pair.target_rgb[d.agree], d)
+    corrected = pair.source + share[:, None] * (registered - pair.source)
+    err = np.linalg.norm(corrected - pair.truth, axis=1)
+    assert np.median(err[static]) < 0.2e-3  # from 0.6 mm
+    assert np.median(err[moving]) < 0.1e-3  # the true motion (> 1 mm) is kept
