@@ -54,9 +54,8 @@ from real_reference import (
 )
 from surgt_clips import clip_name, make_clip
 
-from surgrecon_cli.core.geometry.cameras import project
-
 from surgrecon_cli.core.classify.labels import DEFORMING, SHIFTING, STATIC, UNKNOWN
+from surgrecon_cli.core.geometry.cameras import project
 from surgrecon_cli.io.run.artefacts import (
     read_observations,
     read_registration,

@@ -25,6 +25,9 @@ calibration (intrinsics and the relative pose of the two cameras at each frame).
   surface with the true pose, the material point it hits followed to frame k and projected
   with the true pose there, against the pixel tracked at frame k: σ = 1.4826 MAD per axis
   in each frame, then the median over frames.
+- `rigid_scene_motion`: the rigid motion of a rigid scene seen by a moving endoscope: SIFT
+  matches of frame 0 and frame k (rectified left images), frame 0's put in 3D by
+  StereoSGBM, and the PnP pose (RANSAC, 1 px) of frame k's pixels.
 - `reference_positions`: a dense reference of every template point over time: DIS optical
   flow on camera 0 (frame to frame, kept where forward-backward agree within 0.5 px) and
   StereoSGBM depth on each rectified pair, back in the world frame with camera 0's pose.
@@ -267,17 +270,6 @@ def reference_positions(log: IngestedLog, pixels0: np.ndarray,
             continue
         out[k] = rect.world(xy, _sample(_disparity(left, right, max_disp), xy))
         prev = left
-    return out
-
-
-def _kabsch(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
-    """Least-squares rigid transform (4, 4) taking points src (M, 3) onto dst (M, 3)."""
-    cs, cd = src.mean(0), dst.mean(0)
-    u, _, vt = np.linalg.svd((src - cs).T @ (dst - cd))
-    d = np.sign(np.linalg.det(vt.T @ u.T))
-    r = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
-    out = np.eye(4)
-    out[:3, :3], out[:3, 3] = r, cd - r @ cs
     return out
 
 
