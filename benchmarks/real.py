@@ -29,6 +29,24 @@ checkout). One table, a row per log:
   (mm); "de|rigid" the share of point-frames whose true neighbourhood is confidently rigid
   (moved, or not, with a rigid-fit RMS under half of classify.deform_mm) called deforming;
   "moving det" the share of truly moving point-frames (shifting or deforming) called moving.
+Real logs also get a second table, "real motion" (issue 24; the scene must be rigid and the
+rig fixed in the world, as `surgrecon convert` writes it without --camera-poses), against
+the scene's rigid motion measured from the images alone (real_reference.rigid_scene_motion):
+- deg / px: the camera's motion from the previous frame (degrees; px, median over the
+  template points in camera 0), median and max over frames;
+- trk|vis: the share of visible template points (the rigidly moved template inside some
+  camera's image) that the run found in some camera (worst frame and mean);
+- labelled: the labelled share of point-frames; deform|lab: the deforming share of those;
+- rigid p95: labelled positions against the rigidly moved template (mm, over point-frames);
+- fits: the report's quality verdict (summary quality.verdict.fits).
+`--per-frame` prints the same per frame. `--surgt SPEC ...` builds clips of the SurgT sample
+(benchmarks/surgt_clips.py: frame step, 640x512, ping-pong, a turn about the baseline of
+1-3.5° a frame, JPEG) and runs them as real logs, e.g.
+
+    .venv/bin/python benchmarks/real.py --variants --surgt "" "scale=0.5,step=3,length=16" \
+        "scale=0.5,step=2,pitch=1,length=16" "scale=0.5,step=3,pitch=2,length=16" \
+        "scale=0.5,step=3,pitch=3.5,length=16,jpeg=70" --per-frame
+
 Cameras 0 and 1 of every log must be a stereo pair. The rows go to WORKDIR/real.json.
 """
 
