@@ -29,6 +29,24 @@ checkout). One table, a row per log:
   (mm); "de|rigid" the share of point-frames whose true neighbourhood is confidently rigid
   (moved, or not, with a rigid-fit RMS under half of classify.deform_mm) called deforming;
   "moving det" the share of truly moving point-frames (shifting or deforming) called moving.
+Real logs also get a second table, "real motion" (issue 24; the scene must be rigid and the
+rig fixed in the world, as `surgrecon convert` writes it without --camera-poses), against
+the scene's rigid motion measured from the images alone (real_reference.rigid_scene_motion):
+- deg / px: the camera's motion from the previous frame (degrees; px, median over the
+  template points in camera 0), median and max over frames;
+- trk|vis: the share of visible template points (the rigidly moved template inside some
+  camera's image) that the run found in some camera (worst frame and mean);
+- labelled: the labelled share of point-frames; deform|lab: the deforming share of those;
+- rigid p95: labelled positions against the rigidly moved template (mm, over point-frames);
+- fits: the report's quality verdict (summary quality.verdict.fits).
+`--per-frame` prints the same per frame. `--surgt SPEC ...` builds clips of the SurgT sample
+(benchmarks/surgt_clips.py: frame step, 640x512, ping-pong, a turn about the baseline of
+1-3.5° a frame, JPEG) and runs them as real logs, e.g.
+
+    .venv/bin/python benchmarks/real.py --variants --surgt "" "scale=0.5,step=3,length=16" \
+        "scale=0.5,step=2,pitch=1,length=16" "scale=0.5,step=3,pitch=2,length=16" \
+        "scale=0.5,step=3,pitch=3.5,length=16,jpeg=70" --per-frame
+
 Cameras 0 and 1 of every log must be a stereo pair. The rows go to WORKDIR/real.json.
 """
 
@@ -49,10 +67,13 @@ from real_reference import (
     ground_truth_tracking_px,
     ncc_localisation_px,
     reference_positions,
+    rigid_scene_motion,
     rigid_tracking_px,
 )
+from surgt_clips import clip_name, make_clip
 
 from surgrecon_cli.core.classify.labels import DEFORMING, SHIFTING, STATIC, UNKNOWN
+from surgrecon_cli.core.geometry.cameras import project
 from surgrecon_cli.io.run.artefacts import (
     read_observations,
     read_registration,
@@ -150,6 +171,75 @@ def truth_tracking(variant: str, seed: int, frames: int, template_px: np.ndarray
                                     template_px, tracked)
 
 
+def rotation_deg(transform: np.ndarray) -> float:
+    """Rotation angle (degrees) of a rigid transform (4, 4)."""
+    c = np.clip((np.trace(transform[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
+    return float(np.degrees(np.arccos(c)))
+
+
+def motion_frames(layout: RunLayout, log: Any, n: int) -> list[dict[str, float]]:
+    """Per frame 1 on, against the scene's rigid motion (a rigid scene only: real logs with the
+    rig fixed in the world; real_reference.rigid_scene_motion): the camera's motion from the
+    previous frame (deg; px, median over template points in camera 0), the share of visible
+    template points (the rigidly moved template inside a camera's image, 8 px margin) that
+    the run tracked (a pixel in some camera), the labelled share of template points, the
+    deforming share of the labelled, and the labelled positions against the rigidly moved
+    template (median / p95, mm)."""
+    template = read_template(layout).points
+    motion = rigid_scene_motion(log)
+    moved = np.einsum("kij,nj->kni", motion[:, :3, :3], template) + motion[:, None, :3, 3]
+    rows = []
+    for k in range(1, log.n_frames):
+        row: dict[str, float] = {"frame": k}
+        step = motion[k] @ np.linalg.inv(motion[k - 1])
+        row["deg"] = rotation_deg(step) if np.isfinite(step).all() else float("nan")
+        uv0 = [project(moved[f], log.poses[f, 0], log.models[0])[0] for f in (k - 1, k)]
+        row["px"] = float(np.nanmedian(np.linalg.norm(uv0[1] - uv0[0], axis=1)))
+        visible = np.zeros(n, bool)
+        for c, m in enumerate(log.models):
+            if not log.usable[k, c]:
+                continue
+            uv = project(moved[k], log.poses[k, c], m)[0]
+            visible |= ((uv >= 8).all(1) & (uv[:, 0] < m.width - 8)
+                        & (uv[:, 1] < m.height - 8))
+        reg = read_registration(layout, k, n)
+        tracked = np.isfinite(reg.pixels).all(2).any(1)
+        row["visible"] = float(visible.mean())
+        row["tracked_visible"] = float((tracked & visible).sum() / max(visible.sum(), 1))
+        cloud = read_ply(layout.cloud(k))
+        label = np.full(n, UNKNOWN)
+        label[cloud["point_id"]] = cloud["label"]
+        xyz = np.full((n, 3), np.nan)
+        xyz[cloud["point_id"]] = np.column_stack([cloud[a] for a in "xyz"]).astype(float)
+        lab = np.isin(label, (STATIC, SHIFTING, DEFORMING))
+        row["labelled"] = float(lab.mean())
+        row["deform_of_labelled"] = float((label == DEFORMING).sum() / max(lab.sum(), 1))
+        e = np.linalg.norm(xyz[lab] - moved[k][lab], axis=1) * 1e3
+        e = e[np.isfinite(e)]
+        row["rigid_med_mm"] = float(np.median(e)) if e.size else float("nan")
+        row["rigid_p95_mm"] = float(np.percentile(e, 95)) if e.size else float("nan")
+        row["n_labelled"] = float(lab.sum())
+        row["errors"] = e  # type: ignore[assignment]
+        rows.append(row)
+    return rows
+
+
+def motion_summary(frames: list[dict[str, Any]]) -> dict[str, float]:
+    """The clip's figures over frames 1 on (point-frame weighted where it matters)."""
+    errors = np.concatenate([f.pop("errors") for f in frames])
+    labelled = sum(f["n_labelled"] for f in frames)
+    deform = sum(f["deform_of_labelled"] * f["n_labelled"] for f in frames)
+    return {"deg_med": float(np.nanmedian([f["deg"] for f in frames])),
+            "deg_max": float(np.nanmax([f["deg"] for f in frames])),
+            "px_med": float(np.nanmedian([f["px"] for f in frames])),
+            "px_max": float(np.nanmax([f["px"] for f in frames])),
+            "trk_vis_min": float(min(f["tracked_visible"] for f in frames)),
+            "trk_vis_mean": float(np.mean([f["tracked_visible"] for f in frames])),
+            "labelled_share": float(np.mean([f["labelled"] for f in frames])),
+            "deform_lab": deform / max(labelled, 1.0),
+            "rigid_p95_mm": float(np.percentile(errors, 95)) if errors.size else float("nan")}
+
+
 def measure(name: str, run: Path, variant: str | None, seed: int | None,
             frames: int, log_path: Path) -> dict[str, Any]:
     layout = RunLayout(run)
@@ -184,6 +274,11 @@ def measure(name: str, run: Path, variant: str | None, seed: int | None,
         row["true_p95_mm"] = labelled.get("p95_mm")
     if variant is not None and seed is not None:
         row.update(truth_label_checks(layout, log.n_frames, log_path))
+    else:
+        row["motion_frames"] = motion_frames(layout, log, n)
+        row.update(motion_summary(row["motion_frames"]))
+    verdict = summary.get("quality", {}).get("verdict", {})
+    row["fits"] = verdict.get("fits")
     return row
 
 
@@ -237,6 +332,37 @@ COLUMNS = (("sigma_run", "σ run", ".3f"), ("sigma_ncc", "σ NCC", ".3f"),
            ("moving_detected", "moving det", ".1%"))
 
 
+MOTION_COLUMNS = (("deg_med", "deg med", ".2f"), ("deg_max", "deg max", ".2f"),
+                  ("px_med", "px med", ".1f"), ("px_max", "px max", ".1f"),
+                  ("trk_vis_min", "trk|vis min", ".1%"), ("trk_vis_mean", "trk|vis", ".1%"),
+                  ("labelled_share", "labelled", ".1%"), ("deform_lab", "deform|lab", ".1%"),
+                  ("rigid_p95_mm", "rigid p95", ".2f"), ("fits", "fits", "s"))
+FRAME_COLUMNS = (("frame", "frame", ".0f"), ("deg", "deg", ".2f"), ("px", "px", ".1f"),
+                 ("visible", "visible", ".1%"), ("tracked_visible", "trk|vis", ".1%"),
+                 ("labelled", "labelled", ".1%"), ("deform_of_labelled", "deform|lab", ".1%"),
+                 ("rigid_med_mm", "rigid med", ".2f"), ("rigid_p95_mm", "rigid p95", ".2f"))
+
+
+def print_motion(rows: list[dict[str, Any]], per_frame: bool) -> None:
+    """The real-motion table (issue 24): a row per real log, and optionally its frames."""
+    rows = [r for r in rows if "deg_med" in r]
+    if not rows:
+        return
+    width = max(len(r["name"]) for r in rows) + 2
+    print(f"\n{'real motion':<{width}}" + "".join(f"{h:>12}" for _, h, _ in MOTION_COLUMNS))
+    for r in rows:
+        print(f"{r['name']:<{width}}" + "".join(
+            f"{str(r.get(k)) if s == 's' else _fmt(r.get(k), s):>12}"
+            for k, _, s in MOTION_COLUMNS))
+    if not per_frame:
+        return
+    for r in rows:
+        print(f"\n{r['name']}:" + "".join(f"{h:>11}" for _, h, _ in FRAME_COLUMNS))
+        for f in r["motion_frames"]:
+            print(" " * (len(r["name"]) + 1)
+                  + "".join(f"{_fmt(f.get(k), s):>11}" for k, _, s in FRAME_COLUMNS))
+
+
 def _fmt(value: Any, spec: str) -> str:
     try:
         return format(float(value), spec) if value is not None else "-"
@@ -265,6 +391,11 @@ def main() -> None:
     ap.add_argument("--workdir", type=Path, default=Path("/tmp/surgrecon-real"))
     ap.add_argument("--code", type=Path, default=None, help="surgrecon source tree for runs")
     ap.add_argument("--fresh", action="store_true")
+    ap.add_argument("--surgt", nargs="*", default=[],
+                    help="clips of the SurgT sample, e.g. 'step=3,scale=0.5,length=16' "
+                    "(benchmarks/surgt_clips.py; '' = the clip as it is)")
+    ap.add_argument("--per-frame", action="store_true",
+                    help="print each real log's frames in the real-motion table")
     args = ap.parse_args()
     exe = surgrecon_command()
     work = args.workdir
@@ -274,6 +405,13 @@ def main() -> None:
         name, _, rest = spec.partition("=")
         log, _, config = rest.partition(":")
         jobs.append((name, Path(log), Path(config) if config else None, None, None))
+    for spec in args.surgt:
+        clip = work / "clips" / clip_name(spec)
+        if args.fresh or not (clip / "clip.mcap").exists():
+            shutil.rmtree(clip, ignore_errors=True)
+            clip.mkdir(parents=True)
+            make_clip(spec, clip)
+        jobs.append((clip_name(spec), clip / "clip.mcap", clip / "clip.toml", None, None))
     for variant in args.variants:
         for seed in args.seeds:
             jobs.append((f"{variant}-s{seed}", work / "logs" / f"{variant}-s{seed}.mcap", None,
@@ -297,6 +435,7 @@ def main() -> None:
             rows.append({"name": name, "error": str(exc)})
         print(f"  {name}: done", file=sys.stderr)
     print_table(rows)
+    print_motion(rows, args.per_frame)
     (work / "real.json").write_text(json.dumps(rows, indent=1, default=float))
 
 

@@ -25,6 +25,9 @@ calibration (intrinsics and the relative pose of the two cameras at each frame).
   surface with the true pose, the material point it hits followed to frame k and projected
   with the true pose there, against the pixel tracked at frame k: σ = 1.4826 MAD per axis
   in each frame, then the median over frames.
+- `rigid_scene_motion`: the rigid motion of a rigid scene seen by a moving endoscope: SIFT
+  matches of frame 0 and frame k (rectified left images), frame 0's put in 3D by
+  StereoSGBM, and the PnP pose (RANSAC, 1 px) of frame k's pixels.
 - `reference_positions`: a dense reference of every template point over time: DIS optical
   flow on camera 0 (frame to frame, kept where forward-backward agree within 0.5 px) and
   StereoSGBM depth on each rectified pair, back in the world frame with camera 0's pose.
@@ -267,4 +270,57 @@ def reference_positions(log: IngestedLog, pixels0: np.ndarray,
             continue
         out[k] = rect.world(xy, _sample(_disparity(left, right, max_disp), xy))
         prev = left
+    return out
+
+
+def rigid_scene_motion(log: IngestedLog, max_disp: int = 160, inlier_px: float = 1.0,
+                       seed: int = 0) -> np.ndarray:
+    """The scene's rigid motion (T, 4, 4) in the world, frame 0 -> frame k (NaN where it
+    cannot be fitted), for a rigid scene seen by a moving stereo endoscope, from the images
+    alone and none of the pipeline's detector, tracker or registration: SIFT features of the
+    rectified left images of frames 0 and k, matched directly (Lowe ratio 0.75); the frame-0
+    ones put in 3D with StereoSGBM disparity, and the motion is the pose (RANSAC PnP within
+    inlier_px, then refined on the inliers) that puts them on their frame-k pixels. (A 3D-3D
+    fit with the frame-k depths too mistakes a turn of the camera for a shift: SGBM's depth
+    noise leaves the rotation of a small patch loosely held; measured on a 2°/frame clip,
+    half the turn.)"""
+    sift = cv2.SIFT_create(4000)
+    matcher = cv2.BFMatcher(cv2.NORM_L2)
+    out = np.full((log.n_frames, 4, 4), np.nan)
+    if not log.usable[0, :2].all():
+        return out
+    rect0 = Rectified(log.models, log.poses[0, :2])
+    left0, right0 = rect0.images(*log.frame_images(0)[:2])
+    kp0, d0 = sift.detectAndCompute(left0, None)
+    xy0 = np.array([p.pt for p in kp0], float).reshape(-1, 2)
+    w0 = rect0.world(xy0, _sample(_disparity(left0, right0, max_disp), xy0))
+    out[0] = np.eye(4)
+    for k in range(1, log.n_frames):
+        if not log.usable[k, 0]:
+            continue
+        rect = Rectified(log.models, log.poses[k, :2])
+        left, _ = rect.images(*log.frame_images(k)[:2])
+        kp, dk = sift.detectAndCompute(left, None)
+        xyk = np.array([p.pt for p in kp], float).reshape(-1, 2)
+        pairs = [m[0] for m in matcher.knnMatch(d0, dk, k=2)
+                 if len(m) == 2 and m[0].distance < 0.75 * m[1].distance]
+        i = np.array([m.queryIdx for m in pairs], int)
+        j = np.array([m.trainIdx for m in pairs], int)
+        ok = np.isfinite(w0[i]).all(1)
+        if ok.sum() < 20:
+            continue
+        src, dst = w0[i[ok]], xyk[j[ok]]
+        cam_k = np.eye(4)  # rectified camera 0 at frame k -> world
+        cam_k[:3, :3] = log.poses[k, 0, :3, :3] @ rect.r0.T
+        cam_k[:3, 3] = log.poses[k, 0, :3, 3]
+        found, rvec, tvec, inliers = cv2.solvePnPRansac(
+            src, dst, rect.p0[:, :3], None, reprojectionError=inlier_px,
+            iterationsCount=500, confidence=0.999, flags=cv2.SOLVEPNP_EPNP)
+        if not found or inliers is None or len(inliers) < 20:
+            continue
+        use = inliers.ravel()
+        rvec, tvec = cv2.solvePnPRefineLM(src[use], dst[use], rect.p0[:, :3], None, rvec, tvec)
+        seen = np.eye(4)  # world (frame 0) -> rectified camera at frame k
+        seen[:3, :3], seen[:3, 3] = cv2.Rodrigues(rvec)[0], tvec.ravel()
+        out[k] = cam_k @ seen
     return out

@@ -1,0 +1,117 @@
+"""Harder clips from the real SurgT sample (tests/data/surgt): the camera's motion per frame
+grows with a frame step, shrinks in pixels with a downscale, and JPEG re-encoding adds real
+compression noise. Used by benchmarks/real.py (`--surgt SPEC ...`).
+
+A SPEC is comma-separated `key=value` (any order, all optional):
+    step=2      every 2nd source frame (0, 2, 4, ...)
+    scale=0.5   each eye resized (1280x1024 -> 640x512), intrinsics scaled with it
+    reverse=1   frames in reverse order
+    jpeg=70     frames re-encoded as JPEG at this quality (else lossless PNG)
+    frames=10   source frames read from the video (default: all 10)
+    length=16   frames in the clip: the selection played forward, back, forward, ...
+                (ping-pong, without repeating the turning frame) until this many
+    pitch=2     the rig also turns about its baseline (the cameras' x axis) by this many
+                degrees per frame, out and back (0, 1, 2, 3, 2, 1, 0, -1, ... steps): each
+                eye warped by K R K⁻¹ (a pure rotation about the baseline keeps the stereo
+                geometry exact; lens distortion, ~0.1 px here, is ignored), so a rigid scene
+                seen by an endoscope turning 1-3.5° a frame
+e.g. `step=3,scale=0.5` -> frames 0, 3, 6, 9 at 640x512. The clip is written as left/right
+image folders with its calibration (intrinsics scaled) and converted with `surgrecon
+convert` (the rig is fixed in the world, so the scene moves rigidly in the rig frame).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+SURGT = Path(__file__).resolve().parents[1] / "tests" / "data" / "surgt"
+
+
+def parse_spec(spec: str) -> dict[str, float]:
+    out = {"step": 1.0, "scale": 1.0, "reverse": 0.0, "jpeg": 0.0, "frames": 10.0,
+           "length": 0.0, "pitch": 0.0}
+    for item in filter(None, spec.split(",")):
+        key, _, value = item.partition("=")
+        if key not in out:
+            raise ValueError(f"unknown clip key {key!r} in {spec!r}")
+        out[key] = float(value)
+    return out
+
+
+def clip_name(spec: str) -> str:
+    return "surgt" + ("-" + spec.replace(",", "-").replace("=", "") if spec else "")
+
+
+def decoded_frames(count: int) -> list[np.ndarray]:
+    """The first `count` side-by-side frames of the sample video (BGR, 1024 x 2560)."""
+    import av
+
+    with av.open(str(SURGT / "video.mp4")) as container:
+        return [f.to_ndarray(format="bgr24")
+                for _, f in zip(range(count), container.decode(video=0), strict=False)]
+
+
+def scaled_calibration(path: Path, scale: float) -> Path:
+    """The sample's calibration for its images resized by `scale`, written to path (the
+    file states no image size, so `convert --scale-calibration` cannot scale it): pixel
+    centres map as u' = (u + 0.5) s - 0.5."""
+    src = cv2.FileStorage(str(SURGT / "calibration.yaml"), cv2.FILE_STORAGE_READ)
+    dst = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
+    for key in ("M1", "D1", "M2", "D2", "R", "T"):
+        value = src.getNode(key).mat().astype(np.float64)
+        if key in ("M1", "M2"):
+            value[:2, :] *= scale
+            value[:2, 2] += 0.5 * scale - 0.5
+        dst.write(key, value)
+    src.release()
+    dst.release()
+    return path
+
+
+def make_clip(spec: str, out_dir: Path) -> tuple[Path, Path]:
+    """Build the clip of `spec` under out_dir; returns (log.mcap, config.toml)."""
+    from surgrecon_cli.cli.main import main as cli
+
+    opts = parse_spec(spec)
+    frames = decoded_frames(int(opts["frames"]))[::max(int(opts["step"]), 1)]
+    if opts["reverse"]:
+        frames = frames[::-1]
+    if opts["length"]:
+        cycle = frames + frames[-2:0:-1]
+        frames = [cycle[i % len(cycle)] for i in range(int(opts["length"]))]
+    folder = out_dir / "images"
+    fs = cv2.FileStorage(str(SURGT / "calibration.yaml"), cv2.FILE_STORAGE_READ)
+    K = {"left": fs.getNode("M1").mat(), "right": fs.getNode("M2").mat()}
+    r_rel = fs.getNode("R").mat().astype(float)  # x_right = R x_left + T
+    fs.release()
+    tri = np.array([0, 1, 2, 3, 2, 1, 0, -1, -2, -3, -2, -1])
+    for i, frame in enumerate(frames):
+        angle = np.radians(opts["pitch"] * tri[i % len(tri)])
+        c, s = np.cos(angle), np.sin(angle)
+        rot = np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+        for side, view in (("left", frame[:, :1280]), ("right", frame[:, 1280:])):
+            if angle:
+                r = rot if side == "left" else r_rel @ rot @ r_rel.T
+                h = K[side] @ r @ np.linalg.inv(K[side])
+                view = cv2.warpPerspective(view, h, (1280, 1024), flags=cv2.INTER_LINEAR)
+            if opts["scale"] != 1.0:
+                size = (round(1280 * opts["scale"]), round(1024 * opts["scale"]))
+                view = cv2.resize(view, size, interpolation=cv2.INTER_AREA)
+            (folder / side).mkdir(parents=True, exist_ok=True)
+            if opts["jpeg"]:
+                ok, data = cv2.imencode(".jpg", view, [cv2.IMWRITE_JPEG_QUALITY,
+                                                       int(opts["jpeg"])])
+                assert ok
+                (folder / side / f"{i:06d}.jpg").write_bytes(data.tobytes())
+            else:
+                cv2.imwrite(str(folder / side / f"{i:06d}.png"), view)
+    log = out_dir / "clip.mcap"
+    argv = ["convert", str(folder), "-o", str(log), "--calibration",
+            str(scaled_calibration(out_dir / "calibration.yaml", opts["scale"])),
+            "--fps", "5", "-q"]
+    if cli(argv) != 0:
+        raise RuntimeError(f"convert failed for clip {spec!r}")
+    return log, log.with_suffix(".toml")
