@@ -225,3 +225,16 @@ def test_resized_images_scale_the_calibration_when_asked(tmp_path: Path, capsys)
     K = np.reshape(info.k, (3, 3))
     np.testing.assert_allclose(K[[0, 1], [0, 1]], K_RIGHT[[0, 1], [0, 1]] / 2)
     np.testing.assert_allclose(K[[0, 1], [2, 2]], (K_RIGHT[[0, 1], [2, 2]] + 0.5) / 2 - 0.5)
+
+
+def test_scale_calibration_without_a_calibrated_size_is_refused(tmp_path: Path, capsys):
+    """A calibration that states no image size gives --scale-calibration nothing to scale
+    from: a one-line error naming the camera and the missing keys, and no log written."""
+    stereo_folder(tmp_path / "rec", frames=2, ext=".jpg", size=(160, 120))
+    opencv_calibration(tmp_path / "calib.yaml", size=None)
+    out = tmp_path / "rec.mcap"
+    assert _convert(tmp_path / "rec", "-o", out, "--calibration", tmp_path / "calib.yaml",
+                    "--scale-calibration") == 2
+    err = capsys.readouterr().err
+    assert "no image size" in err and "imageSize" in err
+    assert not out.exists()

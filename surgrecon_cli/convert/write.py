@@ -60,6 +60,12 @@ class _Sizes:
     calibration's rescales the camera's intrinsics to it)."""
 
     def __init__(self, cameras: Sequence[CameraCalibration], scale: bool) -> None:
+        unsized = [c.name for c in cameras if not (c.width and c.height)]
+        if scale and unsized:
+            raise InputError(f"--scale-calibration: the calibration gives no image size for "
+                             f"camera {unsized[0]!r}, so there is nothing to scale from: add "
+                             "its calibrated size (imageSize, width and height, or image_width and "
+                             "image_height) to the file")
         self.cameras = list(cameras)
         self.sizes = [(c.width, c.height) if c.width and c.height else None for c in cameras]
         self.scale = scale
