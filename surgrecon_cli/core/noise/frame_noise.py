@@ -138,11 +138,11 @@ def retriangulate(found: np.ndarray, pixels: np.ndarray, models: list[CameraMode
 class LocalFits:
     """The leave-one-out affine fits of one camera's tracks (`local_motion_residuals`),
     set up once for any weighting of the neighbours: idx (M, K) each track's K nearest
-    other tracks (by reference pixel), X (M, K, 3) their offsets about it (scaled to at
-    most 1) with a column of ones, motion (M, 2) px each track's motion."""
+    other tracks (by reference pixel), offset (M, K, 2) their offsets about it (scaled to
+    at most 1), motion (M, 2) px each track's motion."""
 
     idx: np.ndarray
-    X: np.ndarray
+    offset: np.ndarray
     motion: np.ndarray
 
     @classmethod
@@ -153,28 +153,36 @@ class LocalFits:
         _, idx = cKDTree(ref).query(ref, k=neighbours + 1)
         idx = idx[:, 1:]  # the nearest is the track itself: left out
         offset = ref[idx] - ref[:, None, :]  # (M, K, 2): neighbours about the track
-        scale = np.maximum(np.abs(offset).max((1, 2)), 1e-9)[:, None, None]
-        X = np.concatenate([offset / scale, np.ones((len(ref), neighbours, 1))], axis=2)
-        return cls(idx, X, motion)
+        offset /= np.maximum(np.abs(offset).max((1, 2)), 1e-9)[:, None, None]
+        return cls(idx, offset, motion)
 
     def residuals(self, weight: np.ndarray | None = None,
                   rows: np.ndarray | None = None) -> np.ndarray:
         """Standardised residuals (R, 2) px of the tracks `rows` (R,) (None: all) with
         neighbours weighted weight (M,) 0/1 (None: all 1); NaN rows where a fit has fewer
-        than 6 neighbours or is degenerate."""
-        idx, X = (self.idx, self.X) if rows is None else (self.idx[rows], self.X[rows])
+        than 6 neighbours or is degenerate. The 3x3 normal equations of each fit (design
+        [u, v, 1]) are solved by their cofactors: only the constant term (the prediction
+        at the track) and its leverage are needed."""
+        idx, off = (self.idx, self.offset) if rows is None else (self.idx[rows], self.offset[rows])
         motion = self.motion if rows is None else self.motion[rows]
         w = np.ones(idx.shape) if weight is None else np.asarray(weight, float)[idx]  # (R, K)
-        WXt = np.swapaxes(X * w[:, :, None], 1, 2)  # (R, 3, K): batched products, not einsums
-        XtX = WXt @ X
+        u, v = off[..., 0], off[..., 1]
+        wu, wv = w * u, w * v
+        s1, su, sv = w.sum(1), wu.sum(1), wv.sum(1)
+        suu, suv, svv = (wu * u).sum(1), (wu * v).sum(1), (wv * v).sum(1)
+        # third row of the adjugate of [[suu, suv, su], [suv, svv, sv], [su, sv, s1]]
+        c13, c23, c33 = suv * sv - svv * su, suv * su - suu * sv, suu * svv - suv * suv
+        det = su * c13 + sv * c23 + s1 * c33
         out = np.full((len(idx), 2), np.nan)
-        ok = (w.sum(1) >= 6) & (np.abs(np.linalg.det(XtX)) > 1e-6)
+        ok = (s1 >= 6) & (np.abs(det) > 1e-6)
         if not ok.any():
             return out
-        inv = np.linalg.inv(XtX[ok])
-        coef = inv @ (WXt[ok] @ self.motion[idx[ok]])  # (R', 3, 2)
-        predicted = coef[:, 2]  # the affine at the track (offset 0) is its constant term
-        leverage = inv[:, 2, 2]  # x₀ = (0, 0, 1)
+        m = self.motion[idx]  # (R, K, 2)
+        rhs = (c13[:, None] * (wu[..., None] * m).sum(1) + c23[:, None] * (wv[..., None] * m).sum(1)
+               + c33[:, None] * (w[..., None] * m).sum(1))
+        det_ok = det[ok]
+        predicted = rhs[ok] / det_ok[:, None]  # the affine at the track (offset 0)
+        leverage = c33[ok] / det_ok  # x₀ᵀ (XᵀWX)⁻¹ x₀, x₀ = (0, 0, 1)
         out[ok] = (motion[ok] - predicted) / np.sqrt(1.0 + leverage)[:, None]
         return out
 
