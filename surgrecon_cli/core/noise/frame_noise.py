@@ -137,12 +137,14 @@ def retriangulate(found: np.ndarray, pixels: np.ndarray, models: list[CameraMode
 @dataclass(frozen=True)
 class LocalFits:
     """The leave-one-out affine fits of one camera's tracks (`local_motion_residuals`),
-    set up once for any weighting of the neighbours: idx (M, K) each track's K nearest
-    other tracks (by reference pixel), offset (M, K, 2) their offsets about it (scaled to
-    at most 1), motion (M, 2) px each track's motion."""
+    set up once for any weighting of the neighbours: idx (K, M) the K nearest other tracks
+    of each of the M tracks (by reference pixel), u, v (K, M) their offsets about it
+    (scaled to at most 1), motion (M, 2) px each track's motion. Neighbours first: every
+    sum over them adds M contiguous values."""
 
     idx: np.ndarray
-    offset: np.ndarray
+    u: np.ndarray
+    v: np.ndarray
     motion: np.ndarray
 
     @classmethod
@@ -151,10 +153,10 @@ class LocalFits:
         ref = np.asarray(reference, float).reshape(-1, 2)
         motion = np.asarray(current, float).reshape(-1, 2) - ref
         _, idx = cKDTree(ref).query(ref, k=neighbours + 1)
-        idx = idx[:, 1:]  # the nearest is the track itself: left out
-        offset = ref[idx] - ref[:, None, :]  # (M, K, 2): neighbours about the track
-        offset /= np.maximum(np.abs(offset).max((1, 2)), 1e-9)[:, None, None]
-        return cls(idx, offset, motion)
+        idx = np.ascontiguousarray(idx[:, 1:].T)  # the nearest is the track itself: left out
+        u, v = ref[idx, 0] - ref[:, 0], ref[idx, 1] - ref[:, 1]  # (K, M) about the track
+        scale = np.maximum(np.maximum(np.abs(u).max(0), np.abs(v).max(0)), 1e-9)
+        return cls(idx, u / scale, v / scale, motion)
 
     def residuals(self, weight: np.ndarray | None = None,
                   rows: np.ndarray | None = None) -> np.ndarray:
@@ -163,27 +165,29 @@ class LocalFits:
         than 6 neighbours or is degenerate. The 3x3 normal equations of each fit (design
         [u, v, 1]) are solved by their cofactors: only the constant term (the prediction
         at the track) and its leverage are needed."""
-        idx, off = (self.idx, self.offset) if rows is None else (self.idx[rows], self.offset[rows])
-        motion = self.motion if rows is None else self.motion[rows]
-        w = np.ones(idx.shape) if weight is None else np.asarray(weight, float)[idx]  # (R, K)
-        u, v = off[..., 0], off[..., 1]
+        if rows is None:
+            idx, u, v, motion = self.idx, self.u, self.v, self.motion
+        else:
+            idx, u, v, motion = self.idx[:, rows], self.u[:, rows], self.v[:, rows], \
+                self.motion[rows]
+        w = np.ones(idx.shape) if weight is None else np.asarray(weight, float)[idx]  # (K, R)
         wu, wv = w * u, w * v
-        s1, su, sv = w.sum(1), wu.sum(1), wv.sum(1)
-        suu, suv, svv = (wu * u).sum(1), (wu * v).sum(1), (wv * v).sum(1)
+        s1, su, sv = w.sum(0), wu.sum(0), wv.sum(0)
+        suu, suv, svv = (wu * u).sum(0), (wu * v).sum(0), (wv * v).sum(0)
         # third row of the adjugate of [[suu, suv, su], [suv, svv, sv], [su, sv, s1]]
         c13, c23, c33 = suv * sv - svv * su, suv * su - suu * sv, suu * svv - suv * suv
         det = su * c13 + sv * c23 + s1 * c33
-        out = np.full((len(idx), 2), np.nan)
+        out = np.full((idx.shape[1], 2), np.nan)
         ok = (s1 >= 6) & (np.abs(det) > 1e-6)
         if not ok.any():
             return out
-        m = self.motion[idx]  # (R, K, 2)
-        rhs = (c13[:, None] * (wu[..., None] * m).sum(1) + c23[:, None] * (wv[..., None] * m).sum(1)
-               + c33[:, None] * (w[..., None] * m).sum(1))
-        det_ok = det[ok]
-        predicted = rhs[ok] / det_ok[:, None]  # the affine at the track (offset 0)
-        leverage = c33[ok] / det_ok  # x₀ᵀ (XᵀWX)⁻¹ x₀, x₀ = (0, 0, 1)
-        out[ok] = (motion[ok] - predicted) / np.sqrt(1.0 + leverage)[:, None]
+        for axis in range(2):
+            m = self.motion[idx, axis]  # (K, R)
+            rhs = c13 * (wu * m).sum(0) + c23 * (wv * m).sum(0) + c33 * (w * m).sum(0)
+            out[:, axis] = motion[:, axis] - rhs / np.where(ok, det, 1.0)  # offset 0
+        out[~ok] = np.nan
+        leverage = c33[ok] / det[ok]  # x₀ᵀ (XᵀWX)⁻¹ x₀, x₀ = (0, 0, 1)
+        out[ok] /= np.sqrt(1.0 + leverage)[:, None]
         return out
 
 
@@ -233,13 +237,13 @@ def local_motion_noise_px(reference: np.ndarray, current: np.ndarray, found: np.
     fits = [LocalFits.of(ref[use[f, :, c], c], cur[f, use[f, :, c], c], neighbours)
             for f, c in sets]
     residuals = [fit.residuals() for fit in fits]
-    used = [np.ones(len(fit.idx), bool) for fit in fits]  # the weights residuals came from
+    used = [np.ones(len(fit.motion), bool) for fit in fits]  # the weights residuals came from
     weights = used
     out = np.full(cur.shape, np.nan)
     sigma = float("nan")
     for _ in range(3):
         for k, (fit, w, u) in enumerate(zip(fits, weights, used, strict=True)):
-            changed = np.flatnonzero((w[fit.idx] != u[fit.idx]).any(1))
+            changed = np.flatnonzero((w[fit.idx] != u[fit.idx]).any(0))
             if len(changed):
                 residuals[k][changed] = fit.residuals(w, changed)
         used = weights
