@@ -169,9 +169,13 @@ def energy(prob: AdmmProblem, X: np.ndarray) -> float:
 
 
 def _energy(prob: AdmmProblem, DX: np.ndarray, BX: np.ndarray) -> float:
-    d = DX - prob.G
-    r = np.sqrt(np.einsum("ij,ij->i", d, d))
-    s = np.sqrt(np.einsum("ij,ij->i", BX, BX))
+    d = np.concatenate([DX - prob.G, BX])
+    return _energy_rows(prob, np.sqrt(np.einsum("ij,ij->i", d, d)))
+
+
+def _energy_rows(prob: AdmmProblem, norms: np.ndarray) -> float:
+    """E(X) from the row norms (P + E,) of [DX - G; BX]."""
+    r, s = norms[:len(prob.G)], norms[len(prob.G):]
     data = prob.w @ (r if prob.data_l1 else r * r)
     smooth = prob.alpha * (prob.c @ (s if prob.smooth_l1 else s * s))
     return float(data + smooth)
@@ -236,17 +240,16 @@ def run_admm(
             rhs += 2.0 * prob.beta * (L.T @ R)
         X_old = X
         X = solve(rhs)
-        SX = stacked @ X
-        hat = relax * SX + (1.0 - relax) * (W + offset)
+        d = stacked @ X - offset  # [DX - G; BX]
+        V = relax * d + (1.0 - relax) * W + U  # the over-relaxed split plus its multiplier
         W_old = W
-        W = (shrink_rows(hat - offset + U, tau) if tau is not None
-             else _prox(hat - offset + U, weight, mu, l1))
-        U = U + hat - offset - W
-        primal = np.sqrt(_sq(SX - offset - W) / rows)
+        W = shrink_rows(V, tau) if tau is not None else _prox(V, weight, mu, l1)
+        U = V - W
+        primal = np.sqrt(_sq(d - W) / rows)
         dual = np.sqrt(_sq(W - W_old) / rows)
         moved = (X - X_old).reshape(-1, 4, 3)[:, 3, :]
         step = float(np.sqrt(np.max(np.einsum("ij,ij->i", moved, moved))))
-        e_now = _energy(prob, SX[:n_data], SX[n_data:])
+        e_now = _energy_rows(prob, np.sqrt(np.einsum("ij,ij->i", d, d)))
         change = abs(e_now - e_prev) / max(abs(e_now), 1e-300)
         e_prev = e_now
         if primal < tol and step < tol and change < ENERGY_RTOL:
