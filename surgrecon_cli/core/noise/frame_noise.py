@@ -134,6 +134,63 @@ def retriangulate(found: np.ndarray, pixels: np.ndarray, models: list[CameraMode
     return positions, image_cov, pose_cov
 
 
+@dataclass(frozen=True)
+class LocalFits:
+    """The leave-one-out affine fits of one camera's tracks (`local_motion_residuals`),
+    set up once for any weighting of the neighbours: idx (K, M) the K nearest other tracks
+    of each of the M tracks (by reference pixel), u, v (K, M) their offsets about it
+    (scaled to at most 1), motion (M, 2) px each track's motion. Neighbours first: every
+    sum over them adds M contiguous values."""
+
+    idx: np.ndarray
+    u: np.ndarray
+    v: np.ndarray
+    motion: np.ndarray
+
+    @classmethod
+    def of(cls, reference: np.ndarray, current: np.ndarray, neighbours: int) -> LocalFits:
+        """The fits of tracks from reference (M, 2) px to current (M, 2) px, M > neighbours."""
+        ref = np.asarray(reference, float).reshape(-1, 2)
+        motion = np.asarray(current, float).reshape(-1, 2) - ref
+        _, idx = cKDTree(ref).query(ref, k=neighbours + 1)
+        idx = np.ascontiguousarray(idx[:, 1:].T)  # the nearest is the track itself: left out
+        u, v = ref[idx, 0] - ref[:, 0], ref[idx, 1] - ref[:, 1]  # (K, M) about the track
+        scale = np.maximum(np.maximum(np.abs(u).max(0), np.abs(v).max(0)), 1e-9)
+        return cls(idx, u / scale, v / scale, motion)
+
+    def residuals(self, weight: np.ndarray | None = None,
+                  rows: np.ndarray | None = None) -> np.ndarray:
+        """Standardised residuals (R, 2) px of the tracks `rows` (R,) (None: all) with
+        neighbours weighted weight (M,) 0/1 (None: all 1); NaN rows where a fit has fewer
+        than 6 neighbours or is degenerate. The 3x3 normal equations of each fit (design
+        [u, v, 1]) are solved by their cofactors: only the constant term (the prediction
+        at the track) and its leverage are needed."""
+        if rows is None:
+            idx, u, v, motion = self.idx, self.u, self.v, self.motion
+        else:
+            idx, u, v, motion = self.idx[:, rows], self.u[:, rows], self.v[:, rows], \
+                self.motion[rows]
+        w = np.ones(idx.shape) if weight is None else np.asarray(weight, float)[idx]  # (K, R)
+        wu, wv = w * u, w * v
+        s1, su, sv = w.sum(0), wu.sum(0), wv.sum(0)
+        suu, suv, svv = (wu * u).sum(0), (wu * v).sum(0), (wv * v).sum(0)
+        # third row of the adjugate of [[suu, suv, su], [suv, svv, sv], [su, sv, s1]]
+        c13, c23, c33 = suv * sv - svv * su, suv * su - suu * sv, suu * svv - suv * suv
+        det = su * c13 + sv * c23 + s1 * c33
+        out = np.full((idx.shape[1], 2), np.nan)
+        ok = (s1 >= 6) & (np.abs(det) > 1e-6)
+        if not ok.any():
+            return out
+        for axis in range(2):
+            m = self.motion[idx, axis]  # (K, R)
+            rhs = c13 * (wu * m).sum(0) + c23 * (wv * m).sum(0) + c33 * (w * m).sum(0)
+            out[:, axis] = motion[:, axis] - rhs / np.where(ok, det, 1.0)  # offset 0
+        out[~ok] = np.nan
+        leverage = c33[ok] / det[ok]  # x₀ᵀ (XᵀWX)⁻¹ x₀, x₀ = (0, 0, 1)
+        out[ok] /= np.sqrt(1.0 + leverage)[:, None]
+        return out
+
+
 def local_motion_residuals(reference: np.ndarray, current: np.ndarray,
                            neighbours: int = NEIGHBOURS,
                            weight: np.ndarray | None = None) -> np.ndarray:
@@ -147,30 +204,9 @@ def local_motion_residuals(reference: np.ndarray, current: np.ndarray,
     neighbours' fit (equivalently: the in-sample residual over √(1 − h_ii)), so r / √(1 + h)
     has variance σ². NaN rows where a fit has fewer than 6 neighbours or is degenerate;
     (0, 2) with fewer than neighbours + 1 tracks."""
-    ref = np.asarray(reference, float).reshape(-1, 2)
-    motion = np.asarray(current, float).reshape(-1, 2) - ref
-    m = len(ref)
-    if m < neighbours + 1:
+    if len(np.asarray(reference).reshape(-1, 2)) < neighbours + 1:
         return np.zeros((0, 2))
-    w_all = np.ones(m) if weight is None else np.asarray(weight, float)
-    _, idx = cKDTree(ref).query(ref, k=neighbours + 1)
-    idx = idx[:, 1:]  # the nearest is the track itself: left out
-    w = w_all[idx]  # (M, K)
-    offset = ref[idx] - ref[:, None, :]  # (M, K, 2): neighbours about the track
-    scale = np.maximum(np.abs(offset).max((1, 2)), 1e-9)[:, None, None]
-    X = np.concatenate([offset / scale, np.ones((m, neighbours, 1))], axis=2)  # (M, K, 3)
-    WXt = np.swapaxes(X * w[:, :, None], 1, 2)  # (M, 3, K): batched products, not einsums
-    XtX = WXt @ X
-    out = np.full((m, 2), np.nan)
-    ok = (w.sum(1) >= 6) & (np.abs(np.linalg.det(XtX)) > 1e-6)
-    if not ok.any():
-        return out
-    inv = np.linalg.inv(XtX[ok])
-    coef = inv @ (WXt[ok] @ motion[idx[ok]])  # (M', 3, 2)
-    predicted = coef[:, 2]  # the affine at the track (offset 0) is its constant term
-    leverage = inv[:, 2, 2]  # x₀ = (0, 0, 1)
-    out[ok] = (motion[ok] - predicted) / np.sqrt(1.0 + leverage)[:, None]
-    return out
+    return LocalFits.of(reference, current, neighbours).residuals(weight)
 
 
 def local_motion_noise_px(reference: np.ndarray, current: np.ndarray, found: np.ndarray,
@@ -196,21 +232,30 @@ def local_motion_noise_px(reference: np.ndarray, current: np.ndarray, found: np.
     use = seen & np.isfinite(ref).all(2)[None] & np.isfinite(cur).all(3)
     sets = [(f, c) for f in range(n_frames) for c in range(n_cams)
             if use[f, :, c].sum() > neighbours]
-    weights: list[np.ndarray | None] = [None] * len(sets)
+    # The neighbours and fits are set up once; a later pass recomputes only the tracks
+    # whose neighbours' weights changed (the others' fits are the same).
+    fits = [LocalFits.of(ref[use[f, :, c], c], cur[f, use[f, :, c], c], neighbours)
+            for f, c in sets]
+    residuals = [fit.residuals() for fit in fits]
+    used = [np.ones(len(fit.motion), bool) for fit in fits]  # the weights residuals came from
+    weights = used
     out = np.full(cur.shape, np.nan)
     sigma = float("nan")
     for _ in range(3):
-        for (f, c), w in zip(sets, weights, strict=True):
-            rows = use[f, :, c]
-            out[f, rows, c] = local_motion_residuals(ref[rows, c], cur[f, rows, c],
-                                                     neighbours, w)
+        for k, (fit, w, u) in enumerate(zip(fits, weights, used, strict=True)):
+            changed = np.flatnonzero((w[fit.idx] != u[fit.idx]).any(0))
+            if len(changed):
+                residuals[k][changed] = fit.residuals(w, changed)
+        used = weights
+        for (f, c), r in zip(sets, residuals, strict=True):
+            out[f, use[f, :, c], c] = r
         stacked = out.reshape(-1, 2)
         stacked = stacked[np.isfinite(stacked).all(1)]
         if len(stacked) < MIN_POINTS:
             return float("nan"), 0.0
         sigma = robust_sigma(stacked)
-        weights = [np.nan_to_num(np.abs(out[f, use[f, :, c], c]).max(1), nan=np.inf)
-                   <= REJECT * sigma for f, c in sets]
+        weights = [np.nan_to_num(np.abs(r).max(1), nan=np.inf) <= REJECT * sigma
+                   for r in residuals]
     halves = [(out[..., a, :] + sign * out[..., b, :]) / 2.0
               for a in range(n_cams) for b in range(a + 1, n_cams) for sign in (1.0, -1.0)]
     if not halves:

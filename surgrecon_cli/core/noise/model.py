@@ -161,8 +161,12 @@ def image_noise_sigma(grey: np.ndarray) -> float:
     g = np.asarray(grey)
     if g.shape[0] < 3 or g.shape[1] < 3:
         return 0.0
-    mask = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float32)
-    response = cv2.filter2D(g, cv2.CV_32F, mask, borderType=cv2.BORDER_REPLICATE)[1:-1, 1:-1]
+    # the mask is the outer product of [1, -2, 1] with itself: separable, and on an 8-bit
+    # image its integer response (at most 16 x 255) is exact in int16
+    kernel = np.array([1, -2, 1], np.float32)
+    depth = cv2.CV_16S if g.dtype == np.uint8 else cv2.CV_32F
+    response = cv2.sepFilter2D(g, depth, kernel, kernel,
+                               borderType=cv2.BORDER_REPLICATE)[1:-1, 1:-1]
     h, w = g.shape
     total = cv2.norm(np.ascontiguousarray(response), cv2.NORM_L1)  # Σ |response|
     return float(np.sqrt(np.pi / 2) * total / (6.0 * (w - 2) * (h - 2)))

@@ -127,7 +127,11 @@ def factorise(D: sp.csr_matrix, B: sp.csr_matrix, L: sp.csr_matrix, beta: float,
               mu2: float) -> Factor:
     """Sparse LU (symmetric mode, minimum-degree ordering) of the X-step matrix; raises
     GeometryError when it is singular (a pivot vanishes or the factor is not finite)."""
-    K = mu1 * (D.T @ D) + mu2 * (B.T @ B) + (2.0 * beta) * (L.T @ L)
+    stacked = sp.vstack([D, B], format="csr")
+    back, mu = _scaled(stacked, D.shape[0], mu1, mu2)
+    K = back @ stacked  # mu1 DᵀD + mu2 BᵀB in one product
+    if beta != 0.0:
+        K = K + (2.0 * beta) * (L.T @ L)
     eps = EPS_REL * float(K.diagonal().mean())
     K = (K + eps * sp.identity(K.shape[0], format="csr")).tocsc()
     try:
@@ -140,8 +144,6 @@ def factorise(D: sp.csr_matrix, B: sp.csr_matrix, L: sp.csr_matrix, beta: float,
         raise GeometryError(
             f"registration system is singular (smallest LU pivot {pivots.min():.3g}, "
             f"largest {pivots.max():.3g})")
-    stacked = sp.vstack([D, B], format="csr")
-    back, mu = _scaled(stacked, D.shape[0], mu1, mu2)
     return Factor(solve=lu.solve, eps=eps, mu1=mu1, mu2=mu2, stacked=stacked, back=back, mu=mu)
 
 
@@ -156,7 +158,9 @@ def _scaled(stacked: sp.csr_matrix, n_data: int, mu1: float,
     """[mu1 Dᵀ, mu2 Bᵀ] from stacked = [D; B] (D its first n_data rows), and the penalty of
     each row (mu1 for D's, mu2 for B's)."""
     mu = np.where(np.arange(stacked.shape[0]) < n_data, mu1, mu2)
-    return (sp.diags(mu) @ stacked).T.tocsr(), mu
+    scaled = stacked.copy()
+    scaled.data *= np.repeat(mu, np.diff(stacked.indptr))
+    return scaled.T.tocsr(), mu
 
 
 def energy(prob: AdmmProblem, X: np.ndarray) -> float:
@@ -165,9 +169,13 @@ def energy(prob: AdmmProblem, X: np.ndarray) -> float:
 
 
 def _energy(prob: AdmmProblem, DX: np.ndarray, BX: np.ndarray) -> float:
-    d = DX - prob.G
-    r = np.sqrt(np.einsum("ij,ij->i", d, d))
-    s = np.sqrt(np.einsum("ij,ij->i", BX, BX))
+    d = np.concatenate([DX - prob.G, BX])
+    return _energy_rows(prob, np.sqrt(np.einsum("ij,ij->i", d, d)))
+
+
+def _energy_rows(prob: AdmmProblem, norms: np.ndarray) -> float:
+    """E(X) from the row norms (P + E,) of [DX - G; BX]."""
+    r, s = norms[:len(prob.G)], norms[len(prob.G):]
     data = prob.w @ (r if prob.data_l1 else r * r)
     smooth = prob.alpha * (prob.c @ (s if prob.smooth_l1 else s * s))
     return float(data + smooth)
@@ -221,25 +229,27 @@ def run_admm(
     prior = prob.X0
     primal = dual = step = change = np.inf
     e_prev = _energy(prob, SX[:n_data], SX[n_data:])
+    pull = eps * prior  # constant between factorisations, as is the prox's threshold
+    tau = weight / mu if l1.all() else None
     it = 0
     for it in range(1, max_iter + 1):  # noqa: B007 - `it` is reported after the loop
-        rhs = back @ (offset + W - U) + eps * prior
+        rhs = back @ (offset + W - U) + pull
         if prob.beta > 0:
             A = X.reshape(-1, 4, 3)[:, :3, :]
             R = nearest_rotation(A).reshape(-1, 3)
             rhs += 2.0 * prob.beta * (L.T @ R)
         X_old = X
         X = solve(rhs)
-        SX = stacked @ X
-        hat = relax * SX + (1.0 - relax) * (W + offset)
+        d = stacked @ X - offset  # [DX - G; BX]
+        V = relax * d + (1.0 - relax) * W + U  # the over-relaxed split plus its multiplier
         W_old = W
-        W = _prox(hat - offset + U, weight, mu, l1)
-        U = U + hat - offset - W
-        primal = np.sqrt(_sq(SX - offset - W) / rows)
+        W = shrink_rows(V, tau) if tau is not None else _prox(V, weight, mu, l1)
+        U = V - W
+        primal = np.sqrt(_sq(d - W) / rows)
         dual = np.sqrt(_sq(W - W_old) / rows)
         moved = (X - X_old).reshape(-1, 4, 3)[:, 3, :]
         step = float(np.sqrt(np.max(np.einsum("ij,ij->i", moved, moved))))
-        e_now = _energy(prob, SX[:n_data], SX[n_data:])
+        e_now = _energy_rows(prob, np.sqrt(np.einsum("ij,ij->i", d, d)))
         change = abs(e_now - e_prev) / max(abs(e_now), 1e-300)
         e_prev = e_now
         if primal < tol and step < tol and change < ENERGY_RTOL:
@@ -249,6 +259,8 @@ def run_admm(
             mu1, mu2 = mu1 * mu_growth, mu2 * mu_growth
             factor = factorise(D, B, L, prob.beta, mu1, mu2)
             solve, eps, back, mu = factor.solve, factor.eps, factor.back, factor.mu
+            pull = eps * prior
+            tau = weight / mu if l1.all() else None
             n_fact += 1
     if not np.isfinite(X).all():
         raise GeometryError("registration system gave a non-finite solution")

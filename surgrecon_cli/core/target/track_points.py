@@ -198,5 +198,5 @@ def find_points(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig,
         pixels[rows, c] = px[rows]
         found[rows, c] = True
         localisation[rows, c] = localisation_variance_px2(
-            cur.grey, px[rows], cfg.klt_window_px, cur.noise_sigma)
+            cur.grey_f32, px[rows], cfg.klt_window_px, cur.noise_sigma)
     return pixels, found, localisation

@@ -142,11 +142,13 @@ def klt_track(
     p0 = start.astype(np.float32).reshape(-1, 1, 2)
     p1: np.ndarray = guess.astype(np.float32).reshape(-1, 1, 2).copy()
     p1, st1, _ = cv2.calcOpticalFlowPyrLK(prev.grey, cur.grey, p0, p1, **params)
-    back: np.ndarray = p0.copy()
-    back, st2, _ = cv2.calcOpticalFlowPyrLK(cur.grey, prev.grey, p1, back, **params)
-    fb = np.linalg.norm((back - p0).reshape(-1, 2), axis=1)
     tracked = p1.reshape(-1, 2).astype(np.float64)
-    ok = (st1.ravel() == 1) & (st2.ravel() == 1) & (fb <= cfg.klt_fb_px)
+    ok = st1.ravel() == 1
+    if ok.any():  # backward from the forward tracks only (each point is tracked alone)
+        back: np.ndarray = p0[ok].copy()
+        back, st2, _ = cv2.calcOpticalFlowPyrLK(cur.grey, prev.grey, p1[ok], back, **params)
+        fb = np.linalg.norm((back - p0[ok]).reshape(-1, 2), axis=1)
+        ok[ok] = (st2.ravel() == 1) & (fb <= cfg.klt_fb_px)
     ok[ok] &= ~on_specular(prev, start[ok]) & ~on_specular(cur, tracked[ok])
     ok[ok] &= patch_ncc(prev.grey_f32, start[ok], cur.grey_f32, tracked[ok],
                         NCC_PATCH_PX) >= cfg.min_ncc
