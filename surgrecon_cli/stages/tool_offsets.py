@@ -103,8 +103,10 @@ def fit_run_tool_offsets(run_dir: Path, config: Config, frame: int = 0,
                                   fit.contrast, fit.spread_m, bool(used)))
             if used:
                 offsets[k].update({c: fit.move[:3, 3] for c in group})
-    new = [_with_offsets(cfg, found) for cfg, found in zip(cfgs, offsets, strict=True)]
-    return dataclasses.replace(config, tool=new[0], tools=tuple(new[1:])), rows
+    tool = _with_offsets(config.tool, offsets[0])
+    extra = tuple(_with_offsets(cfg, found) for cfg, found in zip(config.tools, offsets[1:],
+                                                                    strict=True))
+    return dataclasses.replace(config, tool=tool, tools=extra), rows
 
 
 def _with_offsets(cfg: ToolT, found: dict[str, np.ndarray]) -> ToolT:
