@@ -37,13 +37,12 @@ def fit_tools_cmd(run_dir: Path, groups: tuple[str, ...], frame: int, radius_mm:
     translations within --search-mm and keeps the one where the shaft is darkest against
     the tissue beside it in the group's images at --frame. A fit whose contrast reaches
     --min-contrast becomes the tool's camera_offsets entry for each camera of the group
-    (docs/recordings.md). Run it after `surgrecon ingest`, then run with the written config:
-    the ingest is reused.
+    (docs/recordings.md). Run it after `surgrecon ingest`, then run with the written config.
 
     \b
     Example:
       surgrecon fit-tools runs/sample --write-config fitted.toml
-      surgrecon fit-tools runs/sample --group 00,01 --group 02,03 --group 04,05
+      surgrecon fit-tools runs/sample --group 0,1 --group 2,3 --group 4,5
     """
     from ..config import to_toml
     from ..errors import InputError
