@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 
 from ..config import Config, ToolConfig
-from ..core.geometry.tool_fit import fit_tool_offset
+from ..core.geometry.tool_fit import ShaftFit, fit_tool_offset
 from ..errors import InputError
 from ..io.run.ingest_store import load_ingested
 from ..io.run.layout import RunLayout
@@ -85,6 +85,7 @@ def fit_run_tool_offsets(run_dir: Path, config: Config, frame: int = 0,
     names = tool_names(config)
     index = {name: c for c, name in enumerate(log.cameras)}
     poses = log.usable_poses(frame)
+    options = ShaftFit(radius_m=radius_m, search_m=search_m, max_turn_deg=0.0)
     rows: list[OffsetRow] = []
     offsets: list[dict[str, np.ndarray]] = [{} for _ in cfgs]
     for group in _groups(log.cameras, groups):
@@ -96,8 +97,7 @@ def fit_run_tool_offsets(run_dir: Path, config: Config, frame: int = 0,
         for k, cfg in enumerate(cfgs):
             if not np.isfinite(tools[k]).all():
                 continue
-            fit = fit_tool_offset(grays, models, poses[cams], tools[k:k + 1], [cfg],
-                                  radius_m=radius_m, search_m=search_m, max_turn_deg=0.0)
+            fit = fit_tool_offset(grays, models, poses[cams], tools[k:k + 1], [cfg], options)
             used = fit.contrast >= min_contrast and fit.contrast > fit.contrast_at_zero
             rows.append(OffsetRow(group, names[k], fit.move[:3, 3].copy(), fit.contrast_at_zero,
                                   fit.contrast, fit.spread_m, bool(used)))
