@@ -47,7 +47,7 @@ import scipy.io
 from surgrecon_cli.config import ToolConfig
 from surgrecon_cli.core.geometry.cameras import CameraModel
 from surgrecon_cli.core.geometry.poses import matrix_to_quat, nearest_rotation
-from surgrecon_cli.core.geometry.tool_fit import fit_tool_offset
+from surgrecon_cli.core.geometry.tool_fit import ShaftFit, fit_tool_offset
 from surgrecon_cli.io.logs.records import CameraInfoRecord, ImageRecord, PoseRecord
 from surgrecon_cli.sim.log_writer import write_log
 
@@ -254,7 +254,7 @@ def arm_corrections(d: dict, frame: int, pairs: tuple[int, ...] = PAIRS,
         poses = np.stack([camera_in_base1(d, c) for c in cams])
         for r in (1, 2):
             out[(k, r)] = fit_tool_offset(grays, models, poses, tools[r - 1:r], [ToolConfig()],
-                                          radius_m=radius_m, max_turn_deg=0.0)
+                                          ShaftFit(radius_m=radius_m, max_turn_deg=0.0))
     return out
 
 

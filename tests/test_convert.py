@@ -190,6 +190,36 @@ def test_tum_poses_and_stamps_file(tmp_path: Path):
                                    [0.01 * (t - 100) / 0.1, 0, 0.05], atol=1e-9)
 
 
+def test_each_tool_poses_file_is_a_tool(tmp_path: Path):
+    """Two --tool-poses files (a dVRK's two arms): the second is a [[tools]] table on its own
+    TF frame, and ingest gives each arm the positions its file says."""
+    from surgrecon_cli.config import load_config
+    from surgrecon_cli.io.run.ingest_store import load_ingested
+
+    stereo_folder(tmp_path / "rec", frames=3, ext=".png")
+    opencv_calibration(tmp_path / "calib.yaml")
+    for name, y in (("psm1", 0.0), ("psm2", 0.02)):
+        (tmp_path / f"{name}.tum").write_text(
+            "".join(f"{1 + k / 30:.6f} {0.01 * k} {y} 0.05 0 0 0 1\n" for k in range(3)),
+            encoding="utf-8")
+    out = tmp_path / "rec.mcap"
+    assert _convert(tmp_path / "rec", "-o", out, "--calibration", tmp_path / "calib.yaml",
+                    "--tool-poses", tmp_path / "psm1.tum",
+                    "--tool-poses", tmp_path / "psm2.tum") == 0
+    config = load_config(out.with_suffix(".toml"))
+    assert config.topics.tool_pose == "/tf" and len(config.tools) == 1
+    run = tmp_path / "run"
+    assert main(["ingest", str(out), "-o", str(run), "--config", str(out.with_suffix(".toml")),
+                 "-q"]) == 0
+    ingested = load_ingested(run / "ingest")
+    assert ingested.extra_tool_poses.shape == (3, 1, 4, 4)
+    for f in range(3):  # frames at 1 s + f / 30 (the default 30 fps), on the files' stamps
+        np.testing.assert_allclose(ingested.tool_poses[f, :3, 3], [0.01 * f, 0, 0.05],
+                                   atol=1e-6)
+        np.testing.assert_allclose(ingested.extra_tool_poses[f, 0, :3, 3],
+                                   [0.01 * f, 0.02, 0.05], atol=1e-6)
+
+
 def test_one_folder_per_camera(tmp_path: Path):
     import json
 

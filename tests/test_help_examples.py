@@ -31,6 +31,7 @@ from surgrecon_cli.cli.main import cli, main
 
 STAGE_BEFORE = {  # the run-folder state a stage command starts from
     "build-template": "ingested",
+    "fit-tools": "ingested",
     "register": "templated",
     "classify": "registered",
     "measure": "registered",

@@ -8,7 +8,7 @@ import numpy as np
 from surgrecon_cli.config import ToolConfig
 from surgrecon_cli.core.geometry.cameras import CameraModel
 from surgrecon_cli.core.geometry.tool import tool_pixel_mask
-from surgrecon_cli.core.geometry.tool_fit import fit_tool_offset
+from surgrecon_cli.core.geometry.tool_fit import ShaftFit, fit_tool_offset
 
 CAMERA = CameraModel(K=np.array([[300.0, 0, 160], [0, 300, 120], [0, 0, 1]]), dist=np.zeros(5),
                      width=320, height=240)
@@ -46,7 +46,7 @@ def test_the_fit_finds_where_both_shafts_really_are():
     real[:, :3, 3] += error
     images = [_render(c, real, rng) for c in cams]
     fit = fit_tool_offset(images, [CAMERA, CAMERA], cams, kinematic, [SHAFT, SHAFT],
-                          radius_m=0.004, max_turn_deg=0.0)
+                          ShaftFit(radius_m=0.004, max_turn_deg=0.0))
     assert np.linalg.norm(fit.move[:3, 3] - error) < 0.002  # m
     np.testing.assert_allclose(fit.move[:3, :3], np.eye(3))
     assert fit.contrast > fit.contrast_at_zero + 100  # grey levels, summed over 2 x 2 shafts

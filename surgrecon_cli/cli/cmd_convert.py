@@ -69,8 +69,9 @@ def _cameras(ctx: click.Context, param: click.Parameter,
               help="TUM file (t x y z qx qy qz qw; s, m) of the rig in the world: the first "
               "camera's optical frame (or the frame of a 'cameras' file's poses); default: the "
               "rig is fixed in the world.")
-@click.option("--tool-poses", type=_FILE,
-              help="TUM file of the tool tip in the world (the robot roles are off without).")
+@click.option("--tool-poses", type=_FILE, multiple=True,
+              help="TUM file of the tool tip in the world (the robot roles are off without); "
+              "repeat for more tools (e.g. a dVRK's second arm): each becomes a [[tools]] table.")
 @click.option("--image-format", default="jpeg", show_default=True,
               type=click.Choice(["jpeg", "png"]),
               help="Encoding of decoded video frames (JPEG quality 95, or lossless PNG). Image "
@@ -82,7 +83,7 @@ def convert_cmd(src: Path | None, out: Path, calibration: tuple[Path, ...], left
                 right: str | None, cameras: tuple[tuple[str, Path], ...], layout: str,
                 units: str | None, scale_calibration: bool, fps: float | None,
                 start_time: float, stamps: Path | None,
-                camera_poses: Path | None, tool_poses: Path | None, image_format: str,
+                camera_poses: Path | None, tool_poses: tuple[Path, ...], image_format: str,
                 frames: slice, quiet: bool) -> None:
     """Turn stereo (or per-camera) images or a stereo video plus a calibration file into a
     ROS 2 MCAP log (CompressedImage, CameraInfo, /tf) and OUT.toml, a config that runs it.

@@ -40,7 +40,7 @@ class ConvertRequest:
     fps: float | None = None
     stamps: Path | None = None
     camera_poses: Path | None = None
-    tool_poses: Path | None = None
+    tool_poses: tuple[Path, ...] = ()
     image_format: str = "jpeg"
     frames: slice = field(default_factory=lambda: slice(None))
     start_time: float = 1.0
@@ -148,7 +148,7 @@ def convert(req: ConvertRequest,
     stamps = frame_stamps(indices, req.fps, req.stamps, None if is_video else DEFAULT_FPS,
                           start_ns)
     camera_poses = read_tum(req.camera_poses, "camera pose file") if req.camera_poses else None
-    tool_poses = read_tum(req.tool_poses, "tool pose file") if req.tool_poses else None
+    tool_poses = [read_tum(p, "tool pose file") for p in req.tool_poses]
     frames = progress(source.frames(indices), total=len(indices), desc="convert",
                       unit="frame")
     write_log(req.out, messages(rig, frames, stamps, start_ns, camera_poses, tool_poses,
@@ -157,5 +157,5 @@ def convert(req: ConvertRequest,
     poses = (f"rig poses from {req.camera_poses.name}" if req.camera_poses
              else "rig fixed in the world")
     config = req.out.with_suffix(".toml")
-    write_text(config, config_text(req.out.name, rig, poses, tool_poses is not None))
+    write_text(config, config_text(req.out.name, rig, poses, len(tool_poses)))
     return ConvertResult(req.out, config, len(indices), names, rig.units, description)

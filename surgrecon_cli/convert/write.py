@@ -122,14 +122,14 @@ def _frame_messages(rig: Rig, frames: Iterable[Frame], stamps: np.ndarray | None
 
 def messages(rig: Rig, frames: Iterable[Frame], stamps: np.ndarray | None,
              start_ns: int, camera_poses: PoseTrack | None = None,
-             tool_poses: PoseTrack | None = None, scale: bool = False) -> Iterator[Message]:
+             tool_poses: Sequence[PoseTrack] = (), scale: bool = False) -> Iterator[Message]:
     """Every message of the log, in log-time order (rules in the module docstring). Frame
-    stamps: `stamps` (N,) ns, else the frames' own (video times) after `start_ns`."""
+    stamps: `stamps` (N,) ns, else the frames' own (video times) after `start_ns`; tools
+    on /tf as `tool_frame(k)`."""
     streams = [_frame_messages(rig, frames, stamps, start_ns, camera_poses is None, scale)]
     if camera_poses is not None:
         streams.append(_track(camera_poses, RIG))
-    if tool_poses is not None:
-        streams.append(_track(tool_poses, TOOL))
+    streams += [_track(track, tool_frame(k)) for k, track in enumerate(tool_poses)]
     merged = heapq.merge(*streams, key=lambda m: m[1])
     first = next(merged, None)
     if first is None:
@@ -142,8 +142,15 @@ def messages(rig: Rig, frames: Iterable[Frame], stamps: np.ndarray | None,
     yield from merged
 
 
-def config_text(log_name: str, rig: Rig, poses: str, tool: bool) -> str:
-    """The TOML that runs the written log as it is (`[topics]` only; the rest defaults)."""
+def tool_frame(k: int) -> str:
+    """The TF child frame of the k-th `--tool-poses` file: tool_tip, tool_tip_1, ..."""
+    return TOOL if k == 0 else f"{TOOL}_{k}"
+
+
+def config_text(log_name: str, rig: Rig, poses: str, tools: int = 0) -> str:
+    """The TOML that runs the written log as it is (`[topics]`, and a `[[tools]]` table per
+    tool after the first; the rest defaults)."""
+    tool = tools > 0
     names = ", ".join(c.name for c in rig.cameras)
     base = log_name.removesuffix(".mcap")
     lines = [
@@ -164,4 +171,7 @@ def config_text(log_name: str, rig: Rig, poses: str, tool: bool) -> str:
         lines += ["", "# The tool's shaft, masked and removed (defaults: 4 mm radius, 150 mm): set "
                   "them for your instrument.", "# [tool]", "# shaft_radius_m = 0.004",
                   "# shaft_length_m = 0.15"]
+    for k in range(1, tools):
+        lines += ["", f"# tool {k + 1} (--tool-poses file {k + 1}); its geometry as in [tool]",
+                  "[[tools]]", f'pose = "{TF}"', f'frame = "{tool_frame(k)}"']
     return "\n".join(lines) + "\n"

@@ -8,9 +8,13 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from ..config import Config
-from ..errors import SurgReconError
+from ..core.geometry.tool import camera_tool_poses
+from ..errors import InputError, SurgReconError
 from ..io.run.folder import RunFolder
+from ..io.run.ingest_store import IngestedLog
 from .registry import spec
 from .staleness import check_upstream, recorded_config
 
@@ -55,3 +59,14 @@ def stage_run(run_dir: Path, name: str, config: Config,
         raise
     run.mark_stage(name, "done", seconds=round(time.perf_counter() - start, 3),
                    **{"config": recorded_config(config, name), **info})
+
+
+def tools_as_seen(log: IngestedLog, config: Config, frame: int) -> np.ndarray:
+    """The tools' poses at `frame`: (K, 4, 4) in the world, or (C, K, 4, 4) per camera when
+    a tool has `camera_offsets` (`camera_tool_poses`)."""
+    tools = log.all_tool_poses(frame)
+    try:
+        per_camera = camera_tool_poses(tools, config.tool_configs(), list(log.cameras))
+    except ValueError as exc:
+        raise InputError(str(exc)) from exc
+    return tools if per_camera is None else per_camera

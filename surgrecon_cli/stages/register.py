@@ -46,10 +46,9 @@ from ..io.run.atomic import file_identity
 from ..io.run.folder import FrameProgress, RunFolder
 from ..io.run.ingest_store import IngestedLog, ingest_identity, load_ingested
 from ..io.run.layout import RunLayout
-from .common import stage_run
+from .common import stage_run, tools_as_seen
 from .registry import CLASSIFY_FRAME_TASK, StageContext, resolve
 from .staleness import recorded_config, same_config
-from .template import tools_as_seen
 
 logger = logging.getLogger(__name__)
 

@@ -18,7 +18,6 @@ from pathlib import Path
 import numpy as np
 
 from ..config import Config
-from ..core.geometry.tool import camera_tool_poses
 from ..core.noise.model import covariance_sigma, noise_from_report
 from ..core.template.build import (
     STEPS,
@@ -38,9 +37,9 @@ from ..io.run.artefacts import (
     write_template,
     write_template_summary,
 )
-from ..io.run.ingest_store import IngestedLog, load_ingested
+from ..io.run.ingest_store import load_ingested
 from ..io.run.layout import RunLayout
-from .common import stage_run
+from .common import stage_run, tools_as_seen
 from .registry import StageContext
 
 STAGE = "build-template"
@@ -138,14 +137,3 @@ def unlinked_report(groups: list[list[int]], stats: dict, names: Sequence[str]) 
                      "cameras' poses, so a pose or calibration disagreement between the "
                      "groups goes unchecked")
     return lines
-
-
-def tools_as_seen(log: IngestedLog, config: Config, frame: int) -> np.ndarray:
-    """The tools' poses at `frame`: (K, 4, 4) in the world, or (C, K, 4, 4) per camera when
-    a tool has `camera_offsets` (`camera_tool_poses`)."""
-    tools = log.all_tool_poses(frame)
-    try:
-        per_camera = camera_tool_poses(tools, config.tool_configs(), list(log.cameras))
-    except ValueError as exc:
-        raise InputError(str(exc)) from exc
-    return tools if per_camera is None else per_camera

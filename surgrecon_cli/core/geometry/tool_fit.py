@@ -25,10 +25,27 @@ import numpy as np
 
 from ...config import ToolConfig
 from .cameras import CameraModel, project
-from .tool import shaft_axis, tool_list
+from .tool import ToolConfigs, shaft_axis, tool_list
 
 INSIDE = (-0.6, 0.0, 0.6)  # samples across the shaft, in radii from its axis
 OUTSIDE = 1.4  # the strips just beside the silhouette, radii from the axis
+
+
+@dataclass(frozen=True)
+class ShaftFit:
+    """How a fit looks for the shafts: `radius_m` the instruments' real shaft radius (dVRK:
+    4 mm), the shaft sampled at `samples` points from `span_m` up its axis from the kinematic
+    frame (m); translations on a grid of `step_m` within `search_m` per axis (m), rotation up
+    to `max_turn_deg` per axis (0: none); `tolerance` the share of the best contrast within
+    which coarse translations count towards `ToolOffsetFit.spread_m`."""
+
+    radius_m: float = 0.004
+    span_m: tuple[float, float] = (0.01, 0.12)
+    samples: int = 24
+    search_m: float = 0.024
+    step_m: float = 0.003
+    max_turn_deg: float = 12.0
+    tolerance: float = 0.9
 
 
 @dataclass(frozen=True)
@@ -46,19 +63,21 @@ class ToolOffsetFit:
 
 
 def shaft_contrast(gray: np.ndarray, camera: CameraModel, cam_to_world: np.ndarray,
-                   tool_pose: np.ndarray, cfg: ToolConfig, offsets: np.ndarray,
-                   radius_m: float, span_m: tuple[float, float] = (0.01, 0.12),
-                   samples: int = 24) -> np.ndarray:
+                   tool: tuple[np.ndarray, ToolConfig], offsets: np.ndarray,
+                   options: ShaftFit = ShaftFit()) -> np.ndarray:
     """(M,) mean contrast (grey levels) of one tool's shaft in one image for each offset
-    (M, 3) m of the tool: the shaft from `span_m[0]` to `span_m[1]` up its axis from the
-    kinematic frame, `radius_m` the instrument's real radius; samples outside the image or
-    behind the camera are left out (an offset that leaves fewer than a quarter of them
-    in the image scores zero). gray (H, W) float."""
+    (M, 3) m (or rigid move (M, 4, 4)) of the tool (pose (4, 4), geometry): the shaft from
+    `options.span_m[0]` to `[1]` up its axis from the kinematic frame, `options.radius_m`
+    the instrument's real radius; samples outside the image or behind the camera are left
+    out (an offset that leaves fewer than a quarter of them in the image scores zero).
+    gray (H, W) float."""
+    tool_pose, cfg = tool
+    samples = options.samples
     if not np.isfinite(tool_pose).all():
         return np.zeros(len(offsets))
     moves = _as_moves(offsets)
     axis = shaft_axis(tool_pose, cfg)
-    along = np.linspace(span_m[0], span_m[1], samples)
+    along = np.linspace(options.span_m[0], options.span_m[1], samples)
     centre = tool_pose[:3, 3] + along[:, None] * axis  # (S, 3)
     points = np.einsum("mij,sj->msi", moves[:, :3, :3], centre) + moves[:, None, :3, 3]
     axes = np.repeat(moves[:, :3, :3] @ axis, samples, axis=0)  # (M S, 3)
@@ -68,7 +87,7 @@ def shaft_contrast(gray: np.ndarray, camera: CameraModel, cam_to_world: np.ndarr
     tangent = uv_ahead - uv
     with np.errstate(invalid="ignore", divide="ignore"):
         tangent /= np.linalg.norm(tangent, axis=1, keepdims=True)
-        r_px = camera.K[0, 0] * radius_m / z
+        r_px = camera.K[0, 0] * options.radius_m / z
     normal = np.stack([-tangent[:, 1], tangent[:, 0]], 1) * r_px[:, None]
     offsets_r = np.array([*INSIDE, -OUTSIDE, OUTSIDE])
     at = uv[:, None, :] + offsets_r[None, :, None] * normal[:, None, :]  # (N, 5, 2)
@@ -106,16 +125,15 @@ def _bilinear(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
 
 
 def group_contrast(grays: Sequence[np.ndarray], cameras: Sequence[CameraModel],
-                   cam_to_world: np.ndarray, tool_poses: np.ndarray,
-                   cfgs: ToolConfig | Sequence[ToolConfig], offsets: np.ndarray,
-                   radius_m: float) -> np.ndarray:
+                   cam_to_world: np.ndarray, tools: tuple[np.ndarray, ToolConfigs],
+                   offsets: np.ndarray, options: ShaftFit = ShaftFit()) -> np.ndarray:
     """(M,) summed `shaft_contrast` over a group's cameras (grays, cameras, cam_to_world
-    (C, 4, 4)) and the tools (tool_poses (K, 4, 4), one config each)."""
-    poses = np.asarray(tool_poses, float).reshape(-1, 4, 4)
+    (C, 4, 4)) and the tools (poses (K, 4, 4), one config each)."""
+    poses = np.asarray(tools[0], float).reshape(-1, 4, 4)
     total = np.zeros(len(offsets))
     for gray, camera, pose in zip(grays, cameras, cam_to_world, strict=True):
-        for tool, cfg in zip(poses, tool_list(cfgs), strict=True):
-            total += shaft_contrast(gray, camera, pose, tool, cfg, offsets, radius_m)
+        for tool, cfg in zip(poses, tool_list(tools[1]), strict=True):
+            total += shaft_contrast(gray, camera, pose, (tool, cfg), offsets, options)
     return total
 
 
@@ -135,17 +153,17 @@ def rigid_move(params: np.ndarray, centre: np.ndarray) -> np.ndarray:
 
 
 def fit_tool_offset(grays: Sequence[np.ndarray], cameras: Sequence[CameraModel],
-                    cam_to_world: np.ndarray, tool_poses: np.ndarray,
-                    cfgs: ToolConfig | Sequence[ToolConfig], radius_m: float = 0.004,
-                    search_m: float = 0.024, step_m: float = 0.003, max_turn_deg: float = 12.0,
-                    tolerance: float = 0.9) -> ToolOffsetFit:
+                    cam_to_world: np.ndarray, tool_poses: np.ndarray, cfgs: ToolConfigs,
+                    options: ShaftFit = ShaftFit()) -> ToolOffsetFit:
     """The rigid move (world) of all tools that best lays their shafts on the dark
     instruments in a camera group's images (module docstring): a grid of translations of
-    `step_m` within `search_m` per axis, then rotation (up to `max_turn_deg` per axis, about
-    the tools' kinematic points' centroid; none when it is 0) and translation refined
-    together (Powell; a result outside those limits falls back to the best grid offset).
-    grays: (H, W) per camera, any grey scale (8-bit levels for the contrasts' units);
-    radius_m the instruments' real shaft radius (dVRK: 4 mm)."""
+    `options.step_m` within `options.search_m` per axis, then rotation (up to
+    `options.max_turn_deg` per axis, about the tools' kinematic points' centroid; none when
+    it is 0) and translation refined together (Powell; a result outside those limits falls
+    back to the best grid offset). grays: (H, W) per camera, any grey scale (8-bit levels
+    for the contrasts' units); tool_poses (K, 4, 4) world, one config each."""
+    search_m, step_m = options.search_m, options.step_m
+    max_turn_deg, tolerance = options.max_turn_deg, options.tolerance
     from scipy.optimize import minimize
 
     blurred = [cv2.GaussianBlur(np.asarray(g, np.float32), (3, 3), 0) for g in grays]
@@ -154,7 +172,7 @@ def fit_tool_offset(grays: Sequence[np.ndarray], cameras: Sequence[CameraModel],
     centre = poses[finite, :3, 3].mean(0) if finite.any() else np.zeros(3)
 
     def score(moves: np.ndarray) -> np.ndarray:
-        return group_contrast(blurred, cameras, cam_to_world, poses, cfgs, moves, radius_m)
+        return group_contrast(blurred, cameras, cam_to_world, (poses, cfgs), moves, options)
 
     coarse = _grid(search_m, step_m)
     coarse_score = score(coarse)
