@@ -14,6 +14,7 @@ import pytest
 from surgrecon_cli.config import RegistrationConfig
 from surgrecon_cli.core.registration.colour import decide_colour
 from surgrecon_cli.core.registration.pair import (
+    ColouredPoints,
     error_estimate_mm,
     follow_supported,
     pair_config,
@@ -170,7 +171,8 @@ def test_static_tissue_dragged_along_the_surface_goes_back_and_moving_tissue_kee
     registered = pair.truth + np.where(static[:, None], 0.6e-3 * along / np.linalg.norm(along),
                                        0.0)
     share = stay_where_better(pair.source, registered, np.ones(len(pair.source), bool),
-                              pair.source_rgb, pair.target[d.agree], pair.target_rgb[d.agree], d)
+                              pair.source_rgb,
+                              ColouredPoints(pair.target[d.agree], pair.target_rgb[d.agree]), d)
     corrected = pair.source + share[:, None] * (registered - pair.source)
     err = np.linalg.norm(corrected - pair.truth, axis=1)
     assert np.median(err[static]) < 0.2e-3  # from 0.6 mm

@@ -125,8 +125,16 @@ def follow_supported(source: np.ndarray, registered: np.ndarray, supported: np.n
     return out
 
 
+@dataclasses.dataclass(frozen=True)
+class ColouredPoints:
+    """Points xyz (M, 3) m with their colours rgb (M, 3) 0..1."""
+
+    xyz: np.ndarray
+    rgb: np.ndarray
+
+
 def stay_where_better(source: np.ndarray, registered: np.ndarray, supported: np.ndarray,
-                      source_rgb: np.ndarray, target: np.ndarray, target_rgb: np.ndarray,
+                      source_rgb: np.ndarray, target: ColouredPoints,
                       decision: ColourDecision) -> np.ndarray:
     """(N,) share of its motion each source point keeps (STAY_SHARES, neighbourhood-averaged;
     module constants): for positions source + share x (registered - source) (N, 3) m, the
@@ -134,11 +142,11 @@ def stay_where_better(source: np.ndarray, registered: np.ndarray, supported: np.
     the nearest target point)^2 (RGB units), robust rho = u / (u + (STAY_TAU_NOISE x
     noise)^2), on a spread sample of the supported points (STAY_STRIDE, STAY_SAMPLES),
     summed over about STAY_NEIGHBOURS sample points near each.
-    target (M, 3) m and target_rgb (M, 3) 0..1: the agreeing target points; colours 0..1."""
+    target: the agreeing target points; colours 0..1."""
     n = len(source)
-    if not supported.any() or len(target) < STAY_TARGET_NEIGHBOURS:
+    if not supported.any() or len(target.xyz) < STAY_TARGET_NEIGHBOURS:
         return np.ones(n)
-    tree = cKDTree(target)
+    tree = cKDTree(target.xyz)
     h = max(decision.spacing_m, 1e-9)
     g = decision.gradient * 1e3  # RGB units per metre
     tau2 = (STAY_TAU_NOISE * max(decision.noise, 1e-6)) ** 2
@@ -152,7 +160,7 @@ def stay_where_better(source: np.ndarray, registered: np.ndarray, supported: np.
     for a, share in enumerate(STAY_SHARES):
         d, j = tree.query(source[sample] + share * move[sample], k=STAY_TARGET_NEIGHBOURS)
         w = np.exp(-0.5 * (d / h) ** 2) + 1e-12
-        smoothed = np.einsum("nk,nkc->nc", w, target_rgb[j]) / w.sum(axis=1)[:, None]
+        smoothed = np.einsum("nk,nkc->nc", w, target.rgb[j]) / w.sum(axis=1)[:, None]
         u = ((source_rgb[sample] - smoothed) ** 2).sum(axis=1) + (g * d[:, 0]) ** 2
         costs[:, a] = u / (u + tau2)
     # a sum over about STAY_NEIGHBOURS sample points as two means over 8x fewer
@@ -252,8 +260,8 @@ def register_pair(
     if (colour_on and decision is not None and decision.weight_mm > 0 and s_rgb is not None
             and t_rgb is not None):
         agree = decision.agree
-        share = stay_where_better(src, registered, supported, s_rgb, tgt[agree], t_rgb[agree],
-                                  decision)
+        share = stay_where_better(src, registered, supported, s_rgb,
+                                  ColouredPoints(tgt[agree], t_rgb[agree]), decision)
         share[_known_sources(len(src), ids, lm)] = 1.0
         registered = src + share[:, None] * (registered - src)
         identity = np.concatenate([np.eye(3), np.zeros((3, 1))], axis=1)
