@@ -96,7 +96,10 @@ class Evidence:
     position the data give (target where there is one, else registered), measured_sigma
     (N,) its uncertainty, displacement_cov (N, 3, 3) m² the covariance of the displacement
     from frame 0 and departure_cov (N, 3, 3) m² the part of it that is not a rigid error
-    shared by a whole neighbourhood (for the rigid-motion test)."""
+    shared by a whole neighbourhood (for the rigid-motion test); template_shared_var (N,)
+    m² the part of the template point's error variance that every later measurement of the
+    point carries too (its frame-0 image noise, which tracking keeps: it cancels in the
+    displacement; None = none shared)."""
 
     sigma: np.ndarray
     template_sigma: np.ndarray
@@ -104,6 +107,18 @@ class Evidence:
     measured_sigma: np.ndarray
     displacement_cov: np.ndarray
     departure_cov: np.ndarray
+    template_shared_var: np.ndarray | None = None
+
+    def displacement_sigma(self) -> np.ndarray:
+        """σ_Δ (N,) m of the displacement x_i − p_i the labels are decided from: the better
+        of the registered and measured positions' σ, plus the template's, less twice the
+        error they share: σ_Δ² = σ² + σ_t² − 2 σ_shared² (inf stays inf)."""
+        position = np.fmin(np.asarray(self.sigma, float), np.asarray(self.measured_sigma, float))
+        shared = 0.0 if self.template_shared_var is None else np.asarray(
+            self.template_shared_var, float)
+        with np.errstate(invalid="ignore"):
+            var = position**2 + np.asarray(self.template_sigma, float) ** 2 - 2.0 * shared
+        return np.sqrt(np.where(np.isnan(var), np.inf, np.maximum(var, 0.0)))
 
 
 @dataclass(frozen=True)
@@ -273,9 +288,7 @@ def classify_frame(template: np.ndarray, frame: RegisteredFrame, nb: Neighbourho
     disp[known] = displacement_mm(template[known], registered[known])
     dynamic = known & (disp >= cfg.static_mm)
     if evidence is not None:
-        sigma_mm = np.asarray(evidence.sigma, float) * 1e3
-        measured_mm = np.asarray(evidence.measured_sigma, float) * 1e3
-        known &= np.fmin(sigma_mm, measured_mm) <= cfg.max_sigma_mm
+        known &= evidence.displacement_sigma() * 1e3 <= cfg.max_sigma_mm
         dynamic &= known & significant_motion(registered - template, evidence.displacement_cov,
                                               cfg.significance)
     if status is not None and cfg.status_band_mm > 0:
