@@ -110,14 +110,17 @@ class Evidence:
     template_shared_var: np.ndarray | None = None
 
     def displacement_sigma(self) -> np.ndarray:
-        """σ_Δ (N,) m of the displacement x_i − p_i the labels are decided from: the better
-        of the registered and measured positions' σ, plus the template's, less twice the
-        error they share: σ_Δ² = σ² + σ_t² − 2 σ_shared² (inf stays inf)."""
+        """σ_Δ (N,) m of the displacement x_i − p_i the labels are decided from: σ the
+        better of the registered and measured positions' σ, σ_t the template's, and s the
+        variance they share: σ_Δ² = σ² + σ_t² − 2 s, s = min(template_shared_var, σ²) (a
+        later measurement cannot carry more of the template's error than its own; from
+        more views than the template it carries less). Inf stays inf."""
         position = np.fmin(np.asarray(self.sigma, float), np.asarray(self.measured_sigma, float))
-        shared = 0.0 if self.template_shared_var is None else np.asarray(
-            self.template_shared_var, float)
-        with np.errstate(invalid="ignore"):
-            var = position**2 + np.asarray(self.template_sigma, float) ** 2 - 2.0 * shared
+        var = position**2 + np.asarray(self.template_sigma, float) ** 2
+        if self.template_shared_var is not None:
+            shared = np.fmin(np.asarray(self.template_shared_var, float), position**2)
+            with np.errstate(invalid="ignore"):
+                var = var - 2.0 * shared
         return np.sqrt(np.where(np.isnan(var), np.inf, np.maximum(var, 0.0)))
 
 
