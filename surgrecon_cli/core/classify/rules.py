@@ -6,8 +6,12 @@ registered position, the uncertainties of the run's noise model (core/noise/mode
 core/registration/frame_step.py: σ is the RMS of a 3D position error, metres) and its neighbours j
 (template points within `neighbourhood_mm` of p_i at frame 0):
 
-1. unknown: no finite registered position, or its uncertainty σ_i exceeds `max_sigma_mm`
-   (a point far from any data: the registration extrapolates it, it is not measured).
+1. unknown: no finite registered position, or the uncertainty σ_Δ of its displacement from
+   frame 0 exceeds `max_sigma_mm` (a point far from any data: the registration extrapolates
+   it, it is not measured). σ_Δ, not the position's σ: the labels are decided from
+   displacements, and the template's frame-0 image error, which tracking carries into every
+   later measurement of the point, cancels in them (`Evidence.displacement_sigma`; on a
+   4 mm stereo baseline that error is ~0.9 mm of depth at 65 mm, the displacement's 0.1–0.3).
 2. static vs dynamic: dynamic when the registered displacement Δ_i = x_i − p_i reaches
    `static_mm` (the tolerance below which motion does not count, the spec's rule) and is
    significant: Δᵀ Σ_Δ⁻¹ Δ above the chi-square bound (3 dof) at `significance`, Σ_Δ the
