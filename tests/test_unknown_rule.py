@@ -33,7 +33,6 @@ def _carried(rng: np.random.Generator, template: np.ndarray, motion: np.ndarray)
 
 
 def _evidence(measured: np.ndarray, cov_t: np.ndarray, sigma: np.ndarray) -> Evidence:
-    n = len(measured)
     t_var = np.trace(cov_t, axis1=1, axis2=2)
     cov = cov_t * 2 + np.eye(3) * LOCAL_M**2  # as stages/classify: target's plus template's
     return Evidence(sigma=sigma, template_sigma=np.sqrt(t_var), measured=measured,
@@ -60,7 +59,7 @@ def test_measured_points_are_labelled_and_far_ones_unknown():
     g = np.arange(-10, 10) * 1e-3
     xx, yy = np.meshgrid(g, g)
     template = np.column_stack([xx.ravel(), yy.ravel(), np.zeros(xx.size)])
-    truth, p0, measured, cov_t = _carried(rng, template, np.array([0.002, 0.0, 0.0]))
+    _, p0, measured, cov_t = _carried(rng, template, np.array([0.002, 0.0, 0.0]))
     n = len(template)
     position_sigma = np.sqrt(np.trace(cov_t, axis1=1, axis2=2) + 3 * LOCAL_M**2)
     # a corner without data, extrapolated from 5–13 mm away (σ grows 0.3 mm per mm)
