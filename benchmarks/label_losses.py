@@ -12,8 +12,8 @@ followed through the frames):
 - per true class, the step of core/classify/rules.classify_frame that decided each
   point-frame, recomputed from the run's registration with stages/classify's evidence
   (`agree` is the share where that recomputation gives the stored label; points that
-  core/classify/quality.unsupported_points makes unknown differ): `unknown` (σ above
-  classify.max_sigma_mm), `< static` (measured displacement below classify.static_mm),
+  core/classify/quality.unsupported_points makes unknown differ): `unknown` (displacement σ
+  above classify.max_sigma_mm), `< static` (measured displacement below classify.static_mm),
   `motion n.s.` (displacement within its noise), `rms < deform` (the registered
   neighbourhood's rigid-fit RMS below classify.deform_mm), `departure n.s.` (the RMS
   reaches it, but the neighbourhood's departure from one rigid motion is within the
@@ -67,8 +67,7 @@ def decisions(template: np.ndarray, registered: np.ndarray, status: np.ndarray,
     labels = rules.classify_frame(template, rules.RegisteredFrame(registered, None, status), nb,
                                   cfg, evidence=evidence)
     known = np.isfinite(registered).all(1)
-    sigma_mm = np.fmin(evidence.sigma, evidence.measured_sigma) * 1e3
-    known &= sigma_mm <= cfg.max_sigma_mm
+    known &= evidence.displacement_sigma() * 1e3 <= cfg.max_sigma_mm
     moved = labels.displacement_mm >= cfg.static_mm
     significant = rules.significant_motion(registered - template, evidence.displacement_cov,
                                            cfg.significance)
@@ -89,8 +88,8 @@ def measured_scale(template: np.ndarray, registered: np.ndarray, evidence: rules
     """The frame's departures over what its covariances predict, as rules.noise_scale reads
     it but not floored at 1 (below 1: the covariances overstate the scatter)."""
     cfg = config.classify
-    sigma_mm = np.fmin(evidence.sigma, evidence.measured_sigma) * 1e3
-    judged = np.flatnonzero(np.isfinite(registered).all(1) & (sigma_mm <= cfg.max_sigma_mm))
+    judged = np.flatnonzero(np.isfinite(registered).all(1)
+                            & (evidence.displacement_sigma() * 1e3 <= cfg.max_sigma_mm))
     stat, dof = rules.departure_statistic(template, evidence.measured, evidence.departure_cov,
                                           nb, judged)
     ok = (dof > 0) & np.isfinite(stat)

@@ -261,8 +261,9 @@ class ClassifyConfig:
         "from one rigid motion beyond the noise): the main knob", bounds=(0, 0.5)
     )
     max_sigma_mm: float = _doc(
-        1.0, "a point whose registered position is less certain than this (RMS, mm) is "
-        "unknown (default: the clinical 1 mm accuracy requirement)", bounds=(0, 1000)
+        1.0, "a point whose displacement from frame 0 is less certain than this (RMS, mm; "
+        "the template's own error, which tracking carries into later measurements, cancels) "
+        "is unknown (default: the clinical 1 mm accuracy requirement)", bounds=(0, 1000)
     )
     status_band_mm: float = _doc(
         0.0, "within this of static_mm the reprojection check decides: intra-camera inlier "

@@ -160,7 +160,8 @@ def frame_evidence(reg: FrameRegistration, registered: np.ndarray,
     return Evidence(sigma=sigma, template_sigma=template.sigma,
                     measured=np.where(has[:, None], target, registered),
                     measured_sigma=np.where(has, target_sigma, sigma),
-                    displacement_cov=displacement, departure_cov=departure)
+                    displacement_cov=displacement, departure_cov=departure,
+                    template_shared_var=np.trace(template.covariance, axis1=1, axis2=2))
 
 
 def static_verdicts_checked(reg: FrameRegistration, template_noise: TemplateNoise,

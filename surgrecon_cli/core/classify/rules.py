@@ -6,8 +6,12 @@ registered position, the uncertainties of the run's noise model (core/noise/mode
 core/registration/frame_step.py: σ is the RMS of a 3D position error, metres) and its neighbours j
 (template points within `neighbourhood_mm` of p_i at frame 0):
 
-1. unknown: no finite registered position, or its uncertainty σ_i exceeds `max_sigma_mm`
-   (a point far from any data: the registration extrapolates it, it is not measured).
+1. unknown: no finite registered position, or the uncertainty σ_Δ of its displacement from
+   frame 0 exceeds `max_sigma_mm` (a point far from any data: the registration extrapolates
+   it, it is not measured). σ_Δ, not the position's σ: the labels are decided from
+   displacements, and the template's frame-0 image error, which tracking carries into every
+   later measurement of the point, cancels in them (`Evidence.displacement_sigma`; on a
+   4 mm stereo baseline that error is ~0.9 mm of depth at 65 mm, the displacement's 0.1–0.3).
 2. static vs dynamic: dynamic when the registered displacement Δ_i = x_i − p_i reaches
    `static_mm` (the tolerance below which motion does not count, the spec's rule) and is
    significant: Δᵀ Σ_Δ⁻¹ Δ above the chi-square bound (3 dof) at `significance`, Σ_Δ the
@@ -96,7 +100,10 @@ class Evidence:
     position the data give (target where there is one, else registered), measured_sigma
     (N,) its uncertainty, displacement_cov (N, 3, 3) m² the covariance of the displacement
     from frame 0 and departure_cov (N, 3, 3) m² the part of it that is not a rigid error
-    shared by a whole neighbourhood (for the rigid-motion test)."""
+    shared by a whole neighbourhood (for the rigid-motion test); template_shared_var (N,)
+    m² the part of the template point's error variance that every later measurement of the
+    point carries too (its frame-0 image noise, which tracking keeps: it cancels in the
+    displacement; None = none shared)."""
 
     sigma: np.ndarray
     template_sigma: np.ndarray
@@ -104,6 +111,21 @@ class Evidence:
     measured_sigma: np.ndarray
     displacement_cov: np.ndarray
     departure_cov: np.ndarray
+    template_shared_var: np.ndarray | None = None
+
+    def displacement_sigma(self) -> np.ndarray:
+        """σ_Δ (N,) m of the displacement x_i − p_i the labels are decided from: σ the
+        better of the registered and measured positions' σ, σ_t the template's, and s the
+        variance they share: σ_Δ² = σ² + σ_t² − 2 s, s = min(template_shared_var, σ²) (a
+        later measurement cannot carry more of the template's error than its own; from
+        more views than the template it carries less). Inf stays inf."""
+        position = np.fmin(np.asarray(self.sigma, float), np.asarray(self.measured_sigma, float))
+        var = position**2 + np.asarray(self.template_sigma, float) ** 2
+        if self.template_shared_var is not None:
+            shared = np.fmin(np.asarray(self.template_shared_var, float), position**2)
+            with np.errstate(invalid="ignore"):
+                var = var - 2.0 * shared
+        return np.sqrt(np.where(np.isnan(var), np.inf, np.maximum(var, 0.0)))
 
 
 @dataclass(frozen=True)
@@ -273,9 +295,7 @@ def classify_frame(template: np.ndarray, frame: RegisteredFrame, nb: Neighbourho
     disp[known] = displacement_mm(template[known], registered[known])
     dynamic = known & (disp >= cfg.static_mm)
     if evidence is not None:
-        sigma_mm = np.asarray(evidence.sigma, float) * 1e3
-        measured_mm = np.asarray(evidence.measured_sigma, float) * 1e3
-        known &= np.fmin(sigma_mm, measured_mm) <= cfg.max_sigma_mm
+        known &= evidence.displacement_sigma() * 1e3 <= cfg.max_sigma_mm
         dynamic &= known & significant_motion(registered - template, evidence.displacement_cov,
                                               cfg.significance)
     if status is not None and cfg.status_band_mm > 0:
