@@ -126,13 +126,14 @@ def detect_features(image: np.ndarray, camera: CameraModel, cfg: TemplateConfig,
     and so do saturated specular highlights (core/tracking.specular_zone): they move with
     the light, so a feature there triangulates to no point of the tissue and is not tracked.
 
-    The contrast threshold is half OpenCV's default: endoscopic tissue is low-contrast and we
-    want hundreds to thousands of features per image (our choice, not the paper's). Images
-    wider than `cfg.detect_width_px` are searched downscaled to exactly that width, by a
-    factor s = width / detect_width_px (area average, aspect kept; SIFT's finest octave,
-    the image upsampled 2x, then has 4/s² of the full image's pixels instead of 4x); the
-    pixels are given in the full image. `cfg.max_features`, `cfg.contrast_threshold`:
-    SIFT's.
+    The contrast threshold is a fifth of OpenCV's default: endoscopic tissue is low-contrast
+    and we want thousands of features per image (our choice, not the paper's). Images wider
+    than `cfg.detect_width_px` are searched downscaled to exactly that width, by a factor
+    s = width / detect_width_px (area average, aspect kept; SIFT's finest octave, the image
+    upsampled 2x, then has 4/s² of the full image's pixels instead of 4x); the pixels are
+    given in the full image, and with `cfg.refine_subpixel` the keypoints fine enough for
+    the downscaling to limit their precision are located again in the full image
+    (`refine_extrema`). `cfg.max_features`, `cfg.contrast_threshold`: SIFT's.
     """
     height, width = image.shape[:2]
     small = image
