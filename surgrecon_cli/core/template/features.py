@@ -51,6 +51,7 @@ def sample_rgb(image: np.ndarray, pixels: np.ndarray) -> np.ndarray:
 SIFT_OFFSET_PX = 0.25  # OpenCV's SIFT location minus the extremum's (px, both axes)
 REFINE_LEVELS_PER_OCTAVE = 3  # SIFT's scale sampling (its default octave layers)
 REFINE_BASE_SIGMA = 1.6  # SIFT's base scale (px)
+REFINE_REACH_SCALES = 2.0  # ours: keypoints up to this many times `reach` px (σ) are relocated
 
 
 def refine_extrema(gray: np.ndarray, pixels: np.ndarray, sigma: np.ndarray,
@@ -70,7 +71,7 @@ def refine_extrema(gray: np.ndarray, pixels: np.ndarray, sigma: np.ndarray,
         return out
     height, width = gray.shape
     n_levels = max(1, int(np.ceil(REFINE_LEVELS_PER_OCTAVE
-                                  * np.log2(2.0 * reach / REFINE_BASE_SIGMA))) + 1)
+                                  * np.log2(REFINE_REACH_SCALES * reach / REFINE_BASE_SIGMA))) + 1)
     level = np.round(REFINE_LEVELS_PER_OCTAVE
                      * np.log2(np.maximum(sigma, 1e-6) / REFINE_BASE_SIGMA)).astype(int)
     level = np.maximum(level, 0)
