@@ -38,7 +38,15 @@ from ..geometry.tool import tool_pixel_mask
 from ..noise.model import localisation_variance_px2
 from .frame_inputs import FrameInput, Rig, Sighting
 from .reacquire import descriptor_motion
-from .tracking import TrackingView, TrackPrior, apply_motion, image_motion, track_adaptive
+from .tracking import (
+    TrackingView,
+    TrackPrior,
+    apply_motion,
+    image_motion,
+    neighbour_flow,
+    retrack_from_neighbours,
+    track_adaptive,
+)
 
 KLT_BORDER_PX = 8.0  # a track starts this far inside the image at least (px)
 MIN_SCENE_FIT = 12  # tracks of one camera needed to measure the scene's motion (PnP)
@@ -151,6 +159,13 @@ def _anchor(anchor: TrackingView, cur: TrackingView, anchor_pixels: np.ndarray,
     if motion is None:
         return pixels, found
     guess = apply_motion(motion, np.nan_to_num(anchor_pixels))
+    # Tissue the tool pushed moved farther than the image motion says: the chained tracks
+    # around a lost point say by how much (tracking.neighbour_flow).
+    lost = np.flatnonzero(has & ~found)
+    local = neighbour_flow(anchor_pixels[pairs], pixels[pairs] - guess[pairs],
+                           anchor_pixels[lost])
+    near = np.isfinite(local).all(1)
+    guess[lost[near]] += local[near]
     idx = np.flatnonzero(has & ~found & in_image(guess, model, KLT_BORDER_PX))
     tracked, ok, _ = track_adaptive(anchor, cur, anchor_pixels[idx], TrackPrior(guess[idx]),
                                     cfg)
