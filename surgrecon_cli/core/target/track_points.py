@@ -44,7 +44,6 @@ from .tracking import (
     apply_motion,
     image_motion,
     neighbour_flow,
-    retrack_from_neighbours,
     track_adaptive,
 )
 
