@@ -24,6 +24,13 @@ Per camera:
    translation-only window is biased by the changed perspective and shading (measured on
    `rig-sweep` after 4 frames: 0.35 px median, 1.1 px p95; chained 0.2 px, 0.6 px), more
    than the chain's drift over the same frames.
+
+A frame whose previous frame is not its base (re-basing every N_T >= 2 frames) is chained
+through the previous frame's images (base -> previous -> frame, `_via`), with the points
+lost on the way tracked directly from the base: one frame's step of tissue pressed by a
+tool. Points lost in the chain are tracked again from their guess moved by the median
+departure of the tracks found around them (core/target/tracking.neighbour_flow), and the
+anchor step's guesses are moved the same way by the chained tracks around them.
 """
 
 from __future__ import annotations
