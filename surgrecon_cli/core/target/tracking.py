@@ -4,7 +4,7 @@ forward-backward and photometrically (Su et al. 2019, section II.B: the target c
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import cv2
@@ -304,6 +304,11 @@ def retrack_from_neighbours(prev: TrackingView, cur: TrackingView, start: np.nda
         if not len(lost):
             break
         again, again_ok = klt_track(prev, cur, start[lost], guess[lost] + flow, cfg)
+        small = np.flatnonzero(~again_ok)
+        if len(small):  # a deformed patch: a smaller window sees less of the deformation
+            narrow = replace(cfg, klt_window_px=max(5, cfg.klt_window_px // 2 | 1))
+            again[small], again_ok[small] = klt_track(
+                prev, cur, start[lost[small]], guess[lost[small]] + flow[small], narrow)
         tracked[lost[again_ok]] = again[again_ok]
         ok[lost[again_ok]] = True
     return tracked, ok
