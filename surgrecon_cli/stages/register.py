@@ -83,7 +83,8 @@ def _load_base(layout: RunLayout, log: IngestedLog, frame: int, update_every: in
 
 _VIEWS: OrderedDict[tuple, tuple[TrackingView | None, ...]] = OrderedDict()
 _VIEWS_LOCK = threading.Lock()
-VIEW_FRAMES = 3  # frames whose views a process keeps: the template's, the base's and the frame's
+VIEW_FRAMES = 4  # frames whose views a process keeps: the template's, the base's, the
+# previous one's (tracked through) and the frame's
 
 
 def frame_views(log: IngestedLog, frame: int) -> list[TrackingView | None]:
@@ -134,10 +135,16 @@ def register_frame(run_dir: Path, frame: int, config: Config) -> dict:
     base = _load_base(layout, log, base_frame(frame, every), every, template)
     new_every = config.target.new_points_every
     images = log.frame_images(frame) if new_every and frame % new_every == 0 else None
+    previous = None
+    if frame - 1 > base.frame:  # tracked through (core/target/track_points._via)
+        seen = tools_as_seen(log, config, frame - 1)
+        previous = FrameInput(frame - 1, frame_views(log, frame - 1),
+                              log.usable_poses(frame - 1), log.all_tool_poses(frame - 1),
+                              camera_tool_pose=seen if seen.ndim == 4 else None)
     seen = tools_as_seen(log, config, frame)
     inputs = FrameInput(frame, frame_views(log, frame), log.usable_poses(frame),
                         log.all_tool_poses(frame), images,
-                        camera_tool_pose=seen if seen.ndim == 4 else None)
+                        camera_tool_pose=seen if seen.ndim == 4 else None, previous=previous)
     seconds_views = time.perf_counter() - start  # counted with the target: its images
     try:
         result = registrar.step(inputs, base)

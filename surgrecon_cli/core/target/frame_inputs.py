@@ -46,7 +46,8 @@ class FrameInput:
     unusable), every tool's pose (K, 4, 4) (NaN = unknown) and, when new features are to be
     triangulated into its target, its RGB images (H, W, 3) uint8 (else None);
     `camera_tool_pose` (C, K, 4, 4): each camera's view of the tools (`tool.camera_offsets`),
-    None = every camera sees them at `tool_pose`."""
+    None = every camera sees them at `tool_pose`; `previous`: the frame before it when that
+    is not the base (None: none or not given), tracked through (core/target/track_points)."""
 
     index: int
     views: list[TrackingView | None]
@@ -54,6 +55,7 @@ class FrameInput:
     tool_pose: np.ndarray
     images: list[np.ndarray | None] | None = None
     camera_tool_pose: np.ndarray | None = None
+    previous: FrameInput | None = None
 
     @property
     def seen_tools(self) -> np.ndarray:

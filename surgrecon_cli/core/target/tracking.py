@@ -4,11 +4,12 @@ forward-backward and photometrically (Su et al. 2019, section II.B: the target c
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import cv2
 import numpy as np
+from scipy.spatial import cKDTree
 
 from ...config import TargetConfig
 from ..noise.model import image_noise_sigma
@@ -23,6 +24,9 @@ SPECULAR_VALUE = 235  # ours: a pixel this bright (max of RGB, of 255) ...
 SPECULAR_CHROMA = 40  # ... with max - min of RGB at most this is a saturated highlight
 SPECULAR_MARGIN_PX = 4  # ours: a track this close to a highlight is not trusted (px)
 MIN_MOTION_FIT = 6  # pilot tracks needed to fit the image motion (a 2D similarity)
+NEIGHBOUR_TRACKS = 8  # ours: tracked neighbours whose median flow predicts a lost track
+NEIGHBOUR_RADIUS_PX = 48.0  # ours: ... found within this distance (px, in the start image)
+NEIGHBOUR_ROUNDS = 2  # ours: rounds of that prediction (each reaches one ring further in)
 
 
 def tracking_image(image: np.ndarray) -> np.ndarray:
@@ -231,6 +235,8 @@ def track_adaptive(prev: TrackingView, cur: TrackingView, start: np.ndarray,
     if len(again):
         tracked[again], ok[again] = klt_track(prev, cur, start[again], guess[again], cfg, full)
         moved[again] = np.linalg.norm(tracked[again] - guess[again], axis=1)
+    tracked, ok = retrack_from_neighbours(prev, cur, start, guess, tracked, ok, cfg)
+    moved = np.linalg.norm(tracked - guess, axis=1)
     return tracked, ok, np.where(ok, moved, np.nan)
 
 
@@ -258,3 +264,51 @@ def patch_ncc(image_a: np.ndarray, pixels_a: np.ndarray, image_b: np.ndarray,
     a, b = patches(image_a, pixels_a), patches(image_b, pixels_b)
     denom = np.sqrt((a * a).sum(1) * (b * b).sum(1))
     return np.where(denom > 1e-9, (a * b).sum(1) / np.maximum(denom, 1e-9), -1.0)
+
+
+def neighbour_flow(source: np.ndarray, flow: np.ndarray, query: np.ndarray) -> np.ndarray:
+    """The local flow (M, 2) px at pixels query (M, 2): the median of `flow` (K, 2) over the
+    NEIGHBOUR_TRACKS nearest of source (K, 2) within NEIGHBOUR_RADIUS_PX (NaN where none
+    is). Tissue pushed by a tool moves its image several px more than the camera's motion
+    says, smoothly: the tracks found around a point predict where it went."""
+    out = np.full((len(query), 2), np.nan)
+    if len(source) == 0 or len(query) == 0:
+        return out
+    k = min(NEIGHBOUR_TRACKS, len(source))
+    dist, idx = cKDTree(source).query(query, k=k, distance_upper_bound=NEIGHBOUR_RADIUS_PX)
+    dist, idx = dist.reshape(len(query), k), idx.reshape(len(query), k)
+    near = np.isfinite(dist)
+    padded = np.vstack([flow, np.full((1, 2), np.nan)])
+    values = padded[np.where(near, idx, len(source))]  # (M, k, 2), NaN where none
+    has = near.any(1)
+    out[has] = np.nanmedian(values[has], axis=1)
+    return out
+
+
+def retrack_from_neighbours(prev: TrackingView, cur: TrackingView, start: np.ndarray,
+                            guess: np.ndarray, tracked: np.ndarray, ok: np.ndarray,
+                            cfg: TargetConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Tracks (M, 2) and ok (M,) with the failed ones tracked again (full pyramid, same
+    checks) from their guess (M, 2) moved by the `neighbour_flow` of the found tracks'
+    departures from their guesses, around their start pixels (M, 2); NEIGHBOUR_ROUNDS
+    rounds, so a patch of tissue that moved far from the prediction is reached from its
+    rim inwards."""
+    tracked, ok = tracked.copy(), ok.copy()
+    for _ in range(NEIGHBOUR_ROUNDS):
+        lost = np.flatnonzero(~ok)
+        if not len(lost) or not ok.any():
+            break
+        flow = neighbour_flow(start[ok], tracked[ok] - guess[ok], start[lost])
+        lost_flow = np.isfinite(flow).all(1) & (np.linalg.norm(flow, axis=1) > 1.0)
+        lost, flow = lost[lost_flow], flow[lost_flow]
+        if not len(lost):
+            break
+        again, again_ok = klt_track(prev, cur, start[lost], guess[lost] + flow, cfg)
+        small = np.flatnonzero(~again_ok)
+        if len(small):  # a deformed patch: a smaller window sees less of the deformation
+            narrow = replace(cfg, klt_window_px=max(5, cfg.klt_window_px // 2 | 1))
+            again[small], again_ok[small] = klt_track(
+                prev, cur, start[lost[small]], guess[lost[small]] + flow[small], narrow)
+        tracked[lost[again_ok]] = again[again_ok]
+        ok[lost[again_ok]] = True
+    return tracked, ok
