@@ -71,3 +71,15 @@ def render_frames(cfg: SimConfig, frames: list[int]) -> RenderedFrames:
         builder.models,
         cfg,
     )
+
+
+def tool_pose_along(tip: np.ndarray, axis: np.ndarray, reference: np.ndarray) -> np.ndarray:
+    """A tool pose (4, 4) with its tip at `tip` (m) and its z axis along `axis`; x is
+    perpendicular to both `reference` and z."""
+    z = axis / np.linalg.norm(axis)
+    x = np.cross(reference, z)
+    x /= np.linalg.norm(x)
+    pose = np.eye(4)
+    pose[:3, :3] = np.column_stack([x, np.cross(z, x), z])
+    pose[:3, 3] = tip
+    return pose

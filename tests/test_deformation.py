@@ -9,6 +9,7 @@ import dataclasses
 
 import numpy as np
 import pytest
+from scenes import tool_pose_along
 
 from surgrecon_cli.config import Config, ConfigError, load_config
 from surgrecon_cli.core.classify.rules import template_neighbourhoods
@@ -54,13 +55,7 @@ def sheet():
 
 
 def _pose(tip: np.ndarray, axis: np.ndarray = TILT) -> np.ndarray:
-    z = axis / np.linalg.norm(axis)
-    x = np.cross([0.0, 1.0, 0.0], z)
-    x /= np.linalg.norm(x)
-    pose = np.eye(4)
-    pose[:3, :3] = np.column_stack([x, np.cross(z, x), z])
-    pose[:3, 3] = tip
-    return pose
+    return tool_pose_along(tip, axis, np.array([0.0, 1.0, 0.0]))
 
 
 def _centre(points: np.ndarray, xy=(0.0, 0.0)) -> int:

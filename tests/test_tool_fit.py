@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import numpy as np
+from scenes import tool_pose_along
 
 from surgrecon_cli.config import ToolConfig
 from surgrecon_cli.core.geometry.cameras import CameraModel
@@ -16,13 +17,7 @@ SHAFT = ToolConfig(shaft_radius_m=0.004, shaft_length_m=0.15, mask_margin_px=0.0
 
 
 def _shaft_pose(tip: np.ndarray, up: np.ndarray) -> np.ndarray:
-    z = up / np.linalg.norm(up)
-    x = np.cross([0.0, 0.0, 1.0], z)
-    x /= np.linalg.norm(x)
-    pose = np.eye(4)
-    pose[:3, :3] = np.column_stack([x, np.cross(z, x), z])
-    pose[:3, 3] = tip
-    return pose
+    return tool_pose_along(tip, up, np.array([0.0, 0.0, 1.0]))
 
 
 def _render(cam_to_world: np.ndarray, tools: np.ndarray, rng: np.random.Generator) -> np.ndarray:

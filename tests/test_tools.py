@@ -103,15 +103,22 @@ def test_a_second_arm_is_ingested(tmp_path: Path, capsys):
     assert "PSM3" in capsys.readouterr().err
 
 
-def test_the_template_has_no_point_on_a_second_tool():
-    """A second tool laid across the tissue seen by the rig: without it the template has
-    points along its axis, with it none within its radius."""
+def _scene_and_plain_template():
+    """A small 4-camera scene, the default config, its template with the one simulated tool
+    and the template point nearest the points' median (m)."""
     scene = render_frames(SimConfig(cameras=4, frames=2, width=300, height=250, seed=3), [0])
     cfg = Config()
     plain = build_template(TemplateFrame(scene.images[0], scene.poses[0], scene.tool_poses[0]),
                            scene.models, cfg.template, cfg.tool)
     median = np.median(plain.points, axis=0)
-    centre = plain.points[np.argmin(np.linalg.norm(plain.points - median, axis=1))]
+    return scene, cfg, plain, plain.points[np.argmin(np.linalg.norm(plain.points - median,
+                                                                      axis=1))]
+
+
+def test_the_template_has_no_point_on_a_second_tool():
+    """A second tool laid across the tissue seen by the rig: without it the template has
+    points along its axis, with it none within its radius."""
+    scene, cfg, plain, centre = _scene_and_plain_template()
     across = make_pose(centre, np.array([0.0, np.sqrt(0.5), 0, np.sqrt(0.5)]))  # z along x
     second = ToolConfig(shaft_radius_m=0.002, shaft_length_m=0.01, jaw_length_m=0.01,
                         jaw_width_m=0.004)
@@ -128,12 +135,7 @@ def test_the_template_has_no_point_on_a_second_tool():
 def test_camera_offsets_move_a_tool_in_the_cameras_that_see_it_there():
     """The kinematics put a second tool 5 cm off where every camera sees it (a hand-eye
     error, `camera_offsets`): the template is masked and cleared at the seen place."""
-    scene = render_frames(SimConfig(cameras=4, frames=2, width=300, height=250, seed=3), [0])
-    cfg = Config()
-    plain = build_template(TemplateFrame(scene.images[0], scene.poses[0], scene.tool_poses[0]),
-                           scene.models, cfg.template, cfg.tool)
-    median = np.median(plain.points, axis=0)
-    centre = plain.points[np.argmin(np.linalg.norm(plain.points - median, axis=1))]
+    scene, cfg, plain, centre = _scene_and_plain_template()
     seen = make_pose(centre, np.array([0.0, np.sqrt(0.5), 0, np.sqrt(0.5)]))
     kinematic = seen.copy()
     kinematic[:3, 3] += [0.05, 0.0, 0.0]
