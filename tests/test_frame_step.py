@@ -60,17 +60,17 @@ def test_a_motion_beyond_the_chosen_depth_is_found_by_the_full_depth_retry():
 
 def test_of_two_priors_the_one_whose_pilot_tracks_more_points_is_used():
     # The image moved 14 px; one prior (a stale projection) is 74 px off, beyond the
-    # pyramid's reach; the other (no motion) is 14 px off: the tracks start from it.
+    # pyramid's reach (only the retries from the found tracks' flow rescue some of its
+    # tracks); the other (no motion) is 14 px off: the tracks start from it.
     cfg = Config().target
     prev, cur = tracking_view(_texture(0.0)), tracking_view(_texture(14.0))
     g = np.arange(50.0, 150.0, 8.0)
     start = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
     stale = start - [60.0, 0.0]
     _, ok_stale, _ = track_adaptive(prev, cur, start, TrackPrior(stale), cfg)
-    assert ok_stale.mean() < 0.5
     tracked, ok, _ = track_adaptive(prev, cur, start,
                                     TrackPrior(stale, alternative=start.copy()), cfg)
-    assert ok.mean() > 0.9
+    assert ok.mean() > 0.9 and ok.mean() > ok_stale.mean() + 0.1
     assert np.median(np.abs(tracked[ok] - (start[ok] + [14.0, 0.0]))) < 0.05
 
 

@@ -235,7 +235,7 @@ def track_adaptive(prev: TrackingView, cur: TrackingView, start: np.ndarray,
     if len(again):
         tracked[again], ok[again] = klt_track(prev, cur, start[again], guess[again], cfg, full)
         moved[again] = np.linalg.norm(tracked[again] - guess[again], axis=1)
-    tracked, ok = retrack_from_neighbours(prev, cur, start, guess, tracked, ok, cfg)
+    tracked, ok = retrack_from_neighbours(prev, cur, start, guess, (tracked, ok), cfg)
     moved = np.linalg.norm(tracked - guess, axis=1)
     return tracked, ok, np.where(ok, moved, np.nan)
 
@@ -286,14 +286,14 @@ def neighbour_flow(source: np.ndarray, flow: np.ndarray, query: np.ndarray) -> n
 
 
 def retrack_from_neighbours(prev: TrackingView, cur: TrackingView, start: np.ndarray,
-                            guess: np.ndarray, tracked: np.ndarray, ok: np.ndarray,
+                            guess: np.ndarray, found: tuple[np.ndarray, np.ndarray],
                             cfg: TargetConfig) -> tuple[np.ndarray, np.ndarray]:
-    """Tracks (M, 2) and ok (M,) with the failed ones tracked again (full pyramid, same
-    checks) from their guess (M, 2) moved by the `neighbour_flow` of the found tracks'
-    departures from their guesses, around their start pixels (M, 2); NEIGHBOUR_ROUNDS
-    rounds, so a patch of tissue that moved far from the prediction is reached from its
-    rim inwards."""
-    tracked, ok = tracked.copy(), ok.copy()
+    """The first pass's `found` = (tracks (M, 2), ok (M,)), with the failed ones tracked
+    again (full pyramid, same checks) from their guess (M, 2) moved by the
+    `neighbour_flow` of the found tracks' departures from their guesses, around their start
+    pixels (M, 2); NEIGHBOUR_ROUNDS rounds, so a patch of tissue that moved far from the
+    prediction is reached from its rim inwards."""
+    tracked, ok = found[0].copy(), found[1].copy()
     for _ in range(NEIGHBOUR_ROUNDS):
         lost = np.flatnonzero(~ok)
         if not len(lost) or not ok.any():
