@@ -20,6 +20,7 @@ import cv2
 import numpy as np
 
 from ..config import Config, ToolConfig
+from ..core.geometry.tool import tool_name
 from ..core.geometry.tool_fit import ShaftFit, fit_tool_offset
 from ..errors import InputError
 from ..io.run.ingest_store import load_ingested
@@ -40,11 +41,6 @@ class OffsetRow:
     contrast: float
     spread_m: np.ndarray
     used: bool
-
-
-def tool_names(config: Config) -> list[str]:
-    """`tool`, `tool_1`, ... in config order (as `deformation_tools.csv` names them)."""
-    return ["tool"] + [f"tool_{k}" for k in range(1, len(config.tools) + 1)]
 
 
 def _groups(cameras: Sequence[str], groups: Sequence[Sequence[str]]) -> list[tuple[str, ...]]:
@@ -82,7 +78,6 @@ def fit_run_tool_offsets(run_dir: Path, config: Config, frame: int = 0,
     if len(tools) != len(cfgs):
         raise InputError(f"{run_dir}: ingested with {len(tools)} tools, the config has "
                          f"{len(cfgs)}; ingest again with this config")
-    names = tool_names(config)
     index = {name: c for c, name in enumerate(log.cameras)}
     poses = log.usable_poses(frame)
     options = ShaftFit(radius_m=radius_m, search_m=search_m, max_turn_deg=0.0)
@@ -99,7 +94,7 @@ def fit_run_tool_offsets(run_dir: Path, config: Config, frame: int = 0,
                 continue
             fit = fit_tool_offset(grays, models, poses[cams], tools[k:k + 1], [cfg], options)
             used = fit.contrast >= min_contrast and fit.contrast > fit.contrast_at_zero
-            rows.append(OffsetRow(group, names[k], fit.move[:3, 3].copy(), fit.contrast_at_zero,
+            rows.append(OffsetRow(group, tool_name(k), fit.move[:3, 3].copy(), fit.contrast_at_zero,
                                   fit.contrast, fit.spread_m, bool(used)))
             if used:
                 offsets[k].update({c: fit.move[:3, 3] for c in group})
