@@ -120,6 +120,18 @@ def _registrar(run_dir: str, _identity: tuple, config: Config) -> FrameRegistrar
     return FrameRegistrar(template, models, noise, config, anchor=frame_views(log, 0))
 
 
+def _frame_input(log: IngestedLog, config: Config, frame: int,
+                 images: list[np.ndarray | None] | None = None,
+                 previous: FrameInput | None = None) -> FrameInput:
+    """A frame's tracking views, usable poses and tools (with each camera's view of them
+    where `tool.camera_offsets` moves them), its RGB images when new points are to be
+    triangulated, and the frame tracked through on the way from the base."""
+    seen = tools_as_seen(log, config, frame)
+    return FrameInput(frame, frame_views(log, frame), log.usable_poses(frame),
+                      log.all_tool_poses(frame), images,
+                      camera_tool_pose=seen if seen.ndim == 4 else None, previous=previous)
+
+
 def register_frame(run_dir: Path, frame: int, config: Config) -> dict:
     """Target cloud and registration of one frame k >= 1 against its base (a task: reads
     the run folder, writes RUN/registration/k.npz atomically). Returns the frame's timings
@@ -135,16 +147,10 @@ def register_frame(run_dir: Path, frame: int, config: Config) -> dict:
     base = _load_base(layout, log, base_frame(frame, every), every, template)
     new_every = config.target.new_points_every
     images = log.frame_images(frame) if new_every and frame % new_every == 0 else None
-    previous = None
-    if frame - 1 > base.frame:  # tracked through (core/target/track_points._via)
-        seen = tools_as_seen(log, config, frame - 1)
-        previous = FrameInput(frame - 1, frame_views(log, frame - 1),
-                              log.usable_poses(frame - 1), log.all_tool_poses(frame - 1),
-                              camera_tool_pose=seen if seen.ndim == 4 else None)
-    seen = tools_as_seen(log, config, frame)
-    inputs = FrameInput(frame, frame_views(log, frame), log.usable_poses(frame),
-                        log.all_tool_poses(frame), images,
-                        camera_tool_pose=seen if seen.ndim == 4 else None, previous=previous)
+    # the previous frame, when it lies after the base, is tracked through
+    # (core/target/track_points._via)
+    previous = _frame_input(log, config, frame - 1) if frame - 1 > base.frame else None
+    inputs = _frame_input(log, config, frame, images, previous)
     seconds_views = time.perf_counter() - start  # counted with the target: its images
     try:
         result = registrar.step(inputs, base)
