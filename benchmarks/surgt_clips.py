@@ -15,6 +15,9 @@ A SPEC is comma-separated `key=value` (any order, all optional):
                 eye warped by K R K⁻¹ (a pure rotation about the baseline keeps the stereo
                 geometry exact; lens distortion, ~0.1 px here, is ignored), so a rigid scene
                 seen by an endoscope turning 1-3.5° a frame
+    breathe=2   the first selected frame's tissue breathes with this amplitude (mm), its
+                motion known (benchmarks/surgt_breathing.py); writes clip.gt.npz
+    period=39   frames of one breath (default: the clip's length)
 e.g. `step=3,scale=0.5` -> frames 0, 3, 6, 9 at 640x512. The clip is written as left/right
 image folders with its calibration (intrinsics scaled) and converted with `surgrecon
 convert` (the rig is fixed in the world, so the scene moves rigidly in the rig frame).
@@ -26,13 +29,14 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from surgt_breathing import breathing_frames
 
 SURGT = Path(__file__).resolve().parents[1] / "tests" / "data" / "surgt"
 
 
 def parse_spec(spec: str) -> dict[str, float]:
     out = {"step": 1.0, "scale": 1.0, "reverse": 0.0, "jpeg": 0.0, "frames": 10.0,
-           "length": 0.0, "pitch": 0.0}
+           "length": 0.0, "pitch": 0.0, "breathe": 0.0, "period": 0.0}
     for item in filter(None, spec.split(",")):
         key, _, value = item.partition("=")
         if key not in out:
@@ -71,6 +75,26 @@ def scaled_calibration(path: Path, scale: float) -> Path:
     return path
 
 
+def calibration() -> dict[str, np.ndarray]:
+    """The sample's OpenCV stereo calibration (M1 D1 M2 D2 R T; T in mm)."""
+    fs = cv2.FileStorage(str(SURGT / "calibration.yaml"), cv2.FILE_STORAGE_READ)
+    out = {k: fs.getNode(k).mat().astype(np.float64) for k in ("M1", "D1", "M2", "D2", "R", "T")}
+    fs.release()
+    return out
+
+
+def breathing_clip(frame: np.ndarray, opts: dict[str, float], out_dir: Path
+                   ) -> list[np.ndarray]:
+    """`length` side-by-side frames of `frame`'s tissue breathing; its truth written to
+    out_dir/clip.gt.npz (stamps at 5 fps, as the clip is converted)."""
+    length = int(opts["length"] or 39)
+    pairs, truth = breathing_frames(frame[:, :1280], frame[:, 1280:], calibration(),
+                                    opts["breathe"], length, opts["period"] or length)
+    truth["stamps_ns"] = np.round(np.arange(length) * 1e9 / 5).astype(np.int64)
+    np.savez_compressed(out_dir / "clip.gt.npz", **truth)
+    return [np.hstack(pair) for pair in pairs]
+
+
 def make_clip(spec: str, out_dir: Path) -> tuple[Path, Path]:
     """Build the clip of `spec` under out_dir; returns (log.mcap, config.toml)."""
     from surgrecon_cli.cli.main import main as cli
@@ -79,14 +103,15 @@ def make_clip(spec: str, out_dir: Path) -> tuple[Path, Path]:
     frames = decoded_frames(int(opts["frames"]))[::max(int(opts["step"]), 1)]
     if opts["reverse"]:
         frames = frames[::-1]
-    if opts["length"]:
+    if opts["breathe"]:
+        frames = breathing_clip(frames[0], opts, out_dir)
+    elif opts["length"]:
         cycle = frames + frames[-2:0:-1]
         frames = [cycle[i % len(cycle)] for i in range(int(opts["length"]))]
     folder = out_dir / "images"
-    fs = cv2.FileStorage(str(SURGT / "calibration.yaml"), cv2.FILE_STORAGE_READ)
-    K = {"left": fs.getNode("M1").mat(), "right": fs.getNode("M2").mat()}
-    r_rel = fs.getNode("R").mat().astype(float)  # x_right = R x_left + T
-    fs.release()
+    calib = calibration()
+    K = {"left": calib["M1"], "right": calib["M2"]}
+    r_rel = calib["R"]  # x_right = R x_left + T
     tri = np.array([0, 1, 2, 3, 2, 1, 0, -1, -2, -3, -2, -1])
     for i, frame in enumerate(frames):
         angle = np.radians(opts["pitch"] * tri[i % len(tri)])
