@@ -12,7 +12,7 @@ RUN/template/summary.json (counts, pair plan, pixel_noise_px).
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -71,14 +71,7 @@ def run_build_template(
                     names=log.cameras,
                 ),
             )
-        for a, b, px in result.stats["disagreeing_groups"]:
-            logger.warning("cameras %s and cameras %s are not linked: their images match "
-                           "(matches found without the poses) but their poses put those "
-                           "matches %.1f px (median) off the epipolar lines; they reconstruct "
-                           "the surface apart: check their calibrations / poses",
-                           " ".join(log.cameras[c] for c in a),
-                           " ".join(log.cameras[c] for c in b), px)
-        for line in unlinked_report(result.plan.groups, result.stats, log.cameras):
+        for line in result.warnings:
             logger.warning("%s", line)
         n = len(result.points)
         obs = result.observations
@@ -109,31 +102,3 @@ def pipeline_step(ctx: StageContext, progress: Callable[[float], None]) -> None:
     """The stage within `surgrecon run`: progress by template-building step."""
     run_build_template(ctx.run_dir, ctx.config, executor=ctx.executor,
                        on_step=lambda name: progress((STEPS.index(name) + 1) / len(STEPS)))
-
-
-def unlinked_report(groups: list[list[int]], stats: dict, names: Sequence[str]) -> list[str]:
-    """One line per camera in no verified pair (it gives no template point), naming its
-    best pair and that pair's verified matches against the gate; and one line when the
-    cameras form several linked groups, which reconstruct in their own poses' frames
-    without a match tying them together."""
-    counts = {tuple(map(int, k.split("-"))): n for k, n in stats.get("pair_counts", {}).items()}
-    gate = {tuple(map(int, k.split("-"))): n for k, n in stats.get("pair_minimums", {}).items()}
-    lines = []
-    for group in groups:
-        if len(group) != 1:
-            continue
-        c = group[0]
-        pairs = sorted((n, p) for p, n in counts.items() if c in p)
-        best = (f"; its best pair {names[pairs[-1][1][0]]}-{names[pairs[-1][1][1]]} has "
-                f"{pairs[-1][0]} matches of the {gate.get(pairs[-1][1], '?')} needed "
-                "(template.min_pair_matches, template.min_pair_match_fraction)") if pairs else ""
-        lines.append(f"camera {names[c]} is linked to no other camera and gives no template "
-                     f"point{best}")
-    linked = [g for g in groups if len(g) >= 2]
-    if len(linked) >= 2 and not stats.get("disagreeing_groups"):
-        lines.append("cameras form " + str(len(linked)) + " separately linked groups ("
-                     + "; ".join(" ".join(names[c] for c in g) for g in linked)
-                     + "): no verified match ties them, each reconstructs in its own "
-                     "cameras' poses, so a pose or calibration disagreement between the "
-                     "groups goes unchecked")
-    return lines

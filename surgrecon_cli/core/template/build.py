@@ -34,7 +34,7 @@ from ..noise.model import (
     projection_jacobians,
 )
 from .features import detect_features, no_features
-from .gate import group_disagreements, pair_minimums, unlinked_message
+from .gate import group_disagreements, link_warnings, pair_minimums, unlinked_message
 from .matching import CameraView, PairGates, build_tracks, match_pair
 from .outliers import surface_outliers
 from .pairing import PairPlan, PairPrediction, candidate_pairs, predict_pairs
@@ -73,7 +73,7 @@ class TemplateResult:
     the triangulation's uncertainty (√trace, per-view errors only: what the max_sigma_mm
     cut uses); the observations of each point at
     frame 0 (`observations.point` indexes points); the pair plan and prediction; counts of
-    what each step kept."""
+    what each step kept; warnings (lines) on cameras that are not linked (gate.link_warnings)."""
 
     points: np.ndarray
     rgb: np.ndarray
@@ -87,6 +87,7 @@ class TemplateResult:
     plan: PairPlan
     prediction: PairPrediction
     stats: dict
+    warnings: list[str]
 
 
 @dataclass(frozen=True)
@@ -131,7 +132,8 @@ def build_template(
     executor's)."""
     images, poses, tool_pose = frame.images, frame.poses, frame.tool_pose
     opts = options or BuildOptions()
-    map_calls, noise, names = opts.map_calls, opts.noise, opts.names
+    map_calls, noise = opts.map_calls, opts.noise
+    labels = [str(c) for c in opts.names or range(len(images))]
     step = opts.on_step or (lambda _name: None)
     usable = np.array(
         [im is not None and np.isfinite(p).all() for im, p in zip(images, poses, strict=True)]
@@ -176,9 +178,8 @@ def build_template(
     plan = matched.plan
     track_ids, n_tracks = build_tracks([len(f) for f in features], matched.merges)
     if n_tracks == 0:
-        raise GeometryError(unlinked_message(
-            matched.counts, minimums, [str(c) for c in names or range(len(images))],
-            cfg.min_pair_matches, cfg.min_pair_match_fraction))
+        raise GeometryError(unlinked_message(matched.counts, minimums, labels,
+                                             cfg.min_pair_matches, cfg.min_pair_match_fraction))
     obs = track_observations(features, track_ids).observations
     tri = triangulate(obs, poses, models, n_tracks)
     # Drop single bad observations and re-triangulate what still has >= 2 views.
@@ -248,6 +249,7 @@ def build_template(
         plan=plan,
         prediction=prediction,
         stats=stats,
+        warnings=link_warnings(plan.groups, matched.counts, minimums, labels, disagree),
     )
 
 

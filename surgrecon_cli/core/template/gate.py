@@ -63,6 +63,42 @@ def unlinked_message(counts: dict[tuple[int, int], int], minimums: np.ndarray,
             "check the calibration and poses")
 
 
+def link_warnings(groups: list[list[int]], counts: dict[tuple[int, int], int],
+                  minimums: np.ndarray, names: Sequence[str],
+                  disagreeing: list[tuple[list[int], list[int], float]]) -> list[str]:
+    """One line per link problem a user must hear of: each pair of groups whose images match
+    but whose poses do not (`disagreeing`, from `group_disagreements`); each camera in no
+    verified pair (it gives no template point), with its best pair's verified matches
+    (`counts` of pair (i, j)) against that pair's minimum; and, when the cameras form several
+    linked groups that no check compared, that nothing ties them together."""
+    lines = [f"cameras {' '.join(names[c] for c in a)} and cameras "
+             f"{' '.join(names[c] for c in b)} are not linked: their images match (matches "
+             f"found without the poses) but their poses put those matches {px:.1f} px "
+             "(median) off the epipolar lines; they reconstruct the surface apart: check "
+             "their calibrations / poses" for a, b, px in disagreeing]
+    for group in groups:
+        if len(group) != 1:
+            continue
+        c = group[0]
+        pairs = sorted((n, p) for p, n in counts.items() if c in p)
+        best = ""
+        if pairs:
+            n, (i, j) = pairs[-1]
+            best = (f"; its best pair {names[i]}-{names[j]} has {n} matches of the "
+                    f"{minimums[i, j]} needed (template.min_pair_matches, "
+                    "template.min_pair_match_fraction)")
+        lines.append(f"camera {names[c]} is linked to no other camera and gives no template "
+                     f"point{best}")
+    linked = [g for g in groups if len(g) >= 2]
+    if len(linked) >= 2 and not disagreeing:
+        lines.append(f"cameras form {len(linked)} separately linked groups ("
+                     + "; ".join(" ".join(names[c] for c in g) for g in linked)
+                     + "): no verified match ties them, each reconstructs in its own "
+                     "cameras' poses, so a pose or calibration disagreement between the "
+                     "groups goes unchecked")
+    return lines
+
+
 def group_disagreements(views: list[CameraView], groups: list[list[int]],
                         pairs: list[tuple[int, int]], floor: int,
                         epipolar_px: float) -> list[tuple[list[int], list[int], float]]:
