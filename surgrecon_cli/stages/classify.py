@@ -32,6 +32,7 @@ from ..core.classify.rules import (
     Neighbourhoods,
     RegisteredFrame,
     classify_frame,
+    displacement_covariance,
     template_neighbourhoods,
 )
 from ..core.geometry.cameras import CameraModel
@@ -153,7 +154,8 @@ def frame_evidence(reg: FrameRegistration, registered: np.ndarray,
     has = reg.has_target
     iso = (np.nan_to_num(sigma, posinf=1e3) ** 2 + template.sigma**2) / 3.0
     departure = iso[:, None, None] * np.eye(3)
-    departure[has] = reg.target_covariance[has].astype(float) + template.covariance[has]
+    departure[has] = displacement_covariance(reg.target_covariance[has].astype(float),
+                                             template.covariance[has])
     displacement = departure.copy()
     displacement[has] += (reg.target_pose_covariance[has].astype(float)
                           + template.pose_covariance[has])
@@ -191,7 +193,7 @@ def static_verdicts_checked(reg: FrameRegistration, template_noise: TemplateNois
     displacement, departure = evidence.displacement_cov.copy(), evidence.departure_cov.copy()
     measured[seen] = position[seen]
     measured_sigma[seen] = covariance_sigma(image_cov[seen] + pose_cov[seen])
-    departure[seen] = image_cov[seen] + template_noise.covariance[seen]
+    departure[seen] = displacement_covariance(image_cov[seen], template_noise.covariance[seen])
     displacement[seen] = departure[seen] + pose_cov[seen] + template_noise.pose_covariance[seen]
     return registered, replace(evidence, measured=measured, measured_sigma=measured_sigma,
                                displacement_cov=displacement, departure_cov=departure)

@@ -222,6 +222,31 @@ def transform_difference_mm(template: np.ndarray, transforms: np.ndarray, nb: Ne
     return out
 
 
+def displacement_covariance(position_cov: np.ndarray, template_cov: np.ndarray) -> np.ndarray:
+    """Covariance (N, 3, 3) m² of a displacement x − p from a later measurement x (position_cov
+    (N, 3, 3) m² from image noise) of a template point p (template_cov (N, 3, 3) m², its
+    frame-0 image noise), where tracking carries p's image error into x: Σ_x + Σ_p − 2 S,
+    S the error they share, in each direction no more than either carries. In the basis where
+    Σ_p = I and Σ_x = Λ (generalised eigenvectors), S = min(Λ, I), so the displacement's
+    variance is |Λ − I| there (the matrix form of `Evidence.displacement_sigma`'s
+    |σ² − σ_t²|): on a narrow stereo baseline both positions know depth to ~1 mm, their
+    difference to the tracking error alone. Rows with non-finite input: Σ_x + Σ_p."""
+    cx = np.asarray(position_cov, float)
+    cp = np.asarray(template_cov, float)
+    out = cx + cp
+    ok = np.isfinite(cx).all((1, 2)) & np.isfinite(cp).all((1, 2))
+    if not ok.any():
+        return out
+    floor = np.eye(3) * SIGMA_FLOOR_M**2
+    low = np.linalg.cholesky(cp[ok] + floor)  # Σ_p = L Lᵀ
+    inv = np.linalg.inv(low)
+    whitened = inv @ (cx[ok] + floor) @ np.swapaxes(inv, 1, 2)
+    lam, vec = np.linalg.eigh(0.5 * (whitened + np.swapaxes(whitened, 1, 2)))
+    back = low @ vec
+    out[ok] = np.einsum("nij,nj,nkj->nik", back, np.abs(lam - 1.0), back)
+    return out
+
+
 def significant_motion(displacement: np.ndarray, covariance: np.ndarray,
                        significance: float) -> np.ndarray:
     """(N,) bool: the displacement (N, 3) m is more than its covariance (N, 3, 3) m²
@@ -259,6 +284,44 @@ def departure_statistic(template: np.ndarray, positions: np.ndarray, covariance:
     residual, keep = rigid_fit_residuals(template, positions, index, mask, weights=weight)
     stat = np.einsum("mki,mkij,mkj->m", residual, info[index], residual)
     return stat, 3.0 * keep.sum(1) - 6.0
+
+
+def resolved_rms_mm(template: np.ndarray, positions: np.ndarray, covariance: np.ndarray,
+                    nb: Neighbourhoods, rows: np.ndarray, deform_mm: float) -> np.ndarray:
+    """The rigid-fit RMS (M,) mm of each neighbourhood (the point `rows` (M,) and its
+    neighbours, frame-0 template (N, 3) m to positions (N, 3) m), measured in the directions
+    the data resolve: each member's residual r_j is weighted by W_j = (Σ_j + d²/3 I)⁻¹ (Σ_j
+    (N, 3, 3) m² its noise covariance, d = `deform_mm`: a deformation of RMS d spread over
+    the three axes) and the energy S = Σ r_jᵀ W_j r_j is compared with its expectation when
+    the true residuals have RMS exactly d: T = Σ_j [d²/3 tr W_j + (1 − 2/n) tr(W_j Σ_j)]
+    (the noise's share after a rigid fit of n members); the result is d √(S / T), so it is at
+    least d when the departure exceeds a deformation of RMS d plus the noise. Without noise
+    (Σ = 0) it is the plain rigid-fit RMS; a direction the rig knows poorly (depth on a
+    narrow stereo baseline) counts by how far its departure exceeds its own noise. The fit
+    is weighted by each member's tr(W_j)/3. Members without a finite covariance are left
+    out; fewer than 3 members left: NaN."""
+    if len(rows) == 0:
+        return np.zeros(0)
+    index = np.concatenate([rows[:, None], nb.index[rows]], axis=1)
+    mask = np.concatenate([np.ones((len(rows), 1), bool), nb.mask[rows]], axis=1)
+    cov = np.asarray(covariance, float)
+    usable = np.isfinite(cov).all((1, 2))
+    spread = (deform_mm * 1e-3) ** 2 / 3.0
+    info = np.zeros_like(cov)
+    info[usable] = np.linalg.inv(cov[usable] + np.eye(3) * (spread + SIGMA_FLOOR_M**2))
+    weight = np.where(usable, np.trace(info, axis1=1, axis2=2) / 3.0, 0.0)
+    residual, keep = rigid_fit_residuals(template, positions, index, mask, weights=weight)
+    stat = np.einsum("mki,mkij,mkj->m", residual, info[index], residual)
+    n = keep.sum(1)
+    noise = np.einsum("nij,nji->n", info[usable], cov[usable])
+    member_noise = np.zeros(len(cov))
+    member_noise[usable] = noise
+    share = 1.0 - 2.0 / np.maximum(n, 1)
+    expected = (spread * (np.trace(info, axis1=1, axis2=2)[index] * keep).sum(1)
+                + share * (member_noise[index] * keep).sum(1))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out = deform_mm * np.sqrt(stat / expected)
+    return np.where(n >= 3, out, np.nan)
 
 
 def noise_scale(stat: np.ndarray, dof: np.ndarray) -> float:
@@ -321,7 +384,8 @@ def classify_frame(template: np.ndarray, frame: RegisteredFrame, nb: Neighbourho
         at = np.searchsorted(judged, rows)
         significant = (dof[at] > 0) & (stat[at] / scale > chi2.isf(cfg.significance,
                                                                     np.maximum(dof[at], 1.0)))
-        measure = rigid_rms_mm(template, registered, nb, rows)
+        measure = resolved_rms_mm(template, registered, scale * np.asarray(
+            evidence.departure_cov, float), nb, rows, cfg.deform_mm)
         deforming = significant & (measure >= cfg.deform_mm)
     else:
         measure = rigid_rms_mm(template, registered, nb, rows)
