@@ -144,9 +144,10 @@ def frame_evidence(reg: FrameRegistration, registered: np.ndarray,
                    template: TemplateNoise) -> Evidence:
     """The classifier's uncertainties of one registered frame: measured positions are the
     targets where the reprojection check gave one, else the registered positions; the
-    displacement's covariance is the target's plus the template point's where there is a
-    target (a narrow baseline knows depth far worse than the other directions), else
-    isotropic from σ. The rigid-motion test leaves out the pose errors (common to nearby
+    displacement's covariance is the target's and the template point's without the image
+    error they share (`displacement_covariance`: tracking carries the template's frame-0
+    error into the target) where there is a target (a narrow baseline knows depth far worse
+    than the other directions), else isotropic from σ. The rigid-motion test leaves out the pose errors (common to nearby
     points, so the neighbourhood's rigid fit absorbs them)."""
     sigma = reg.sigma.astype(float)
     target = reg.target.astype(float)
@@ -173,8 +174,8 @@ def static_verdicts_checked(reg: FrameRegistration, template_noise: TemplateNois
     static verdicts (intra-camera inliers: target = frame-0 position) are replaced by what
     the points' own views say: every such point whose tracked pixels re-triangulate
     (without a gate, core/noise/frame_noise.retriangulate) is measured there, with that
-    position's covariance plus the template's, and the classification's significance test
-    decides. (The check tests every view alone with the pose error as per-view noise:
+    position's and the template's covariance less the image error they share, and the
+    classification's significance test decides. (The check tests every view alone with the pose error as per-view noise:
     with a narrow stereo baseline, motion along the line of sight moves each view by less
     than that noise, but their disparity by far more than the image noise; on the stereo
     simulator a third of truly deforming points were called static that way.)"""
