@@ -147,8 +147,8 @@ def frame_evidence(reg: FrameRegistration, registered: np.ndarray,
     displacement's covariance is the target's and the template point's without the image
     error they share (`displacement_covariance`: tracking carries the template's frame-0
     error into the target) where there is a target (a narrow baseline knows depth far worse
-    than the other directions), else isotropic from σ. The rigid-motion test leaves out the pose errors (common to nearby
-    points, so the neighbourhood's rigid fit absorbs them)."""
+    than the other directions), else isotropic from σ. The rigid-motion test leaves out the
+    pose errors (common to nearby points, so the neighbourhood's rigid fit absorbs them)."""
     sigma = reg.sigma.astype(float)
     target = reg.target.astype(float)
     target_sigma = reg.target_sigma.astype(float)
@@ -175,10 +175,11 @@ def static_verdicts_checked(reg: FrameRegistration, template_noise: TemplateNois
     the points' own views say: every such point whose tracked pixels re-triangulate
     (without a gate, core/noise/frame_noise.retriangulate) is measured there, with that
     position's and the template's covariance less the image error they share, and the
-    classification's significance test decides. (The check tests every view alone with the pose error as per-view noise:
-    with a narrow stereo baseline, motion along the line of sight moves each view by less
-    than that noise, but their disparity by far more than the image noise; on the stereo
-    simulator a third of truly deforming points were called static that way.)"""
+    classification's significance test decides. (The check tests every view alone with
+    the pose error as per-view noise: with a narrow stereo baseline, motion along the line
+    of sight moves each view by less than that noise, but their disparity by far more than
+    the image noise; on the stereo simulator a third of truly deforming points were called
+    static that way.)"""
     intra = reg.status == INTRA
     found = np.isfinite(reg.pixels).all(2) & intra[:, None]
     noise = replace(template_noise.model, tracking_px=float(reg.tracking_px),

@@ -31,20 +31,20 @@ core/registration/frame_step.py: σ is the RMS of a 3D position error, metres) a
    breathing variant, 82 % of truly rigid moving neighbourhoods failed the unscaled test,
    S / dof 2.5). Is it large enough to count? The rigid-fit RMS of the *registered*
    positions (the spec's rule applied to the estimated field) reaches `deform_mm` (the
-   spec's tolerance) in the directions the data resolve (`resolved_rms_mm`): each member's
-   residual weighted by (scale Σ_j + deform_mm²/3 I)⁻¹ and compared with what a deformation
-   of RMS `deform_mm` plus the noise would leave; without noise it is the plain RMS. Both,
-   or it is shifting. (The measured positions answer the first question well but their
-   plain RMS, debiased by their noise, underestimates borderline dents — 0.16–0.20 mm for
-   a true 0.27–0.28 mm on the shipped sample — while the registered field's RMS follows
-   the truth there — 0.28–0.34 mm. On a 4 mm stereo baseline the registered field carries
-   the depth noise of its displacement, 0.2–0.35 mm of rigid-fit RMS on rigidly moving
-   tissue, and the plain RMS called 40–50 % of breathing neighbourhoods deforming: a
-   0.3 mm departure along a line of sight known to ±0.8 mm is not evidence, across it to
-   ±0.06 mm it is. docs/labels_noise.md, "Breathing on a narrow baseline".) Σ_j is the
-   covariance of the member's displacement from frame 0 (`displacement_covariance`: the
-   template's frame-0 image error, which tracking carries into every later measurement,
-   cancels in it).
+   spec's tolerance) with every direction counted by how well it is measured
+   (`resolved_rms_mm`: each member's residual weighted by (scale Σ_j + deform_mm²/3 I)⁻¹,
+   normalised so that without noise it is the plain RMS; Σ_j the covariance of the
+   member's displacement from frame 0, `displacement_covariance`: the template's frame-0
+   image error, which tracking carries into every later measurement, cancels in it).
+   Both, or it is shifting. (The measured positions answer the first question well but
+   their plain RMS, debiased by their noise, underestimates borderline dents — 0.16–0.20
+   mm for a true 0.27–0.28 mm on the shipped sample — while the registered field's RMS
+   follows the truth there — 0.28–0.34 mm. On a 4 mm stereo baseline the registered field
+   carries the depth noise of its displacement, 0.2–0.35 mm of rigid-fit RMS on rigidly
+   moving tissue: the plain RMS reached `deform_mm` on 22–50 % of the moving
+   neighbourhoods of a real-texture breathing clip where 0–4 % truly deform. A 0.3 mm
+   departure along a line of sight known to ±0.8 mm is no evidence, across it to ±0.06 mm
+   it is: docs/labels_noise.md, "Breathing on a narrow stereo baseline".)
    Why not the paper's (T_j − T_i) p_i ("transform_diff", kept as an option): on a surface
    the linear part of a point's affine is not determined by the data (the derivative of
    the motion along the normal is unobserved, and the regulariser picks it), so carrying
@@ -298,17 +298,14 @@ def departure_statistic(template: np.ndarray, positions: np.ndarray, covariance:
 def resolved_rms_mm(template: np.ndarray, positions: np.ndarray, covariance: np.ndarray,
                     nb: Neighbourhoods, rows: np.ndarray, deform_mm: float) -> np.ndarray:
     """The rigid-fit RMS (M,) mm of each neighbourhood (the point `rows` (M,) and its
-    neighbours, frame-0 template (N, 3) m to positions (N, 3) m), measured in the directions
-    the data resolve: each member's residual r_j is weighted by W_j = (Σ_j + d²/3 I)⁻¹ (Σ_j
-    (N, 3, 3) m² its noise covariance, d = `deform_mm`: a deformation of RMS d spread over
-    the three axes) and the energy S = Σ r_jᵀ W_j r_j is compared with its expectation when
-    the true residuals have RMS exactly d: T = Σ_j [d²/3 tr W_j + (1 − 2/n) tr(W_j Σ_j)]
-    (the noise's share after a rigid fit of n members); the result is d √(S / T), so it is at
-    least d when the departure exceeds a deformation of RMS d plus the noise. Without noise
-    (Σ = 0) it is the plain rigid-fit RMS; a direction the rig knows poorly (depth on a
-    narrow stereo baseline) counts by how far its departure exceeds its own noise. The fit
-    is weighted by each member's tr(W_j)/3. Members without a finite covariance are left
-    out; fewer than 3 members left: NaN."""
+    neighbours, frame-0 template (N, 3) m to positions (N, 3) m), each direction counted by
+    how well it is measured: with W_j = (Σ_j + d²/3 I)⁻¹ (Σ_j (N, 3, 3) m² the member's noise
+    covariance, d = `deform_mm` spread over three axes, so that directions measured better
+    than the tolerance count alike), RMS² = 3 Σ_j r_jᵀ W_j r_j / Σ_j tr W_j over the
+    members' residuals r_j of the fit weighted by tr(W_j)/3. Without noise, or with the same
+    isotropic noise for every member, it is the plain rigid-fit RMS; on a narrow stereo
+    baseline a residual along a line of sight known to ±0.8 mm counts ~1/30 of one across it
+    (±0.06 mm). Members without a finite covariance are left out; fewer than 3 left: NaN."""
     if len(rows) == 0:
         return np.zeros(0)
     index = np.concatenate([rows[:, None], nb.index[rows]], axis=1)
@@ -318,19 +315,13 @@ def resolved_rms_mm(template: np.ndarray, positions: np.ndarray, covariance: np.
     spread = (deform_mm * 1e-3) ** 2 / 3.0
     info = np.zeros_like(cov)
     info[usable] = np.linalg.inv(cov[usable] + np.eye(3) * (spread + SIGMA_FLOOR_M**2))
-    weight = np.where(usable, np.trace(info, axis1=1, axis2=2) / 3.0, 0.0)
-    residual, keep = rigid_fit_residuals(template, positions, index, mask, weights=weight)
-    stat = np.einsum("mki,mkij,mkj->m", residual, info[index], residual)
-    n = keep.sum(1)
-    noise = np.einsum("nij,nji->n", info[usable], cov[usable])
-    member_noise = np.zeros(len(cov))
-    member_noise[usable] = noise
-    share = 1.0 - 2.0 / np.maximum(n, 1)
-    expected = (spread * (np.trace(info, axis1=1, axis2=2)[index] * keep).sum(1)
-                + share * (member_noise[index] * keep).sum(1))
+    total = np.trace(info, axis1=1, axis2=2)
+    residual, keep = rigid_fit_residuals(template, positions, index, mask, weights=total / 3.0)
+    energy = np.einsum("mki,mkij,mkj->m", residual, info[index], residual)
+    norm = (total[index] * keep).sum(1)
     with np.errstate(invalid="ignore", divide="ignore"):
-        out = deform_mm * np.sqrt(stat / expected)
-    return np.where(n >= 3, out, np.nan)
+        out = np.sqrt(3.0 * energy / norm) * 1e3
+    return np.where(keep.sum(1) >= 3, out, np.nan)
 
 
 def noise_scale(stat: np.ndarray, dof: np.ndarray) -> float:
