@@ -32,6 +32,7 @@ from ..core.classify.rules import (
     Neighbourhoods,
     RegisteredFrame,
     classify_frame,
+    displacement_covariance,
     template_neighbourhoods,
 )
 from ..core.geometry.cameras import CameraModel
@@ -143,17 +144,19 @@ def frame_evidence(reg: FrameRegistration, registered: np.ndarray,
                    template: TemplateNoise) -> Evidence:
     """The classifier's uncertainties of one registered frame: measured positions are the
     targets where the reprojection check gave one, else the registered positions; the
-    displacement's covariance is the target's plus the template point's where there is a
-    target (a narrow baseline knows depth far worse than the other directions), else
-    isotropic from σ. The rigid-motion test leaves out the pose errors (common to nearby
-    points, so the neighbourhood's rigid fit absorbs them)."""
+    displacement's covariance is the target's and the template point's without the image
+    error they share (`displacement_covariance`: tracking carries the template's frame-0
+    error into the target) where there is a target (a narrow baseline knows depth far worse
+    than the other directions), else isotropic from σ. The rigid-motion test leaves out the
+    pose errors (common to nearby points, so the neighbourhood's rigid fit absorbs them)."""
     sigma = reg.sigma.astype(float)
     target = reg.target.astype(float)
     target_sigma = reg.target_sigma.astype(float)
     has = reg.has_target
     iso = (np.nan_to_num(sigma, posinf=1e3) ** 2 + template.sigma**2) / 3.0
     departure = iso[:, None, None] * np.eye(3)
-    departure[has] = reg.target_covariance[has].astype(float) + template.covariance[has]
+    departure[has] = displacement_covariance(reg.target_covariance[has].astype(float),
+                                             template.covariance[has])
     displacement = departure.copy()
     displacement[has] += (reg.target_pose_covariance[has].astype(float)
                           + template.pose_covariance[has])
@@ -171,11 +174,12 @@ def static_verdicts_checked(reg: FrameRegistration, template_noise: TemplateNois
     static verdicts (intra-camera inliers: target = frame-0 position) are replaced by what
     the points' own views say: every such point whose tracked pixels re-triangulate
     (without a gate, core/noise/frame_noise.retriangulate) is measured there, with that
-    position's covariance plus the template's, and the classification's significance test
-    decides. (The check tests every view alone with the pose error as per-view noise:
-    with a narrow stereo baseline, motion along the line of sight moves each view by less
-    than that noise, but their disparity by far more than the image noise; on the stereo
-    simulator a third of truly deforming points were called static that way.)"""
+    position's and the template's covariance less the image error they share, and the
+    classification's significance test decides. (The check tests every view alone with
+    the pose error as per-view noise: with a narrow stereo baseline, motion along the line
+    of sight moves each view by less than that noise, but their disparity by far more than
+    the image noise; on the stereo simulator a third of truly deforming points were called
+    static that way.)"""
     intra = reg.status == INTRA
     found = np.isfinite(reg.pixels).all(2) & intra[:, None]
     noise = replace(template_noise.model, tracking_px=float(reg.tracking_px),
@@ -191,7 +195,7 @@ def static_verdicts_checked(reg: FrameRegistration, template_noise: TemplateNois
     displacement, departure = evidence.displacement_cov.copy(), evidence.departure_cov.copy()
     measured[seen] = position[seen]
     measured_sigma[seen] = covariance_sigma(image_cov[seen] + pose_cov[seen])
-    departure[seen] = image_cov[seen] + template_noise.covariance[seen]
+    departure[seen] = displacement_covariance(image_cov[seen], template_noise.covariance[seen])
     displacement[seen] = departure[seen] + pose_cov[seen] + template_noise.pose_covariance[seen]
     return registered, replace(evidence, measured=measured, measured_sigma=measured_sigma,
                                displacement_cov=displacement, departure_cov=departure)

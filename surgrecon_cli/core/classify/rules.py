@@ -29,13 +29,22 @@ core/registration/frame_step.py: σ is the RMS of a 3D position error, metres) a
    (at least a quarter of a scene moves rigidly; the noise model's σ is a floor,
    and real images scatter positions more than it says: on the simulator's real-image
    breathing variant, 82 % of truly rigid moving neighbourhoods failed the unscaled test,
-   S / dof 2.5). Is it large enough to count? The RMS residual of the
-   best rigid fit to the *registered* positions (the spec's rule applied to the estimated
-   field) reaches `deform_mm` (the spec's tolerance). Both, or it is shifting. (The
-   measured positions answer the first question well but their RMS, debiased by their
-   noise, underestimates borderline dents — 0.16–0.20 mm for a true 0.27–0.28 mm on the
-   shipped sample — while the registered field's RMS follows the truth — 0.28–0.34 mm — but
-   has no simple noise model for a test.)
+   S / dof 2.5). Is it large enough to count? The rigid-fit RMS of the *registered*
+   positions (the spec's rule applied to the estimated field) reaches `deform_mm` (the
+   spec's tolerance) with every direction counted by how well it is measured
+   (`resolved_rms_mm`: each member's residual weighted by (scale Σ_j + deform_mm²/3 I)⁻¹,
+   normalised so that without noise it is the plain RMS; Σ_j the covariance of the
+   member's displacement from frame 0, `displacement_covariance`: the template's frame-0
+   image error, which tracking carries into every later measurement, cancels in it).
+   Both, or it is shifting. (The measured positions answer the first question well but
+   their plain RMS, debiased by their noise, underestimates borderline dents — 0.16–0.20
+   mm for a true 0.27–0.28 mm on the shipped sample — while the registered field's RMS
+   follows the truth there — 0.28–0.34 mm. On a 4 mm stereo baseline the registered field
+   carries the depth noise of its displacement, 0.2–0.35 mm of rigid-fit RMS on rigidly
+   moving tissue: the plain RMS reached `deform_mm` on 22–50 % of the moving
+   neighbourhoods of a real-texture breathing clip where 0–4 % truly deform. A 0.3 mm
+   departure along a line of sight known to ±0.8 mm is no evidence, across it to ±0.06 mm
+   it is: docs/labels_noise.md, "Breathing on a narrow stereo baseline".)
    Why not the paper's (T_j − T_i) p_i ("transform_diff", kept as an option): on a surface
    the linear part of a point's affine is not determined by the data (the derivative of
    the motion along the normal is unobserved, and the regulariser picks it), so carrying
@@ -222,6 +231,31 @@ def transform_difference_mm(template: np.ndarray, transforms: np.ndarray, nb: Ne
     return out
 
 
+def displacement_covariance(position_cov: np.ndarray, template_cov: np.ndarray) -> np.ndarray:
+    """Covariance (N, 3, 3) m² of a displacement x − p from a later measurement x (position_cov
+    (N, 3, 3) m² from image noise) of a template point p (template_cov (N, 3, 3) m², its
+    frame-0 image noise), where tracking carries p's image error into x: Σ_x + Σ_p − 2 S,
+    S the error they share, in each direction no more than either carries. In the basis where
+    Σ_p = I and Σ_x = Λ (generalised eigenvectors), S = min(Λ, I), so the displacement's
+    variance is |Λ − I| there (the matrix form of `Evidence.displacement_sigma`'s
+    |σ² − σ_t²|): on a narrow stereo baseline both positions know depth to ~1 mm, their
+    difference to the tracking error alone. Rows with non-finite input: Σ_x + Σ_p."""
+    cx = np.asarray(position_cov, float)
+    cp = np.asarray(template_cov, float)
+    out = cx + cp
+    ok = np.isfinite(cx).all((1, 2)) & np.isfinite(cp).all((1, 2))
+    if not ok.any():
+        return out
+    floor = np.eye(3) * SIGMA_FLOOR_M**2
+    low = np.linalg.cholesky(cp[ok] + floor)  # Σ_p = L Lᵀ
+    inv = np.linalg.inv(low)
+    whitened = inv @ (cx[ok] + floor) @ np.swapaxes(inv, 1, 2)
+    lam, vec = np.linalg.eigh(0.5 * (whitened + np.swapaxes(whitened, 1, 2)))
+    back = low @ vec
+    out[ok] = np.einsum("nij,nj,nkj->nik", back, np.abs(lam - 1.0), back)
+    return out
+
+
 def significant_motion(displacement: np.ndarray, covariance: np.ndarray,
                        significance: float) -> np.ndarray:
     """(N,) bool: the displacement (N, 3) m is more than its covariance (N, 3, 3) m²
@@ -259,6 +293,39 @@ def departure_statistic(template: np.ndarray, positions: np.ndarray, covariance:
     residual, keep = rigid_fit_residuals(template, positions, index, mask, weights=weight)
     stat = np.einsum("mki,mkij,mkj->m", residual, info[index], residual)
     return stat, 3.0 * keep.sum(1) - 6.0
+
+
+def resolved_rms_mm(template: np.ndarray, positions: np.ndarray, covariance: np.ndarray,
+                    nb: Neighbourhoods, rows: np.ndarray, deform_mm: float) -> np.ndarray:
+    """The rigid-fit RMS (M,) mm of each neighbourhood (the point `rows` (M,) and its
+    neighbours, frame-0 template (N, 3) m to positions (N, 3) m), each direction counted by
+    how well it is measured: with W_j = (Σ_j + d²/3 I)⁻¹ (Σ_j (N, 3, 3) m² the member's noise
+    covariance, d = `deform_mm` spread over three axes: a direction of noise σ counts by
+    (d²/3) / (σ² + d²/3), alike where it is measured better than d/√3), RMS² = 3 Σ_j r_jᵀ
+    W_j r_j / Σ_j tr W_j over the members' residuals r_j of the fit weighted by tr(W_j)/3.
+    Without noise, or with the same isotropic noise for every member, it is the plain
+    rigid-fit RMS; on a narrow stereo baseline a residual along a line of sight known to
+    ±0.8 mm counts ~1/30 of one across it (±0.06 mm), and pure noise along it, however
+    large, adds at most d²/2 to RMS². Not debiased: the registered field is smoother than
+    its measurements (on the simulator, debiasing by their covariance cut deforming recall
+    from 0.89 to 0.62). Members without a finite covariance are left out; fewer than 3
+    left: NaN."""
+    if len(rows) == 0:
+        return np.zeros(0)
+    index = np.concatenate([rows[:, None], nb.index[rows]], axis=1)
+    mask = np.concatenate([np.ones((len(rows), 1), bool), nb.mask[rows]], axis=1)
+    cov = np.asarray(covariance, float)
+    usable = np.isfinite(cov).all((1, 2))
+    spread = (deform_mm * 1e-3) ** 2 / 3.0
+    info = np.zeros_like(cov)
+    info[usable] = np.linalg.inv(cov[usable] + np.eye(3) * (spread + SIGMA_FLOOR_M**2))
+    total = np.trace(info, axis1=1, axis2=2)
+    residual, keep = rigid_fit_residuals(template, positions, index, mask, weights=total / 3.0)
+    energy = np.einsum("mki,mkij,mkj->m", residual, info[index], residual)
+    norm = (total[index] * keep).sum(1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out = np.sqrt(3.0 * energy / norm) * 1e3
+    return np.where(keep.sum(1) >= 3, out, np.nan)
 
 
 def noise_scale(stat: np.ndarray, dof: np.ndarray) -> float:
@@ -321,7 +388,8 @@ def classify_frame(template: np.ndarray, frame: RegisteredFrame, nb: Neighbourho
         at = np.searchsorted(judged, rows)
         significant = (dof[at] > 0) & (stat[at] / scale > chi2.isf(cfg.significance,
                                                                     np.maximum(dof[at], 1.0)))
-        measure = rigid_rms_mm(template, registered, nb, rows)
+        measure = resolved_rms_mm(template, registered, scale * np.asarray(
+            evidence.departure_cov, float), nb, rows, cfg.deform_mm)
         deforming = significant & (measure >= cfg.deform_mm)
     else:
         measure = rigid_rms_mm(template, registered, nb, rows)

@@ -1,0 +1,103 @@
+"""Shifting vs deforming on a narrow stereo baseline (issue 24, real breathing): depth noise
+of the displacement must not read as deformation, lateral deformation still must. Expected
+labels and magnitudes come from the constructed truth."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from surgrecon_cli.config import ClassifyConfig
+from surgrecon_cli.core.classify.labels import (
+    DEFORMING,
+    SHIFTING,
+    label_rule,
+    radius_neighbourhoods,
+)
+from surgrecon_cli.core.classify.rules import (
+    Evidence,
+    RegisteredFrame,
+    classify_frame,
+    displacement_covariance,
+    resolved_rms_mm,
+    rigid_rms_mm,
+    template_neighbourhoods,
+)
+
+
+def _patch() -> np.ndarray:
+    """A 30 x 30 mm patch on a 2 mm grid, 65 mm in front of the camera (metres)."""
+    g = np.arange(-15, 15, 2) * 1e-3
+    xx, yy = np.meshgrid(g, g)
+    return np.column_stack([xx.ravel(), yy.ravel(), np.full(xx.size, 0.065)])
+
+
+def _depth_cov(n: int, depth_m: float, lateral_m: float) -> np.ndarray:
+    return np.broadcast_to(np.diag([lateral_m**2, lateral_m**2, depth_m**2]), (n, 3, 3)).copy()
+
+
+def test_displacement_covariance_removes_the_shared_template_error():
+    template = _depth_cov(2, 1.0e-3, 0.04e-3)
+    tracked = _depth_cov(2, 1.1e-3, 0.05e-3)
+    tracked[1] = template[1] * 0.25  # a measurement four times better than the template
+    out = displacement_covariance(tracked, template)
+    # the tracking's own part: Σ_x − Σ_p where x carries all of p's error
+    assert np.allclose(np.diag(out[0]), [0.05e-3**2 - 0.04e-3**2] * 2 + [1.1e-3**2 - 1e-3**2],
+                       rtol=1e-3)
+    # x carries at most its own error: the difference of the variances, as displacement_sigma
+    assert np.allclose(np.diag(out[1]), np.diag(template[1]) * 0.75, rtol=1e-3)
+    rotated = np.linalg.qr(np.random.default_rng(0).normal(size=(3, 3)))[0]
+    turned = displacement_covariance(rotated @ tracked @ rotated.T, rotated @ template @ rotated.T)
+    assert np.allclose(turned, rotated @ out @ rotated.T, atol=1e-14)
+
+
+def test_resolved_rms_is_the_rigid_fit_rms_without_noise():
+    rng = np.random.default_rng(1)
+    template = _patch()
+    moved = template + rng.normal(0.0, 0.3e-3, template.shape)
+    nb = template_neighbourhoods(template, 5.0, 6, 128)
+    rows = np.arange(len(template))
+    plain = rigid_rms_mm(template, moved, nb, rows)
+    resolved = resolved_rms_mm(template, moved, np.zeros((len(template), 3, 3)), nb, rows, 0.25)
+    assert np.allclose(resolved, plain, rtol=1e-6)
+
+
+def test_depth_noise_of_a_rigid_shift_is_not_deformation_lateral_bending_is():
+    rng = np.random.default_rng(2)
+    cfg = ClassifyConfig()
+    template = _patch()
+    n = len(template)
+    depth, lateral = 0.5e-3, 0.03e-3  # a 4 mm baseline at 65 mm: depth ~15x worse
+    shift = template + np.array([0.002, 0.0, -0.0015])
+    noise = rng.normal(0.0, 1.0, template.shape) * np.array([lateral, lateral, depth])
+    nb = template_neighbourhoods(template, cfg.neighbourhood_mm, cfg.min_neighbours,
+                                 cfg.max_neighbours)
+    cov = _depth_cov(n, depth, lateral)
+    rows = np.arange(n)
+    # plain RMS of the noisy rigid shift is well above deform_mm, the resolved one is not
+    assert np.median(rigid_rms_mm(template, shift + noise, nb, rows)) > 1.5 * cfg.deform_mm
+    assert np.mean(resolved_rms_mm(template, shift + noise, cov, nb, rows, cfg.deform_mm)
+                   >= cfg.deform_mm) < 0.05
+    evidence = Evidence(sigma=np.full(n, depth), template_sigma=np.zeros(n),
+                        measured=shift + noise, measured_sigma=np.full(n, depth),
+                        displacement_cov=cov, departure_cov=cov)
+    labels = classify_frame(template, RegisteredFrame(shift + noise), nb, cfg,
+                            evidence=evidence).labels
+    assert (labels == DEFORMING).mean() < 0.05
+    assert (labels == SHIFTING).mean() > 0.9
+    # a lateral bend (1.5 mm wide bulge sideways) on the same noise is still deforming
+    r2 = (template[:, :2] ** 2).sum(1)
+    bent = shift.copy()
+    bent[:, 0] += 0.0015 * np.exp(-r2 / (2 * 0.003**2))
+    index, mask = radius_neighbourhoods(template, cfg.neighbourhood_mm * 1e-3)
+    truth = label_rule(template, bent, index, mask, cfg.static_mm, cfg.deform_mm)
+    evidence = Evidence(sigma=np.full(n, depth), template_sigma=np.zeros(n),
+                        measured=bent + noise, measured_sigma=np.full(n, depth),
+                        displacement_cov=cov, departure_cov=cov)
+    labels = classify_frame(template, RegisteredFrame(bent + noise), nb, cfg,
+                            evidence=evidence).labels
+    core = r2 < 0.003**2
+    assert (truth[core] == DEFORMING).all()
+    assert (labels[core] == DEFORMING).mean() > 0.8
+    far = r2 > 0.012**2
+    assert (truth[far] == SHIFTING).all()
+    assert (labels[far] == DEFORMING).mean() < 0.1
