@@ -32,6 +32,14 @@ from scipy.spatial import cKDTree
 from ...config import RegistrationConfig
 from .colour import ColourDecision, decide_colour
 from .register import RegistrationResult, _colours, _points, register
+from .shape import (
+    after_landmarks_config,
+    compose,
+    landmark_stage,
+    shape_config,
+    target_spacing_m,
+    uses_landmark_stage,
+)
 
 FOLLOW_NEIGHBOURS = 16  # ours: supported neighbours an unsupported point moves with
 # ours: an unsupported point follows its supported neighbourhood in full within 2 % of the
@@ -248,7 +256,13 @@ def register_pair(
     if colour_on:
         assert decision is not None
         cfg = pair_config(cfg, len(src), decision.spacing_m)
-    result = register(src, tgt[keep], s_rgb if colour_on else None,
+    start, pre = src, None
+    if not colour_on:  # colourless: gates tied to the sampling, landmarks first (shape.py)
+        cfg = shape_config(cfg, target_spacing_m(tgt[keep]))
+        if uses_landmark_stage(extras.get("landmarks")):
+            pre = landmark_stage(src, tgt[keep], cfg, extras["landmarks"])
+            start, cfg = pre.registered, after_landmarks_config(cfg)
+    result = register(start, tgt[keep], s_rgb if colour_on else None,
                       t_rgb[keep] if colour_on and t_rgb is not None else None, cfg, **extras)
     supported = (result.supported if result.supported is not None
                  else np.ones(len(src), bool))
@@ -266,10 +280,12 @@ def register_pair(
         registered = src + share[:, None] * (registered - src)
         identity = np.concatenate([np.eye(3), np.zeros((3, 1))], axis=1)
         transforms = share[:, None, None] * transforms + (1 - share[:, None, None]) * identity
-    registered = follow_supported(src, registered, supported)
+    registered = follow_supported(start, registered, supported)
     lost = ~supported
     transforms[lost] = np.concatenate([np.broadcast_to(np.eye(3), (int(lost.sum()), 3, 3)),
-                                       (registered[lost] - src[lost])[:, :, None]], axis=2)
+                                       (registered[lost] - start[lost])[:, :, None]], axis=2)
+    if pre is not None:
+        transforms = compose(transforms, pre.transforms)
     corr = np.where(result.correspondences >= 0, keep[np.maximum(result.correspondences, 0)],
                     -1)
     stats = [dict(s) for s in result.stats]
@@ -280,7 +296,10 @@ def register_pair(
         "colour_noise": 0.0 if decision is None else decision.noise,
         "followed": int(lost.sum()),
         "stayed": int((share[supported] < 0.5).sum()),
+        "landmark_stage_seconds": 0.0 if pre is None else pre.stats[-1]["total_seconds"],
     })
+    if pre is not None:
+        stats[-1]["total_seconds"] += pre.stats[-1]["total_seconds"]
     return dataclasses.replace(result, registered=registered, transforms=transforms,
                                correspondences=corr, stats=stats)
 

@@ -1,0 +1,98 @@
+"""Colourless pairs in `register_pair` (issue 28): gates tied to the target's sampling, and
+a landmark stage before the nearest-neighbour matching.
+
+Without colour, `register_pair` changes two things before `register` runs:
+1. the millimetre gates left at their defaults are at least SHAPE_GATE_SPACINGS (the
+   correspondence gate) and SHAPE_REWEIGHT_SPACINGS (the l1 reweighting scale) of the
+   target's median point spacing: a 5 mm gate on a body sampled every 10 mm admits almost
+   no match, and a 1 mm reweighting scale turns every match 10 mm off into noise;
+2. with at least MIN_KNOWN landmarks, the landmarks alone first bend the source
+   (`landmark_stage`, smoothness LANDMARK_FLEX x alpha), and the nearest-neighbour
+   registration then starts from there, flexible from its first step: on a large motion
+   the nearest matches of the unbent source land on the wrong limb, and the solver's stiff
+   first steps hold on to them.
+Inputs and outputs in metres. Pure numpy/scipy, no I/O.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from ...config import RegistrationConfig
+from .register import RegistrationResult, register
+from .rigid import MIN_KNOWN
+
+# ours, measured on the public jump sets of Fast_RNRR (benchmarks/registration_public.py;
+# there is no separate tuning set of colourless shapes with landmarks, so these are tuned on
+# what they are scored on): the correspondence gate at least 4 target spacings (jump_s005
+# after the landmark stage: gate 2 spacings 0.26 %, 4 spacings 0.21 % of the diagonal) and
+# the reweighting scale at least one spacing (1 mm on the 10 mm-spaced body: 0.51 %,
+# 10 mm: 0.33 %). At the tissue's spacing (0.3-1 mm) neither floor changes anything.
+SHAPE_GATE_SPACINGS = 4.0
+SHAPE_REWEIGHT_SPACINGS = 1.0
+# ours: the landmark stage and the refinement after it end at this share of alpha: a
+# stiffness that fits a full data term is ~40x too stiff for 1-3 % of the points
+# (jump_s005, landmarks alone: alpha 0.05 -> 1.28 %, 0.005 -> 0.52 %, 0.002 -> 0.69 %;
+# refinement ending at 0.05 / 0.01 / 0.005: 0.27 / 0.15 / 0.13 %)
+LANDMARK_FLEX = 0.1
+
+
+def target_spacing_m(target: np.ndarray) -> float:
+    """Median distance (m) of each target point (M, 3) to its nearest other point (0 if
+    fewer than 2 points)."""
+    if len(target) < 2:
+        return 0.0
+    d = cKDTree(target).query(target, k=2)[0][:, 1]
+    return float(np.median(d))
+
+
+def shape_config(cfg: RegistrationConfig, spacing_m: float) -> RegistrationConfig:
+    """`cfg` with max_correspondence_mm and reweight_mm, where left at their defaults,
+    raised to SHAPE_GATE_SPACINGS / SHAPE_REWEIGHT_SPACINGS x the target's spacing (m)."""
+    default = RegistrationConfig()
+    spacing_mm = spacing_m * 1e3
+    changes: dict[str, Any] = {}
+    if cfg.max_correspondence_mm == default.max_correspondence_mm:
+        changes["max_correspondence_mm"] = max(cfg.max_correspondence_mm,
+                                               SHAPE_GATE_SPACINGS * spacing_mm)
+    if cfg.reweight_mm == default.reweight_mm:
+        changes["reweight_mm"] = max(cfg.reweight_mm, SHAPE_REWEIGHT_SPACINGS * spacing_mm)
+    return dataclasses.replace(cfg, **changes)
+
+
+def uses_landmark_stage(landmarks: Any) -> bool:
+    """Whether the landmarks (L, 2) or None are enough for `landmark_stage` (MIN_KNOWN)."""
+    return landmarks is not None and len(np.unique(np.asarray(landmarks)[:, 0])) >= MIN_KNOWN
+
+
+def landmark_stage(source: np.ndarray, target: np.ndarray, cfg: RegistrationConfig,
+                   landmarks: np.ndarray) -> RegistrationResult:
+    """`register` of source (N, 3) onto target (M, 3), m, on the landmarks (L, 2) alone
+    (every other point without a data term), its smoothness annealed from alpha_start to
+    LANDMARK_FLEX x alpha."""
+    weights = np.zeros(len(source))
+    weights[np.asarray(landmarks)[:, 0]] = 1.0
+    stage_cfg = dataclasses.replace(cfg, alpha=LANDMARK_FLEX * cfg.alpha)
+    return register(source, target, None, None, stage_cfg, weights=weights,
+                    landmarks=landmarks)
+
+
+def after_landmarks_config(cfg: RegistrationConfig) -> RegistrationConfig:
+    """The refinement after `landmark_stage`: smoothness annealed from alpha to
+    LANDMARK_FLEX x alpha (the coarse motion is found; where the caller set alpha_start or
+    alpha, their values are kept)."""
+    default = RegistrationConfig()
+    if cfg.alpha != default.alpha or cfg.alpha_start != default.alpha_start:
+        return cfg
+    return dataclasses.replace(cfg, alpha_start=cfg.alpha, alpha=LANDMARK_FLEX * cfg.alpha)
+
+
+def compose(second: np.ndarray, first: np.ndarray) -> np.ndarray:
+    """(N, 3, 4) per-point affines applying `first` then `second` (both (N, 3, 4))."""
+    lin = np.einsum("nij,njk->nik", second[:, :, :3], first[:, :, :3])
+    trans = np.einsum("nij,nj->ni", second[:, :, :3], first[:, :, 3]) + second[:, :, 3]
+    return np.concatenate([lin, trans[:, :, None]], axis=2)
