@@ -39,6 +39,7 @@ SHAPE_REWEIGHT_SPACINGS = 1.0
 # (jump_s005, landmarks alone: alpha 0.05 -> 1.28 %, 0.005 -> 0.52 %, 0.002 -> 0.69 %;
 # refinement ending at 0.05 / 0.01 / 0.005: 0.27 / 0.15 / 0.13 %)
 LANDMARK_FLEX = 0.1
+SHAPE_OUTER = 24
 
 
 def target_spacing_m(target: np.ndarray) -> float:
@@ -59,6 +60,8 @@ def shape_config(cfg: RegistrationConfig, spacing_m: float) -> RegistrationConfi
     if cfg.max_correspondence_mm == default.max_correspondence_mm:
         changes["max_correspondence_mm"] = max(cfg.max_correspondence_mm,
                                                SHAPE_GATE_SPACINGS * spacing_mm)
+    if cfg.outer_iterations == default.outer_iterations:
+        changes["outer_iterations"] = SHAPE_OUTER
     if cfg.reweight_mm == default.reweight_mm:
         changes["reweight_mm"] = max(cfg.reweight_mm, SHAPE_REWEIGHT_SPACINGS * spacing_mm)
     return dataclasses.replace(cfg, **changes)
