@@ -258,10 +258,11 @@ def register_pair(
         cfg = pair_config(cfg, len(src), decision.spacing_m)
     start, pre = src, None
     if not colour_on:  # colourless: gates tied to the sampling, landmarks first (shape.py)
-        cfg = shape_config(cfg, target_spacing_m(tgt[keep]))
+        spacing = target_spacing_m(tgt[keep])
+        cfg = shape_config(cfg, spacing)
         if uses_landmark_stage(extras.get("landmarks")):
             pre = landmark_stage(src, tgt[keep], cfg, extras["landmarks"])
-            start, cfg = pre.registered, after_landmarks_config(cfg)
+            start, cfg = pre.registered, after_landmarks_config(cfg, spacing)
     result = register(start, tgt[keep], s_rgb if colour_on else None,
                       t_rgb[keep] if colour_on and t_rgb is not None else None, cfg, **extras)
     supported = (result.supported if result.supported is not None

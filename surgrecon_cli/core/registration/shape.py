@@ -52,18 +52,14 @@ def target_spacing_m(target: np.ndarray) -> float:
 
 
 def shape_config(cfg: RegistrationConfig, spacing_m: float) -> RegistrationConfig:
-    """`cfg` with max_correspondence_mm and reweight_mm, where left at their defaults,
-    raised to SHAPE_GATE_SPACINGS / SHAPE_REWEIGHT_SPACINGS x the target's spacing (m)."""
+    """`cfg` with, where left at their defaults, SHAPE_OUTER outer steps and reweight_mm at
+    least SHAPE_REWEIGHT_SPACINGS x the target's spacing (m)."""
     default = RegistrationConfig()
-    spacing_mm = spacing_m * 1e3
     changes: dict[str, Any] = {}
-    if cfg.max_correspondence_mm == default.max_correspondence_mm:
-        changes["max_correspondence_mm"] = max(cfg.max_correspondence_mm,
-                                               SHAPE_GATE_SPACINGS * spacing_mm)
     if cfg.outer_iterations == default.outer_iterations:
         changes["outer_iterations"] = SHAPE_OUTER
     if cfg.reweight_mm == default.reweight_mm:
-        changes["reweight_mm"] = max(cfg.reweight_mm, SHAPE_REWEIGHT_SPACINGS * spacing_mm)
+        changes["reweight_mm"] = max(cfg.reweight_mm, SHAPE_REWEIGHT_SPACINGS * spacing_m * 1e3)
     return dataclasses.replace(cfg, **changes)
 
 
@@ -84,14 +80,19 @@ def landmark_stage(source: np.ndarray, target: np.ndarray, cfg: RegistrationConf
                     landmarks=landmarks)
 
 
-def after_landmarks_config(cfg: RegistrationConfig) -> RegistrationConfig:
-    """The refinement after `landmark_stage`: smoothness annealed from alpha to
-    LANDMARK_FLEX x alpha (the coarse motion is found; where the caller set alpha_start or
-    alpha, their values are kept)."""
+def after_landmarks_config(cfg: RegistrationConfig, spacing_m: float) -> RegistrationConfig:
+    """The refinement after `landmark_stage`, in place of the fields left at their defaults:
+    smoothness annealed from alpha to LANDMARK_FLEX x alpha (the coarse motion is found),
+    max_correspondence_mm at least SHAPE_GATE_SPACINGS x the target's spacing (m)."""
     default = RegistrationConfig()
-    if cfg.alpha != default.alpha or cfg.alpha_start != default.alpha_start:
-        return cfg
-    return dataclasses.replace(cfg, alpha_start=cfg.alpha, alpha=LANDMARK_FLEX * cfg.alpha)
+    spacing_mm = spacing_m * 1e3
+    changes: dict[str, Any] = {}
+    if cfg.alpha == default.alpha and cfg.alpha_start == default.alpha_start:
+        changes.update(alpha_start=cfg.alpha, alpha=LANDMARK_FLEX * cfg.alpha)
+    if cfg.max_correspondence_mm == default.max_correspondence_mm:
+        changes["max_correspondence_mm"] = max(cfg.max_correspondence_mm,
+                                               SHAPE_GATE_SPACINGS * spacing_mm)
+    return dataclasses.replace(cfg, **changes)
 
 
 def compose(second: np.ndarray, first: np.ndarray) -> np.ndarray:
