@@ -16,7 +16,9 @@ Around the shared `register` (also the frame pipeline's), without changing it:
    smoothness drags and the nearest-match step then holds there, goes back to not moving;
 4. with colour used, solver settings of its own (`pair_config`) in place of the fields the
    caller left at their defaults;
-5. an error estimate that says what it can see (`error_estimate_mm`).
+5. an error estimate that says what it can see (`error_estimate_mm`);
+6. without colour, settings of its own and, with landmarks, a landmark stage first
+   (shape.py).
 Inputs and outputs in metres, like `register`.
 """
 
@@ -224,7 +226,8 @@ def register_pair(
     (module docstring). extras: register's target_ids, weights,
     landmarks, callback. stats[0] gains colour_reason, colour_strays (target points left
     out), colour_gradient_per_mm, colour_noise, followed (points that followed) and stayed
-    (supported points keeping less than half their motion). Residuals and along-surface
+    (supported points keeping less than half their motion) and landmark_stage_seconds (0: no
+    landmark stage). Residuals and along-surface
     estimates are `register`'s, at its positions."""
     cfg = config or RegistrationConfig()
     src = _points("source_xyz", source_xyz)
