@@ -16,7 +16,9 @@ Around the shared `register` (also the frame pipeline's), without changing it:
    smoothness drags and the nearest-match step then holds there, goes back to not moving;
 4. with colour used, solver settings of its own (`pair_config`) in place of the fields the
    caller left at their defaults;
-5. an error estimate that says what it can see (`error_estimate_mm`).
+5. an error estimate that says what it can see (`error_estimate_mm`);
+6. without colour, settings of its own and, with landmarks, a landmark stage first
+   (shape.py).
 Inputs and outputs in metres, like `register`.
 """
 
@@ -32,6 +34,14 @@ from scipy.spatial import cKDTree
 from ...config import RegistrationConfig
 from .colour import ColourDecision, decide_colour
 from .register import RegistrationResult, _colours, _points, register
+from .shape import (
+    after_landmarks_config,
+    compose,
+    landmark_stage,
+    shape_config,
+    target_spacing_m,
+    uses_landmark_stage,
+)
 
 FOLLOW_NEIGHBOURS = 16  # ours: supported neighbours an unsupported point moves with
 # ours: an unsupported point follows its supported neighbourhood in full within 2 % of the
@@ -216,7 +226,8 @@ def register_pair(
     (module docstring). extras: register's target_ids, weights,
     landmarks, callback. stats[0] gains colour_reason, colour_strays (target points left
     out), colour_gradient_per_mm, colour_noise, followed (points that followed) and stayed
-    (supported points keeping less than half their motion). Residuals and along-surface
+    (supported points keeping less than half their motion) and landmark_stage_seconds (0: no
+    landmark stage). Residuals and along-surface
     estimates are `register`'s, at its positions."""
     cfg = config or RegistrationConfig()
     src = _points("source_xyz", source_xyz)
@@ -248,7 +259,14 @@ def register_pair(
     if colour_on:
         assert decision is not None
         cfg = pair_config(cfg, len(src), decision.spacing_m)
-    result = register(src, tgt[keep], s_rgb if colour_on else None,
+    start, pre = src, None
+    if not colour_on:  # colourless: gates tied to the sampling, landmarks first (shape.py)
+        spacing = target_spacing_m(tgt[keep])
+        cfg = shape_config(cfg, spacing)
+        if uses_landmark_stage(extras.get("landmarks")):
+            pre = landmark_stage(src, tgt[keep], cfg, extras["landmarks"])
+            start, cfg = pre.registered, after_landmarks_config(cfg, spacing)
+    result = register(start, tgt[keep], s_rgb if colour_on else None,
                       t_rgb[keep] if colour_on and t_rgb is not None else None, cfg, **extras)
     supported = (result.supported if result.supported is not None
                  else np.ones(len(src), bool))
@@ -266,10 +284,12 @@ def register_pair(
         registered = src + share[:, None] * (registered - src)
         identity = np.concatenate([np.eye(3), np.zeros((3, 1))], axis=1)
         transforms = share[:, None, None] * transforms + (1 - share[:, None, None]) * identity
-    registered = follow_supported(src, registered, supported)
+    registered = follow_supported(start, registered, supported)
     lost = ~supported
     transforms[lost] = np.concatenate([np.broadcast_to(np.eye(3), (int(lost.sum()), 3, 3)),
-                                       (registered[lost] - src[lost])[:, :, None]], axis=2)
+                                       (registered[lost] - start[lost])[:, :, None]], axis=2)
+    if pre is not None:
+        transforms = compose(transforms, pre.transforms)
     corr = np.where(result.correspondences >= 0, keep[np.maximum(result.correspondences, 0)],
                     -1)
     stats = [dict(s) for s in result.stats]
@@ -280,7 +300,10 @@ def register_pair(
         "colour_noise": 0.0 if decision is None else decision.noise,
         "followed": int(lost.sum()),
         "stayed": int((share[supported] < 0.5).sum()),
+        "landmark_stage_seconds": 0.0 if pre is None else pre.stats[-1]["total_seconds"],
     })
+    if pre is not None:
+        stats[-1]["total_seconds"] += pre.stats[-1]["total_seconds"]
     return dataclasses.replace(result, registered=registered, transforms=transforms,
                                correspondences=corr, stats=stats)
 
