@@ -42,6 +42,7 @@ from ..core.measure.indentation import (
     SERIES_KEYS,
     DeformationSeries,
     camera_viewpoint,
+    held_contact,
     measure_tools,
     series_of,
     summarise,
@@ -96,6 +97,7 @@ def run_measure(run_dir: Path, config: Config,
         layout.measure_dir.mkdir(parents=True, exist_ok=True)
         field = {key: RowFile(path, (n_frames, n), FIELD_DTYPES[key], create=True)
                  for key, path in scratch.items()}
+        held = [False] * len(figs)  # each tool in contact in its last frame with a pose
         try:
             for k in range(n_frames):  # one frame in memory at a time
                 positions, sigma = template, template_sigma
@@ -105,7 +107,8 @@ def run_measure(run_dir: Path, config: Config,
                     sigma = np.hypot(reg.sigma.astype(float), template_sigma)
                 frame_figs, rows = measure_tools(surface, positions, sigma,
                                                  log.all_tool_poses(k), config.deformation,
-                                                 config.tool_configs())
+                                                 config.tool_configs(), held)
+                held = held_contact(held, frame_figs)
                 for t, fig in enumerate(frame_figs):
                     figs[t].append(fig)
                 for key, value in rows.items():
