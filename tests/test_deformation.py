@@ -23,8 +23,11 @@ from surgrecon_cli.core.measure.deformation import (
 from surgrecon_cli.core.measure.dent import patch_triangles, share_above
 from surgrecon_cli.core.measure.indentation import (
     contact_events,
+    held_contact,
     hertz_force,
+    measure_frame,
     measure_sequence,
+    series_of,
     summarise,
 )
 
@@ -183,6 +186,47 @@ def test_tool_hovering_1mm_above_the_tissue_is_not_in_contact(sheet):
         assert not s.contact.any(), sigma
         onset, release = contact_events(s.contact)
         assert onset is None and release is None
+
+
+def test_a_lagging_surface_under_a_retreating_tool_keeps_the_contact(sheet):
+    """The tool releases a 3 mm dent to 1 mm with the tissue following it (truly in contact),
+    but the registered surface under the tool, hidden (6 mm from the nearest point with data,
+    its extrapolation error g d = 0.12 × 6 mm = 0.72 mm; σ 0.1 mm elsewhere), lags 1 mm
+    behind: still in contact, as the truth (the same surfaces without the lag, noiseless).
+    Then the tool lifts 5 mm off the released tissue: a release in that frame, as the truth.
+    A tool that was never in contact 0.6 mm above the same surface is not in contact (the
+    onset's tolerance is the frame's, not the hidden points')."""
+    points, nb, rings, normals = sheet
+    surface = ReferenceSurface(points, normals, nb, rings)
+    c = _centre(points)
+    away = _pose(points[c] + 0.01 * TILT)
+    poses = [away, _pose(points[c] - 0.003 * TILT), _pose(points[c] - 0.001 * TILT),
+             _pose(points[c] + 0.005 * TILT)]
+    true = [points, _dent(points, c, 0.003), _dent(points, c, 0.001), points]
+    lagging = [points, _dent(points, c, 0.003), _dent(points, c, 0.002), points]
+    truth = _run(sheet, true, poses).series
+    assert list(truth.contact) == [False, True, True, False]  # the scene is as meant
+    hidden = np.linalg.norm(points - points[c], axis=1) < 0.006
+    sigma = np.full(len(points), 1e-4)
+    extrapolation = np.where(hidden, 0.12 * 0.006, 0.0)
+    held = False
+    measured = []
+    for frame, pose in zip(lagging, poses, strict=True):
+        fig, _ = measure_frame(surface, frame, sigma, pose, CFG.deformation, CFG.tool, held,
+                               extrapolation)
+        held = held_contact([held], [fig])[0]
+        measured.append(fig)
+    s = series_of(measured)
+    assert s.clearance_mm[2] == pytest.approx(0.5, abs=0.1)  # the lag (tilted tool)
+    assert s.clearance_mm[2] > s.tolerance_mm[1]  # beyond the onset's tolerance
+    assert contact_events(s.contact) == contact_events(truth.contact) == (1, 3)
+    # never in contact: 0.6 mm above the same surface with the same extrapolation
+    tip = (points[c] + (0.0006 + CFG.tool.shaft_radius_m) * sheet[3][c]
+           - CFG.tool.shaft_radius_m * TILT)
+    fig, _ = measure_frame(surface, points, sigma, _pose(tip), CFG.deformation, CFG.tool,
+                           False, extrapolation)
+    assert fig["clearance_mm"] == pytest.approx(0.6, abs=0.15)
+    assert not fig["contact"]
 
 
 def test_contact_events():

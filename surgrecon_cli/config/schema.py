@@ -363,7 +363,9 @@ class DeformationConfig:
         bounds=(6, 4096))
     contact_sigmas: float = _doc(
         2.5, "contact: the tool's clearance to the reconstructed surface is below this many "
-        "sigma of the frame's points (the median; 1D sigma along the surface normal)",
+        "sigma of the frame's points (the median; 1D sigma along the surface normal); once in "
+        "contact, a release needs it beyond this many sigma of that median point extrapolated "
+        "(registration.extrapolation_growth) as far as the nearest point is from data",
         bounds=(0, 100))
     contact_floor_mm: float = _doc(
         0.2, "... or below this (mm; also the ground truth's tolerance, which has no noise)",

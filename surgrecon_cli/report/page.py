@@ -335,8 +335,11 @@ def contact_section(data: RunData, config: Config, pngs: Mapping[str, bytes]) ->
                           "shows."))
     sec.add(rh.paragraph(
         f"Contact: the tool (a capsule of the shaft radius) comes within the tolerance of the "
-        f"registered surface: {d.contact_sigmas:g}σ of the surface points nearest it, at least "
-        f"{d.contact_floor_mm:g} mm. Ring: template points {d.ring_inner_mm:g}–"
+        f"registered surface: {d.contact_sigmas:g}σ of the frame's points (the median), at least "
+        f"{d.contact_floor_mm:g} mm; once in contact, a release needs the clearance beyond "
+        f"{d.contact_sigmas:g}σ of that point extrapolated as far as the nearest point is from "
+        "the data (the tissue under the tool is hidden). "
+        f"Ring: template points {d.ring_inner_mm:g}–"
         f"{d.ring_outer_mm:g} mm from each point at frame 0. Area and volume are integrated over "
         f"a triangulation of the frame-0 template; gaps wider than {d.max_edge_mm:g} mm count "
         "no area.", note=True))

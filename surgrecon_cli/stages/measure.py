@@ -2,7 +2,8 @@
 (issue 17; the definitions are in core/measure/deformation.py and core/measure/indentation.py).
 
 Reads the template, its observations (the frame-0 points' uncertainty), every registered
-frame (positions and σ) and the ingested tool and camera poses; the neighbourhoods are the
+frame (positions, σ and each point's distance to the nearest point with data, for the
+contact's hysteresis) and the ingested tool and camera poses; the neighbourhoods are the
 classify stage's (same settings, rebuilt here). Writes atomically
   RUN/metrics/deformation.csv   one row per frame (DEFORMATION_COLUMNS; force_n empty when
                                 the force model is off; a frame without a tool pose: contact
@@ -42,6 +43,7 @@ from ..core.measure.indentation import (
     SERIES_KEYS,
     DeformationSeries,
     camera_viewpoint,
+    held_contact,
     measure_tools,
     series_of,
     summarise,
@@ -96,16 +98,20 @@ def run_measure(run_dir: Path, config: Config,
         layout.measure_dir.mkdir(parents=True, exist_ok=True)
         field = {key: RowFile(path, (n_frames, n), FIELD_DTYPES[key], create=True)
                  for key, path in scratch.items()}
+        held = [False] * len(figs)  # each tool in contact in its last frame with a pose
         try:
             for k in range(n_frames):  # one frame in memory at a time
-                positions, sigma = template, template_sigma
+                positions, sigma, extrapolation = template, template_sigma, None
                 if k:
                     reg = read_registration(layout, k, n)
                     positions = reg.registered.astype(float)
                     sigma = np.hypot(reg.sigma.astype(float), template_sigma)
+                    extrapolation = (config.registration.extrapolation_growth
+                                     * reg.support_mm.astype(float) * 1e-3)
                 frame_figs, rows = measure_tools(surface, positions, sigma,
                                                  log.all_tool_poses(k), config.deformation,
-                                                 config.tool_configs())
+                                                 config.tool_configs(), held, extrapolation)
+                held = held_contact(held, frame_figs)
                 for t, fig in enumerate(frame_figs):
                     figs[t].append(fig)
                 for key, value in rows.items():

@@ -8,8 +8,18 @@ Per frame k (`measure_frame`):
   nearest the tool: under a hovering tool they are hidden and extrapolated, their σ large,
   and a tolerance from it would call a tool 1 mm away touching; in contact the registration
   keeps the tissue out of the tool (core/frame_step.register_with_contact), so the hidden
-  surface is pushed to zero clearance whatever its σ. Onset is the first frame in contact,
-  release the first frame out of contact after the last frame in contact;
+  surface is pushed to zero clearance whatever its σ. But it cannot pull the tissue after a
+  retreating tool: hidden under it, the tissue that springs back with the tool is
+  extrapolated from its visible neighbours, which rise less than the centre of the dent,
+  so it lags behind the tool by up to that extrapolation's error. Hence a hysteresis: once
+  in contact (the last frame with a tool pose was), the tool stays in contact until its
+  clearance exceeds contact_sigmas × the 1D σ of the frame's median point extrapolated as
+  far as the nearest point is from its support (the registration's error model of a point
+  without data, core/registration/frame_step.py: σ² = σ_s² + (g d)², here with the frame's
+  median σ for σ_s: a single support's σ, inflated by its residual, would hold the contact
+  through a lift-off; `contact_tolerance`). A hovering tool never touched, so its tolerance
+  stays the onset's. Onset is the first frame in contact, release the first frame out of
+  contact after the last frame in contact;
 - depth under the tip, along the tool axis: −u·a of the points under the tip, read at the
   axis; along the surface normal: −u·(R n), n the point's frame-0 normal turned by its ring's
   rotation. Computed in every frame (so breathing alone can be checked: it should stay within
@@ -119,44 +129,53 @@ class Deformation:
 
 @dataclass(frozen=True)
 class _FrameField:
-    """One frame's positions (N, 3) m, sigma (N,) m or None, `compensated_field`, inward (N,) m."""
+    """One frame's positions (N, 3) m, sigma (N,) m or None, `compensated_field`, inward (N,)
+    m and extrapolation (N,) m or None (`measure_tools`)."""
 
     positions: np.ndarray
     sigma: np.ndarray | None
     comp: CompensatedField
     inward: np.ndarray
+    extrapolation: np.ndarray | None = None
 
 
 def measure_frame(surface: ReferenceSurface, positions: np.ndarray, sigma: np.ndarray | None,
-                  tool_pose: np.ndarray, cfg: DeformationConfig, tool: ToolConfig
+                  tool_pose: np.ndarray, cfg: DeformationConfig, tool: ToolConfig,
+                  held: bool = False, extrapolation: np.ndarray | None = None
                   ) -> tuple[dict[str, float], dict]:
     """`measure_tools` of one tool (pose (4, 4)): its figures and the field."""
-    figs, field = measure_tools(surface, positions, sigma, np.asarray(tool_pose)[None], cfg, [tool])
+    figs, field = measure_tools(surface, positions, sigma, np.asarray(tool_pose)[None], cfg,
+                                [tool], [held], extrapolation)
     return figs[0], field
 
 
 def measure_tools(surface: ReferenceSurface, positions: np.ndarray, sigma: np.ndarray | None,
-                  tool_poses: np.ndarray, cfg: DeformationConfig, tools: Sequence[ToolConfig]
+                  tool_poses: np.ndarray, cfg: DeformationConfig, tools: Sequence[ToolConfig],
+                  held: Sequence[bool] | None = None, extrapolation: np.ndarray | None = None
                   ) -> tuple[list[dict[str, float]], dict]:
     """One frame: each tool's figures {SERIES_KEYS: value} and the field {inward_mm,
     magnitude_mm, sigma_mm, deformed (every tool's deformed region): (N,)}. positions (N, 3)
     m (NaN: unknown), sigma (N,) m 3D RMS or None, tool_poses (K, 4, 4) (NaN: unknown) with
-    one config each. A tool is measured at its working end (core/tool.working_end: the
-    jaw's end when it has one), along its shaft axis."""
+    one config each; held (K,): each tool in contact in the last frame with its pose
+    (`held_contact`; None: none was) and extrapolation (N,) m, each point's extrapolation
+    error (registration.extrapolation_growth × its frame-0 distance to the nearest point
+    with data; None: 0), the contact's hysteresis. A tool is measured at its
+    working end (core/tool.working_end: the jaw's end when it has one), along its shaft axis."""
     comp = compensated_field(surface.points, positions, surface.rings, sigma)
     u = comp.displacement
     inward = -(u * np.einsum("nij,nj->ni", comp.rotation, surface.normals)).sum(1)
-    frame = _FrameField(positions, sigma, comp, inward)
+    frame = _FrameField(positions, sigma, comp, inward, extrapolation)
     field = {"inward_mm": inward * 1e3, "magnitude_mm": np.linalg.norm(u, axis=1) * 1e3,
              "sigma_mm": comp.sigma * 1e3, "deformed": np.zeros(len(surface.points), bool)}
     figs = []
-    for tool_pose, tool in zip(np.asarray(tool_poses, float), tools, strict=True):
+    held = [False] * len(tools) if held is None else held
+    for tool_pose, tool, was in zip(np.asarray(tool_poses, float), tools, held, strict=True):
         fig = dict.fromkeys(SERIES_KEYS, float("nan"))
         fig.update(contact=0.0, contact_point=-1.0, indentation_mm=0.0,
                    indentation_normal_mm=0.0, area_mm2=0.0, volume_mm3=0.0)
         radius = tool.shaft_radius_m
         if np.isfinite(tool_pose).all():
-            _contact(fig, positions, sigma, tool_pose, tool, cfg)
+            _contact(fig, frame, tool_pose, tool, cfg, bool(was))
             end, radius = working_end(tool_pose, tool)
             field["deformed"] |= _under_tool(fig, surface, frame, end, radius, cfg)
         if cfg.youngs_modulus_kpa > 0:
@@ -197,23 +216,49 @@ def _under_tool(fig: dict[str, float], surface: ReferenceSurface, frame: _FrameF
     return deformed
 
 
-def _contact(fig: dict[str, float], positions: np.ndarray, sigma: np.ndarray | None,
-             pose: np.ndarray, tool: ToolConfig, cfg: DeformationConfig) -> None:
-    """Fill clearance_mm, tolerance_mm and contact (module docstring)."""
+def contact_tolerance(sigma: np.ndarray | None, extrapolation: np.ndarray | None,
+                      nearest: int, held: bool, cfg: DeformationConfig) -> float:
+    """The contact tolerance (m) of a frame whose clearance is that of point `nearest`:
+    max(contact_floor_mm, contact_sigmas × σ_m/√3), σ_m the median of sigma (N,) m, the
+    points' 3D RMS (None: noiseless, the floor). `held` (the tool was in contact in the last
+    frame with its pose): σ_m combined with the nearest point's extrapolation error,
+    extrapolation (N,) m (g × its distance to the nearest point with data; None: 0), so
+    that a release needs a clearance beyond what extrapolating the hidden surface under the
+    tool explains (module docstring)."""
+    tolerance = cfg.contact_floor_mm * 1e-3
+    if sigma is None:
+        return tolerance
+    s = np.asarray(sigma, float)
+    finite = s[np.isfinite(s)]
+    if not finite.size:
+        return tolerance
+    typical = float(np.median(finite))
+    if held and extrapolation is not None and np.isfinite(extrapolation[nearest]):
+        typical = float(np.hypot(typical, extrapolation[nearest]))
+    return max(tolerance, cfg.contact_sigmas * typical / np.sqrt(3.0))
+
+
+def _contact(fig: dict[str, float], frame: _FrameField, pose: np.ndarray, tool: ToolConfig,
+             cfg: DeformationConfig, held: bool) -> None:
+    """Fill clearance_mm, tolerance_mm and contact (module docstring; `held`: in contact
+    in the last frame with the tool's pose)."""
+    positions = frame.positions
     clearance = tool_clearance(positions, pose, tool)
     ok = np.flatnonzero(np.isfinite(clearance))
     if not len(ok):
         return
-    nearest = ok[np.argmin(clearance[ok])]
-    tolerance = cfg.contact_floor_mm * 1e-3
-    if sigma is not None:
-        s = np.asarray(sigma, float)
-        s = s[np.isfinite(s)]
-        if s.size:
-            tolerance = max(tolerance, cfg.contact_sigmas * float(np.median(s)) / np.sqrt(3.0))
+    nearest = int(ok[np.argmin(clearance[ok])])
+    tolerance = contact_tolerance(frame.sigma, frame.extrapolation, nearest, held, cfg)
     fig["clearance_mm"] = float(clearance[nearest]) * 1e3
     fig["tolerance_mm"] = tolerance * 1e3
     fig["contact"] = float(clearance[nearest] <= tolerance)
+
+
+def held_contact(held: Sequence[bool], figs: Sequence[dict[str, float]]) -> list[bool]:
+    """Each tool's contact state after a frame of figures (`measure_tools`): its contact
+    where its clearance was measured, else (no pose, no points) the state before, `held`."""
+    return [bool(f["contact"]) if np.isfinite(f["clearance_mm"]) else bool(h)
+            for h, f in zip(held, figs, strict=True)]
 
 
 def _dent(surface: ReferenceSurface, frame: _FrameField, seed: int, cfg: DeformationConfig
@@ -255,9 +300,11 @@ def measure_sequence(surface: ReferenceSurface, positions: np.ndarray,
     """Every frame: positions (T, N, 3) m (frame 0 normally the reference itself), sigma
     (T, N) m or None, tool_poses (T, 4, 4) (module docstring)."""
     figs, fields_ = [], []
+    held = False
     for k in range(len(positions)):
         fig, field = measure_frame(surface, positions[k], None if sigma is None else sigma[k],
-                                   tool_poses[k], cfg, tool)
+                                   tool_poses[k], cfg, tool, held)
+        held = held_contact([held], [fig])[0]
         figs.append(fig)
         fields_.append(field)
     stacked = DeformationField(**{key: np.stack([f[key] for f in fields_]).astype(
