@@ -22,6 +22,7 @@ from surgrecon_cli.core.measure.deformation import (
 )
 from surgrecon_cli.core.measure.dent import patch_triangles, share_above
 from surgrecon_cli.core.measure.indentation import (
+    SurfaceEstimate,
     contact_events,
     held_contact,
     hertz_force,
@@ -212,8 +213,8 @@ def test_a_lagging_surface_under_a_retreating_tool_keeps_the_contact(sheet):
     held = False
     measured = []
     for frame, pose in zip(lagging, poses, strict=True):
-        fig, _ = measure_frame(surface, frame, sigma, pose, CFG.deformation, CFG.tool, held,
-                               extrapolation)
+        fig, _ = measure_frame(surface, SurfaceEstimate(frame, sigma, extrapolation), pose,
+                               CFG.deformation, CFG.tool, held)
         held = held_contact([held], [fig])[0]
         measured.append(fig)
     s = series_of(measured)
@@ -223,8 +224,8 @@ def test_a_lagging_surface_under_a_retreating_tool_keeps_the_contact(sheet):
     # never in contact: 0.6 mm above the same surface with the same extrapolation
     tip = (points[c] + (0.0006 + CFG.tool.shaft_radius_m) * sheet[3][c]
            - CFG.tool.shaft_radius_m * TILT)
-    fig, _ = measure_frame(surface, points, sigma, _pose(tip), CFG.deformation, CFG.tool,
-                           False, extrapolation)
+    fig, _ = measure_frame(surface, SurfaceEstimate(points, sigma, extrapolation), _pose(tip),
+                           CFG.deformation, CFG.tool)
     assert fig["clearance_mm"] == pytest.approx(0.6, abs=0.15)
     assert not fig["contact"]
 

@@ -87,7 +87,7 @@ def test_modules_under_500_lines():
 # own __init__, `surgrecon_cli`, holds the version and a few limits every layer may read).
 RANKS = {"errors": 0, "config": 1, "core": 2, "executors": 3, "io": 3, "registration": 3,
          "report": 4, "info": 4, "sim": 4, "convert": 5, "stages": 6, "planning": 7,
-         "pipeline": 8, "cli": 9}
+         "pipeline": 8, "cli": 9, "__main__": 10}
 # core's subpackages in the order of the data flow; each imports only earlier ones.
 # classify comes before target because its labels module holds the point and status codes
 # the target cloud and the registration already use.

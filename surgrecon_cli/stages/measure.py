@@ -42,6 +42,7 @@ from ..core.measure.indentation import (
     NOT_MEASURED,
     SERIES_KEYS,
     DeformationSeries,
+    SurfaceEstimate,
     camera_viewpoint,
     held_contact,
     measure_tools,
@@ -108,9 +109,9 @@ def run_measure(run_dir: Path, config: Config,
                     sigma = np.hypot(reg.sigma.astype(float), template_sigma)
                     extrapolation = (config.registration.extrapolation_growth
                                      * reg.support_mm.astype(float) * 1e-3)
-                frame_figs, rows = measure_tools(surface, positions, sigma,
-                                                 log.all_tool_poses(k), config.deformation,
-                                                 config.tool_configs(), held, extrapolation)
+                frame_figs, rows = measure_tools(
+                    surface, SurfaceEstimate(positions, sigma, extrapolation),
+                    log.all_tool_poses(k), config.deformation, config.tool_configs(), held)
                 held = held_contact(held, frame_figs)
                 for t, fig in enumerate(frame_figs):
                     figs[t].append(fig)

@@ -139,32 +139,40 @@ class _FrameField:
     extrapolation: np.ndarray | None = None
 
 
-def measure_frame(surface: ReferenceSurface, positions: np.ndarray, sigma: np.ndarray | None,
-                  tool_pose: np.ndarray, cfg: DeformationConfig, tool: ToolConfig,
-                  held: bool = False, extrapolation: np.ndarray | None = None
+@dataclass(frozen=True)
+class SurfaceEstimate:
+    """The registered surface of one frame: positions (N, 3) m (NaN: unknown), sigma (N,) m
+    3D RMS or None, extrapolation (N,) m each point's extrapolation error
+    (registration.extrapolation_growth × its frame-0 distance to the nearest point with data;
+    None: 0), which the contact's hysteresis allows for."""
+
+    positions: np.ndarray
+    sigma: np.ndarray | None = None
+    extrapolation: np.ndarray | None = None
+
+
+def measure_frame(surface: ReferenceSurface, estimate: SurfaceEstimate, tool_pose: np.ndarray,
+                  cfg: DeformationConfig, tool: ToolConfig, held: bool = False
                   ) -> tuple[dict[str, float], dict]:
     """`measure_tools` of one tool (pose (4, 4)): its figures and the field."""
-    figs, field = measure_tools(surface, positions, sigma, np.asarray(tool_pose)[None], cfg,
-                                [tool], [held], extrapolation)
+    figs, field = measure_tools(surface, estimate, np.asarray(tool_pose)[None], cfg, [tool],
+                                [held])
     return figs[0], field
 
 
-def measure_tools(surface: ReferenceSurface, positions: np.ndarray, sigma: np.ndarray | None,
-                  tool_poses: np.ndarray, cfg: DeformationConfig, tools: Sequence[ToolConfig],
-                  held: Sequence[bool] | None = None, extrapolation: np.ndarray | None = None
-                  ) -> tuple[list[dict[str, float]], dict]:
+def measure_tools(surface: ReferenceSurface, estimate: SurfaceEstimate, tool_poses: np.ndarray,
+                  cfg: DeformationConfig, tools: Sequence[ToolConfig],
+                  held: Sequence[bool] | None = None) -> tuple[list[dict[str, float]], dict]:
     """One frame: each tool's figures {SERIES_KEYS: value} and the field {inward_mm,
-    magnitude_mm, sigma_mm, deformed (every tool's deformed region): (N,)}. positions (N, 3)
-    m (NaN: unknown), sigma (N,) m 3D RMS or None, tool_poses (K, 4, 4) (NaN: unknown) with
-    one config each; held (K,): each tool in contact in the last frame with its pose
-    (`held_contact`; None: none was) and extrapolation (N,) m, each point's extrapolation
-    error (registration.extrapolation_growth × its frame-0 distance to the nearest point
-    with data; None: 0), the contact's hysteresis. A tool is measured at its
+    magnitude_mm, sigma_mm, deformed (every tool's deformed region): (N,)}. tool_poses
+    (K, 4, 4) (NaN: unknown) with one config each; held (K,): each tool in contact in the
+    last frame with its pose (`held_contact`; None: none was). A tool is measured at its
     working end (core/tool.working_end: the jaw's end when it has one), along its shaft axis."""
+    positions, sigma = estimate.positions, estimate.sigma
     comp = compensated_field(surface.points, positions, surface.rings, sigma)
     u = comp.displacement
     inward = -(u * np.einsum("nij,nj->ni", comp.rotation, surface.normals)).sum(1)
-    frame = _FrameField(positions, sigma, comp, inward, extrapolation)
+    frame = _FrameField(positions, sigma, comp, inward, estimate.extrapolation)
     field = {"inward_mm": inward * 1e3, "magnitude_mm": np.linalg.norm(u, axis=1) * 1e3,
              "sigma_mm": comp.sigma * 1e3, "deformed": np.zeros(len(surface.points), bool)}
     figs = []
@@ -302,8 +310,8 @@ def measure_sequence(surface: ReferenceSurface, positions: np.ndarray,
     figs, fields_ = [], []
     held = False
     for k in range(len(positions)):
-        fig, field = measure_frame(surface, positions[k], None if sigma is None else sigma[k],
-                                   tool_poses[k], cfg, tool, held)
+        estimate = SurfaceEstimate(positions[k], None if sigma is None else sigma[k])
+        fig, field = measure_frame(surface, estimate, tool_poses[k], cfg, tool, held)
         held = held_contact([held], [fig])[0]
         figs.append(fig)
         fields_.append(field)
