@@ -58,22 +58,6 @@ def test_a_motion_beyond_the_chosen_depth_is_found_by_the_full_depth_retry():
     assert np.nanmedian(moved) > 13.0
 
 
-def test_a_failed_track_whose_guess_is_covered_is_not_tried_again():
-    # The same 14 px motion the depth-0 pass cannot reach: where a tool covers the guesses
-    # of the left half, only the right half is tracked again (and found, at the truth).
-    cfg = Config().target
-    prev, cur = tracking_view(_texture(0.0)), tracking_view(_texture(14.0))
-    g = np.arange(50.0, 150.0, 12.0)
-    start = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
-    left = start[:, 0] < 100.0
-    tracked, ok, _ = track_adaptive(
-        prev, cur, start, TrackPrior(start.copy(), 1.0, covered=lambda px: px[:, 0] < 100.0),
-        cfg)
-    assert ok[~left].mean() > 0.9
-    assert np.median(np.abs(tracked[ok & ~left] - (start[ok & ~left] + [14.0, 0.0]))) < 0.05
-    assert ok[left].mean() < 0.5  # most of them fail at depth 0, and stay failed
-
-
 def test_of_two_priors_the_one_whose_pilot_tracks_more_points_is_used():
     # The image moved 14 px; one prior (a stale projection) is 74 px off, beyond the
     # pyramid's reach (only the retries from the found tracks' flow rescue some of its

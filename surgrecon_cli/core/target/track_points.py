@@ -36,11 +36,11 @@ anchor step's guesses are moved the same way by the chained tracks around them.
 from __future__ import annotations
 
 from dataclasses import replace
-from functools import partial
 
 import cv2
 import numpy as np
 
+from ...config import TargetConfig
 from ..geometry.cameras import CameraModel, in_image, project, undistort_pixels
 from ..geometry.poses import invert_pose
 from ..geometry.tool import tool_pixel_mask
@@ -139,34 +139,24 @@ def _chain(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig, c: i
     # Two priors, piloted: the latest position projected with the current pose (the poses
     # know how the camera moved), or where the point was (its latest position is stale
     # where the registration lagged, or the poses miss the motion: an untracked camera).
-    # A point whose guess a tool covers is tracked once, not tried again.
-    covered = partial(_covered, frame=frame, rig=rig, c=c)
     if predicted is not None:
-        prior = TrackPrior(guess[idx], 2.0 * max(predicted[1], 1.0), covered=covered)
+        prior = TrackPrior(guess[idx], 2.0 * max(predicted[1], 1.0))
     else:
-        prior = TrackPrior(guess[idx], alternative=start[idx], covered=covered)
+        prior = TrackPrior(guess[idx], alternative=start[idx])
     tracked, ok, _ = track_adaptive(prev, cur, start[idx], prior, cfg)
     pixels = np.full((n, 2), np.nan)
     pixels[idx[ok]] = tracked[ok]
     return pixels, np.isfinite(pixels).all(1)
 
 
-def _covered(pixels: np.ndarray, frame: FrameInput, rig: Rig, c: int) -> np.ndarray:
-    """Whether the tools cover pixels (M, 2) of camera c in `frame` (`tool_pixel_mask`)."""
-    tools = frame.tool_pose if frame.camera_tool_pose is None else frame.camera_tool_pose[c]
-    return tool_pixel_mask(pixels, rig.models[c], frame.poses[c], tools, rig.tools)
-
-
-def _anchor(template: tuple[TrackingView, np.ndarray], frame: FrameInput, pixels: np.ndarray,
-            rig: Rig, c: int) -> tuple[np.ndarray, np.ndarray]:
-    """Step 2 for camera c: the chained pixels (N, 2) (NaN = not found) and found (N,),
-    with the points not found re-acquired from the template's image and pixels (N, 2)
-    (`template`), from where the image motion since the template puts them: fitted to the
-    chained tracks, or where they are too few (tracking lost), to ORB matches between the
-    two images (core/reacquire.descriptor_motion)."""
-    anchor, anchor_pixels = template
-    cur, model = frame.views[c], rig.models[c]
-    assert cur is not None
+def _anchor(anchor: TrackingView, cur: TrackingView, anchor_pixels: np.ndarray,
+            pixels: np.ndarray, model: CameraModel, cfg: TargetConfig
+            ) -> tuple[np.ndarray, np.ndarray]:
+    """Step 2 for one camera: the chained pixels (N, 2) (NaN = not found) and found (N,),
+    with the points not found re-acquired from the template's image, from where the image
+    motion since the template puts them: fitted to the chained tracks, or where they are
+    too few (tracking lost), to ORB matches between the two images
+    (core/reacquire.descriptor_motion)."""
     found = np.isfinite(pixels).all(1)
     has = np.isfinite(anchor_pixels).all(1) & in_image(
         np.nan_to_num(anchor_pixels, nan=-1e9), model, KLT_BORDER_PX)
@@ -185,8 +175,8 @@ def _anchor(template: tuple[TrackingView, np.ndarray], frame: FrameInput, pixels
     near = np.isfinite(local).all(1)
     guess[lost[near]] += local[near]
     idx = np.flatnonzero(has & ~found & in_image(guess, model, KLT_BORDER_PX))
-    prior = TrackPrior(guess[idx], covered=partial(_covered, frame=frame, rig=rig, c=c))
-    tracked, ok, _ = track_adaptive(anchor, cur, anchor_pixels[idx], prior, rig.cfg)
+    tracked, ok, _ = track_adaptive(anchor, cur, anchor_pixels[idx], TrackPrior(guess[idx]),
+                                    cfg)
     pixels = pixels.copy()
     pixels[idx[ok]] = tracked[ok]
     return pixels, np.isfinite(pixels).all(1)
@@ -269,9 +259,11 @@ def find_points(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig,
             px[back_ok], ok[back_ok] = back[back_ok], True
         anchor = None if anchor_views is None else anchor_views[c]
         if anchor is not None and anchor_pixels is not None:
-            px, ok = _anchor((anchor, anchor_pixels[:, c]), frame, px, rig, c)
+            px, ok = _anchor(anchor, cur, anchor_pixels[:, c], px, models[c], cfg)
         rows = np.flatnonzero(ok)
-        keep = in_image(px[rows], models[c], 2.0) & ~_covered(px[rows], frame, rig, c)
+        keep = in_image(px[rows], models[c], 2.0)
+        tools = frame.tool_pose if frame.camera_tool_pose is None else frame.camera_tool_pose[c]
+        keep &= ~tool_pixel_mask(px[rows], models[c], cur_poses[c], tools, rig.tools)
         rows = rows[keep]
         pixels[rows, c] = px[rows]
         found[rows, c] = True

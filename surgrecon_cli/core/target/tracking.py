@@ -4,7 +4,6 @@ forward-backward and photometrically (Su et al. 2019, section II.B: the target c
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -191,16 +190,12 @@ def apply_motion(motion: np.ndarray, pixels: np.ndarray) -> np.ndarray:
 @dataclass(frozen=True)
 class TrackPrior:
     """Where M tracks are expected in the current image (`track_adaptive`): guess (M, 2) px,
-    the motion to expect from it motion_px px (NaN = unknown), alternative (M, 2) px
-    other guesses (or None) and covered: whether something (a tool) covers pixels (K, 2) of
-    the current image, (K,) bool (None: nothing). A track the first pass fails is not tried
-    again where its guess is covered: every retry of a covered point fails, each at the
-    iteration cap of every pyramid level."""
+    the motion to expect from it motion_px px (NaN = unknown) and alternative (M, 2) px
+    other guesses (or None)."""
 
     guess: np.ndarray
     motion_px: float = float("nan")
     alternative: np.ndarray | None = None
-    covered: Callable[[np.ndarray], np.ndarray] | None = None
 
 
 def track_adaptive(prev: TrackingView, cur: TrackingView, start: np.ndarray,
@@ -236,14 +231,11 @@ def track_adaptive(prev: TrackingView, cur: TrackingView, start: np.ndarray,
     tracked, ok = klt_track(prev, cur, start, guess, cfg, levels)
     reach = cfg.klt_window_px / 4.0 * 2.0**levels
     moved = np.linalg.norm(tracked - guess, axis=1)
-    retry = np.ones(len(start), bool)  # not the failed tracks whose guess is covered
-    if prior.covered is not None and not ok.all():
-        retry[~ok] = ~prior.covered(guess[~ok])
-    again = np.flatnonzero((~ok & retry) | (ok & (moved > reach))) if levels < full \
-        else np.zeros(0, int)
+    again = np.flatnonzero(~ok | (moved > reach)) if levels < full else np.zeros(0, int)
     if len(again):
         tracked[again], ok[again] = klt_track(prev, cur, start[again], guess[again], cfg, full)
-    tracked, ok = retrack_from_neighbours(prev, cur, start, (guess, retry), (tracked, ok), cfg)
+        moved[again] = np.linalg.norm(tracked[again] - guess[again], axis=1)
+    tracked, ok = retrack_from_neighbours(prev, cur, start, guess, (tracked, ok), cfg)
     moved = np.linalg.norm(tracked - guess, axis=1)
     return tracked, ok, np.where(ok, moved, np.nan)
 
@@ -296,19 +288,16 @@ def neighbour_flow(source: np.ndarray, flow: np.ndarray, query: np.ndarray) -> n
 
 
 def retrack_from_neighbours(prev: TrackingView, cur: TrackingView, start: np.ndarray,
-                            prior: tuple[np.ndarray, np.ndarray],
-                            found: tuple[np.ndarray, np.ndarray],
+                            guess: np.ndarray, found: tuple[np.ndarray, np.ndarray],
                             cfg: TargetConfig) -> tuple[np.ndarray, np.ndarray]:
     """The first pass's `found` = (tracks (M, 2), ok (M,)), with the failed ones tracked
-    again (full pyramid, same checks) from their guess moved by the `neighbour_flow` of the
-    found tracks' departures from their guesses, around their start pixels (M, 2);
-    NEIGHBOUR_ROUNDS rounds, so a patch of tissue that moved far from the prediction is
-    reached from its rim inwards. `prior` = (guesses (M, 2), retry (M,) bool: the failed
-    tracks that may be tried again)."""
+    again (full pyramid, same checks) from their guess (M, 2) moved by the
+    `neighbour_flow` of the found tracks' departures from their guesses, around their start
+    pixels (M, 2); NEIGHBOUR_ROUNDS rounds, so a patch of tissue that moved far from the
+    prediction is reached from its rim inwards."""
     tracked, ok = found[0].copy(), found[1].copy()
-    guess, retry = prior
     for _ in range(NEIGHBOUR_ROUNDS):
-        lost = np.flatnonzero(~ok & retry)
+        lost = np.flatnonzero(~ok)
         if not len(lost) or not ok.any():
             break
         flow = neighbour_flow(start[ok], tracked[ok] - guess[ok], start[lost])
