@@ -26,9 +26,11 @@ Per camera:
    than the chain's drift over the same frames.
 
 A frame whose previous frame is not its base (re-basing every N_T >= 2 frames) is chained
-through the previous frame's images (base -> previous -> frame, `_via`), with the points
-lost on the way tracked directly from the base: one frame's step of tissue pressed by a
-tool. Points lost in the chain are tracked again from their guess moved by the median
+through the previous frame's images (base -> previous -> frame, `_via`: the previous
+frame's chained pixels are held in `Rig.chains` when this process tracked it, else tracked
+again), with the points lost on the way tracked directly from the base (`_direct`: those
+points alone, with their neighbours for the neighbour retries): one frame's step of tissue
+pressed by a tool. Points lost in the chain are tracked again from their guess moved by the median
 departure of the tracks found around them (core/target/tracking.neighbour_flow), and the
 anchor step's guesses are moved the same way by the chained tracks around them.
 """
@@ -39,6 +41,7 @@ from dataclasses import replace
 
 import cv2
 import numpy as np
+from scipy.spatial import cKDTree
 
 from ...config import TargetConfig
 from ..geometry.cameras import CameraModel, in_image, project, undistort_pixels
@@ -48,6 +51,8 @@ from ..noise.model import localisation_variance_px2
 from .frame_inputs import FrameInput, Rig, Sighting
 from .reacquire import descriptor_motion
 from .tracking import (
+    NEIGHBOUR_RADIUS_PX,
+    NEIGHBOUR_TRACKS,
     TrackingView,
     TrackPrior,
     apply_motion,
@@ -205,11 +210,26 @@ def _direct(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig, c: 
             lost: tuple[np.ndarray, tuple[np.ndarray, float] | None]
             ) -> tuple[np.ndarray, np.ndarray]:
     """`_chain` from the base straight into `frame` for camera c, of the points lost
-    (N,) bool on the way through the previous frame only, guided by the scene's motion
-    (lost[1], `scene_motion`, None: piloted). Pixels (N, 2) (NaN = not found), found (N,)."""
+    (N,) bool on the way through the previous frame and, for their neighbour retries
+    (core/target/tracking.retrack_from_neighbours), the NEIGHBOUR_TRACKS found nearest
+    each within NEIGHBOUR_RADIUS_PX in the base image; guided by the scene's motion
+    (lost[1], `scene_motion`; None: piloted). Pixels (N, 2) of the lost points (NaN = not
+    found), found (N,)."""
     rows, predicted = lost
-    only = Sighting(base.views, base.poses, np.where(rows[:, None, None], base.pixels, np.nan))
-    return _chain(latest, only, replace(frame, previous=None), rig, c, predicted)
+    start = base.pixels[:, c]
+    has = np.isfinite(start).all(1)
+    source, query = np.flatnonzero(~rows & has), np.flatnonzero(rows & has)
+    tracked = rows.copy()
+    if len(source) and len(query):
+        k = min(NEIGHBOUR_TRACKS, len(source))
+        dist, idx = cKDTree(start[source]).query(start[query], k=k,
+                                                 distance_upper_bound=NEIGHBOUR_RADIUS_PX)
+        near = np.isfinite(dist.reshape(len(query), k))
+        tracked[source[idx.reshape(len(query), k)[near]]] = True
+    only = Sighting(base.views, base.poses,
+                    np.where(tracked[:, None, None], base.pixels, np.nan))
+    pixels, found = _chain(latest, only, replace(frame, previous=None), rig, c, predicted)
+    return np.where(rows[:, None], pixels, np.nan), found & rows
 
 
 def _scene(latest: np.ndarray, pixels: np.ndarray, found: np.ndarray, model: CameraModel,
