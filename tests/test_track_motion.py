@@ -16,7 +16,13 @@ from surgrecon_cli.config import Config
 from surgrecon_cli.core.geometry.cameras import project
 from surgrecon_cli.core.noise.model import NoiseModel
 from surgrecon_cli.core.target.cloud import build_target
-from surgrecon_cli.core.target.frame_inputs import FrameInput, Rig, Sighting, TemplateData
+from surgrecon_cli.core.target.frame_inputs import (
+    ChainMemo,
+    FrameInput,
+    Rig,
+    Sighting,
+    TemplateData,
+)
 from surgrecon_cli.core.target.track_points import find_points, scene_motion, visible_points
 from surgrecon_cli.core.target.tracking import klt_track, specular_mask, tracking_view
 from surgrecon_cli.sim.variants import variant_config
@@ -208,3 +214,29 @@ def test_tissue_pressed_by_the_tool_is_tracked_through_the_previous_frame(press)
     assert good["via"] >= 0.25
     assert good["via"] >= good["direct"] + 0.12
     assert np.median(rest["via"]) < 1.2 * np.median(rest["direct"]) + 0.1
+
+
+def test_a_frame_chained_through_its_previous_frame_starts_from_the_held_chain(sweep):
+    # Base frame 0 -> previous 2 -> frame 4 (rendered 0, 2, 4): the previous frame, tracked
+    # first, leaves its chained pixels in the memo; the frame then finds the same pixels as
+    # when they are tracked again, near the truth (two steps of a ~6 deg sweep, chained).
+    scene, cfg, points, views, poses = sweep
+    start, _ = _truth(scene, poses, points, 0)
+    truth, seen = _truth(scene, poses, points, 2)
+    latest = scene.vertices[0][points]
+    base = Sighting(views[0], poses, start)
+    previous = FrameInput(1, views[1], poses, scene.tool_poses[1])
+    frame = FrameInput(2, views[2], poses, scene.tool_poses[2], previous=previous)
+    memo = ChainMemo()
+    held = replace(_rig(scene, cfg), chains=memo)
+    find_points(latest, base, previous, held)
+    assert memo.get(memo.key(latest, base, 1)) is not None
+    assert memo.get(memo.key(latest + 1e-3, base, 1)) is None  # another base: not held
+    pixels, found, _ = find_points(latest, base, frame, held)
+    again, found_again, _ = find_points(latest, base, frame, _rig(scene, cfg))
+    assert np.array_equal(found, found_again)
+    assert np.allclose(pixels[found], again[found], atol=1e-9)
+    both = seen.all(1)
+    assert found[both].all(1).mean() >= 0.8
+    error = np.linalg.norm(pixels - truth, axis=2)[found & seen]
+    assert np.median(error) < 0.5 and np.percentile(error, 95) < 1.5

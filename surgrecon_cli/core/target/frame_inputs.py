@@ -4,6 +4,9 @@ them (the base frame, the template's frame 0). Plain frozen dataclasses on numpy
 
 from __future__ import annotations
 
+import hashlib
+import threading
+from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
@@ -28,15 +31,53 @@ class TemplateData:
     pixels: np.ndarray
 
 
+class ChainMemo:
+    """Where the last `size` frames tracked straight from their base found the points by
+    the chain alone (pixels (N, C, 2), NaN = not found; core/target/track_points, before
+    re-acquisition from the template), in this process: a frame tracked through its
+    previous frame starts from the previous frame's pixels instead of tracking them again
+    (the same computation, so the same pixels; a frame not held is tracked). Keyed by the
+    frame's index and a digest of the base it was tracked from (`key`); thread-safe."""
+
+    def __init__(self, size: int = 4) -> None:
+        self.size = size
+        self._items: OrderedDict[tuple[int, str], np.ndarray] = OrderedDict()
+        self._lock = threading.Lock()
+
+    @staticmethod
+    def key(latest: np.ndarray, base: Sighting, frame: int) -> tuple[int, str]:
+        """The key of `frame` tracked from `base` with the points at `latest` (N, 3) m."""
+        digest = hashlib.blake2b(digest_size=16)
+        for array in (latest, base.pixels, base.poses):
+            digest.update(np.ascontiguousarray(array).tobytes())
+        return frame, digest.hexdigest()
+
+    def get(self, key: tuple[int, str]) -> np.ndarray | None:
+        """The pixels (N, C, 2) held under `key`, or None."""
+        with self._lock:
+            return self._items.get(key)
+
+    def put(self, key: tuple[int, str], pixels: np.ndarray) -> None:
+        """Holds pixels (N, C, 2) under `key` (read-only), dropping the oldest beyond size."""
+        pixels.flags.writeable = False
+        with self._lock:
+            self._items[key] = pixels
+            self._items.move_to_end(key)
+            while len(self._items) > self.size:
+                self._items.popitem(last=False)
+
+
 @dataclass(frozen=True)
 class Rig:
-    """The run's cameras (C models), its measured noise model, the target cloud's config and
-    every tool's geometry (`Config.tool_configs()`)."""
+    """The run's cameras (C models), its measured noise model, the target cloud's config,
+    every tool's geometry (`Config.tool_configs()`) and, for a run's frame step, the memo
+    of its frames' chained tracks (`ChainMemo`; None: nothing held)."""
 
     models: list[CameraModel]
     noise: NoiseModel
     cfg: TargetConfig
     tools: ToolConfigs
+    chains: ChainMemo | None = None
 
 
 @dataclass(frozen=True)

@@ -26,11 +26,13 @@ Per camera:
    than the chain's drift over the same frames.
 
 A frame whose previous frame is not its base (re-basing every N_T >= 2 frames) is chained
-through the previous frame's images (base -> previous -> frame, `_via`), with the points
-lost on the way tracked directly from the base: one frame's step of tissue pressed by a
-tool. Points lost in the chain are tracked again from their guess moved by the median
-departure of the tracks found around them (core/target/tracking.neighbour_flow), and the
-anchor step's guesses are moved the same way by the chained tracks around them.
+through the previous frame's images (base -> previous -> frame, `_via`: the previous
+frame's chained pixels are held in `Rig.chains` when this process tracked it, else tracked
+again), with the points lost on the way tracked directly from the base: one frame's step of
+tissue pressed by a tool. Points lost in the chain are tracked again from their guess moved
+by the median departure of the tracks found around them (core/target/tracking.
+neighbour_flow), and the anchor step's guesses are moved the same way by the chained tracks
+around them.
 """
 
 from __future__ import annotations
@@ -182,23 +184,23 @@ def _anchor(anchor: TrackingView, cur: TrackingView, anchor_pixels: np.ndarray,
     return pixels, np.isfinite(pixels).all(1)
 
 
-def _via(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig
-         ) -> tuple[Sighting, np.ndarray | None]:
+def _via(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig) -> Sighting:
     """The sighting to chain `frame` from when its previous frame (`frame.previous`) lies
     between it and the base: the points tracked from the base into the previous frame's
-    images (`find_points` without anchoring), and the pixels (N, C, 2) tracked directly from
-    the base into `frame`'s images (NaN = not found), for the points lost on the way. Tissue
-    pressed by a tool deforms its texture: a KLT window tracked over two frames of the
-    press drifts off where one frame's step does not (measured on the `stereo` simulator
-    from frame 2 to 4 with the true start and guess: 6.9 px median; from 3 to 4: 0.9 px).
-    Falls back to the base alone (None) where the previous frame is unusable."""
+    images (`find_points` without anchoring; held in `rig.chains` when the previous frame
+    was tracked in this process, else tracked again). Tissue pressed by a tool deforms its
+    texture: a KLT window tracked over two frames of the press drifts off where one frame's
+    step does not (measured on the `stereo` simulator from frame 2 to 4 with the true start
+    and guess: 6.9 px median; from 3 to 4: 0.9 px). The base itself where the previous
+    frame is unusable."""
     prev = frame.previous
     assert prev is not None
     if any((v is None) != (w is None) for v, w in zip(prev.views, frame.views, strict=True)):
-        return base, None
-    mid, _, _ = find_points(latest, base, prev, rig)
-    direct, _, _ = find_points(latest, base, replace(frame, previous=None), rig)
-    return Sighting(prev.views, prev.poses, mid), direct
+        return base
+    held = None if rig.chains is None else rig.chains.get(rig.chains.key(latest, base, prev.index))
+    if held is None:
+        held, _, _ = find_points(latest, base, prev, rig)
+    return Sighting(prev.views, prev.poses, held)
 
 
 def find_points(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig,
@@ -210,25 +212,32 @@ def find_points(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig,
 
     latest (N, 3) m: positions at the base frame; `base`: the base frame's views, poses and
     where each point was found in its images (NaN: not found); rig: the cameras, the target
-    config and the tools (masked out); anchor_views / anchor_pixels (N, C, 2): the
+    config, the tools (masked out) and the memo of chained tracks (`rig.chains`: a frame
+    tracked straight from its base leaves its chained pixels there for the next frame's
+    `_via`); anchor_views / anchor_pixels (N, C, 2): the
     template's images and pixels (None: no anchoring). When the base is the template's
     frame, the anchor step is a second try from the same images, from the image motion
     fitted to the tracks that were found or, with too few (measured: SurgT at 320x256
     turned 7° since the template, 5 % of the points found), to ORB matches."""
     models, cur_poses, cfg = rig.models, frame.poses, rig.cfg
     n, n_cams = len(latest), len(models)
-    direct = None
-    if frame.previous is not None:
-        base, direct = _via(latest, base, frame, rig)
+    direct = None  # chained through the previous frame: every point tracked from the base
+    if frame.previous is not None:  # (the lost ones alone: a few points a frame differ)
+        via = _via(latest, base, frame, rig)
+        if via is not base:
+            direct = find_points(latest, base, replace(frame, previous=None), rig)[0]
+            base = via
     pixels = np.full((n, n_cams, 2), np.nan)
     found = np.zeros((n, n_cams), bool)
     localisation = np.full((n, n_cams), np.inf)
+    chained = np.full((n, n_cams, 2), np.nan)  # by the chain alone (for rig.chains)
     predicted = None
     for c in range(n_cams):
         cur, prev = frame.views[c], base.views[c]
         if cur is None or prev is None:
             continue
         px, ok = _chain(latest, base, frame, rig, c, predicted)
+        chain_ok = ok.copy()
         if direct is not None:  # lost on the way through the previous frame: tracked directly
             back = ~ok & np.isfinite(direct[:, c]).all(1)
             px[back], ok[back] = direct[back, c], True
@@ -247,4 +256,8 @@ def find_points(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig,
         found[rows, c] = True
         localisation[rows, c] = localisation_variance_px2(
             cur.grey_f32, px[rows], cfg.klt_window_px, cur.noise_sigma)
+        mine = rows[chain_ok[rows]]
+        chained[mine, c] = px[mine]
+    if direct is None and frame.previous is None and rig.chains is not None:
+        rig.chains.put(rig.chains.key(latest, base, frame.index), chained)
     return pixels, found, localisation

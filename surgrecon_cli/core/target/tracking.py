@@ -279,9 +279,11 @@ def neighbour_flow(source: np.ndarray, flow: np.ndarray, query: np.ndarray) -> n
     dist, idx = dist.reshape(len(query), k), idx.reshape(len(query), k)
     near = np.isfinite(dist)
     padded = np.vstack([flow, np.full((1, 2), np.nan)])
-    values = padded[np.where(near, idx, len(source))]  # (M, k, 2), NaN where none
-    has = near.any(1)
-    out[has] = np.nanmedian(values[has], axis=1)
+    values = np.sort(padded[np.where(near, idx, len(source))], axis=1)  # (M, k, 2), NaN last
+    count = near.sum(1)
+    has = np.flatnonzero(count)
+    low, high = (count[has] - 1) // 2, count[has] // 2  # the median of each row's count
+    out[has] = 0.5 * (values[has, low] + values[has, high])
     return out
 
 
