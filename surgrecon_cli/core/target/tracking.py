@@ -281,8 +281,19 @@ def neighbour_flow(source: np.ndarray, flow: np.ndarray, query: np.ndarray) -> n
     padded = np.vstack([flow, np.full((1, 2), np.nan)])
     values = padded[np.where(near, idx, len(source))]  # (M, k, 2), NaN where none
     has = near.any(1)
-    out[has] = np.nanmedian(values[has], axis=1)
+    out[has] = _nanmedian_axis1(values[has])
     return out
+
+
+def _nanmedian_axis1(values: np.ndarray) -> np.ndarray:
+    """np.nanmedian(values, axis=1) of values (M, k, d) with >= 1 finite value in each
+    (m, :, j), by one sort (NaN last): numpy's small-array nanmedian goes through masked
+    arrays, ~1 ms a call."""
+    ordered = np.sort(values, axis=1)
+    count = np.isfinite(values).sum(1, keepdims=True)  # (M, 1, d)
+    low = np.take_along_axis(ordered, (count - 1) // 2, axis=1)[:, 0]
+    high = np.take_along_axis(ordered, count // 2, axis=1)[:, 0]
+    return 0.5 * (low + high)
 
 
 def retrack_from_neighbours(prev: TrackingView, cur: TrackingView, start: np.ndarray,
