@@ -1,10 +1,16 @@
-"""Hour-long logs (issue 27, item 4): one register worker registering >= 10,000 frames.
+r"""Hour-long logs (issue 27): one register worker registering 100,000 frames, its memory.
 
     .venv/bin/python benchmarks/register_long.py [--steps 10000] [--frames 20] [--cameras 3]
         [--variant default] [--size 320x256] [--seed 7] [--block 500]
         [--workdir /tmp/surgrecon-register-long]
 
-An hour of a 30 Hz stereo endoscope (108,000 frames):
+The 100,000-frame run of docs/frame-step-cost.md ("Long runs"): a 2-camera stereo
+endoscope at 96x80 (21 template points), low priority on a shared machine:
+
+    nice -n 19 .venv/bin/python benchmarks/register_long.py --steps 100000 --variant stereo \
+        --cameras 2 --size 96x80 --block 2500 | tee benchmarks/results/register_long_100k.txt
+
+An hour of a 30 Hz stereo endoscope at 320x256 (108,000 frames, ~0.15 s of CPU a frame):
 
     .venv/bin/python benchmarks/register_long.py --steps 108000 --variant stereo --cameras 2 \
         --block 6000
@@ -14,14 +20,22 @@ its template built; reused when present in WORKDIR) is registered by one process
 thread, as a register worker does it: `stages.register.register_frame(RUN, k, config)` for
 k = 1, 2, ..., F-1, 1, 2, ... until `--steps` frames are done (each call reads its base
 from the run folder, keeps its process caches, and writes RUN/registration/k.npz). Printed
-per block of `--block` frames: CPU seconds a frame and the process's resident set (RSS,
-from /proc/self/status) at the block's end; then the first and last blocks side by side.
-Memory that grows with the number of frames registered shows as RSS rising block by block.
+per block of `--block` frames: CPU seconds a frame, wall seconds a frame, the process's
+resident set (RSS) and its peak (VmHWM, from /proc/self/status) at the block's end, and
+the wall time since the start; then the first and last blocks side by side (also when
+interrupted by SIGINT or SIGTERM: the blocks done so far). Memory that grows with the
+number of frames registered shows as RSS rising block by block.
+
+Sizes: the stereo variant's 2 cameras build a template from 96x80 up (21 points at 96x80,
+35 at 128x96, 88 at 192x160, 337 at 320x256); at 80x64 build-template fails (5 verified
+matches of the 15 needed to link the pair). The default variant's ring cameras 0 and 1 at
+192x160 share too little of a view (1 verified match of 15): 2 cameras are --variant stereo.
 """
 
 from __future__ import annotations
 
 import argparse
+import signal
 import subprocess
 import time
 from pathlib import Path
@@ -35,10 +49,10 @@ from surgrecon_cli.io.run.layout import RunLayout
 from surgrecon_cli.stages.register import register_frame
 
 
-def rss_mb() -> float:
-    """This process's resident set (MB)."""
+def rss_mb(field: str = "VmRSS") -> float:
+    """This process's resident set (VmRSS) or its peak (VmHWM), MB."""
     for line in Path("/proc/self/status").read_text().splitlines():
-        if line.startswith("VmRSS:"):
+        if line.startswith(f"{field}:"):
             return int(line.split()[1]) / 1024
     return float("nan")
 
@@ -62,7 +76,8 @@ def prepare(workdir: Path, variant: str, frames: int, cameras: int, size: str,
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--steps", type=int, default=10_000)
     parser.add_argument("--frames", type=int, default=20)
     parser.add_argument("--cameras", type=int, default=3)
@@ -80,26 +95,41 @@ def main() -> None:
     config = Config()
     print(f"{run}: {args.steps} frames registered in one process (frames 1..{args.frames - 1}"
           f" replayed), blocks of {args.block}")
-    print(f"{'frames':>8} {'cpu s/frame':>11} {'wall s/frame':>12} {'RSS MB':>8}", flush=True)
-    rows = []
-    done = 0
-    while done < args.steps:
-        cpu, wall = time.process_time(), time.perf_counter()
-        count = min(args.block, args.steps - done)
-        for i in range(done, done + count):
-            out = register_frame(run, 1 + i % (args.frames - 1), config)
-            if "failed" in out:
-                raise SystemExit(f"frame {out['frame']} failed: {out['failed']}")
-        done += count
-        rows.append((done, (time.process_time() - cpu) / count,
-                     (time.perf_counter() - wall) / count, rss_mb()))
-        print(f"{rows[-1][0]:>8} {rows[-1][1]:>11.4f} {rows[-1][2]:>12.4f} "
-              f"{rows[-1][3]:>8.1f}", flush=True)
+    print(f"{'frames':>8} {'cpu s/frame':>11} {'wall s/frame':>12} {'RSS MB':>8} "
+          f"{'peak MB':>8} {'wall min':>8}", flush=True)
+    rows: list[tuple[int, float, float, float, float]] = []
+    done, at, started = 0, 0, time.perf_counter()
+    # SIGINT (also when started in the background) and SIGTERM stop at the next frame
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    signal.signal(signal.SIGTERM, signal.default_int_handler)
+    try:
+        while done < args.steps:
+            cpu, wall = time.process_time(), time.perf_counter()
+            count = min(args.block, args.steps - done)
+            for i in range(done, done + count):
+                out = register_frame(run, 1 + i % (args.frames - 1), config)
+                if "failed" in out:
+                    raise SystemExit(f"frame {out['frame']} failed: {out['failed']}")
+                at = i + 1
+            done += count
+            rows.append((done, (time.process_time() - cpu) / count,
+                         (time.perf_counter() - wall) / count, rss_mb(), rss_mb("VmHWM")))
+            print(f"{rows[-1][0]:>8} {rows[-1][1]:>11.4f} {rows[-1][2]:>12.4f} "
+                  f"{rows[-1][3]:>8.1f} {rows[-1][4]:>8.1f} "
+                  f"{(time.perf_counter() - started) / 60:>8.1f}", flush=True)
+    except KeyboardInterrupt:
+        print(f"\ninterrupted after {at} frames ({len(rows)} whole blocks, {done} frames), "
+              f"{(time.perf_counter() - started) / 60:.1f} min; RSS {rss_mb():.1f} MB, peak "
+              f"{rss_mb('VmHWM'):.1f} MB")
+    if not rows:
+        return
     first, last = rows[0], rows[-1]
+    size = last[0] - (rows[-2][0] if len(rows) > 1 else 0)
     print(f"\nstart (frames 1-{first[0]}): {first[1]:.4f} s/frame CPU, RSS {first[3]:.1f} MB; "
-          f"end (frames {last[0] - args.block + 1}-{last[0]}): {last[1]:.4f} s/frame CPU, "
+          f"end (frames {last[0] - size + 1}-{last[0]}): {last[1]:.4f} s/frame CPU, "
           f"RSS {last[3]:.1f} MB; RSS change {last[3] - first[3]:+.1f} MB over "
-          f"{last[0] - first[0]} frames")
+          f"{last[0] - first[0]} frames; RSS {min(r[3] for r in rows):.1f}-"
+          f"{max(r[3] for r in rows):.1f} MB at the blocks' ends, peak {last[4]:.1f} MB")
 
 
 if __name__ == "__main__":

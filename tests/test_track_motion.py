@@ -24,7 +24,14 @@ from surgrecon_cli.core.target.frame_inputs import (
     TemplateData,
 )
 from surgrecon_cli.core.target.track_points import find_points, scene_motion, visible_points
-from surgrecon_cli.core.target.tracking import klt_track, specular_mask, tracking_view
+from surgrecon_cli.core.target.tracking import (
+    NEIGHBOUR_RADIUS_PX,
+    NEIGHBOUR_TRACKS,
+    klt_track,
+    neighbour_flow,
+    specular_mask,
+    tracking_view,
+)
 from surgrecon_cli.sim.variants import variant_config
 
 
@@ -240,3 +247,25 @@ def test_a_frame_chained_through_its_previous_frame_starts_from_the_held_chain(s
     assert found[both].all(1).mean() >= 0.8
     error = np.linalg.norm(pixels - truth, axis=2)[found & seen]
     assert np.median(error) < 0.5 and np.percentile(error, 95) < 1.5
+
+
+def test_neighbour_flow_is_the_median_flow_of_the_nearest_tracks_in_reach():
+    rng = np.random.default_rng(3)
+    source = rng.uniform(0, 200, (60, 2))
+    flow = rng.normal(0, 3, (60, 2))
+    flow[::7] = np.nan  # lost tracks count as missing, not as values
+    query = rng.uniform(-30, 230, (40, 2))
+    got = neighbour_flow(source, flow, query)
+    # reference: brute-force nearest NEIGHBOUR_TRACKS within the radius, numpy's nanmedian
+    dist = np.linalg.norm(query[:, None] - source[None], axis=2)
+    for q in range(len(query)):
+        near = np.argsort(dist[q])[:NEIGHBOUR_TRACKS]
+        near = near[dist[q, near] <= NEIGHBOUR_RADIUS_PX]
+        if len(near) == 0:
+            assert np.isnan(got[q]).all()
+            continue
+        values = flow[near]
+        expected = np.array([np.median(values[np.isfinite(values[:, j]), j])
+                             if np.isfinite(values[:, j]).any() else np.nan
+                             for j in range(2)])
+        np.testing.assert_allclose(got[q], expected, atol=1e-12)

@@ -279,12 +279,21 @@ def neighbour_flow(source: np.ndarray, flow: np.ndarray, query: np.ndarray) -> n
     dist, idx = dist.reshape(len(query), k), idx.reshape(len(query), k)
     near = np.isfinite(dist)
     padded = np.vstack([flow, np.full((1, 2), np.nan)])
-    values = np.sort(padded[np.where(near, idx, len(source))], axis=1)  # (M, k, 2), NaN last
-    count = near.sum(1)
-    has = np.flatnonzero(count)
-    low, high = (count[has] - 1) // 2, count[has] // 2  # the median of each row's count
-    out[has] = 0.5 * (values[has, low] + values[has, high])
+    values = padded[np.where(near, idx, len(source))]  # (M, k, 2), NaN where none
+    has = near.any(1)
+    out[has] = _nanmedian_axis1(values[has])
     return out
+
+
+def _nanmedian_axis1(values: np.ndarray) -> np.ndarray:
+    """np.nanmedian(values, axis=1) of values (M, k, d) by one sort (NaN last), NaN where
+    (m, :, j) has no finite value: numpy's small-array nanmedian goes through masked arrays,
+    ~0.3 ms a call."""
+    ordered = np.sort(values, axis=1)
+    count = np.isfinite(values).sum(1, keepdims=True)  # (M, 1, d)
+    low = np.take_along_axis(ordered, np.maximum(count - 1, 0) // 2, axis=1)[:, 0]
+    high = np.take_along_axis(ordered, count // 2 - (count == 0), axis=1)[:, 0]
+    return np.where(count[:, 0] > 0, 0.5 * (low + high), np.nan)
 
 
 def retrack_from_neighbours(prev: TrackingView, cur: TrackingView, start: np.ndarray,
