@@ -29,6 +29,7 @@ class Matcher:
     colour_scale: float
     target_rgb: np.ndarray | None
     known: np.ndarray
+    dropped: np.ndarray | None = None  # (M,) bool: free matches onto these are dropped
 
 
 @dataclass(frozen=True)
@@ -48,9 +49,12 @@ def build_matcher(
     colour_scale: float,
     known_pairs: KnownPairs,
     usable: np.ndarray | None = None,
+    dropped: np.ndarray | None = None,
 ) -> Matcher:
     """Known pairs (landmarks override template ids) and a KD-tree over the other targets;
-    `usable` (M,) bool: targets free matches may use (None = all; strays are left out)."""
+    `usable` (M,) bool: targets free matches may use (None = all; strays are left out);
+    `dropped` (M,) bool: targets a free match onto is dropped, not moved to another (the
+    rim of a partial target: the true partner may lie beyond it; None = none)."""
     target_ids, landmarks = known_pairs.target_ids, known_pairs.landmarks
     known = np.full(n_source, -1, np.int64)
     free = np.ones(len(target_q), bool) if usable is None else usable.copy()
@@ -73,7 +77,8 @@ def build_matcher(
         tree = cKDTree(feats)
     return Matcher(target_q=target_q, candidates=candidates, tree=tree,
                    colour_scale=colour_scale if use_rgb else 0.0,
-                   target_rgb=target_rgb if use_rgb else None, known=known)
+                   target_rgb=target_rgb if use_rgb else None, known=known,
+                   dropped=dropped)
 
 
 def match(
@@ -89,7 +94,8 @@ def match(
     Free points (no known pair, `allowed`) take the nearest free target in position + colour,
     kept only if (a) its distance in position is at most `max_distance` and (b) the target's
     nearest moved source point lies within `mutual_distance` of the querying point (a loose
-    mutual check that drops matches onto the rim of a partial target and onto stray points).
+    mutual check that drops matches onto the rim of a partial target and onto stray points)
+    and (c) it is not one of `matcher.dropped`.
     """
     corr = matcher.known.copy()
     free = np.flatnonzero((corr < 0) & allowed)
@@ -102,6 +108,8 @@ def match(
     tgt = matcher.candidates[j]
     dist = np.linalg.norm(moved_q[free] - matcher.target_q[tgt], axis=1)
     ok = dist <= max_distance
+    if matcher.dropped is not None:
+        ok &= ~matcher.dropped[tgt]
     if mutual_distance > 0 and np.any(ok):
         back_tree = cKDTree(moved_q)
         _, back = back_tree.query(matcher.target_q[tgt[ok]], k=1)

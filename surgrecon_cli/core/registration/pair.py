@@ -88,6 +88,32 @@ STAY_TARGET_NEIGHBOURS = 8  # target points the colour field is smoothed over
 STAY_TAU_NOISE = 3.0  # robust scale of the misfit, in colour-noise units
 PAIR_DENSE_POINTS = 5000
 PAIR_DENSE_OUTER = 8
+RIM_NEIGHBOURS = 16  # ours: target neighbours a rim point is found from
+# ours: a rim point sees none of its neighbours over an angle this wide around its normal
+# (a straight edge: >= 180 degrees; inside a randomly sampled surface, 16 neighbours leave
+# a gap this wide at ~0.5 % of the points)
+RIM_GAP_DEG = 150.0
+
+
+def target_rim(xyz: np.ndarray, k: int = RIM_NEIGHBOURS,
+               gap_deg: float = RIM_GAP_DEG) -> np.ndarray:
+    """(M,) bool: the points of a cloud xyz (M, 3) m on its boundary (the rim of a surface
+    patch or of a cut): seen from the point, its k nearest neighbours, projected on the
+    local tangent plane (PCA of them), leave an angular gap wider than `gap_deg` degrees;
+    inside a surface they surround the point."""
+    m = len(xyz)
+    if m <= 3:
+        return np.zeros(m, bool)
+    k = min(k, m - 1)
+    nn = cKDTree(xyz).query(xyz, k=k + 1)[1][:, 1:]
+    nb = xyz[nn]
+    c = nb - nb.mean(axis=1)[:, None, :]
+    axes = np.linalg.eigh(np.einsum("pki,pkj->pij", c, c))[1]  # columns: normal, u, v
+    rel = nb - xyz[:, None, :]
+    angle = np.sort(np.arctan2(np.einsum("pki,pi->pk", rel, axes[:, :, 2]),
+                               np.einsum("pki,pi->pk", rel, axes[:, :, 1])), axis=1)
+    gaps = np.diff(angle, axis=1, append=angle[:, :1] + 2 * np.pi)
+    return np.asarray(gaps.max(axis=1) > np.deg2rad(gap_deg))
 
 
 def pair_config(cfg: RegistrationConfig, n_source: int,
@@ -266,6 +292,8 @@ def register_pair(
         if uses_landmark_stage(extras.get("landmarks")):
             pre = landmark_stage(src, tgt[keep], cfg, extras["landmarks"])
             start, cfg = pre.registered, after_landmarks_config(cfg, spacing)
+    if colour_on:  # matches onto the rim of the target are dropped (partner may lie past it)
+        extras["drop_targets"] = target_rim(tgt[keep])
     result = register(start, tgt[keep], s_rgb if colour_on else None,
                       t_rgb[keep] if colour_on and t_rgb is not None else None, cfg, **extras)
     supported = (result.supported if result.supported is not None

@@ -139,6 +139,7 @@ def register(
     weights: np.ndarray | None = None,
     landmarks: np.ndarray | None = None,
     callback: Callback | None = None,
+    drop_targets: np.ndarray | None = None,
 ) -> RegistrationResult:
     """Register source (N, 3) to target (M, 3), metres; see the module docstring.
 
@@ -147,7 +148,9 @@ def register(
     known to be (-1 = unknown). weights (N,) >= 0: data weight per source point (0 = not
     observed; the point follows its neighbours). landmarks (L, 2) int: (source, target)
     pairs always matched with full weight. callback(step, state) after the rigid step (0)
-    and every outer step (1..outer_iterations).
+    and every outer step (1..outer_iterations). drop_targets (M,) bool: target points a
+    nearest-neighbour match onto is dropped (weight 0 in that step; e.g. the rim of a
+    partial target, where the true partner may lie beyond it); None = none.
     """
     cfg = config or RegistrationConfig()
     t_start = time.perf_counter()
@@ -159,6 +162,10 @@ def register(
     src_rgb = _colours("source_rgb", source_rgb, n)
     tgt_rgb = _colours("target_rgb", target_rgb, m)
     ids, user_w, lm = _validate_extras(n, m, target_ids, weights, landmarks)
+    if drop_targets is not None:
+        drop_targets = np.asarray(drop_targets, dtype=bool)
+        if drop_targets.shape != (m,):
+            raise GeometryError(f"drop_targets: expected ({m},) bools, got {drop_targets.shape}")
 
     # --- normalisation, nodes, operators ---
     src_tree = cKDTree(src)
@@ -206,7 +213,7 @@ def register(
         colour_scale = (norm.mm(cfg.color_weight_mm) if cfg.color_weight_mm > 0 else
                         colour_weight(tq, tgt_rgb, tgt_tree, ~surf.stray, gate))
     matcher = build_matcher(tq, n, tgt_rgb, colour_scale, KnownPairs(ids, lm),
-                            usable=~surf.stray)
+                            usable=~surf.stray, dropped=drop_targets)
     usable_idx = np.flatnonzero(~surf.stray)
     usable_tree = cKDTree(tq[usable_idx])
     mutual = cfg.mutual_spacings * max(norm.spacing, tgt_spacing)
