@@ -33,6 +33,7 @@ from scipy.spatial import cKDTree
 
 from ...config import RegistrationConfig
 from .colour import ColourDecision, decide_colour
+from .correspondences import Rims
 from .register import RegistrationResult, _colours, _points, register
 from .shape import (
     after_landmarks_config,
@@ -96,7 +97,7 @@ RIM_GAP_DEG = 150.0
 
 
 def target_rim(xyz: np.ndarray, k: int = RIM_NEIGHBOURS,
-               gap_deg: float = RIM_GAP_DEG) -> np.ndarray:
+               gap_deg: float = RIM_GAP_DEG, widen: float = 0.0) -> np.ndarray:
     """(M,) bool: the points of a cloud xyz (M, 3) m on its boundary (the rim of a surface
     patch or of a cut): seen from the point, its k nearest neighbours, projected on the
     local tangent plane (PCA of them), leave an angular gap wider than `gap_deg` degrees;
@@ -105,7 +106,9 @@ def target_rim(xyz: np.ndarray, k: int = RIM_NEIGHBOURS,
     if m <= 3:
         return np.zeros(m, bool)
     k = min(k, m - 1)
-    nn = cKDTree(xyz).query(xyz, k=k + 1)[1][:, 1:]
+    tree = cKDTree(xyz)
+    d, nn = tree.query(xyz, k=k + 1)
+    nn = nn[:, 1:]
     nb = xyz[nn]
     c = nb - nb.mean(axis=1)[:, None, :]
     axes = np.linalg.eigh(np.einsum("pki,pkj->pij", c, c))[1]  # columns: normal, u, v
@@ -113,7 +116,11 @@ def target_rim(xyz: np.ndarray, k: int = RIM_NEIGHBOURS,
     angle = np.sort(np.arctan2(np.einsum("pki,pi->pk", rel, axes[:, :, 2]),
                                np.einsum("pki,pi->pk", rel, axes[:, :, 1])), axis=1)
     gaps = np.diff(angle, axis=1, append=angle[:, :1] + 2 * np.pi)
-    return np.asarray(gaps.max(axis=1) > np.deg2rad(gap_deg))
+    rim = gaps.max(axis=1) > np.deg2rad(gap_deg)
+    if widen > 0 and rim.any():
+        reach = widen * float(np.median(d[:, 1]))
+        rim = cKDTree(xyz[rim]).query(xyz, k=1, distance_upper_bound=reach)[0] <= reach
+    return np.asarray(rim)
 
 
 def pair_config(cfg: RegistrationConfig, n_source: int,
@@ -163,10 +170,12 @@ def follow_supported(source: np.ndarray, registered: np.ndarray, supported: np.n
 
 @dataclasses.dataclass(frozen=True)
 class ColouredPoints:
-    """Points xyz (M, 3) m with their colours rgb (M, 3) 0..1."""
+    """Points xyz (M, 3) m with their colours rgb (M, 3) 0..1; rim (M,) bool: the points on
+    the cloud's boundary (`target_rim`; None = not known)."""
 
     xyz: np.ndarray
     rgb: np.ndarray
+    rim: np.ndarray | None = None
 
 
 def stay_where_better(source: np.ndarray, registered: np.ndarray, supported: np.ndarray,
@@ -177,7 +186,9 @@ def stay_where_better(source: np.ndarray, registered: np.ndarray, supported: np.
     misfit of a point is u = |rgb - target colour smoothed at it|^2 + (gradient x distance to
     the nearest target point)^2 (RGB units), robust rho = u / (u + (STAY_TAU_NOISE x
     noise)^2), on a spread sample of the supported points (STAY_STRIDE, STAY_SAMPLES),
-    summed over about STAY_NEIGHBOURS sample points near each.
+    summed over about STAY_NEIGHBOURS sample points near each; a position whose nearest
+    target point is on the target's rim (`target.rim`) tells nothing (its partner may lie
+    past the rim) and is left out of the sum.
     target: the agreeing target points; colours 0..1."""
     n = len(source)
     if not supported.any() or len(target.xyz) < STAY_TARGET_NEIGHBOURS:
@@ -193,17 +204,23 @@ def stay_where_better(source: np.ndarray, registered: np.ndarray, supported: np.
     sample = have[:: max(STAY_STRIDE, len(have) // STAY_SAMPLES)]
     m = len(sample)
     costs = np.zeros((m, len(STAY_SHARES)))
+    known = np.ones((m, len(STAY_SHARES)))
     for a, share in enumerate(STAY_SHARES):
         d, j = tree.query(source[sample] + share * move[sample], k=STAY_TARGET_NEIGHBOURS)
         w = np.exp(-0.5 * (d / h) ** 2) + 1e-12
         smoothed = np.einsum("nk,nkc->nc", w, target.rgb[j]) / w.sum(axis=1)[:, None]
         u = ((source_rgb[sample] - smoothed) ** 2).sum(axis=1) + (g * d[:, 0]) ** 2
         costs[:, a] = u / (u + tau2)
+        if target.rim is not None:
+            known[:, a] = ~target.rim[j[:, 0]]
     # a sum over about STAY_NEIGHBOURS sample points as two means over 8x fewer
     k = min(STAY_NEIGHBOURS // 8, m)
     sample_tree = cKDTree(source[sample])
     mean = _mean_operator(sample_tree.query(source[sample], k=k)[1].reshape(m, k), m)
-    best = np.asarray(STAY_SHARES)[np.argmin(mean @ (mean @ costs), axis=1)]
+    seen = mean @ (mean @ known)
+    summed = (mean @ (mean @ (costs * known))) / np.maximum(seen, 1e-12)
+    summed[seen <= 0] = 0.0  # nothing seen: a tie keeps the motion
+    best = np.asarray(STAY_SHARES)[np.argmin(summed, axis=1)]
     nb = sample_tree.query(source, k=k)[1].reshape(n, k)
     return np.asarray(_mean_operator(nb, m) @ (mean @ best))
 
@@ -292,8 +309,10 @@ def register_pair(
         if uses_landmark_stage(extras.get("landmarks")):
             pre = landmark_stage(src, tgt[keep], cfg, extras["landmarks"])
             start, cfg = pre.registered, after_landmarks_config(cfg, spacing)
+    rim = np.zeros(len(tgt), bool)
     if colour_on:  # matches onto the rim of the target are dropped (partner may lie past it)
-        extras["drop_targets"] = target_rim(tgt[keep])
+        rim[keep] = target_rim(tgt[keep])
+        extras["rims"] = Rims(target_rim(start), rim[keep])
     result = register(start, tgt[keep], s_rgb if colour_on else None,
                       t_rgb[keep] if colour_on and t_rgb is not None else None, cfg, **extras)
     supported = (result.supported if result.supported is not None
@@ -307,7 +326,8 @@ def register_pair(
             and t_rgb is not None):
         agree = decision.agree
         share = stay_where_better(src, registered, supported, s_rgb,
-                                  ColouredPoints(tgt[agree], t_rgb[agree]), decision)
+                                  ColouredPoints(tgt[agree], t_rgb[agree], rim[agree]),
+                                  decision)
         share[_known_sources(len(src), ids, lm)] = 1.0
         registered = src + share[:, None] * (registered - src)
         identity = np.concatenate([np.eye(3), np.zeros((3, 1))], axis=1)
