@@ -104,11 +104,16 @@ def target_rim(xyz: np.ndarray, k: int = RIM_NEIGHBOURS,
     patch or of a cut): seen from the point, its k nearest neighbours, projected on the
     local tangent plane (PCA of them), leave an angular gap wider than `gap_deg` degrees;
     inside a surface they surround the point."""
+    return _rim(xyz, k, gap_deg)[0]
+
+
+def _rim(xyz: np.ndarray, k: int, gap_deg: float) -> tuple[np.ndarray, float]:
+    """`target_rim` and the cloud's median nearest-neighbour distance (m)."""
     m = len(xyz)
     if m <= 3:
-        return np.zeros(m, bool)
+        return np.zeros(m, bool), 0.0
     k = min(k, m - 1)
-    nn = cKDTree(xyz).query(xyz, k=k + 1)[1]
+    d, nn = cKDTree(xyz).query(xyz, k=k + 1)
     rel = xyz[nn[:, 1:]] - xyz[:, None, :]
     c = rel - rel.mean(axis=1)[:, None, :]
     normal = _smallest_axis(np.matmul(c.transpose(0, 2, 1), c))
@@ -122,7 +127,8 @@ def target_rim(xyz: np.ndarray, k: int = RIM_NEIGHBOURS,
     gaps = np.diff(angle, axis=1, append=angle[:, :1] + 2 * np.pi)
     rim = gaps.max(axis=1) > np.deg2rad(gap_deg)
     # a rim is a line: a point flagged alone among its neighbours is a sampling accident
-    return np.asarray(rim & (rim[nn[:, 1:]].sum(axis=1) >= RIM_COMPANIONS))
+    rim &= rim[nn[:, 1:]].sum(axis=1) >= RIM_COMPANIONS
+    return rim, float(np.median(d[:, 1]))
 
 
 def pair_config(cfg: RegistrationConfig, n_source: int,
@@ -170,14 +176,14 @@ def follow_supported(source: np.ndarray, registered: np.ndarray, supported: np.n
     return out
 
 
-def _near(xyz: np.ndarray, mask: np.ndarray, spacings: float) -> np.ndarray:
+def _border_zone(xyz: np.ndarray, spacings: float) -> np.ndarray:
     """(N,) bool: points of xyz (N, 3) within `spacings` x its median nearest-neighbour
-    distance of a point in mask (N,) bool."""
-    if not mask.any() or spacings <= 0:
-        return mask.copy()
-    tree = cKDTree(xyz)
-    reach = spacings * float(np.median(tree.query(xyz, k=2)[0][:, 1]))
-    return np.asarray(cKDTree(xyz[mask]).query(xyz, k=1, distance_upper_bound=reach)[0]
+    distance of its rim (`target_rim`)."""
+    rim, spacing = _rim(xyz, RIM_NEIGHBOURS, RIM_GAP_DEG)
+    if not rim.any() or spacings <= 0:
+        return rim
+    reach = spacings * spacing
+    return np.asarray(cKDTree(xyz[rim]).query(xyz, k=1, distance_upper_bound=reach)[0]
                       <= reach)
 
 
@@ -348,7 +354,7 @@ def register_pair(
     rim = np.zeros(len(tgt), bool)
     src_rim = np.zeros(len(src), bool)
     if colour_on:  # matches onto the rim of the target are dropped (partner may lie past it)
-        rim[keep], src_rim = target_rim(tgt[keep]), _near(start, target_rim(start), RIM_BAND)
+        rim[keep], src_rim = target_rim(tgt[keep]), _border_zone(start, RIM_BAND)
         extras["rims"] = Rims(src_rim, rim[keep])
     result = register(start, tgt[keep], s_rgb if colour_on else None,
                       t_rgb[keep] if colour_on and t_rgb is not None else None, cfg, **extras)
