@@ -13,12 +13,6 @@ import pytest
 
 from surgrecon_cli.config import RegistrationConfig
 from surgrecon_cli.core.registration.colour import decide_colour
-from surgrecon_cli.core.registration.correspondences import (
-    KnownPairs,
-    Rims,
-    build_matcher,
-    match,
-)
 from surgrecon_cli.core.registration.pair import (
     ColouredPoints,
     _smallest_axis,
@@ -213,16 +207,3 @@ def test_smallest_axis_matches_eigh():
     ref = np.linalg.eigh(cov)[1][:, :, 0]  # independent reference
     assert np.all(np.abs((_smallest_axis(cov) * ref).sum(axis=1)) > 1 - 1e-6)
 
-
-def test_match_from_inside_the_source_onto_the_target_rim_is_dropped_rim_onto_rim_kept():
-    # target: a 1D-like strip x in [0, 1] whose last point is its rim; sources near it
-    target = np.c_[np.linspace(0.0, 1.0, 11), np.zeros(11), np.zeros(11)]
-    target_rim_mask = np.zeros(11, bool)
-    target_rim_mask[-1] = True
-    source = np.array([[1.05, 0.0, 0.0], [1.1, 0.0, 0.0], [0.5, 0.0, 0.0]])
-    matcher = build_matcher(target, 3, None, 0.0, KnownPairs(),
-                            rims=Rims(np.array([False, True, False]), target_rim_mask))
-    corr = match(matcher, source, None, 1.0, 0.0, np.ones(3, bool))
-    assert corr[0] == -1  # inside the source, nearest the rim: its partner may lie past it
-    assert corr[1] == 10  # the source's own border onto the target's: kept
-    assert corr[2] == 5

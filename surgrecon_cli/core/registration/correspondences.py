@@ -16,17 +16,6 @@ MATCH_EPS = 1.0
 
 
 @dataclass(frozen=True)
-class Rims:
-    """The boundary points of both clouds: source (N,) bool, target (M,) bool. A free match
-    of a source point inside its cloud onto a target point on the target's rim is dropped:
-    its true partner may lie past the rim (a cut target); rim onto rim is kept (the
-    clouds' common border)."""
-
-    source: np.ndarray
-    target: np.ndarray
-
-
-@dataclass(frozen=True)
 class Matcher:
     """Nearest-neighbour matcher over the target points that have no known correspondence.
 
@@ -40,7 +29,6 @@ class Matcher:
     colour_scale: float
     target_rgb: np.ndarray | None
     known: np.ndarray
-    rims: Rims | None = None
 
 
 @dataclass(frozen=True)
@@ -60,11 +48,9 @@ def build_matcher(
     colour_scale: float,
     known_pairs: KnownPairs,
     usable: np.ndarray | None = None,
-    rims: Rims | None = None,
 ) -> Matcher:
     """Known pairs (landmarks override template ids) and a KD-tree over the other targets;
-    `usable` (M,) bool: targets free matches may use (None = all; strays are left out);
-    `rims`: a match from inside the source onto the target's rim is dropped (None: none)."""
+    `usable` (M,) bool: targets free matches may use (None = all; strays are left out)."""
     target_ids, landmarks = known_pairs.target_ids, known_pairs.landmarks
     known = np.full(n_source, -1, np.int64)
     free = np.ones(len(target_q), bool) if usable is None else usable.copy()
@@ -87,8 +73,7 @@ def build_matcher(
         tree = cKDTree(feats)
     return Matcher(target_q=target_q, candidates=candidates, tree=tree,
                    colour_scale=colour_scale if use_rgb else 0.0,
-                   target_rgb=target_rgb if use_rgb else None, known=known,
-                   rims=rims)
+                   target_rgb=target_rgb if use_rgb else None, known=known)
 
 
 def match(
@@ -104,8 +89,7 @@ def match(
     Free points (no known pair, `allowed`) take the nearest free target in position + colour,
     kept only if (a) its distance in position is at most `max_distance` and (b) the target's
     nearest moved source point lies within `mutual_distance` of the querying point (a loose
-    mutual check that drops matches onto the rim of a partial target and onto stray points)
-    and (c) it is not from inside the source onto the target's rim (`matcher.rims`).
+    mutual check that drops matches onto the rim of a partial target and onto stray points).
     """
     corr = matcher.known.copy()
     free = np.flatnonzero((corr < 0) & allowed)
@@ -118,8 +102,6 @@ def match(
     tgt = matcher.candidates[j]
     dist = np.linalg.norm(moved_q[free] - matcher.target_q[tgt], axis=1)
     ok = dist <= max_distance
-    if matcher.rims is not None:
-        ok &= ~(matcher.rims.target[tgt] & ~matcher.rims.source[free])
     if mutual_distance > 0 and np.any(ok):
         back_tree = cKDTree(moved_q)
         _, back = back_tree.query(matcher.target_q[tgt[ok]], k=1)

@@ -33,7 +33,6 @@ from scipy.spatial import cKDTree
 
 from ...config import RegistrationConfig
 from .colour import ColourDecision, decide_colour
-from .correspondences import Rims
 from .register import RegistrationResult, _colours, _points, register
 from .shape import (
     after_landmarks_config,
@@ -351,11 +350,6 @@ def register_pair(
         if uses_landmark_stage(extras.get("landmarks")):
             pre = landmark_stage(src, tgt[keep], cfg, extras["landmarks"])
             start, cfg = pre.registered, after_landmarks_config(cfg, spacing)
-    rim = np.zeros(len(tgt), bool)
-    src_rim = np.zeros(len(src), bool)
-    if colour_on:  # matches onto the rim of the target are dropped (partner may lie past it)
-        rim[keep], src_rim = target_rim(tgt[keep]), _border_zone(start, RIM_BAND)
-        extras["rims"] = Rims(src_rim, rim[keep])
     result = register(start, tgt[keep], s_rgb if colour_on else None,
                       t_rgb[keep] if colour_on and t_rgb is not None else None, cfg, **extras)
     supported = (result.supported if result.supported is not None
@@ -368,9 +362,10 @@ def register_pair(
     if (colour_on and decision is not None and decision.weight_mm > 0 and s_rgb is not None
             and t_rgb is not None):
         agree = decision.agree
-        share = stay_where_better(ColouredPoints(src, s_rgb, src_rim), registered, supported,
-                                  ColouredPoints(tgt[agree], t_rgb[agree], rim[agree]),
-                                  decision)
+        share = stay_where_better(ColouredPoints(src, s_rgb, _border_zone(src, RIM_BAND)),
+                                  registered, supported,
+                                  ColouredPoints(tgt[agree], t_rgb[agree],
+                                                 target_rim(tgt[agree])), decision)
         share[_known_sources(len(src), ids, lm)] = 1.0
         registered = src + share[:, None] * (registered - src)
         identity = np.concatenate([np.eye(3), np.zeros((3, 1))], axis=1)

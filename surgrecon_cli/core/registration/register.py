@@ -26,7 +26,7 @@ from ...config import RegistrationConfig
 from ...errors import GeometryError
 from . import graph
 from .admm import AdmmProblem, AdmmSettings, AdmmState, factorise, run_admm
-from .correspondences import KnownPairs, Rims, build_matcher, match
+from .correspondences import KnownPairs, build_matcher, match
 from .residuals import along_surface, surface_distance
 from .rigid import PrealignSettings, SourcePoints, rigid_prealign, rigid_where_better
 from .surface import analyse_target, colour_weight
@@ -139,7 +139,6 @@ def register(
     weights: np.ndarray | None = None,
     landmarks: np.ndarray | None = None,
     callback: Callback | None = None,
-    rims: Rims | None = None,
 ) -> RegistrationResult:
     """Register source (N, 3) to target (M, 3), metres; see the module docstring.
 
@@ -148,10 +147,7 @@ def register(
     known to be (-1 = unknown). weights (N,) >= 0: data weight per source point (0 = not
     observed; the point follows its neighbours). landmarks (L, 2) int: (source, target)
     pairs always matched with full weight. callback(step, state) after the rigid step (0)
-    and every outer step (1..outer_iterations). rims: the boundary points of both clouds;
-    a nearest-neighbour match from inside the source onto the target's rim is dropped
-    (weight 0 in that step: the true partner may lie past the rim of a cut target); None =
-    no such test.
+    and every outer step (1..outer_iterations).
     """
     cfg = config or RegistrationConfig()
     t_start = time.perf_counter()
@@ -163,9 +159,6 @@ def register(
     src_rgb = _colours("source_rgb", source_rgb, n)
     tgt_rgb = _colours("target_rgb", target_rgb, m)
     ids, user_w, lm = _validate_extras(n, m, target_ids, weights, landmarks)
-    if rims is not None and (np.shape(rims.source) != (n,) or np.shape(rims.target) != (m,)):
-        raise GeometryError(f"rims: expected ({n},) and ({m},) bools, got "
-                            f"{np.shape(rims.source)} and {np.shape(rims.target)}")
 
     # --- normalisation, nodes, operators ---
     src_tree = cKDTree(src)
@@ -213,7 +206,7 @@ def register(
         colour_scale = (norm.mm(cfg.color_weight_mm) if cfg.color_weight_mm > 0 else
                         colour_weight(tq, tgt_rgb, tgt_tree, ~surf.stray, gate))
     matcher = build_matcher(tq, n, tgt_rgb, colour_scale, KnownPairs(ids, lm),
-                            usable=~surf.stray, rims=rims)
+                            usable=~surf.stray)
     usable_idx = np.flatnonzero(~surf.stray)
     usable_tree = cKDTree(tq[usable_idx])
     mutual = cfg.mutual_spacings * max(norm.spacing, tgt_spacing)
