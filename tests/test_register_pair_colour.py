@@ -172,8 +172,8 @@ def test_static_tissue_dragged_along_the_surface_goes_back_and_moving_tissue_kee
     along = np.cross(normal, [1.0, 0.0, 0.0])
     registered = pair.truth + np.where(static[:, None], 0.6e-3 * along / np.linalg.norm(along),
                                        0.0)
-    share = stay_where_better(ColouredPoints(pair.source, pair.source_rgb), registered,
-                              np.ones(len(pair.source), bool),
+    share = stay_where_better(pair.source, registered, np.ones(len(pair.source), bool),
+                              pair.source_rgb,
                               ColouredPoints(pair.target[d.agree], pair.target_rgb[d.agree]), d)
     corrected = pair.source + share[:, None] * (registered - pair.source)
     err = np.linalg.norm(corrected - pair.truth, axis=1)

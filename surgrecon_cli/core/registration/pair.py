@@ -15,7 +15,7 @@ Around the shared `register` (also the frame pipeline's), without changing it:
    misfit is lowest (`stay_where_better`): static tissue next to moving tissue, which the
    smoothness drags and the nearest-match step then holds there, goes back to not moving;
    a hypothesis at the rim of the target (`target_rim`), where the true partner may lie
-   past it, is left out (inside the source's own border zone it counts);
+   past it, is left out;
 4. with colour used, solver settings of its own (`pair_config`) in place of the fields the
    caller left at their defaults;
 5. an error estimate that says what it can see (`error_estimate_mm`);
@@ -95,30 +95,25 @@ PAIR_DENSE_OUTER = 8
 # nearest points over an angle this wide around its normal (a straight edge: >= 180
 # degrees; inside a randomly sampled surface 16 neighbours leave one at ~0.5 % of the
 # points; 120 or 165 degrees: no better), and RIM_COMPANIONS of them are rim points too (a
-# rim is a line; without: stray_colour 2k seed 100 p95 0.71 -> 0.85 mm); a source point
-# within RIM_BAND of its spacings of the source's rim is on the clouds' common border
+# rim is a line; without: stray_colour 2k seed 100 p95 0.71 -> 0.85 mm; also sparing the
+# source's own border zone, 3 spacings from its rim, changed nothing)
 RIM_NEIGHBOURS = 16
 RIM_GAP_DEG = 150.0
 RIM_COMPANIONS = 2
-RIM_BAND = 3.0
 
 
 def target_rim(xyz: np.ndarray, k: int = RIM_NEIGHBOURS,
-               gap_deg: float = RIM_GAP_DEG) -> np.ndarray:
+               gap_deg: float = RIM_GAP_DEG, companions: int = RIM_COMPANIONS) -> np.ndarray:
     """(M,) bool: the points of a cloud xyz (M, 3) m on its boundary (the rim of a surface
     patch or of a cut): seen from the point, its k nearest neighbours, projected on the
-    local tangent plane (PCA of them), leave an angular gap wider than `gap_deg` degrees;
-    inside a surface they surround the point."""
-    return _rim(xyz, k, gap_deg)[0]
-
-
-def _rim(xyz: np.ndarray, k: int, gap_deg: float) -> tuple[np.ndarray, float]:
-    """`target_rim` and the cloud's median nearest-neighbour distance (m)."""
+    local tangent plane (PCA of them), leave an angular gap wider than `gap_deg` degrees
+    (inside a surface they surround the point), and at least `companions` of them are such
+    points too."""
     m = len(xyz)
     if m <= 3:
-        return np.zeros(m, bool), 0.0
+        return np.zeros(m, bool)
     k = min(k, m - 1)
-    d, nn = cKDTree(xyz).query(xyz, k=k + 1)
+    nn = cKDTree(xyz).query(xyz, k=k + 1)[1]
     rel = xyz[nn[:, 1:]] - xyz[:, None, :]
     c = rel - rel.mean(axis=1)[:, None, :]
     normal = _smallest_axis(np.matmul(c.transpose(0, 2, 1), c))
@@ -132,8 +127,7 @@ def _rim(xyz: np.ndarray, k: int, gap_deg: float) -> tuple[np.ndarray, float]:
     gaps = np.diff(angle, axis=1, append=angle[:, :1] + 2 * np.pi)
     rim = gaps.max(axis=1) > np.deg2rad(gap_deg)
     # a rim is a line: a point flagged alone among its neighbours is a sampling accident
-    rim &= rim[nn[:, 1:]].sum(axis=1) >= RIM_COMPANIONS
-    return rim, float(np.median(d[:, 1]))
+    return np.asarray(rim & (rim[nn[:, 1:]].sum(axis=1) >= companions))
 
 
 def pair_config(cfg: RegistrationConfig, n_source: int,
@@ -181,17 +175,6 @@ def follow_supported(source: np.ndarray, registered: np.ndarray, supported: np.n
     return out
 
 
-def _border_zone(xyz: np.ndarray, spacings: float) -> np.ndarray:
-    """(N,) bool: points of xyz (N, 3) within `spacings` x its median nearest-neighbour
-    distance of its rim (`target_rim`)."""
-    rim, spacing = _rim(xyz, RIM_NEIGHBOURS, RIM_GAP_DEG)
-    if not rim.any() or spacings <= 0:
-        return rim
-    reach = spacings * spacing
-    return np.asarray(cKDTree(xyz[rim]).query(xyz, k=1, distance_upper_bound=reach)[0]
-                      <= reach)
-
-
 def _smallest_axis(cov: np.ndarray) -> np.ndarray:
     """(P, 3) unit eigenvectors of the smallest eigenvalue of symmetric cov (P, 3, 3), in
     closed form (trigonometric eigenvalues; ~10x faster than a batched eigh)."""
@@ -216,26 +199,25 @@ def _smallest_axis(cov: np.ndarray) -> np.ndarray:
 @dataclasses.dataclass(frozen=True)
 class ColouredPoints:
     """Points xyz (M, 3) m with their colours rgb (M, 3) 0..1; rim (M,) bool: the points on
-    the cloud's boundary (`target_rim`; None = not known)."""
+    the cloud's boundary (`target_rim`; None = none known)."""
 
     xyz: np.ndarray
     rgb: np.ndarray
     rim: np.ndarray | None = None
 
 
-def stay_where_better(points: ColouredPoints, registered: np.ndarray, supported: np.ndarray,
-                      target: ColouredPoints, decision: ColourDecision) -> np.ndarray:
+def stay_where_better(source: np.ndarray, registered: np.ndarray, supported: np.ndarray,
+                      source_rgb: np.ndarray, target: ColouredPoints,
+                      decision: ColourDecision) -> np.ndarray:
     """(N,) share of its motion each source point keeps (STAY_SHARES, neighbourhood-averaged;
     module constants): for positions source + share x (registered - source) (N, 3) m, the
     misfit of a point is u = |rgb - target colour smoothed at it|^2 + (gradient x distance to
     the nearest target point)^2 (RGB units), robust rho = u / (u + (STAY_TAU_NOISE x
     noise)^2), on a spread sample of the supported points (STAY_STRIDE, STAY_SAMPLES),
-    summed over about STAY_NEIGHBOURS sample points near each; a position of a point inside
-    the source (not on `points.rim`) whose nearest target point is on the target's rim
-    (`target.rim`) tells nothing (its partner may lie past the rim of a cut target) and is
-    left out of the sum. points: the source (N, 3) m and its colours; target: the agreeing
-    target points; colours 0..1."""
-    source, source_rgb = points.xyz, points.rgb
+    summed over about STAY_NEIGHBOURS sample points near each; a position whose nearest
+    target point is on the target's rim (`target.rim`) tells nothing (its partner may lie
+    past the rim of a cut target) and is left out of the sums.
+    target: the agreeing target points; colours 0..1."""
     n = len(source)
     if not supported.any() or len(target.xyz) < STAY_TARGET_NEIGHBOURS:
         return np.ones(n)
@@ -258,8 +240,7 @@ def stay_where_better(points: ColouredPoints, registered: np.ndarray, supported:
         u = ((source_rgb[sample] - smoothed) ** 2).sum(axis=1) + (g * d[:, 0]) ** 2
         costs[:, a] = u / (u + tau2)
         if target.rim is not None:
-            inside = np.ones(m, bool) if points.rim is None else ~points.rim[sample]
-            known[:, a] = ~(target.rim[j[:, 0]] & inside)
+            known[:, a] = ~target.rim[j[:, 0]]
     # a sum over about STAY_NEIGHBOURS sample points as two means over 8x fewer
     k = min(STAY_NEIGHBOURS // 8, m)
     sample_tree = cKDTree(source[sample])
@@ -368,8 +349,7 @@ def register_pair(
     if (colour_on and decision is not None and decision.weight_mm > 0 and s_rgb is not None
             and t_rgb is not None):
         agree = decision.agree
-        share = stay_where_better(ColouredPoints(src, s_rgb, _border_zone(src, RIM_BAND)),
-                                  registered, supported,
+        share = stay_where_better(src, registered, supported, s_rgb,
                                   ColouredPoints(tgt[agree], t_rgb[agree],
                                                  target_rim(tgt[agree])), decision)
         share[_known_sources(len(src), ids, lm)] = 1.0
