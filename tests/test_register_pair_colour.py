@@ -15,10 +15,12 @@ from surgrecon_cli.config import RegistrationConfig
 from surgrecon_cli.core.registration.colour import decide_colour
 from surgrecon_cli.core.registration.pair import (
     ColouredPoints,
+    _smallest_axis,
     error_estimate_mm,
     follow_supported,
     pair_config,
     stay_where_better,
+    target_rim,
 )
 from surgrecon_cli.registration import register_pair
 from surgrecon_cli.sim.pairs_catalog import make_pair
@@ -177,3 +179,31 @@ def test_static_tissue_dragged_along_the_surface_goes_back_and_moving_tissue_kee
     err = np.linalg.norm(corrected - pair.truth, axis=1)
     assert np.median(err[static]) < 0.2e-3  # from 0.6 mm
     assert np.median(err[moving]) < 0.1e-3  # the true motion (> 1 mm) is kept
+
+
+def _curved_sheet(n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """n random points of a gently curved 40 mm square sheet, tilted, and each one's
+    distance to the square's border (mm, in the sheet's own coordinates)."""
+    rng = np.random.default_rng(seed)
+    uv = rng.uniform(0.0, 40.0, (n, 2))
+    xyz = np.c_[uv, 0.004 * (uv[:, 0] - 20.0) ** 2 + 0.002 * uv[:, 1] ** 2] * 1e-3
+    c, s = np.cos(0.6), np.sin(0.6)
+    xyz = xyz @ np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+    return xyz, np.minimum(uv, 40.0 - uv).min(axis=1)
+
+
+def test_target_rim_finds_the_border_of_a_randomly_sampled_sheet_and_little_inside():
+    xyz, border_mm = _curved_sheet(4000, 7)
+    spacing_mm = 40.0 / np.sqrt(4000)  # ~0.63 mm between neighbours
+    rim = target_rim(xyz)
+    assert np.mean(rim[border_mm < 0.3 * spacing_mm]) > 0.5  # on the edge: mostly found
+    assert np.mean(border_mm[rim] < 2.0 * spacing_mm) > 0.9  # what is found is at the edge
+    assert np.mean(rim[border_mm > 4.0 * spacing_mm]) < 0.005  # inside: almost never
+
+
+def test_smallest_axis_matches_eigh():
+    a = np.random.default_rng(3).normal(size=(500, 3, 3))
+    cov = a @ a.transpose(0, 2, 1)
+    ref = np.linalg.eigh(cov)[1][:, :, 0]  # independent reference
+    assert np.all(np.abs((_smallest_axis(cov) * ref).sum(axis=1)) > 1 - 1e-6)
+
