@@ -305,8 +305,7 @@ def truth_label_checks(layout: RunLayout, n_frames: int, log_path: Path) -> dict
     cfg = Config().classify
     nb = template_neighbourhoods(template, cfg.neighbourhood_mm, cfg.min_neighbours,
                                  cfg.max_neighbours)
-    index = np.concatenate([np.arange(len(template))[:, None], nb.index], axis=1)
-    mask = np.concatenate([np.ones((len(template), 1), bool), nb.mask], axis=1)
+    index, mask = nb.members()
     truth = np.load(layout.evaluation_errors)["true_labels"]
     start = mapping.follow(gt.vertices[0], gt.faces)  # the true frame-0 material points
     rigid = moving = rigid_deforming = moving_found = 0

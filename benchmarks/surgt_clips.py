@@ -32,6 +32,7 @@ import numpy as np
 from surgt_breathing import breathing_frames
 
 SURGT = Path(__file__).resolve().parents[1] / "tests" / "data" / "surgt"
+CLIP_FPS = 5  # frames a second the clips are converted at
 
 
 def parse_spec(spec: str) -> dict[str, float]:
@@ -58,23 +59,6 @@ def decoded_frames(count: int) -> list[np.ndarray]:
                 for _, f in zip(range(count), container.decode(video=0), strict=False)]
 
 
-def scaled_calibration(path: Path, scale: float) -> Path:
-    """The sample's calibration for its images resized by `scale`, written to path (the
-    file states no image size, so `convert --scale-calibration` cannot scale it): pixel
-    centres map as u' = (u + 0.5) s - 0.5."""
-    src = cv2.FileStorage(str(SURGT / "calibration.yaml"), cv2.FILE_STORAGE_READ)
-    dst = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
-    for key in ("M1", "D1", "M2", "D2", "R", "T"):
-        value = src.getNode(key).mat().astype(np.float64)
-        if key in ("M1", "M2"):
-            value[:2, :] *= scale
-            value[:2, 2] += 0.5 * scale - 0.5
-        dst.write(key, value)
-    src.release()
-    dst.release()
-    return path
-
-
 def calibration() -> dict[str, np.ndarray]:
     """The sample's OpenCV stereo calibration (M1 D1 M2 D2 R T; T in mm)."""
     fs = cv2.FileStorage(str(SURGT / "calibration.yaml"), cv2.FILE_STORAGE_READ)
@@ -83,14 +67,28 @@ def calibration() -> dict[str, np.ndarray]:
     return out
 
 
+def scaled_calibration(path: Path, scale: float) -> Path:
+    """The sample's calibration for its images resized by `scale`, written to path (the
+    file states no image size, so `convert --scale-calibration` cannot scale it): pixel
+    centres map as u' = (u + 0.5) s - 0.5."""
+    dst = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
+    for key, value in calibration().items():
+        if key in ("M1", "M2"):
+            value[:2, :] *= scale
+            value[:2, 2] += 0.5 * scale - 0.5
+        dst.write(key, value)
+    dst.release()
+    return path
+
+
 def breathing_clip(frame: np.ndarray, opts: dict[str, float], out_dir: Path
                    ) -> list[np.ndarray]:
     """`length` side-by-side frames of `frame`'s tissue breathing; its truth written to
-    out_dir/clip.gt.npz (stamps at 5 fps, as the clip is converted)."""
+    out_dir/clip.gt.npz (stamps at CLIP_FPS, as the clip is converted)."""
     length = int(opts["length"] or 39)
     pairs, truth = breathing_frames(frame[:, :1280], frame[:, 1280:], calibration(),
                                     opts["breathe"], length, opts["period"] or length)
-    truth["stamps_ns"] = np.round(np.arange(length) * 1e9 / 5).astype(np.int64)
+    truth["stamps_ns"] = np.round(np.arange(length) * 1e9 / CLIP_FPS).astype(np.int64)
     np.savez_compressed(out_dir / "clip.gt.npz", **truth)
     return [np.hstack(pair) for pair in pairs]
 
@@ -136,7 +134,7 @@ def make_clip(spec: str, out_dir: Path) -> tuple[Path, Path]:
     log = out_dir / "clip.mcap"
     argv = ["convert", str(folder), "-o", str(log), "--calibration",
             str(scaled_calibration(out_dir / "calibration.yaml", opts["scale"])),
-            "--fps", "5", "-q"]
+            "--fps", str(CLIP_FPS), "-q"]
     if cli(argv) != 0:
         raise RuntimeError(f"convert failed for clip {spec!r}")
     return log, log.with_suffix(".toml")

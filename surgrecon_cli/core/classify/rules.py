@@ -96,6 +96,13 @@ class Neighbourhoods:
     index: np.ndarray
     mask: np.ndarray
 
+    def members(self, rows: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Each neighbourhood of `rows` (M,) (default all points) with the point first:
+        index (M, K + 1) and mask (M, K + 1)."""
+        rows = np.arange(len(self.index)) if rows is None else rows
+        return (np.concatenate([rows[:, None], self.index[rows]], axis=1),
+                np.concatenate([np.ones((len(rows), 1), bool), self.mask[rows]], axis=1))
+
     @property
     def counts(self) -> np.ndarray:
         """Neighbours per point (N,)."""
@@ -202,8 +209,7 @@ def rigid_rms_mm(template: np.ndarray, registered: np.ndarray, nb: Neighbourhood
     rows = np.arange(len(template)) if rows is None else rows
     if len(rows) == 0:
         return np.zeros(0)
-    index = np.concatenate([rows[:, None], nb.index[rows]], axis=1)
-    mask = np.concatenate([np.ones((len(rows), 1), bool), nb.mask[rows]], axis=1)
+    index, mask = nb.members(rows)
     return rigid_fit_rms(template, registered, index, mask) * 1e3
 
 
@@ -283,13 +289,9 @@ def departure_statistic(template: np.ndarray, positions: np.ndarray, covariance:
     Neighbourhoods with fewer than 3 usable members get dof <= 0."""
     if len(rows) == 0:
         return np.zeros(0), np.zeros(0)
-    index = np.concatenate([rows[:, None], nb.index[rows]], axis=1)
-    mask = np.concatenate([np.ones((len(rows), 1), bool), nb.mask[rows]], axis=1)
-    cov = np.asarray(covariance, float)
-    usable_cov = np.isfinite(cov).all((1, 2))
-    info = np.zeros_like(cov)
-    info[usable_cov] = np.linalg.inv(cov[usable_cov] + np.eye(3) * SIGMA_FLOOR_M**2)
-    weight = np.where(usable_cov, np.trace(info, axis1=1, axis2=2) / 3.0, 0.0)
+    index, mask = nb.members(rows)
+    info = _precisions(covariance, 0.0)
+    weight = np.trace(info, axis1=1, axis2=2) / 3.0
     residual, keep = rigid_fit_residuals(template, positions, index, mask, weights=weight)
     stat = np.einsum("mki,mkij,mkj->m", residual, info[index], residual)
     return stat, 3.0 * keep.sum(1) - 6.0
@@ -312,13 +314,8 @@ def resolved_rms_mm(template: np.ndarray, positions: np.ndarray, covariance: np.
     left: NaN."""
     if len(rows) == 0:
         return np.zeros(0)
-    index = np.concatenate([rows[:, None], nb.index[rows]], axis=1)
-    mask = np.concatenate([np.ones((len(rows), 1), bool), nb.mask[rows]], axis=1)
-    cov = np.asarray(covariance, float)
-    usable = np.isfinite(cov).all((1, 2))
-    spread = (deform_mm * 1e-3) ** 2 / 3.0
-    info = np.zeros_like(cov)
-    info[usable] = np.linalg.inv(cov[usable] + np.eye(3) * (spread + SIGMA_FLOOR_M**2))
+    index, mask = nb.members(rows)
+    info = _precisions(covariance, (deform_mm * 1e-3) ** 2 / 3.0)
     total = np.trace(info, axis1=1, axis2=2)
     residual, keep = rigid_fit_residuals(template, positions, index, mask, weights=total / 3.0)
     energy = np.einsum("mki,mkij,mkj->m", residual, info[index], residual)
@@ -326,6 +323,16 @@ def resolved_rms_mm(template: np.ndarray, positions: np.ndarray, covariance: np.
     with np.errstate(invalid="ignore", divide="ignore"):
         out = np.sqrt(3.0 * energy / norm) * 1e3
     return np.where(keep.sum(1) >= 3, out, np.nan)
+
+
+def _precisions(covariance: np.ndarray, variance_m2: float) -> np.ndarray:
+    """(Σ + (variance_m2 + SIGMA_FLOOR_M²) I)⁻¹ (N, 3, 3) of covariances Σ (N, 3, 3) m²;
+    zero (the member carries no weight) where Σ is not finite."""
+    cov = np.asarray(covariance, float)
+    usable = np.isfinite(cov).all((1, 2))
+    info = np.zeros_like(cov)
+    info[usable] = np.linalg.inv(cov[usable] + np.eye(3) * (variance_m2 + SIGMA_FLOOR_M**2))
+    return info
 
 
 def noise_scale(stat: np.ndarray, dof: np.ndarray) -> float:

@@ -117,8 +117,8 @@ def surrounding_rings(points: np.ndarray, inner_mm: float, outer_mm: float,
 def surface_normals(points: np.ndarray, nb: Neighbourhoods, viewpoint: np.ndarray) -> np.ndarray:
     """Unit normals (N, 3) of template points (N, 3) m: the least-variance direction of each
     neighbourhood, turned towards `viewpoint` (3,) m (e.g. the cameras: out of the tissue)."""
-    index = np.concatenate([np.arange(len(points))[:, None], nb.index], axis=1)
-    w = np.concatenate([np.ones((len(points), 1)), nb.mask], axis=1).astype(float)
+    index, mask = nb.members()
+    w = mask.astype(float)
     q = points[index]
     mu = np.einsum("nk,nki->ni", w, q) / w.sum(1)[:, None]
     d = q - mu[:, None, :]

@@ -128,18 +128,6 @@ class Deformation:
 
 
 @dataclass(frozen=True)
-class _FrameField:
-    """One frame's positions (N, 3) m, sigma (N,) m or None, `compensated_field`, inward (N,)
-    m and extrapolation (N,) m or None (`measure_tools`)."""
-
-    positions: np.ndarray
-    sigma: np.ndarray | None
-    comp: CompensatedField
-    inward: np.ndarray
-    extrapolation: np.ndarray | None = None
-
-
-@dataclass(frozen=True)
 class SurfaceEstimate:
     """The registered surface of one frame: positions (N, 3) m (NaN: unknown), sigma (N,) m
     3D RMS or None, extrapolation (N,) m each point's extrapolation error
@@ -149,6 +137,15 @@ class SurfaceEstimate:
     positions: np.ndarray
     sigma: np.ndarray | None = None
     extrapolation: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class _FrameField:
+    """One frame's registered surface, its `compensated_field` and inward (N,) m."""
+
+    estimate: SurfaceEstimate
+    comp: CompensatedField
+    inward: np.ndarray
 
 
 def measure_frame(surface: ReferenceSurface, estimate: SurfaceEstimate, tool_pose: np.ndarray,
@@ -172,7 +169,7 @@ def measure_tools(surface: ReferenceSurface, estimate: SurfaceEstimate, tool_pos
     comp = compensated_field(surface.points, positions, surface.rings, sigma)
     u = comp.displacement
     inward = -(u * np.einsum("nij,nj->ni", comp.rotation, surface.normals)).sum(1)
-    frame = _FrameField(positions, sigma, comp, inward, estimate.extrapolation)
+    frame = _FrameField(estimate, comp, inward)
     field = {"inward_mm": inward * 1e3, "magnitude_mm": np.linalg.norm(u, axis=1) * 1e3,
              "sigma_mm": comp.sigma * 1e3, "deformed": np.zeros(len(surface.points), bool)}
     figs = []
@@ -197,7 +194,7 @@ def _under_tool(fig: dict[str, float], surface: ReferenceSurface, frame: _FrameF
                 end: np.ndarray, radius: float, cfg: DeformationConfig) -> np.ndarray:
     """Fill a tool's depth, indentation, area, volume and penetration figures (module docstring)
     under its working end `end` (4, 4; z up the shaft) of `radius` m; returns its dent (N,) bool."""
-    positions, sigma, comp = frame.positions, frame.sigma, frame.comp
+    positions, sigma, comp = frame.estimate.positions, frame.estimate.sigma, frame.comp
     u, axis = comp.displacement, end[:3, 2]
     deformed = np.zeros(len(surface.points), bool)
     tip = under_tip(positions, end, cfg.tip_radius_mm * 1e-3, radius)
@@ -250,13 +247,14 @@ def _contact(fig: dict[str, float], frame: _FrameField, pose: np.ndarray, tool: 
              cfg: DeformationConfig, held: bool) -> None:
     """Fill clearance_mm, tolerance_mm and contact (module docstring; `held`: in contact
     in the last frame with the tool's pose)."""
-    positions = frame.positions
+    positions = frame.estimate.positions
     clearance = tool_clearance(positions, pose, tool)
     ok = np.flatnonzero(np.isfinite(clearance))
     if not len(ok):
         return
     nearest = int(ok[np.argmin(clearance[ok])])
-    tolerance = contact_tolerance(frame.sigma, frame.extrapolation, nearest, held, cfg)
+    tolerance = contact_tolerance(frame.estimate.sigma, frame.estimate.extrapolation, nearest,
+                                  held, cfg)
     fig["clearance_mm"] = float(clearance[nearest]) * 1e3
     fig["tolerance_mm"] = tolerance * 1e3
     fig["contact"] = float(clearance[nearest] <= tolerance)
@@ -286,9 +284,10 @@ def _dent(surface: ReferenceSurface, frame: _FrameField, seed: int, cfg: Deforma
     distance = np.linalg.norm(reference - reference[seed], axis=1)
     local = distance < cfg.ring_inner_mm * 1e-3
     u = np.full((n, 3), np.nan)
-    u[local] = frame.positions[local] - (reference[local] @ R.T + t)
-    region = deformed_region(u, None if frame.sigma is None else comp.sigma, seed, surface.nb,
-                             cfg.threshold_mm * 1e-3, cfg.significance)
+    u[local] = frame.estimate.positions[local] - (reference[local] @ R.T + t)
+    sigma = None if frame.estimate.sigma is None else comp.sigma
+    region = deformed_region(u, sigma, seed, surface.nb, cfg.threshold_mm * 1e-3,
+                             cfg.significance)
     if not region.any():
         return region, 0.0, 0.0
     rows = np.flatnonzero(distance <= distance[region].max() + cfg.max_edge_mm * 1e-3)
