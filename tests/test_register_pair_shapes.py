@@ -9,11 +9,11 @@ import dataclasses
 import numpy as np
 
 from surgrecon_cli.config import RegistrationConfig
+from surgrecon_cli.core.geometry.poses import compose_affines
 from surgrecon_cli.core.registration.shape import (
     SHAPE_GATE_SPACINGS,
     SHAPE_OUTER,
     after_landmarks_config,
-    compose,
     shape_config,
 )
 from surgrecon_cli.registration import register_pair
@@ -62,7 +62,7 @@ def test_compose_applies_the_first_affine_then_the_second():
     p = rng.normal(size=(5, 3))
     first = np.einsum("nij,nj->ni", a[:, :, :3], p) + a[:, :, 3]
     both = np.einsum("nij,nj->ni", b[:, :, :3], first) + b[:, :, 3]
-    c = compose(b, a)
+    c = compose_affines(b, a)
     assert np.allclose(np.einsum("nij,nj->ni", c[:, :, :3], p) + c[:, :, 3], both)
 
 

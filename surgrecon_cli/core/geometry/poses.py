@@ -58,6 +58,14 @@ def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
     return points @ T[:3, :3].T + T[:3, 3]
 
 
+def compose_affines(outer: np.ndarray, inner: np.ndarray) -> np.ndarray:
+    """Per-point affine composition (N, 3, 4) of affines outer and inner (N, 3, 4):
+    x -> outer(inner(x))."""
+    A = outer[:, :, :3] @ inner[:, :, :3]
+    b = np.einsum("nij,nj->ni", outer[:, :, :3], inner[:, :, 3]) + outer[:, :, 3]
+    return np.concatenate([A, b[:, :, None]], axis=2)
+
+
 def slerp(q0: np.ndarray, q1: np.ndarray, s: np.ndarray) -> np.ndarray:
     """Spherical interpolation between unit quaternions (N, 4) (x, y, z, w) at fractions
     s (N,) in [0, 1], along the shorter arc; s = 0 gives q0 itself (same sign)."""

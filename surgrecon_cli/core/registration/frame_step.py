@@ -29,6 +29,7 @@ from ...config import Config
 from ...errors import GeometryError
 from ..classify.labels import INTER, INTRA, OUTLIER, UNOBSERVED
 from ..geometry.cameras import CameraModel
+from ..geometry.poses import compose_affines
 from ..geometry.tool import push_out_of_tool
 from ..noise.model import NoiseModel, covariance_sigma
 from ..target.cloud import TargetCloud, build_target, new_target_points
@@ -105,13 +106,6 @@ def unregistered(n_points: int, n_cams: int) -> FrameResult:
         sigma=np.full(n_points, np.inf), residual=np.full(n_points, np.nan),
         support_mm=np.full(n_points, np.inf), target=target, new_points=0, contact_points=0,
         converged=False, seconds_target=0.0, seconds_register=0.0)
-
-
-def compose(outer: np.ndarray, inner: np.ndarray) -> np.ndarray:
-    """Affine composition (N, 3, 4): x -> outer(inner(x))."""
-    A = outer[:, :, :3] @ inner[:, :, :3]
-    b = np.einsum("nij,nj->ni", outer[:, :, :3], inner[:, :, 3]) + outer[:, :, 3]
-    return np.concatenate([A, b[:, :, None]], axis=2)
 
 
 def data_weights(target: TargetCloud, has_new: bool) -> np.ndarray:
@@ -220,7 +214,7 @@ def register_rigid_first(source: np.ndarray, source_rgb: np.ndarray, target: Tar
     rigid = rigid_start(source, target)
     moved = source @ rigid[:, :3].T + rigid[:, 3]
     result, n_contact = register_with_contact(moved, source_rgb, data, tool_pose, config)
-    transforms = compose(result.transforms, np.broadcast_to(rigid, result.transforms.shape))
+    transforms = compose_affines(result.transforms, np.broadcast_to(rigid, result.transforms.shape))
     return replace(result, transforms=transforms), n_contact
 
 
@@ -279,7 +273,7 @@ class FrameRegistrar:
             self.template.points, self.template_sigma, result.registered, target,
             self.config.registration.extrapolation_growth)
         return FrameResult(
-            transforms=compose(result.transforms, base.transforms),
+            transforms=compose_affines(result.transforms, base.transforms),
             registered=result.registered, sigma=sigma, residual=residual,
             support_mm=support, target=target, new_points=int((data.ids < 0).sum()),
             contact_points=n_contact,

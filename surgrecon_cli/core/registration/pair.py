@@ -34,11 +34,11 @@ from scipy import sparse
 from scipy.spatial import cKDTree
 
 from ...config import RegistrationConfig
+from ..geometry.poses import compose_affines
 from .colour import ColourDecision, decide_colour
 from .register import RegistrationResult, _colours, _points, register
 from .shape import (
     after_landmarks_config,
-    compose,
     landmark_stage,
     shape_config,
     target_spacing_m,
@@ -361,7 +361,7 @@ def register_pair(
     transforms[lost] = np.concatenate([np.broadcast_to(np.eye(3), (int(lost.sum()), 3, 3)),
                                        (registered[lost] - start[lost])[:, :, None]], axis=2)
     if pre is not None:
-        transforms = compose(transforms, pre.transforms)
+        transforms = compose_affines(transforms, pre.transforms)
     corr = np.where(result.correspondences >= 0, keep[np.maximum(result.correspondences, 0)],
                     -1)
     stats = [dict(s) for s in result.stats]

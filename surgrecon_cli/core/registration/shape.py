@@ -100,9 +100,3 @@ def after_landmarks_config(cfg: RegistrationConfig, spacing_m: float) -> Registr
                                                SHAPE_GATE_SPACINGS * spacing_mm)
     return dataclasses.replace(cfg, **changes)
 
-
-def compose(second: np.ndarray, first: np.ndarray) -> np.ndarray:
-    """(N, 3, 4) per-point affines applying `first` then `second` (both (N, 3, 4))."""
-    lin = np.einsum("nij,njk->nik", second[:, :, :3], first[:, :, :3])
-    trans = np.einsum("nij,nj->ni", second[:, :, :3], first[:, :, 3]) + second[:, :, 3]
-    return np.concatenate([lin, trans[:, :, None]], axis=2)

@@ -258,6 +258,6 @@ def find_points(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig,
             cur.grey_f32, px[rows], cfg.klt_window_px, cur.noise_sigma)
         mine = rows[chain_ok[rows]]
         chained[mine, c] = px[mine]
-    if direct is None and frame.previous is None and rig.chains is not None:
+    if frame.previous is None and rig.chains is not None:
         rig.chains.put(rig.chains.key(latest, base, frame.index), chained)
     return pixels, found, localisation
