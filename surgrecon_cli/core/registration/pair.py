@@ -116,15 +116,17 @@ IDENTITY_NEIGHBOURS = 16
 IDENTITY_MARGIN = 2.8
 FOLLOW_REACH_COLOURED = (0.0, 0.01)
 # ours, tuned on the same: a supported point whose registered position lies within
-# CUT_RIM_SPACINGS target spacings of the target's rim (`target_rim`) while the source goes on
-# past it (it lies over CUT_SOURCE_SPACINGS spacings from the source's own rim: a cut, not a
-# border both clouds share) was matched onto the rim of a cut target, whose partner may lie
-# past it: it follows, as a point without target surface does (stray_colour_partial 5k
-# seeds 0-9, worst cell max +0.22 -> +0.16 mm; tissue_partial 3k seeds 0-4 +0.94 -> +0.19;
-# 1.5 / 3 spacings of the rim: +0.18 / +0.10 but stray_colour 5k p95 0.67 -> 0.69 / 0.77 mm;
-# sparing 2 / 4 spacings of the source's rim: p95 0.79 / 0.72)
+# CUT_RIM_SPACINGS target spacings of the target's rim (`target_rim`) and within
+# CUT_LOST_SPACINGS of a source point without target surface (the source goes on past the
+# rim: a cut, not a border both clouds share) was matched onto the rim of a cut target, whose
+# partner may lie past it: it follows, as a point without target surface does
+# (stray_colour_partial 5k seeds 0-9, worst cell max +0.22 -> +0.14 mm; tissue_partial 3k
+# seeds 0-4 +0.94 -> +0.19; 1.5 / 3 spacings of the rim: +0.18 / +0.10 mm but stray_colour 5k
+# p95 up by 0.02 / 0.10 mm; within 3 / 4 spacings of a lost point: +0.22 / +0.22 mm, and
+# tissue_partial +0.89 / +0.48; 8: as 6; over 6 spacings inside the source's own rim in
+# place of the lost points: the same cells, stray_colour 5k p95 +0.03 mm, 20 ms more)
 CUT_RIM_SPACINGS = 2.0
-CUT_SOURCE_SPACINGS = 6.0
+CUT_LOST_SPACINGS = 6.0
 
 
 def target_rim(xyz: np.ndarray, k: int = RIM_NEIGHBOURS,
@@ -134,13 +136,21 @@ def target_rim(xyz: np.ndarray, k: int = RIM_NEIGHBOURS,
     local tangent plane (PCA of them), leave an angular gap wider than `gap_deg` degrees
     (inside a surface they surround the point), and at least `companions` of them are such
     points too."""
+    return rim_and_planes(xyz, k, gap_deg, companions)[0]
+
+
+def rim_and_planes(xyz: np.ndarray, k: int = RIM_NEIGHBOURS, gap_deg: float = RIM_GAP_DEG,
+                   companions: int = RIM_COMPANIONS) -> tuple[np.ndarray, ...]:
+    """(rim (M,) bool as `target_rim`, centre (M, 3) m, normal (M, 3) unit): with each point's
+    local plane, the centroid and PCA normal of its k nearest neighbours (xyz (M, 3) m)."""
     m = len(xyz)
     if m <= 3:
-        return np.zeros(m, bool)
+        return np.zeros(m, bool), xyz.copy(), np.tile([0.0, 0.0, 1.0], (m, 1))
     k = min(k, m - 1)
     nn = cKDTree(xyz).query(xyz, k=k + 1)[1]
     rel = xyz[nn[:, 1:]] - xyz[:, None, :]
-    c = rel - rel.mean(axis=1)[:, None, :]
+    offset = rel.mean(axis=1)
+    c = rel - offset[:, None, :]
     normal = _smallest_axis(np.matmul(c.transpose(0, 2, 1), c))
     # a tangent basis (u, v): u across the normal from the axis least along it
     axis = np.eye(3)[np.argmin(np.abs(normal), axis=1)]
@@ -152,7 +162,8 @@ def target_rim(xyz: np.ndarray, k: int = RIM_NEIGHBOURS,
     gaps = np.diff(angle, axis=1, append=angle[:, :1] + 2 * np.pi)
     rim = gaps.max(axis=1) > np.deg2rad(gap_deg)
     # a rim is a line: a point flagged alone among its neighbours is a sampling accident
-    return np.asarray(rim & (rim[nn[:, 1:]].sum(axis=1) >= companions))
+    return (np.asarray(rim & (rim[nn[:, 1:]].sum(axis=1) >= companions)), xyz + offset,
+            normal)
 
 
 def pair_config(cfg: RegistrationConfig, n_source: int,
@@ -227,11 +238,20 @@ def _smallest_axis(cov: np.ndarray) -> np.ndarray:
 @dataclasses.dataclass(frozen=True)
 class ColouredPoints:
     """Points xyz (M, 3) m with their colours rgb (M, 3) 0..1; rim (M,) bool: the points on
-    the cloud's boundary (`target_rim`; None = none known)."""
+    the cloud's boundary (`target_rim`; None = none known); centre (M, 3) m and normal (M, 3)
+    unit: each point's local plane (`rim_and_planes`; None = not known)."""
 
     xyz: np.ndarray
     rgb: np.ndarray
     rim: np.ndarray | None = None
+    centre: np.ndarray | None = None
+    normal: np.ndarray | None = None
+
+    @classmethod
+    def analysed(cls, xyz: np.ndarray, rgb: np.ndarray) -> ColouredPoints:
+        """The points with their rim and local planes (`rim_and_planes`)."""
+        rim, centre, normal = rim_and_planes(xyz)
+        return cls(xyz, rgb, rim, centre, normal)
 
 
 def stay_where_better(source: np.ndarray, registered: np.ndarray, supported: np.ndarray,
@@ -287,16 +307,20 @@ def explained_by_identity(source: np.ndarray, registered: np.ndarray, supported:
     """(N,) bool: the supported points for which not moving explains the data about as well as
     their motion source -> registered (N, 3) m does. Per supported point and position, the
     misfit is |source colour - target colour smoothed at it|^2 / noise^2 (the colour noise
-    measured on the target) + (distance across the plane of its STAY_TARGET_NEIGHBOURS
-    nearest target points / s)^2, s the robust spread of that distance at the registered
-    positions (the target's noise as this run sees it); a point is explained by not moving
-    unless its motion lowers the mean misfit of its IDENTITY_NEIGHBOURS nearest supported
-    points by more than IDENTITY_MARGIN. target: the agreeing target points; colours 0..1."""
+    measured on the target) + (distance across the local plane of its nearest target point
+    / s)^2, s the robust spread of that distance at the registered positions (the target's
+    noise as this run sees it); a point is explained by not moving unless its motion lowers
+    the mean misfit of its IDENTITY_NEIGHBOURS nearest supported points by more than
+    IDENTITY_MARGIN. target: the agreeing target points, colours 0..1, with their planes
+    (computed when not given)."""
     n = len(source)
     still = np.zeros(n, bool)
     have = np.flatnonzero(supported)
     if len(have) == 0 or len(target.xyz) < STAY_TARGET_NEIGHBOURS:
         return still
+    if target.centre is None or target.normal is None:
+        target = ColouredPoints.analysed(target.xyz, target.rgb)
+    assert target.centre is not None and target.normal is not None
     tree = cKDTree(target.xyz)
     h = max(decision.spacing_m, 1e-9)
     colour, across = [], []
@@ -305,11 +329,8 @@ def explained_by_identity(source: np.ndarray, registered: np.ndarray, supported:
         w = np.exp(-0.5 * (d / h) ** 2) + 1e-12
         smoothed = np.einsum("nk,nkc->nc", w, target.rgb[j]) / w.sum(axis=1)[:, None]
         colour.append(((source_rgb[have] - smoothed) ** 2).sum(axis=1))
-        near = target.xyz[j]
-        centre = near.mean(axis=1)
-        c = near - centre[:, None, :]
-        normal = _smallest_axis(np.matmul(c.transpose(0, 2, 1), c))
-        across.append(np.abs(((pos - centre) * normal).sum(axis=1)))
+        near = j[:, 0]
+        across.append(np.abs(((pos - target.centre[near]) * target.normal[near]).sum(axis=1)))
     spread = max(1.4826 * float(np.median(across[0])), 1e-9)
     noise = max(decision.noise, 1e-6)
     misfit = [c / noise**2 + (a / spread) ** 2 for c, a in zip(colour, across, strict=True)]
@@ -324,24 +345,20 @@ def matched_onto_cut(source: np.ndarray, registered: np.ndarray, supported: np.n
                      target: ColouredPoints, spacing_m: float) -> np.ndarray:
     """(N,) bool: supported points whose registered position (N, 3) m lies within
     CUT_RIM_SPACINGS x spacing_m (the target's spacing, m) of a point on the target's rim
-    (`target.rim`) while the source (N, 3) m goes on past them: over CUT_SOURCE_SPACINGS x
-    spacing_m from the source's own rim (`target_rim` of it). Their partner may lie past the
+    (`target.rim`) while the source (N, 3) m goes on past them: within CUT_LOST_SPACINGS x
+    spacing_m of a source point not `supported` (N,) bool. Their partner may lie past the
     rim of a cut target: the data do not measure their motion."""
-    n = len(source)
-    out = np.zeros(n, bool)
-    if target.rim is None or not target.rim.any() or not supported.any():
+    out = np.zeros(len(source), bool)
+    if target.rim is None or not target.rim.any() or supported.all() or not supported.any():
         return out
     reach = CUT_RIM_SPACINGS * spacing_m
-    near = cKDTree(target.xyz[target.rim]).query(registered, distance_upper_bound=reach)[0]
-    cand = np.flatnonzero((near <= reach) & supported)
-    if len(cand) == 0:
-        return out
-    source_rim = target_rim(source)
-    if not source_rim.any():
-        out[cand] = True
-        return out
-    past = cKDTree(source[source_rim]).query(source[cand])[0] > CUT_SOURCE_SPACINGS * spacing_m
-    out[cand[past]] = True
+    near = cKDTree(target.xyz[target.rim]).query(registered[supported],
+                                                 distance_upper_bound=reach)[0] <= reach
+    cand = np.flatnonzero(supported)[near]
+    if len(cand):
+        reach = CUT_LOST_SPACINGS * spacing_m
+        lost = cKDTree(source[~supported]).query(source[cand], distance_upper_bound=reach)[0]
+        out[cand[lost <= reach]] = True
     return out
 
 
@@ -441,7 +458,7 @@ def register_pair(
     if (colour_on and decision is not None and decision.weight_mm > 0 and s_rgb is not None
             and t_rgb is not None):
         agree = decision.agree
-        target = ColouredPoints(tgt[agree], t_rgb[agree], target_rim(tgt[agree]))
+        target = ColouredPoints.analysed(tgt[agree], t_rgb[agree])
         share = stay_where_better(src, registered, supported, s_rgb, target, decision)
         known = _known_sources(len(src), ids, lm)
         share[known] = 1.0
