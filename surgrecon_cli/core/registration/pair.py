@@ -320,23 +320,32 @@ def explained_by_identity(source: np.ndarray, registered: np.ndarray, supported:
         return still
     if target.centre is None or target.normal is None:
         target = ColouredPoints.analysed(target.xyz, target.rgb)
-    assert target.centre is not None and target.normal is not None
+    centre, normal, rgb_t = target.centre, target.normal, target.rgb
+    assert centre is not None and normal is not None
     tree = cKDTree(target.xyz)
     h = max(decision.spacing_m, 1e-9)
-    colour, across = [], []
-    for pos in (registered[have], source[have]):
+    noise = max(decision.noise, 1e-6)
+
+    def fit(pos: np.ndarray, rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         d, j = tree.query(pos, k=STAY_TARGET_NEIGHBOURS)
         w = np.exp(-0.5 * (d / h) ** 2) + 1e-12
-        smoothed = np.einsum("nk,nkc->nc", w, target.rgb[j]) / w.sum(axis=1)[:, None]
-        colour.append(((source_rgb[have] - smoothed) ** 2).sum(axis=1))
+        smoothed = np.einsum("nk,nkc->nc", w, rgb_t[j]) / w.sum(axis=1)[:, None]
         near = j[:, 0]
-        across.append(np.abs(((pos - target.centre[near]) * target.normal[near]).sum(axis=1)))
-    spread = max(1.4826 * float(np.median(across[0])), 1e-9)
-    noise = max(decision.noise, 1e-6)
-    misfit = [c / noise**2 + (a / spread) ** 2 for c, a in zip(colour, across, strict=True)]
+        across = np.abs(((pos - centre[near]) * normal[near]).sum(axis=1))
+        return ((rgb - smoothed) ** 2).sum(axis=1) / noise**2, across
+
+    colour1, across1 = fit(registered[have], source_rgb[have])
+    spread = max(1.4826 * float(np.median(across1)), 1e-9)
+    gain = np.zeros(len(have))  # > 0: the motion fits better
+    # where a point does not move both misfits are the same: only the moving ones are sought
+    moving = np.flatnonzero(np.any(registered[have] != source[have], axis=1))
+    if len(moving):
+        colour0, across0 = fit(source[have[moving]], source_rgb[have[moving]])
+        gain[moving] = (colour0 + (across0 / spread) ** 2 - colour1[moving]
+                        - (across1[moving] / spread) ** 2)
     k = min(IDENTITY_NEIGHBOURS, len(have))
     nb = cKDTree(source[have]).query(source[have], k=k)[1].reshape(len(have), k)
-    gain = (misfit[1] - misfit[0])[nb].mean(axis=1)  # > 0: the motion fits better
+    gain = gain[nb].mean(axis=1)
     still[have] = gain <= IDENTITY_MARGIN
     return still
 
