@@ -9,13 +9,16 @@ Around the shared `register` (also the frame pipeline's), without changing it:
    median displacement of its `FOLLOW_NEIGHBOURS` nearest supported points, i.e. it moves
    rigidly (a translation) with its supported neighbourhood, so beside a static supported
    part it stays put; farther (FOLLOW_REACH) it keeps `register`'s own motion (smoothness
-   plus a weak pull towards not moving).
+   plus a weak pull towards not moving), or, with colour used, it does not move
+   (FOLLOW_REACH_COLOURED: nothing measured its motion);
 3. with colour used, each supported point keeps the share of its motion (1, 1/2 or 0,
    averaged over its neighbours) under which its neighbourhood's colour and surface
    misfit is lowest (`stay_where_better`): static tissue next to moving tissue, which the
    smoothness drags and the nearest-match step then holds there, goes back to not moving;
    a hypothesis at the rim of the target (`target_rim`), where the true partner may lie
-   past it, is left out;
+   past it, is left out; then a point does not move at all where that explains its
+   neighbourhood's data within a margin over the measured noises (`explained_by_identity`),
+   and a point matched onto the rim of a cut target (`matched_onto_cut`) follows as in 2;
 4. with colour used, solver settings of its own (`pair_config`) in place of the fields the
    caller left at their defaults;
 5. an error estimate that says what it can see (`error_estimate_mm`);
@@ -106,8 +109,9 @@ RIM_COMPANIONS = 2
 # mean misfit of its IDENTITY_NEIGHBOURS nearest supported points (colour against the
 # target's smoothed colour over the measured colour noise, squared, plus the distance across
 # the target's local plane over its measured spread, squared) by more than IDENTITY_MARGIN
-# (8 or 24 neighbours, a margin of 2 or 4: worst cell on seeds 0-9 +0.31 / +0.22 / +0.23 /
-# +0.32 mm; the own motion was fitted to these data, so it wins ties by a margin); and with
+# (worst cell on seeds 0-9 with 8 / 24 neighbours +0.31 / +0.22 mm, a margin of 2 / 4 +0.23 /
+# +0.32 mm; the own motion was fitted to these data, so it wins ties by a margin; the test on
+# `stay_where_better`'s sample of every 2nd point, sharing its look-ups: +0.40 mm); and with
 # colour an unsupported point follows its nearest supported points only within
 # FOLLOW_REACH_COLOURED x the diagonal, fading to not moving (nothing measured its motion:
 # following them out to 2-5 % as without colour left cut-away static cells +0.4 mm off, and
@@ -414,7 +418,8 @@ def register_pair(
     used (`pair_config`) and unsupported points following their supported neighbours
     (module docstring). extras: register's target_ids, weights,
     landmarks, callback. stats[0] gains colour_reason, colour_strays (target points left
-    out), colour_gradient_per_mm, colour_noise, followed (points that followed) and stayed
+    out), colour_gradient_per_mm, colour_noise, followed (points that followed: without
+    target surface, or matched onto the rim of a cut target) and stayed
     (supported points keeping less than half their motion) and landmark_stage_seconds (0: no
     landmark stage). Residuals and along-surface
     estimates are `register`'s, at its positions."""
