@@ -124,7 +124,7 @@ FOLLOW_REACH_COLOURED = (0.0, 0.01)
 # CUT_LOST_SPACINGS of a source point without target surface (the source goes on past the
 # rim: a cut, not a border both clouds share) was matched onto the rim of a cut target, whose
 # partner may lie past it: it follows, as a point without target surface does
-# (stray_colour_partial 5k seeds 0-9, worst cell max +0.22 -> +0.14 mm; tissue_partial 3k
+# (stray_colour_partial 5k seeds 0-9, worst cell max +0.22 -> +0.15 mm; tissue_partial 3k
 # seeds 0-4 +0.94 -> +0.19; 1.5 / 3 spacings of the rim: +0.18 / +0.10 mm but stray_colour 5k
 # p95 up by 0.02 / 0.10 mm; within 3 / 4 spacings of a lost point: +0.22 / +0.22 mm, and
 # tissue_partial +0.89 / +0.48; 8: as 6; over 6 spacings inside the source's own rim in
