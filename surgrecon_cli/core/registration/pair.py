@@ -308,8 +308,8 @@ def stay_where_better(source: np.ndarray, registered: np.ndarray, supported: np.
 def explained_by_identity(source: np.ndarray, registered: np.ndarray, supported: np.ndarray,
                           source_rgb: np.ndarray, target: ColouredPoints,
                           decision: ColourDecision) -> np.ndarray:
-    """(N,) bool: the supported points for which not moving explains the data about as well as
-    their motion source -> registered (N, 3) m does. Per supported point and position, the
+    """(N,) bool: the supported points that move (source -> registered (N, 3) m) for which not
+    moving explains the data about as well as their motion does. Per point and position, the
     misfit is |source colour - target colour smoothed at it|^2 / noise^2 (the colour noise
     measured on the target) + (distance across the local plane of its nearest target point
     / s)^2, s the robust spread of that distance at the registered positions (the target's
@@ -341,16 +341,17 @@ def explained_by_identity(source: np.ndarray, registered: np.ndarray, supported:
     colour1, across1 = fit(registered[have], source_rgb[have])
     spread = max(1.4826 * float(np.median(across1)), 1e-9)
     gain = np.zeros(len(have))  # > 0: the motion fits better
-    # where a point does not move both misfits are the same: only the moving ones are sought
+    # where a point does not move both misfits are the same and not moving changes nothing:
+    # only the moving ones are sought and tested
     moving = np.flatnonzero(np.any(registered[have] != source[have], axis=1))
-    if len(moving):
-        colour0, across0 = fit(source[have[moving]], source_rgb[have[moving]])
-        gain[moving] = (colour0 + (across0 / spread) ** 2 - colour1[moving]
-                        - (across1[moving] / spread) ** 2)
+    if len(moving) == 0:
+        return still
+    colour0, across0 = fit(source[have[moving]], source_rgb[have[moving]])
+    gain[moving] = (colour0 + (across0 / spread) ** 2 - colour1[moving]
+                    - (across1[moving] / spread) ** 2)
     k = min(IDENTITY_NEIGHBOURS, len(have))
-    nb = cKDTree(source[have]).query(source[have], k=k)[1].reshape(len(have), k)
-    gain = gain[nb].mean(axis=1)
-    still[have] = gain <= IDENTITY_MARGIN
+    nb = cKDTree(source[have]).query(source[have[moving]], k=k)[1].reshape(len(moving), k)
+    still[have[moving]] = gain[nb].mean(axis=1) <= IDENTITY_MARGIN
     return still
 
 
