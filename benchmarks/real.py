@@ -10,7 +10,10 @@ for a before/after table; simulating, evaluating and these checks always use thi
 checkout). One table, a row per log:
 - σ run: the pixel noise the run measured (metrics/summary.json noise.pixel_px);
 - σ NCC: an independent localisation check on the same images (benchmarks/real_reference:
-  NCC row offsets on the rectified frame-0 pair), and its ratio to σ run;
+  NCC row offsets on the rectified frame-0 pair: NCC's own localisation error), and σ run over it;
+- σ disp: the run's own localisation error along the epipolar lines, where it makes depth
+  (real_reference.disparity_localisation_px: its frame-0 disparities against NCC's and
+  StereoSGBM's, separated by the three-cornered hat), and σ run over it;
 - σ truth: simulator only, the localisation error against the true geometry;
 - trk run: the tracking noise the run measured (summary noise.tracking_px, the median over
   frames); trk rigid: real logs only, an independent check on a rigid scene (the SurgT clip;
@@ -72,6 +75,7 @@ from typing import Any
 
 import numpy as np
 from real_reference import (
+    disparity_localisation_px,
     ground_truth_localisation_px,
     ground_truth_tracking_px,
     ncc_localisation_px,
@@ -262,6 +266,8 @@ def measure(name: str, run: Path, variant: str | None, seed: int | None,
     row["sigma_ncc"] = ncc_localisation_px(log, obs.pixels[obs.camera == 0])
     row["trk_run"] = summary["noise"].get("tracking_px")
     template_px = obs.pixels_by_camera(n, len(log.models))  # every camera, as the run
+    stereo = np.isfinite(template_px[:, :2]).all((1, 2))
+    row["sigma_disp"], _ = disparity_localisation_px(log, template_px[stereo, :2])
     tracked = tracked_pixels(layout, n, log.n_frames)
     if variant is not None and seed is not None:
         row["trk_truth"] = truth_tracking(variant, seed, frames, template_px, tracked)
@@ -326,7 +332,8 @@ def truth_label_checks(layout: RunLayout, n_frames: int, log_path: Path) -> dict
 
 
 COLUMNS = (("sigma_run", "σ run", ".3f"), ("sigma_ncc", "σ NCC", ".3f"),
-           ("ratio", "run/NCC", ".2f"), ("sigma_truth", "σ truth", ".3f"),
+           ("ratio", "run/NCC", ".2f"), ("sigma_disp", "σ disp", ".3f"),
+           ("ratio_disp", "run/disp", ".2f"), ("sigma_truth", "σ truth", ".3f"),
            ("trk_run", "trk run", ".3f"), ("trk_rigid", "trk rigid", ".3f"),
            ("trk_truth", "trk truth", ".3f"), ("trk_ratio", "trk/check", ".2f"),
            ("tracked", "tracked", ".1%"), ("outlier", "outlier", ".1%"),
@@ -384,8 +391,9 @@ def print_table(rows: list[dict[str, Any]]) -> None:
         if "error" in r:
             print(f"{r['name']:<{width}}  failed: {r['error']}")
             continue
-        r["ratio"] = (r["sigma_run"] / r["sigma_ncc"]
-                      if r.get("sigma_run") and r.get("sigma_ncc") else None)
+        for key, check in (("ratio", "sigma_ncc"), ("ratio_disp", "sigma_disp")):
+            r[key] = (r["sigma_run"] / r[check]
+                      if r.get("sigma_run") and r.get(check) else None)
         print(f"{r['name']:<{width}}" + "".join(f"{_fmt(r.get(k), s):>11}" for k, _, s in COLUMNS))
 
 
