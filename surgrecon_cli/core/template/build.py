@@ -7,7 +7,7 @@ pair sequence -> tracks -> N-view triangulation -> outlier rejection -> tool poi
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import cv2
@@ -116,7 +116,7 @@ class BuildOptions:
     map_calls: MapCalls = map_here
     noise: NoiseModel | None = None
     names: Sequence[str] | None = None
-    tracker: TargetConfig = TargetConfig()
+    tracker: TargetConfig = field(default_factory=TargetConfig)
 
 
 def build_template(
