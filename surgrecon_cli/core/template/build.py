@@ -187,8 +187,7 @@ def build_template(
     obs = track_observations(features, track_ids).observations
     unrefined = 0
     if cfg.refine_matches:
-        tracking = [tracking_view(im) if ok else None
-                    for im, ok in zip(images, usable, strict=True)]
+        tracking = [None if im is None else tracking_view(im) for im in images]
         obs, kept = refine_observations(obs, tracking, models, opts.tracker, cfg.epipolar_px,
                                         refinable_pairs(prediction.baseline_ratio))
         obs, unrefined = obs.subset(kept), int((~kept).sum())
