@@ -191,6 +191,8 @@ def build_template(
         obs, kept = refine_observations(obs, tracking, models, opts.tracker, cfg.epipolar_px,
                                         refinable_pairs(prediction.baseline_ratio))
         obs, unrefined = obs.subset(kept), int((~kept).sum())
+        seen = np.bincount(obs.point, minlength=n_tracks) >= 2
+        obs, n_tracks = obs.renumbered(seen), int(seen.sum())
     tri = triangulate(obs, poses, models, n_tracks)
     # Drop single bad observations and re-triangulate what still has >= 2 views.
     obs = obs.subset(tri.error_px <= cfg.max_reprojection_px)
