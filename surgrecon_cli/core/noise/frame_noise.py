@@ -82,7 +82,7 @@ def tracking_excess_px2(multi: MultiView, localisation: np.ndarray, models: list
     if len(idx) < MIN_POINTS:
         return 0.0, float("nan")
     residual, depth = tri.residual_px, tri.depth
-    measured = pixel_noise_from_residuals(residual, obs.point, obs.camera)
+    measured = pixel_noise_from_residuals(residual, obs.point)
     focal = np.array([m.K[0, 0] for m in models])[obs.camera]
     predicted = noise.tracked_view_variance_px2(
         depth, focal, localisation[idx[obs.point], obs.camera],

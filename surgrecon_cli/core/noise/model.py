@@ -44,7 +44,6 @@ from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
 MAD_TO_SIGMA = 1.4826  # σ of a Gaussian from its median absolute deviation
-MIN_BIAS_ROWS = 20  # ours: residuals a camera needs before its median offset is removed
 
 
 @dataclass(frozen=True)
@@ -132,29 +131,20 @@ def robust_sigma(values: np.ndarray) -> float:
     return float(MAD_TO_SIGMA * np.median(v)) if v.size else float("nan")
 
 
-def pixel_noise_from_residuals(residuals_px: np.ndarray, point_index: np.ndarray,
-                               camera: np.ndarray | None = None) -> float:
+def pixel_noise_from_residuals(residuals_px: np.ndarray, point_index: np.ndarray) -> float:
     """σ_px (px, per axis) from reprojection residual vectors (M, 2) of triangulated points,
-    point_index (M,) the point of each residual, camera (M,) its camera (None: not known).
+    point_index (M,) the point of each residual.
 
     A point seen in n views leaves d = 2n − 3 degrees of freedom in its 2n residual
     components (two views: one, the error across the epipolar line; the components along it
     are zero). Its sum of squared residuals is σ² χ²(d), so σ² is estimated robustly as the
     median over the points of (sum / median of χ²(d)): every point counts once, with its
-    own dof, and components that triangulation forced to zero never pull σ down.
-
-    With `camera`, each camera's median residual (from at least MIN_BIAS_ROWS of them) is
-    removed first: it is a calibration offset shared by every point (measured on a real
-    SurgT stereo pair: 0.09 px across the epipolar lines, 0.06 of the 0.14 px σ), not
-    localisation noise, and it cancels in the displacements the labels are decided from.
-    Two parameters a camera, out of hundreds of residuals."""
+    own dof, and components that triangulation forced to zero never pull σ down."""
     r = np.asarray(residuals_px, float).reshape(-1, 2)
     point = np.asarray(point_index, np.int64).reshape(-1)
     ok = np.isfinite(r).all(1)
     if not ok.any():
         return float("nan")
-    if camera is not None:
-        r = r - camera_offsets(r, np.asarray(camera, np.int64).reshape(-1), ok)
     n_points = int(point[ok].max()) + 1
     squares = np.bincount(point[ok], (r[ok] ** 2).sum(1), minlength=n_points)
     views = np.bincount(point[ok], minlength=n_points)
@@ -163,17 +153,6 @@ def pixel_noise_from_residuals(residuals_px: np.ndarray, point_index: np.ndarray
     if not has.any():
         return float("nan")
     return float(np.sqrt(np.median(squares[has] / chi2.median(dof[has]))))
-
-
-def camera_offsets(residuals_px: np.ndarray, camera: np.ndarray, ok: np.ndarray) -> np.ndarray:
-    """Each row's camera's median residual (M, 2) px over the finite rows `ok` (M,) bool;
-    0 for a camera with fewer than MIN_BIAS_ROWS of them."""
-    offsets = np.zeros_like(residuals_px)
-    for c in np.unique(camera[ok]):
-        rows = ok & (camera == c)
-        if rows.sum() >= MIN_BIAS_ROWS:
-            offsets[camera == c] = np.median(residuals_px[rows], axis=0)
-    return offsets
 
 
 def image_noise_sigma(grey: np.ndarray) -> float:

@@ -283,7 +283,7 @@ def measured_covariances(points: np.ndarray, obs: Observations, frame: TemplateF
     poses, images = frame.poses, frame.images
     residual, _ = reprojection_residuals(points, obs, poses, models)
     sel = use[obs.point]
-    pixel_px = pixel_noise_from_residuals(residual[sel], obs.point[sel], obs.camera[sel])
+    pixel_px = pixel_noise_from_residuals(residual[sel], obs.point[sel])
     pixel_px = pixel_px if np.isfinite(pixel_px) and pixel_px > 0 else 1.0
     variance = np.full(len(obs.point), pixel_px**2)
     image_variance = variance.copy()
