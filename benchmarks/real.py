@@ -10,7 +10,10 @@ for a before/after table; simulating, evaluating and these checks always use thi
 checkout). One table, a row per log:
 - σ run: the pixel noise the run measured (metrics/summary.json noise.pixel_px);
 - σ NCC: an independent localisation check on the same images (benchmarks/real_reference:
-  NCC row offsets on the rectified frame-0 pair), and its ratio to σ run;
+  NCC row offsets on the rectified frame-0 pair: NCC's own localisation error), and σ run over it;
+- σ disp: the run's own localisation error along the epipolar lines, where it makes depth
+  (real_reference.disparity_localisation_px: its frame-0 disparities against NCC's and
+  StereoSGBM's, separated by the three-cornered hat), and σ run over it;
 - σ truth: simulator only, the localisation error against the true geometry;
 - trk run: the tracking noise the run measured (summary noise.tracking_px, the median over
   frames); trk rigid: real logs only, an independent check on a rigid scene (the SurgT clip;
@@ -31,7 +34,11 @@ checkout). One table, a row per log:
   labelled positions against the true surface (mm); "de|rigid" the share of point-frames
   whose true neighbourhood is confidently rigid (moved, or not, with a rigid-fit RMS under
   half of classify.deform_mm) called deforming;
-  "moving det" the share of truly moving point-frames (shifting or deforming) called moving.
+  "moving det" the share of truly moving point-frames (shifting or deforming) called moving;
+  "covered" the share of template points whose line of sight from camera 0 meets the true
+  surface at frame 0 (the breathing clips' truth has holes where SGBM measured nothing;
+  `truth_covers`), "cov med" / "cov p95" the labelled positions of those against the truth
+  (mm, frames 1 on): "true med" / "true p95" without the points over holes.
 Real logs without a ground truth also get a second table, "real motion" (issue 24; the
 scene must be rigid and the rig fixed in the world, as `surgrecon convert` writes it
 without --camera-poses), against the scene's rigid motion measured from the images alone
@@ -72,6 +79,7 @@ from typing import Any
 
 import numpy as np
 from real_reference import (
+    disparity_localisation_px,
     ground_truth_localisation_px,
     ground_truth_tracking_px,
     ncc_localisation_px,
@@ -262,6 +270,8 @@ def measure(name: str, run: Path, variant: str | None, seed: int | None,
     row["sigma_ncc"] = ncc_localisation_px(log, obs.pixels[obs.camera == 0])
     row["trk_run"] = summary["noise"].get("tracking_px")
     template_px = obs.pixels_by_camera(n, len(log.models))  # every camera, as the run
+    stereo = np.isfinite(template_px[:, :2]).all((1, 2))
+    row["sigma_disp"], _ = disparity_localisation_px(log, template_px[stereo, :2])
     tracked = tracked_pixels(layout, n, log.n_frames)
     if variant is not None and seed is not None:
         row["trk_truth"] = truth_tracking(variant, seed, frames, template_px, tracked)
@@ -308,11 +318,18 @@ def truth_label_checks(layout: RunLayout, n_frames: int, log_path: Path) -> dict
     index, mask = nb.members()
     truth = np.load(layout.evaluation_errors)["true_labels"]
     start = mapping.follow(gt.vertices[0], gt.faces)  # the true frame-0 material points
+    covered = truth_covers(template, load_ingested(layout.ingest_dir).poses[0, 0, :3, 3],
+                           gt.vertices[0], gt.faces)
     rigid = moving = rigid_deforming = moving_found = 0
+    errors = []
     for k in range(1, n_frames):
         label = np.full(len(template), UNKNOWN)
         cloud = read_ply(layout.cloud(k))
         label[cloud["point_id"]] = cloud["label"]
+        xyz = np.column_stack([cloud[a] for a in "xyz"]).astype(float)
+        use = covered[cloud["point_id"]] & (cloud["label"] != UNKNOWN)
+        errors.append(np.linalg.norm(
+            xyz[use] - mapping.follow(gt.vertices[k], gt.faces)[cloud["point_id"][use]], axis=1))
         true_rms = rigid_fit_rms(start, mapping.follow(gt.vertices[k], gt.faces), index,
                                  mask) * 1e3
         confident = true_rms < 0.5 * cfg.deform_mm
@@ -321,12 +338,36 @@ def truth_label_checks(layout: RunLayout, n_frames: int, log_path: Path) -> dict
         truly = np.isin(truth[k], (SHIFTING, DEFORMING))
         moving += int(truly.sum())
         moving_found += int((truly & np.isin(label, (SHIFTING, DEFORMING))).sum())
+    e = np.concatenate(errors) * 1e3
     return {"deforming_of_rigid": rigid_deforming / max(rigid, 1),
-            "moving_detected": moving_found / moving if moving else float("nan")}
+            "moving_detected": moving_found / moving if moving else float("nan"),
+            "covered": float(covered.mean()),
+            "covered_median_mm": float(np.median(e)) if e.size else float("nan"),
+            "covered_p95_mm": float(np.percentile(e, 95)) if e.size else float("nan")}
+
+
+def truth_covers(points: np.ndarray, eye: np.ndarray, vertices: np.ndarray, faces: np.ndarray
+                 ) -> np.ndarray:
+    """Whether the true surface (V, 3) / (F, 3) m covers each template point (N, 3) m: the
+    line of sight from camera 0's centre `eye` (3,) through it meets the surface. A truth
+    mesh with holes (the breathing clips': cells without a measured disparity) maps a point
+    over a hole to the hole's rim, millimetres away, an error of the truth, not the run."""
+    import open3d as o3d
+
+    scene = o3d.t.geometry.RaycastingScene()
+    mesh = o3d.t.geometry.TriangleMesh()
+    mesh.vertex.positions = o3d.core.Tensor(vertices.astype(np.float32))
+    mesh.triangle.indices = o3d.core.Tensor(faces.astype(np.int32))
+    scene.add_triangles(mesh)
+    dirs = points - eye
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    rays = np.column_stack([np.broadcast_to(eye, dirs.shape), dirs]).astype(np.float32)
+    return np.isfinite(scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy())
 
 
 COLUMNS = (("sigma_run", "σ run", ".3f"), ("sigma_ncc", "σ NCC", ".3f"),
-           ("ratio", "run/NCC", ".2f"), ("sigma_truth", "σ truth", ".3f"),
+           ("ratio", "run/NCC", ".2f"), ("sigma_disp", "σ disp", ".3f"),
+           ("ratio_disp", "run/disp", ".2f"), ("sigma_truth", "σ truth", ".3f"),
            ("trk_run", "trk run", ".3f"), ("trk_rigid", "trk rigid", ".3f"),
            ("trk_truth", "trk truth", ".3f"), ("trk_ratio", "trk/check", ".2f"),
            ("tracked", "tracked", ".1%"), ("outlier", "outlier", ".1%"),
@@ -335,7 +376,9 @@ COLUMNS = (("sigma_run", "σ run", ".3f"), ("sigma_ncc", "σ NCC", ".3f"),
            ("deform_of_labelled", "deform|lab", ".1%"), ("ref_median_mm", "ref med", ".2f"),
            ("ref_p95_mm", "ref p95", ".2f"), ("macro_f1", "macroF1", ".3f"),
            ("calib_2sigma", "calib2σ", ".1%"), ("true_median_mm", "true med", ".2f"),
-           ("true_p95_mm", "true p95", ".2f"), ("deforming_of_rigid", "de|rigid", ".1%"),
+           ("true_p95_mm", "true p95", ".2f"), ("covered", "covered", ".1%"),
+           ("covered_median_mm", "cov med", ".2f"), ("covered_p95_mm", "cov p95", ".2f"),
+           ("deforming_of_rigid", "de|rigid", ".1%"),
            ("moving_detected", "moving det", ".1%"))
 
 
@@ -384,8 +427,9 @@ def print_table(rows: list[dict[str, Any]]) -> None:
         if "error" in r:
             print(f"{r['name']:<{width}}  failed: {r['error']}")
             continue
-        r["ratio"] = (r["sigma_run"] / r["sigma_ncc"]
-                      if r.get("sigma_run") and r.get("sigma_ncc") else None)
+        for key, check in (("ratio", "sigma_ncc"), ("ratio_disp", "sigma_disp")):
+            r[key] = (r["sigma_run"] / r[check]
+                      if r.get("sigma_run") and r.get(check) else None)
         print(f"{r['name']:<{width}}" + "".join(f"{_fmt(r.get(k), s):>11}" for k, _, s in COLUMNS))
 
 

@@ -9,6 +9,10 @@ calibration (intrinsics and the relative pose of the two cameras at each frame).
   the matched row offset samples the two images' localisation errors: σ per image and axis
   = 1.4826 median|dy| / √2 (about 0, not the median: a calibration's vertical offset is
   error the pipeline's triangulation sees too; SurgT's is 0.36 px).
+- `disparity_localisation_px`: the run's own localisation error where it makes depth, along
+  the epipolar lines: its disparities against NCC's and StereoSGBM's on the rectified
+  frame-0 pair, the three errors separated by the three-cornered hat (the function's
+  docstring). Unlike the row offsets above it measures the run's matches, not NCC's.
 - `ground_truth_localisation_px` (simulator only): the detected pixel in camera 0 cast onto
   the true surface with the true pose, projected into camera 1 with its true pose, against
   the pixel detected there: two localisation errors, σ = 1.4826 MAD / √2 per axis.
@@ -113,32 +117,74 @@ def _disparity(left: np.ndarray, right: np.ndarray, max_disp: int) -> np.ndarray
     return d
 
 
+def _ncc_matches(left: np.ndarray, right: np.ndarray, xy: np.ndarray, disparity: np.ndarray
+                 ) -> np.ndarray:
+    """NCC matches (M, 2) of rectified left pixels xy (M, 2) in the right image, searched
+    SEARCH around the expected disparity (M,): the right pixel's row offset from the left
+    one and its disparity (px), NaN where the search fails (edge, flat peak, NCC < 0.8).
+    The left patch is sampled at the sub-pixel position itself, the peak by parabolas."""
+    half, (sr, sc) = PATCH // 2, SEARCH
+    out = np.full((len(xy), 2), np.nan)
+    left_f = left.astype(np.float32)
+    for i, ((x, y), dd) in enumerate(zip(xy, disparity, strict=True)):
+        if not np.isfinite(dd):
+            continue
+        yi, xr = round(float(y)), round(float(x - dd))
+        if (min(xr, yi) - half - sc < 0 or yi + half + sr >= left.shape[0]
+                or max(round(float(x)), xr) + half + sc >= left.shape[1] or x < half):
+            continue
+        patch = cv2.getRectSubPix(left_f, (PATCH, PATCH), (float(x), float(y)))
+        window = right[yi - half - sr:yi + half + sr + 1,
+                       xr - half - sc:xr + half + sc + 1].astype(np.float32)
+        score = cv2.matchTemplate(window, patch, cv2.TM_CCOEFF_NORMED)
+        r, c = np.unravel_index(int(np.argmax(score)), score.shape)
+        if (not (0 < r < score.shape[0] - 1 and 0 < c < score.shape[1] - 1)
+                or score[r, c] < 0.8):
+            continue
+        peak = []
+        for a, b, e in ((score[r - 1, c], score[r, c], score[r + 1, c]),
+                        (score[r, c - 1], score[r, c], score[r, c + 1])):
+            peak.append(0.5 * (a - e) / (a - 2 * b + e) if a - 2 * b + e < 0 else 0.0)
+        out[i] = (yi - sr + r + peak[0] - y, x - (xr - sc + c + peak[1]))
+    return out
+
+
 def ncc_localisation_px(log: IngestedLog, pixels0: np.ndarray, max_disp: int = 160) -> float:
     """Independent localisation σ (px) on frame 0 from NCC row offsets (module docstring);
     pixels0 (M, 2) camera-0 pixels of template points."""
     rect = Rectified(log.models, log.poses[0, :2])
     left, right = rect.images(*log.frame_images(0)[:2])
-    disparity = _disparity(left, right, max_disp)
     xy = rect.left_pixels(pixels0)
-    d = _sample(disparity, xy)
-    half, (sr, sc) = PATCH // 2, SEARCH
-    offsets = []
-    for (x, y), dd in zip(xy, d, strict=True):
-        if not np.isfinite(dd):
-            continue
-        xi, yi, xr = round(float(x)), round(float(y)), round(float(x - dd))
-        if (min(xi, yi, xr) - half - sc < 0 or yi + half + sr >= left.shape[0]
-                or max(xi, xr) + half + sc >= left.shape[1]):
-            continue
-        patch = left[yi - half:yi + half + 1, xi - half:xi + half + 1]
-        window = right[yi - half - sr:yi + half + sr + 1, xr - half - sc:xr + half + sc + 1]
-        score = cv2.matchTemplate(window, patch, cv2.TM_CCOEFF_NORMED)
-        r, c = np.unravel_index(int(np.argmax(score)), score.shape)
-        if not (0 < r < score.shape[0] - 1) or score[r, c] < 0.8:
-            continue
-        a, b, e = score[r - 1, c], score[r, c], score[r + 1, c]
-        offsets.append(r - sr + 0.5 * (a - e) / (a - 2 * b + e) + (yi - y))
-    return _mad_sigma(np.array(offsets), centre=False) / np.sqrt(2.0)
+    rows = _ncc_matches(left, right, xy, _sample(_disparity(left, right, max_disp), xy))[:, 0]
+    return _mad_sigma(rows[np.isfinite(rows)], centre=False) / np.sqrt(2.0)
+
+
+def disparity_localisation_px(log: IngestedLog, pixels: np.ndarray,
+                              max_disp: int = 160) -> tuple[float, int]:
+    """The run's own stereo localisation σ (px per image), measured along the epipolar
+    lines, where it makes depth (module docstring): pixels (M, 2, 2) of template points in
+    cameras 0 and 1. Three disparities of each point on the rectified frame-0 pair: the
+    run's (its two observations), NCC's and StereoSGBM's (`_disparity`); with independent
+    errors var(a - b) = σ_a² + σ_b², so σ_run² = (var(run - ncc) + var(run - sgbm)
+    - var(ncc - sgbm)) / 2 (the "three-cornered hat"; robust variances, 1.4826 MAD about the
+    median). NCC and SGBM both match blocks on the same images, so their errors are partly
+    shared: var(ncc - sgbm) is then low and σ_run high, a conservative check of a σ that
+    could be too small. Returns σ_run / √2 (one image's share of a disparity's error) and
+    the points used."""
+    rect = Rectified(log.models, log.poses[0, :2])
+    left, right = rect.images(*log.frame_images(0)[:2])
+    xy = rect.left_pixels(pixels[:, 0])
+    m1 = rect.models[1]
+    right_xy = cv2.undistortPoints(np.asarray(pixels[:, 1], np.float64).reshape(-1, 1, 2),
+                                   m1.K, m1.dist, R=rect.r1, P=rect.p1).reshape(-1, 2)
+    run = xy[:, 0] - right_xy[:, 0]
+    sgbm = _sample(_disparity(left, right, max_disp), xy)
+    ncc = _ncc_matches(left, right, xy, sgbm)[:, 1]
+    ok = np.isfinite(run) & np.isfinite(sgbm) & np.isfinite(ncc)
+    if ok.sum() < 10:
+        return float("nan"), int(ok.sum())
+    var = [_mad_sigma(a[ok] - b[ok]) ** 2 for a, b in ((run, ncc), (run, sgbm), (ncc, sgbm))]
+    return float(np.sqrt(max(var[0] + var[1] - var[2], 0.0) / 2.0) / np.sqrt(2.0)), int(ok.sum())
 
 
 def ground_truth_localisation_px(true_poses: np.ndarray, models: list[CameraModel],

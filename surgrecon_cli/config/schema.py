@@ -162,6 +162,12 @@ class TemplateConfig:
     )
     epipolar_px: float = _doc(2.0, "largest distance of a match to its epipolar line (px)",
         bounds=(0, 1000))
+    refine_matches: bool = _doc(
+        True, "re-locate each view of a match from a camera close to its first view's "
+        "(baseline <= 0.18 x depth: a stereo endoscope) by the target's KLT (its window, no "
+        "pyramid) from the first view's patch, to a tenth of a pixel instead of each "
+        "keypoint's own error (moves of at most epipolar_px; a view KLT cannot follow is "
+        "dropped)")
     max_reprojection_px: float = _doc(
         1.5, "largest reprojection error of a triangulated point (px)", bounds=(0, 1000)
     )
@@ -169,7 +175,7 @@ class TemplateConfig:
         1.0, "smallest triangulation angle between two rays (deg); a floor against degenerate "
         "rays only: depth accuracy decides through max_sigma_mm", bounds=(0, 90))
     max_sigma_mm: float = _doc(
-        2.5, "largest 3D position uncertainty (RMS, from the measured pixel noise and the "
+        1.5, "largest 3D position uncertainty (RMS, from the measured pixel noise and the "
         "camera geometry) of a template point (mm)", bounds=(0, 1000))
     min_pair_matches: int = _doc(
         15, "verified matches for two cameras to be linked, at least (the floor; the minimum "

@@ -69,6 +69,7 @@ def run_build_template(
                     map_calls=mapper(executor or SerialExecutor()),
                     noise=noise_from_report(log.report, log.cameras, pixel_px=0.0),
                     names=log.cameras,
+                    tracker=config.target,
                 ),
             )
         for line in result.warnings:

@@ -7,13 +7,13 @@ pair sequence -> tracks -> N-view triangulation -> outlier rejection -> tool poi
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import cv2
 import numpy as np
 
-from ...config import TemplateConfig
+from ...config import TargetConfig, TemplateConfig
 from ...errors import GeometryError
 from ..geometry.cameras import CameraModel, project, view_distortion_jacobians
 from ..geometry.tool import (
@@ -33,11 +33,13 @@ from ..noise.model import (
     point_covariances,
     projection_jacobians,
 )
+from ..target.tracking import tracking_view
 from .features import detect_features, no_features
 from .gate import group_disagreements, link_warnings, pair_minimums, unlinked_message
 from .matching import CameraView, PairGates, build_tracks, match_pair
 from .outliers import surface_outliers
 from .pairing import PairPlan, PairPrediction, candidate_pairs, predict_pairs
+from .refine import refinable_pairs, refine_observations
 from .sequencing import (
     RigFeatures,
     SequenceGates,
@@ -107,12 +109,14 @@ class BuildOptions:
     """Optional inputs of `build_template`: `on_step(name)` is called as each of `STEPS` is
     done; `map_calls` makes the independent calls (in parallel when it is an executor's);
     `noise` the tracker's measured jitter and shared bodies (None = not known); `names` (C,)
-    name the cameras in messages (None: their indices)."""
+    name the cameras in messages (None: their indices); `tracker` the target's config, whose
+    KLT refines the matches (`TemplateConfig.refine_matches`)."""
 
     on_step: Callable[[str], None] | None = None
     map_calls: MapCalls = map_here
     noise: NoiseModel | None = None
     names: Sequence[str] | None = None
+    tracker: TargetConfig = field(default_factory=TargetConfig)
 
 
 def build_template(
@@ -181,6 +185,14 @@ def build_template(
         raise GeometryError(unlinked_message(matched.counts, minimums, labels,
                                              cfg.min_pair_matches, cfg.min_pair_match_fraction))
     obs = track_observations(features, track_ids).observations
+    unrefined = 0
+    if cfg.refine_matches:
+        tracking = [None if im is None else tracking_view(im) for im in images]
+        obs, kept = refine_observations(obs, tracking, models, opts.tracker, cfg.epipolar_px,
+                                        refinable_pairs(prediction.baseline_ratio))
+        obs, unrefined = obs.subset(kept), int((~kept).sum())
+        seen = np.bincount(obs.point, minlength=n_tracks) >= 2
+        obs, n_tracks = obs.renumbered(seen), int(seen.sum())
     tri = triangulate(obs, poses, models, n_tracks)
     # Drop single bad observations and re-triangulate what still has >= 2 views.
     obs = obs.subset(tri.error_px <= cfg.max_reprojection_px)
@@ -227,6 +239,7 @@ def build_template(
         "pair_minimums": {f"{i}-{j}": int(minimums[i, j]) for i, j in matched.counts},
         "disagreeing_groups": [[a, b, mm] for a, b, mm in disagree],
         "tracks": n_tracks,
+        "views_not_refined": unrefined,
         "triangulated": n_points,
         "rejected_geometry": int((~good).sum() - imprecise.sum()),
         "rejected_imprecise": int(imprecise.sum()),
