@@ -13,17 +13,16 @@ import pytest
 
 from surgrecon_cli.config import RegistrationConfig
 from surgrecon_cli.core.registration.colour import decide_colour
-from surgrecon_cli.core.registration.pair import (
+from surgrecon_cli.core.registration.overlap import (
     ColouredPoints,
     _smallest_axis,
-    error_estimate_mm,
     explained_by_identity,
     follow_supported,
     matched_onto_cut,
-    pair_config,
     stay_where_better,
     target_rim,
 )
+from surgrecon_cli.core.registration.pair import error_estimate_mm, pair_config
 from surgrecon_cli.registration import register_pair
 from surgrecon_cli.sim.pairs_catalog import make_pair
 from surgrecon_cli.sim.pairs_stray import stray_colour_pair

@@ -5,7 +5,8 @@
 
 Files in pipeline order: graph.py (nodes, neighbour graph, operators D and B),
 correspondences.py, rigid.py (pre-alignment), admm.py (the solver), register.py (outer loop);
-pair.py (`register_pair`: what `register-pair` runs; robust colour decision in colour.py).
+pair.py (`register_pair`: what `register-pair` runs; robust colour decision in colour.py,
+partial overlap in overlap.py).
 """
 
 from .pair import register_pair

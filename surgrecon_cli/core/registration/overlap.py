@@ -1,0 +1,320 @@
+"""Partial overlap in `register_pair` (pair.py): what a source point does where the target
+has no surface for it or where its match may lie past the target's cut.
+
+- A source point left without target surface (not `supported`) takes the median
+  displacement of its `FOLLOW_NEIGHBOURS` nearest supported points, i.e. it moves rigidly
+  (a translation) with its supported neighbourhood (`follow_supported`).
+- With colour used, each supported point keeps the share of its motion (1, 1/2 or 0,
+  averaged over its neighbours) under which its neighbourhood's colour and surface misfit is
+  lowest (`stay_where_better`), leaving out hypotheses at the rim of the target
+  (`target_rim`); then a point does not move at all where that explains its neighbourhood's
+  data within a margin over the measured noises (`explained_by_identity`), and a point
+  matched onto the rim of a cut target (`matched_onto_cut`) follows as one without surface.
+Inputs and outputs in metres.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+from scipy import sparse
+from scipy.spatial import cKDTree
+
+from .colour import ColourDecision
+
+FOLLOW_NEIGHBOURS = 16  # ours: supported neighbours an unsupported point moves with
+# ours: an unsupported point follows its supported neighbourhood in full within 2 % of the
+# diagonal of it (1.4 mm on the 70 mm tissue), blending to `register`'s own motion for it
+# (smoothness plus a weak pull to not moving) at 5 %: on stray_colour_partial tuning seeds
+# 0-4 the unsupported points' median error then stays within 0.05 mm of doing nothing's
+# (+0.18 mm with a full follow out to 5 % fading to not moving at 10 %), and colourless
+# partial shapes keep the solver's extrapolated motion far from their support
+FOLLOW_REACH = (0.02, 0.05)
+
+# ours: with colour used, each supported point's motion is scaled by the share of it
+# (STAY_SHARES) whose colour + surface misfit, summed over about STAY_NEIGHBOURS nearby
+# points, is lowest (then averaged over its neighbours): the colour-decided matches of
+# static tissue next to moving tissue settle where the smoothness dragged it (the nearest
+# match in position + colour is biased towards where the point already is), and comparing
+# the hypotheses "moved" / "half moved" / "not moved" on the target's smoothed colour
+# field has no such bias. Tuned on stray_colour / stray_colour_partial seeds 0-4: at 5k the
+# partial pair's worst 5 mm cell goes from +0.48 to +0.35 mm over doing nothing (mean over
+# seeds; supported cells from up to +0.50 to up to +0.38), the median from 0.175-0.279 to
+# 0.150-0.274 mm, stray_colour's from 0.145-0.172 to 0.12-0.15 mm; 32 neighbours, shares
+# {0, 1}, 5 shares, a scale of 1.5 or 6 noises, or the distance across the local plane in
+# place of the nearest distance: no better. The misfits are taken on every 2nd supported
+# point, at most STAY_SAMPLES of them, so a neighbourhood spans the same part of the
+# surface at any density (100k: p95 0.24-0.36 -> 0.27-0.39 mm; every 2nd point: 0.28-0.41)
+STAY_SHARES = (1.0, 0.5, 0.0)  # in this order: a tie (no data near) keeps the motion
+STAY_NEIGHBOURS = 64
+STAY_STRIDE = 2
+STAY_SAMPLES = 2500
+STAY_TARGET_NEIGHBOURS = 8  # target points the colour field is smoothed over
+STAY_TAU_NOISE = 3.0  # robust scale of the misfit, in colour-noise units
+# ours, tuned on stray_colour_partial 5k seeds 0-9 (worst 5 mm cell over doing nothing,
+# mean +0.39 -> +0.29 mm) and stray_colour 2k: a rim point sees none of its RIM_NEIGHBOURS
+# nearest points over an angle this wide around its normal (a straight edge: >= 180
+# degrees; inside a randomly sampled surface 16 neighbours leave one at ~0.5 % of the
+# points; 120 or 165 degrees: no better), and RIM_COMPANIONS of them are rim points too (a
+# rim is a line; without: stray_colour 2k seed 100 p95 0.71 -> 0.85 mm; also sparing the
+# source's own border zone, 3 spacings from its rim, changed nothing)
+RIM_NEIGHBOURS = 16
+RIM_GAP_DEG = 150.0
+RIM_COMPANIONS = 2
+# ours, tuned on stray_colour_partial 5k seeds 0-9 (worst 5 mm cell over doing nothing, mean
+# +0.29 -> +0.07 mm, max +0.51 -> +0.22), stray_colour 2k / 5k, tissue_partial / tissue_noisy
+# 3k seeds 0-4: a supported point goes back to not moving unless its own motion lowers the
+# mean misfit of its IDENTITY_NEIGHBOURS nearest supported points (colour against the
+# target's smoothed colour over the measured colour noise, squared, plus the distance across
+# the target's local plane over its measured spread, squared) by more than IDENTITY_MARGIN
+# (worst cell on seeds 0-9 with 8 / 24 neighbours +0.31 / +0.22 mm, a margin of 2 / 4 +0.23 /
+# +0.32 mm; the own motion was fitted to these data, so it wins ties by a margin; the test on
+# `stay_where_better`'s sample of every 2nd point, sharing its look-ups: +0.40 mm); and with
+# colour an unsupported point follows its nearest supported points only within
+# FOLLOW_REACH_COLOURED x the diagonal, fading to not moving (nothing measured its motion:
+# following them out to 2-5 % as without colour left cut-away static cells +0.4 mm off, and
+# out to any distance +2.3 mm)
+IDENTITY_NEIGHBOURS = 16
+IDENTITY_MARGIN = 2.8
+FOLLOW_REACH_COLOURED = (0.0, 0.01)
+# ours, tuned on the same: a supported point whose registered position lies within
+# CUT_RIM_SPACINGS target spacings of the target's rim (`target_rim`) and within
+# CUT_LOST_SPACINGS of a source point without target surface (the source goes on past the
+# rim: a cut, not a border both clouds share) was matched onto the rim of a cut target, whose
+# partner may lie past it: it follows, as a point without target surface does
+# (stray_colour_partial 5k seeds 0-9, worst cell max +0.22 -> +0.15 mm; tissue_partial 3k
+# seeds 0-4 +0.94 -> +0.19; 1.5 / 3 spacings of the rim: +0.18 / +0.10 mm but stray_colour 5k
+# p95 up by 0.02 / 0.10 mm; within 3 / 4 spacings of a lost point: +0.22 / +0.22 mm, and
+# tissue_partial +0.89 / +0.48; 8: as 6; over 6 spacings inside the source's own rim in
+# place of the lost points: the same cells, stray_colour 5k p95 +0.03 mm, 20 ms more)
+CUT_RIM_SPACINGS = 2.0
+CUT_LOST_SPACINGS = 6.0
+
+
+def target_rim(xyz: np.ndarray, k: int = RIM_NEIGHBOURS,
+               gap_deg: float = RIM_GAP_DEG, companions: int = RIM_COMPANIONS) -> np.ndarray:
+    """(M,) bool: the points of a cloud xyz (M, 3) m on its boundary (the rim of a surface
+    patch or of a cut): seen from the point, its k nearest neighbours, projected on the
+    local tangent plane (PCA of them), leave an angular gap wider than `gap_deg` degrees
+    (inside a surface they surround the point), and at least `companions` of them are such
+    points too."""
+    return rim_and_planes(xyz, k, gap_deg, companions)[0]
+
+
+def rim_and_planes(xyz: np.ndarray, k: int = RIM_NEIGHBOURS, gap_deg: float = RIM_GAP_DEG,
+                   companions: int = RIM_COMPANIONS) -> tuple[np.ndarray, ...]:
+    """(rim (M,) bool as `target_rim`, centre (M, 3) m, normal (M, 3) unit): with each point's
+    local plane, the centroid and PCA normal of its k nearest neighbours (xyz (M, 3) m)."""
+    m = len(xyz)
+    if m <= 3:
+        return np.zeros(m, bool), xyz.copy(), np.tile([0.0, 0.0, 1.0], (m, 1))
+    k = min(k, m - 1)
+    nn = cKDTree(xyz).query(xyz, k=k + 1)[1]
+    rel = xyz[nn[:, 1:]] - xyz[:, None, :]
+    offset = rel.mean(axis=1)
+    c = rel - offset[:, None, :]
+    normal = _smallest_axis(np.matmul(c.transpose(0, 2, 1), c))
+    # a tangent basis (u, v): u across the normal from the axis least along it
+    axis = np.eye(3)[np.argmin(np.abs(normal), axis=1)]
+    u = np.cross(normal, axis)
+    u /= np.linalg.norm(u, axis=1)[:, None]
+    v = np.cross(normal, u)
+    angle = np.sort(np.arctan2(np.einsum("pki,pi->pk", rel, v),
+                               np.einsum("pki,pi->pk", rel, u)), axis=1)
+    gaps = np.diff(angle, axis=1, append=angle[:, :1] + 2 * np.pi)
+    rim = gaps.max(axis=1) > np.deg2rad(gap_deg)
+    # a rim is a line: a point flagged alone among its neighbours is a sampling accident
+    return (np.asarray(rim & (rim[nn[:, 1:]].sum(axis=1) >= companions)), xyz + offset,
+            normal)
+
+
+def follow_supported(source: np.ndarray, registered: np.ndarray, supported: np.ndarray,
+                     reach: tuple[float, float] = FOLLOW_REACH,
+                     beyond: np.ndarray | None = None) -> np.ndarray:
+    """(N, 3) registered positions where every point not `supported` (N,) bool moves by the
+    per-axis median displacement of its nearest supported points (source (N, 3), m), in
+    full within reach[0] x the source's bounding-box diagonal of the nearest one, blending
+    to its position in `beyond` (N, 3) m (None: its own `registered` position) at reach[1]
+    x it (FOLLOW_REACH)."""
+    diagonal = float(np.linalg.norm(source.max(axis=0) - source.min(axis=0)))
+    reach_m = (reach[0] * diagonal, reach[1] * diagonal)
+    out = registered.copy()
+    have = np.flatnonzero(supported)
+    lost = np.flatnonzero(~supported)
+    if len(have) == 0 or len(lost) == 0:
+        return out
+    k = min(FOLLOW_NEIGHBOURS, len(have))
+    d, nn = cKDTree(source[have]).query(source[lost], k=k)
+    d, nn = d.reshape(len(lost), k), nn.reshape(len(lost), k)
+    fade = np.clip((reach_m[1] - d[:, 0]) / (reach_m[1] - reach_m[0]), 0.0, 1.0)
+    moves = (registered - source)[have[nn]]
+    follow = source[lost] + np.median(moves, axis=1)
+    far = registered if beyond is None else beyond
+    out[lost] = fade[:, None] * follow + (1.0 - fade[:, None]) * far[lost]
+    return out
+
+
+def _smallest_axis(cov: np.ndarray) -> np.ndarray:
+    """(P, 3) unit eigenvectors of the smallest eigenvalue of symmetric cov (P, 3, 3), in
+    closed form (trigonometric eigenvalues; ~10x faster than a batched eigh)."""
+    q = np.trace(cov, axis1=1, axis2=2) / 3.0
+    off = cov[:, 0, 1] ** 2 + cov[:, 0, 2] ** 2 + cov[:, 1, 2] ** 2
+    diag = np.diagonal(cov, axis1=1, axis2=2) - q[:, None]
+    p = np.sqrt(np.maximum(((diag**2).sum(axis=1) + 2.0 * off) / 6.0, 1e-300))
+    eye = np.eye(3)
+    b = (cov - q[:, None, None] * eye) / p[:, None, None]
+    phi = np.arccos(np.clip(np.linalg.det(b) / 2.0, -1.0, 1.0)) / 3.0
+    shifted = cov - (q + 2.0 * p * np.cos(phi + 2.0 * np.pi / 3.0))[:, None, None] * eye
+    # the null direction of cov - lambda_min I: the largest cross product of two of its rows
+    cands = np.stack([np.cross(shifted[:, 0], shifted[:, 1]),
+                      np.cross(shifted[:, 0], shifted[:, 2]),
+                      np.cross(shifted[:, 1], shifted[:, 2])], axis=1)
+    norms = np.linalg.norm(cands, axis=2)
+    best = np.argmax(norms, axis=1)
+    rows = np.arange(len(cov))
+    return cands[rows, best] / np.maximum(norms[rows, best], 1e-300)[:, None]
+
+
+@dataclasses.dataclass(frozen=True)
+class ColouredPoints:
+    """Points xyz (M, 3) m with their colours rgb (M, 3) 0..1; rim (M,) bool: the points on
+    the cloud's boundary (`target_rim`; None = none known); centre (M, 3) m and normal (M, 3)
+    unit: each point's local plane (`rim_and_planes`; None = not known)."""
+
+    xyz: np.ndarray
+    rgb: np.ndarray
+    rim: np.ndarray | None = None
+    centre: np.ndarray | None = None
+    normal: np.ndarray | None = None
+
+    @classmethod
+    def analysed(cls, xyz: np.ndarray, rgb: np.ndarray) -> ColouredPoints:
+        """The points with their rim and local planes (`rim_and_planes`)."""
+        rim, centre, normal = rim_and_planes(xyz)
+        return cls(xyz, rgb, rim, centre, normal)
+
+
+def stay_where_better(source: np.ndarray, registered: np.ndarray, supported: np.ndarray,
+                      source_rgb: np.ndarray, target: ColouredPoints,
+                      decision: ColourDecision) -> np.ndarray:
+    """(N,) share of its motion each source point keeps (STAY_SHARES, neighbourhood-averaged;
+    module constants): for positions source + share x (registered - source) (N, 3) m, the
+    misfit of a point is u = |rgb - target colour smoothed at it|^2 + (gradient x distance to
+    the nearest target point)^2 (RGB units), robust rho = u / (u + (STAY_TAU_NOISE x
+    noise)^2), on a spread sample of the supported points (STAY_STRIDE, STAY_SAMPLES),
+    summed over about STAY_NEIGHBOURS sample points near each; a position whose nearest
+    target point is on the target's rim (`target.rim`) tells nothing (its partner may lie
+    past the rim of a cut target) and is left out of the sums.
+    target: the agreeing target points; colours 0..1."""
+    n = len(source)
+    if not supported.any() or len(target.xyz) < STAY_TARGET_NEIGHBOURS:
+        return np.ones(n)
+    tree = cKDTree(target.xyz)
+    h = max(decision.spacing_m, 1e-9)
+    g = decision.gradient * 1e3  # RGB units per metre
+    tau2 = (STAY_TAU_NOISE * max(decision.noise, 1e-6)) ** 2
+    move = registered - source
+    have = np.flatnonzero(supported)
+    # misfits on a spread sample of the supported points (every 2nd, or STAY_SAMPLES at most:
+    # the neighbourhoods then span the same part of the surface at any density)
+    sample = have[:: max(STAY_STRIDE, len(have) // STAY_SAMPLES)]
+    m = len(sample)
+    costs = np.zeros((m, len(STAY_SHARES)))
+    known = np.ones((m, len(STAY_SHARES)))
+    for a, share in enumerate(STAY_SHARES):
+        d, j = tree.query(source[sample] + share * move[sample], k=STAY_TARGET_NEIGHBOURS)
+        w = np.exp(-0.5 * (d / h) ** 2) + 1e-12
+        smoothed = np.einsum("nk,nkc->nc", w, target.rgb[j]) / w.sum(axis=1)[:, None]
+        u = ((source_rgb[sample] - smoothed) ** 2).sum(axis=1) + (g * d[:, 0]) ** 2
+        costs[:, a] = u / (u + tau2)
+        if target.rim is not None:
+            known[:, a] = ~target.rim[j[:, 0]]
+    # a sum over about STAY_NEIGHBOURS sample points as two means over 8x fewer
+    k = min(STAY_NEIGHBOURS // 8, m)
+    sample_tree = cKDTree(source[sample])
+    mean = _mean_operator(sample_tree.query(source[sample], k=k)[1].reshape(m, k), m)
+    seen = mean @ (mean @ known)
+    summed = (mean @ (mean @ (costs * known))) / np.maximum(seen, 1e-12)
+    summed[seen <= 0] = 0.0  # nothing seen: a tie keeps the motion
+    best = np.asarray(STAY_SHARES)[np.argmin(summed, axis=1)]
+    nb = sample_tree.query(source, k=k)[1].reshape(n, k)
+    return np.asarray(_mean_operator(nb, m) @ (mean @ best))
+
+
+def explained_by_identity(source: np.ndarray, registered: np.ndarray, supported: np.ndarray,
+                          source_rgb: np.ndarray, target: ColouredPoints,
+                          decision: ColourDecision) -> np.ndarray:
+    """(N,) bool: the supported points that move (source -> registered (N, 3) m) for which not
+    moving explains the data about as well as their motion does. Per point and position, the
+    misfit is |source colour - target colour smoothed at it|^2 / noise^2 (the colour noise
+    measured on the target) + (distance across the local plane of its nearest target point
+    / s)^2, s the robust spread of that distance at the registered positions (the target's
+    noise as this run sees it); a point is explained by not moving unless its motion lowers
+    the mean misfit of its IDENTITY_NEIGHBOURS nearest supported points by more than
+    IDENTITY_MARGIN. target: the agreeing target points, colours 0..1, with their planes
+    (computed when not given)."""
+    n = len(source)
+    still = np.zeros(n, bool)
+    have = np.flatnonzero(supported)
+    if len(have) == 0 or len(target.xyz) < STAY_TARGET_NEIGHBOURS:
+        return still
+    if target.centre is None or target.normal is None:
+        target = ColouredPoints.analysed(target.xyz, target.rgb)
+    centre, normal, rgb_t = target.centre, target.normal, target.rgb
+    assert centre is not None and normal is not None
+    tree = cKDTree(target.xyz)
+    h = max(decision.spacing_m, 1e-9)
+    noise = max(decision.noise, 1e-6)
+
+    def fit(pos: np.ndarray, rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        d, j = tree.query(pos, k=STAY_TARGET_NEIGHBOURS)
+        w = np.exp(-0.5 * (d / h) ** 2) + 1e-12
+        smoothed = np.einsum("nk,nkc->nc", w, rgb_t[j]) / w.sum(axis=1)[:, None]
+        near = j[:, 0]
+        across = np.abs(((pos - centre[near]) * normal[near]).sum(axis=1))
+        return ((rgb - smoothed) ** 2).sum(axis=1) / noise**2, across
+
+    colour1, across1 = fit(registered[have], source_rgb[have])
+    spread = max(1.4826 * float(np.median(across1)), 1e-9)
+    gain = np.zeros(len(have))  # > 0: the motion fits better
+    # where a point does not move both misfits are the same and not moving changes nothing:
+    # only the moving ones are sought and tested
+    moving = np.flatnonzero(np.any(registered[have] != source[have], axis=1))
+    if len(moving) == 0:
+        return still
+    colour0, across0 = fit(source[have[moving]], source_rgb[have[moving]])
+    gain[moving] = (colour0 + (across0 / spread) ** 2 - colour1[moving]
+                    - (across1[moving] / spread) ** 2)
+    k = min(IDENTITY_NEIGHBOURS, len(have))
+    nb = cKDTree(source[have]).query(source[have[moving]], k=k)[1].reshape(len(moving), k)
+    still[have[moving]] = gain[nb].mean(axis=1) <= IDENTITY_MARGIN
+    return still
+
+
+def matched_onto_cut(source: np.ndarray, registered: np.ndarray, supported: np.ndarray,
+                     target: ColouredPoints, spacing_m: float) -> np.ndarray:
+    """(N,) bool: supported points whose registered position (N, 3) m lies within
+    CUT_RIM_SPACINGS x spacing_m (the target's spacing, m) of a point on the target's rim
+    (`target.rim`) while the source (N, 3) m goes on past them: within CUT_LOST_SPACINGS x
+    spacing_m of a source point not `supported` (N,) bool. Their partner may lie past the
+    rim of a cut target: the data do not measure their motion."""
+    out = np.zeros(len(source), bool)
+    if target.rim is None or not target.rim.any() or supported.all() or not supported.any():
+        return out
+    reach = CUT_RIM_SPACINGS * spacing_m
+    near = cKDTree(target.xyz[target.rim]).query(registered[supported],
+                                                 distance_upper_bound=reach)[0] <= reach
+    cand = np.flatnonzero(supported)[near]
+    if len(cand):
+        reach = CUT_LOST_SPACINGS * spacing_m
+        lost = cKDTree(source[~supported]).query(source[cand], distance_upper_bound=reach)[0]
+        out[cand[lost <= reach]] = True
+    return out
+
+
+def _mean_operator(nb: np.ndarray, m: int) -> sparse.csr_matrix:
+    """(P, m) sparse: row i the mean over the columns nb[i] (P, k)."""
+    p, k = nb.shape
+    return sparse.csr_matrix((np.full(p * k, 1.0 / k), nb.ravel(), np.arange(0, p * k + 1, k)),
+                             shape=(p, m))
