@@ -8,9 +8,9 @@ Around the shared `register` (also the frame pipeline's), without changing it:
 2. partial overlap (overlap.py): a source point left without target surface (not
    `supported`) takes the median displacement of its `FOLLOW_NEIGHBOURS` nearest supported
    points, i.e. it moves rigidly (a translation) with its supported neighbourhood, so
-   beside a static supported part it stays put; farther (FOLLOW_REACH) it keeps `register`'s own motion (smoothness
-   plus a weak pull towards not moving), or, with colour used, it does not move
-   (FOLLOW_REACH_COLOURED: nothing measured its motion);
+   beside a static supported part it stays put; farther (FOLLOW_REACH) it keeps
+   `register`'s own motion (smoothness plus a weak pull towards not moving), or, with
+   colour used, it does not move (FOLLOW_REACH_COLOURED: nothing measured its motion);
 3. with colour used, each supported point keeps the share of its motion (1, 1/2 or 0,
    averaged over its neighbours) under which its neighbourhood's colour and surface
    misfit is lowest (`stay_where_better`): static tissue next to moving tissue, which the
