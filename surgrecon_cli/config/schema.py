@@ -175,12 +175,8 @@ class TemplateConfig:
         1.0, "smallest triangulation angle between two rays (deg); a floor against degenerate "
         "rays only: depth accuracy decides through max_sigma_mm", bounds=(0, 90))
     max_sigma_mm: float = _doc(
-        2.5, "largest 3D position uncertainty (RMS, from the measured pixel noise and the "
+        2.0, "largest 3D position uncertainty (RMS, from the measured pixel noise and the "
         "camera geometry) of a template point (mm)", bounds=(0, 1000))
-    max_sigma_ratio: float = _doc(
-        2.0, "largest 3D position uncertainty of a template point relative to the median of "
-        "the template's: a patch that localises far worse than the typical one (weak "
-        "texture) is tracked as poorly and seldom labelled", bounds=(1, 1000))
     min_pair_matches: int = _doc(
         15, "verified matches for two cameras to be linked, at least (the floor; the minimum "
         "grows with the features: min_pair_match_fraction)", bounds=(0, 100_000))

@@ -211,9 +211,7 @@ def build_template(
     pixel_px, cov, image_cov = measured_covariances(tri.points, obs, frame, models, good,
                                                     noise)
     sigma = covariance_sigma(np.nan_to_num(cov, nan=np.inf))
-    typical = float(np.median(sigma[good & np.isfinite(sigma)])) if good.any() else np.inf
-    precise = np.isfinite(sigma) & (sigma <= min(cfg.max_sigma_mm * 1e-3,
-                                                 cfg.max_sigma_ratio * typical))
+    precise = np.isfinite(sigma) & (sigma <= cfg.max_sigma_mm * 1e-3)
     imprecise = good & ~precise
     good &= precise
     on_tool = points_near_tool(np.nan_to_num(tri.points),
