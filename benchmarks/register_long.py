@@ -35,9 +35,15 @@ matches of the 15 needed to link the pair). The default variant's ring cameras 0
 from __future__ import annotations
 
 import argparse
+import ctypes
+import ctypes.util
+import gc
+import linecache
 import signal
 import subprocess
+import sys
 import time
+import tracemalloc
 from pathlib import Path
 
 import cv2
@@ -55,6 +61,38 @@ def rss_mb(field: str = "VmRSS") -> float:
         if line.startswith(f"{field}:"):
             return int(line.split()[1]) / 1024
     return float("nan")
+
+
+class _Mallinfo2(ctypes.Structure):
+    """glibc's `struct mallinfo2` (malloc.h, glibc >= 2.33): byte counts over all arenas."""
+
+    _fields_ = [(name, ctypes.c_size_t) for name in (
+        "arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks", "fsmblks", "uordblks",
+        "fordblks", "keepcost")]
+
+
+def _mallinfo2() -> ctypes._CFuncPtr | None:  # type: ignore[name-defined]
+    """glibc's mallinfo2, or None (not glibc, or older than 2.33)."""
+    try:
+        function = ctypes.CDLL(ctypes.util.find_library("c")).mallinfo2
+    except (OSError, AttributeError, TypeError):
+        return None
+    function.restype = _Mallinfo2
+    function.argtypes = []
+    return function
+
+
+MALLINFO2 = _mallinfo2()
+
+
+def c_heap_mb() -> tuple[float, float, float]:
+    """The C heap (glibc malloc, all arenas), MB: obtained from the kernel by brk/arenas
+    (`arena`), of it in use (`uordblks`), and mmapped blocks (`hblkhd`); NaN without
+    glibc's mallinfo2."""
+    if MALLINFO2 is None:
+        return float("nan"), float("nan"), float("nan")
+    info = MALLINFO2()
+    return info.arena / 2**20, info.uordblks / 2**20, info.hblkhd / 2**20
 
 
 def prepare(workdir: Path, variant: str, frames: int, cameras: int, size: str,
@@ -75,6 +113,43 @@ def prepare(workdir: Path, variant: str, frames: int, cameras: int, size: str,
     return run
 
 
+Row = tuple[int, float, float, float, float, float, float, float, int, int, float]
+COLUMNS = (f"{'frames':>8} {'cpu s/frame':>11} {'wall s/frame':>12} {'RSS MB':>8} "
+           f"{'peak MB':>8} {'heap MB':>8} {'in use':>8} {'mmap MB':>8} {'py blocks':>10} "
+           f"{'gc objs':>8} {'traced':>8} {'wall min':>8}")
+
+
+def measure(frames: int, cpu: float, wall: float) -> Row:
+    """One block's row: frames done, CPU and wall s/frame, RSS and peak MB, C heap MB
+    (obtained, in use, mmapped), Python's allocated blocks, objects tracked by the garbage
+    collector, tracemalloc's traced MB (NaN when not tracing)."""
+    traced = tracemalloc.get_traced_memory()[0] / 2**20 if tracemalloc.is_tracing() else \
+        float("nan")
+    return (frames, cpu, wall, rss_mb(), rss_mb("VmHWM"), *c_heap_mb(),
+            sys.getallocatedblocks(), len(gc.get_objects()), traced)
+
+
+def print_row(row: Row, minutes: float) -> None:
+    """A block's row as printed (COLUMNS)."""
+    print(f"{row[0]:>8} {row[1]:>11.4f} {row[2]:>12.4f} {row[3]:>8.1f} {row[4]:>8.1f} "
+          f"{row[5]:>8.1f} {row[6]:>8.1f} {row[7]:>8.1f} {row[8]:>10} {row[9]:>8} "
+          f"{row[10]:>8.2f} {minutes:>8.1f}", flush=True)
+
+
+def print_growth(start: tracemalloc.Snapshot, end: tracemalloc.Snapshot, top: int) -> None:
+    """The `top` allocation sites (by traceback) whose traced size grew most between the
+    two snapshots."""
+    ignore = (tracemalloc.Filter(False, tracemalloc.__file__),
+              tracemalloc.Filter(False, linecache.__file__))
+    stats = end.filter_traces(ignore).compare_to(start.filter_traces(ignore), "traceback")
+    print(f"\ntracemalloc: the {top} sites that grew most (traceback, innermost last)")
+    for stat in stats[:top]:
+        print(f"{stat.size_diff / 1024:+9.1f} KiB {stat.count_diff:+7d} blocks "
+              f"(now {stat.size / 1024:.1f} KiB in {stat.count})")
+        for line in stat.traceback.format()[-12:]:
+            print(f"    {line}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -87,6 +162,12 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=7)
     parser.add_argument("--block", type=int, default=500)
     parser.add_argument("--workdir", type=Path, default=Path("/tmp/surgrecon-register-long"))
+    parser.add_argument("--tracemalloc", type=int, default=0, metavar="DEPTH",
+                        help="trace Python allocations (tracebacks of DEPTH frames; slow): the "
+                             "traced size per block, and the sites that grew most between the "
+                             "end of the first block and the end")
+    parser.add_argument("--top", type=int, default=15,
+                        help="allocation sites printed with --tracemalloc")
     args = parser.parse_args()
     args.workdir.mkdir(parents=True, exist_ok=True)
     run = prepare(args.workdir, args.variant, args.frames, args.cameras, args.size, args.seed)
@@ -95,9 +176,11 @@ def main() -> None:
     config = Config()
     print(f"{run}: {args.steps} frames registered in one process (frames 1..{args.frames - 1}"
           f" replayed), blocks of {args.block}")
-    print(f"{'frames':>8} {'cpu s/frame':>11} {'wall s/frame':>12} {'RSS MB':>8} "
-          f"{'peak MB':>8} {'wall min':>8}", flush=True)
-    rows: list[tuple[int, float, float, float, float]] = []
+    print(COLUMNS, flush=True)
+    if args.tracemalloc:
+        tracemalloc.start(args.tracemalloc)
+    rows: list[Row] = []
+    first_snapshot: tracemalloc.Snapshot | None = None
     done, at, started = 0, 0, time.perf_counter()
     # SIGINT (also when started in the background) and SIGTERM stop at the next frame
     signal.signal(signal.SIGINT, signal.default_int_handler)
@@ -112,24 +195,30 @@ def main() -> None:
                     raise SystemExit(f"frame {out['frame']} failed: {out['failed']}")
                 at = i + 1
             done += count
-            rows.append((done, (time.process_time() - cpu) / count,
-                         (time.perf_counter() - wall) / count, rss_mb(), rss_mb("VmHWM")))
-            print(f"{rows[-1][0]:>8} {rows[-1][1]:>11.4f} {rows[-1][2]:>12.4f} "
-                  f"{rows[-1][3]:>8.1f} {rows[-1][4]:>8.1f} "
-                  f"{(time.perf_counter() - started) / 60:>8.1f}", flush=True)
+            rows.append(measure(done, (time.process_time() - cpu) / count,
+                                (time.perf_counter() - wall) / count))
+            if args.tracemalloc and first_snapshot is None:
+                first_snapshot = tracemalloc.take_snapshot()
+            print_row(rows[-1], (time.perf_counter() - started) / 60)
     except KeyboardInterrupt:
         print(f"\ninterrupted after {at} frames ({len(rows)} whole blocks, {done} frames), "
               f"{(time.perf_counter() - started) / 60:.1f} min; RSS {rss_mb():.1f} MB, peak "
               f"{rss_mb('VmHWM'):.1f} MB")
+    if first_snapshot is not None and len(rows) > 1:
+        print_growth(first_snapshot, tracemalloc.take_snapshot(), args.top)
     if not rows:
         return
     first, last = rows[0], rows[-1]
     size = last[0] - (rows[-2][0] if len(rows) > 1 else 0)
-    print(f"\nstart (frames 1-{first[0]}): {first[1]:.4f} s/frame CPU, RSS {first[3]:.1f} MB; "
-          f"end (frames {last[0] - size + 1}-{last[0]}): {last[1]:.4f} s/frame CPU, "
-          f"RSS {last[3]:.1f} MB; RSS change {last[3] - first[3]:+.1f} MB over "
+    print(f"\nstart (frames 1-{first[0]}): {first[1]:.4f} s/frame CPU, RSS {first[3]:.1f} MB, "
+          f"heap {first[5]:.1f} MB ({first[6]:.1f} in use); end (frames {last[0] - size + 1}-"
+          f"{last[0]}): {last[1]:.4f} s/frame CPU, RSS {last[3]:.1f} MB, heap {last[5]:.1f} MB "
+          f"({last[6]:.1f} in use); RSS change {last[3] - first[3]:+.1f} MB over "
           f"{last[0] - first[0]} frames; RSS {min(r[3] for r in rows):.1f}-"
-          f"{max(r[3] for r in rows):.1f} MB at the blocks' ends, peak {last[4]:.1f} MB")
+          f"{max(r[3] for r in rows):.1f} MB at the blocks' ends, peak {last[4]:.1f} MB; "
+          f"C heap in use {min(r[6] for r in rows):.1f}-{max(r[6] for r in rows):.1f} MB, "
+          f"Python blocks {min(r[8] for r in rows)}-{max(r[8] for r in rows)}, gc objects "
+          f"{min(r[9] for r in rows)}-{max(r[9] for r in rows)}")
 
 
 if __name__ == "__main__":
