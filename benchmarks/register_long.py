@@ -45,6 +45,7 @@ import sys
 import time
 import tracemalloc
 from pathlib import Path
+from typing import NamedTuple
 
 import cv2
 from long_log import surgrecon_executable
@@ -56,7 +57,8 @@ from surgrecon_cli.stages.register import register_frame
 
 
 def rss_mb(field: str = "VmRSS") -> float:
-    """This process's resident set (VmRSS) or its peak (VmHWM), MB."""
+    """A size in /proc/self/status, MB: the resident set (VmRSS), its peak (VmHWM), its
+    anonymous (RssAnon) or file-backed (RssFile) part."""
     for line in Path("/proc/self/status").read_text().splitlines():
         if line.startswith(f"{field}:"):
             return int(line.split()[1]) / 1024
@@ -113,27 +115,44 @@ def prepare(workdir: Path, variant: str, frames: int, cameras: int, size: str,
     return run
 
 
-Row = tuple[int, float, float, float, float, float, float, float, int, int, float]
+class Row(NamedTuple):
+    """One block's figures at its end."""
+
+    frames: int  # frames done
+    cpu: float  # CPU s/frame over the block
+    wall: float  # wall s/frame over the block
+    rss: float  # resident set, MB
+    peak: float  # its peak (VmHWM), MB
+    anon: float  # of the resident set: anonymous memory (RssAnon: heaps, mmapped blocks), MB
+    file: float  # of it: file-backed pages (RssFile: the libraries' code and data), MB
+    heap: float  # C heap obtained from the kernel (glibc mallinfo2 `arena`), MB
+    in_use: float  # of it in use (`uordblks`), MB
+    mmapped: float  # blocks mmapped by malloc (`hblkhd`), MB
+    py_blocks: int  # Python's allocated memory blocks (sys.getallocatedblocks)
+    gc_objects: int  # objects tracked by the garbage collector
+    traced: float  # tracemalloc's traced size, MB (NaN when not tracing)
+
+
 COLUMNS = (f"{'frames':>8} {'cpu s/frame':>11} {'wall s/frame':>12} {'RSS MB':>8} "
-           f"{'peak MB':>8} {'heap MB':>8} {'in use':>8} {'mmap MB':>8} {'py blocks':>10} "
-           f"{'gc objs':>8} {'traced':>8} {'wall min':>8}")
+           f"{'peak MB':>8} {'anon MB':>8} {'file MB':>8} {'heap MB':>8} {'in use':>8} "
+           f"{'mmap MB':>8} {'py blocks':>10} {'gc objs':>8} {'traced':>8} {'wall min':>8}")
 
 
 def measure(frames: int, cpu: float, wall: float) -> Row:
-    """One block's row: frames done, CPU and wall s/frame, RSS and peak MB, C heap MB
-    (obtained, in use, mmapped), Python's allocated blocks, objects tracked by the garbage
-    collector, tracemalloc's traced MB (NaN when not tracing)."""
+    """The figures at a block's end (`Row`)."""
     traced = tracemalloc.get_traced_memory()[0] / 2**20 if tracemalloc.is_tracing() else \
         float("nan")
-    return (frames, cpu, wall, rss_mb(), rss_mb("VmHWM"), *c_heap_mb(),
-            sys.getallocatedblocks(), len(gc.get_objects()), traced)
+    return Row(frames, cpu, wall, rss_mb(), rss_mb("VmHWM"), rss_mb("RssAnon"),
+               rss_mb("RssFile"), *c_heap_mb(), sys.getallocatedblocks(),
+               len(gc.get_objects()), traced)
 
 
 def print_row(row: Row, minutes: float) -> None:
     """A block's row as printed (COLUMNS)."""
-    print(f"{row[0]:>8} {row[1]:>11.4f} {row[2]:>12.4f} {row[3]:>8.1f} {row[4]:>8.1f} "
-          f"{row[5]:>8.1f} {row[6]:>8.1f} {row[7]:>8.1f} {row[8]:>10} {row[9]:>8} "
-          f"{row[10]:>8.2f} {minutes:>8.1f}", flush=True)
+    print(f"{row.frames:>8} {row.cpu:>11.4f} {row.wall:>12.4f} {row.rss:>8.1f} "
+          f"{row.peak:>8.1f} {row.anon:>8.1f} {row.file:>8.1f} {row.heap:>8.1f} "
+          f"{row.in_use:>8.1f} {row.mmapped:>8.1f} {row.py_blocks:>10} {row.gc_objects:>8} "
+          f"{row.traced:>8.2f} {minutes:>8.1f}", flush=True)
 
 
 def print_growth(start: tracemalloc.Snapshot, end: tracemalloc.Snapshot, top: int) -> None:
@@ -209,16 +228,19 @@ def main() -> None:
     if not rows:
         return
     first, last = rows[0], rows[-1]
-    size = last[0] - (rows[-2][0] if len(rows) > 1 else 0)
-    print(f"\nstart (frames 1-{first[0]}): {first[1]:.4f} s/frame CPU, RSS {first[3]:.1f} MB, "
-          f"heap {first[5]:.1f} MB ({first[6]:.1f} in use); end (frames {last[0] - size + 1}-"
-          f"{last[0]}): {last[1]:.4f} s/frame CPU, RSS {last[3]:.1f} MB, heap {last[5]:.1f} MB "
-          f"({last[6]:.1f} in use); RSS change {last[3] - first[3]:+.1f} MB over "
-          f"{last[0] - first[0]} frames; RSS {min(r[3] for r in rows):.1f}-"
-          f"{max(r[3] for r in rows):.1f} MB at the blocks' ends, peak {last[4]:.1f} MB; "
-          f"C heap in use {min(r[6] for r in rows):.1f}-{max(r[6] for r in rows):.1f} MB, "
-          f"Python blocks {min(r[8] for r in rows)}-{max(r[8] for r in rows)}, gc objects "
-          f"{min(r[9] for r in rows)}-{max(r[9] for r in rows)}")
+    size = last.frames - (rows[-2].frames if len(rows) > 1 else 0)
+
+    def span(name: str) -> str:
+        values = [getattr(r, name) for r in rows]
+        return f"{min(values):.1f}-{max(values):.1f}"
+    print(f"\nstart (frames 1-{first.frames}): {first.cpu:.4f} s/frame CPU, RSS {first.rss:.1f} "
+          f"MB, heap {first.heap:.1f} MB ({first.in_use:.1f} in use); end (frames "
+          f"{last.frames - size + 1}-{last.frames}): {last.cpu:.4f} s/frame CPU, RSS "
+          f"{last.rss:.1f} MB, heap {last.heap:.1f} MB ({last.in_use:.1f} in use); RSS change "
+          f"{last.rss - first.rss:+.1f} MB over {last.frames - first.frames} frames; at the "
+          f"blocks' ends RSS {span('rss')} MB (anon {span('anon')}, file {span('file')}), C heap "
+          f"{span('heap')} MB ({span('in_use')} in use), Python blocks {span('py_blocks')}, gc "
+          f"objects {span('gc_objects')}; peak RSS {last.peak:.1f} MB")
 
 
 if __name__ == "__main__":
