@@ -199,6 +199,10 @@ def main() -> None:
     if args.tracemalloc:
         tracemalloc.start(args.tracemalloc)
     rows: list[Row] = []
+    # the frames after which the C heap (obtained + mmapped) exceeded its high-water mark:
+    # (frames done, before: obtained, in use, mmapped MB, after: the same)
+    growth: list[tuple[int, float, float, float, float, float, float]] = []
+    top = c_heap_mb()
     first_snapshot: tracemalloc.Snapshot | None = None
     done, at, started = 0, 0, time.perf_counter()
     # SIGINT (also when started in the background) and SIGTERM stop at the next frame
@@ -213,6 +217,11 @@ def main() -> None:
                 if "failed" in out:
                     raise SystemExit(f"frame {out['frame']} failed: {out['failed']}")
                 at = i + 1
+                heap = c_heap_mb()
+                if heap[0] + heap[2] > top[0] + top[2]:  # the C heap grew past its high
+                    if rows:  # water mark (after the first block: past the warm-up)
+                        growth.append((at, *top, *heap))
+                    top = heap
             done += count
             rows.append(measure(done, (time.process_time() - cpu) / count,
                                 (time.perf_counter() - wall) / count))
@@ -223,6 +232,13 @@ def main() -> None:
         print(f"\ninterrupted after {at} frames ({len(rows)} whole blocks, {done} frames), "
               f"{(time.perf_counter() - started) / 60:.1f} min; RSS {rss_mb():.1f} MB, peak "
               f"{rss_mb('VmHWM'):.1f} MB")
+    if growth:
+        print(f"\nthe C heap (obtained + mmapped) grew past its high-water mark after "
+              f"{len(growth)} frames past the first block: frames done, MB obtained / in use / "
+              f"mmapped before -> after")
+        for at_frame, *mb in growth:
+            print(f"{at_frame:>8}  {mb[0]:.2f} / {mb[1]:.2f} / {mb[2]:.2f} -> {mb[3]:.2f} / "
+                  f"{mb[4]:.2f} / {mb[5]:.2f}")
     if first_snapshot is not None and len(rows) > 1:
         print_growth(first_snapshot, tracemalloc.take_snapshot(), args.top)
     if not rows:
