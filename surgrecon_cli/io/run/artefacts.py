@@ -27,7 +27,7 @@ from .layout import RunLayout
 from .ply import read_ply, write_cloud_ply
 
 
-def _load_npz(path: Path, stage: str, what: str) -> dict[str, np.ndarray]:
+def _load_npz(path: Path | str, stage: str, what: str) -> dict[str, np.ndarray]:
     try:
         with np.load(path, allow_pickle=False) as z:
             return {k: z[k] for k in z.files}
@@ -38,7 +38,7 @@ def _load_npz(path: Path, stage: str, what: str) -> dict[str, np.ndarray]:
         raise RunFolderError(f"{path}: unreadable ({exc}); re-run {stage}") from exc
 
 
-def _check_shapes(path: Path, data: dict[str, np.ndarray], shapes: dict[str, tuple[int, ...]],
+def _check_shapes(path: Path | str, data: dict[str, np.ndarray], shapes: dict[str, tuple[int, ...]],
                   stage: str) -> None:
     for key, shape in shapes.items():
         if key not in data or data[key].shape != shape:
@@ -213,12 +213,12 @@ def write_registration(layout: RunLayout, frame: int, reg: FrameRegistration) ->
         elif f.name in ("status", "views"):
             value = np.asarray(value, np.uint8)
         arrays[f.name] = value
-    write_npz(layout.registration(frame), **arrays)
+    write_npz(layout.registration_file(frame), **arrays)
 
 
 def read_registration(layout: RunLayout, frame: int, n_points: int) -> FrameRegistration:
     """One registered frame; RunFolderError if missing or not of the N-point template."""
-    path = layout.registration(frame)
+    path = layout.registration_file(frame)
     z = _load_npz(path, "register", f"frame {frame} is not registered:")
     n = n_points
     _check_shapes(path, z, {"registered": (n, 3), "transforms": (n, 3, 4), "status": (n,),

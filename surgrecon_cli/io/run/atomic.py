@@ -32,11 +32,13 @@ def is_temporary(name: str) -> bool:
 
 @contextlib.contextmanager
 def atomic_open(path: Path | str, mode: str = "wb") -> Iterator[IO[Any]]:
-    """Open a temporary sibling of `path` for writing; rename it over `path` on success."""
-    path = Path(path)
+    """Open a temporary sibling of `path` for writing; rename it over `path` on success.
+    (A string path stays a string: no pathlib parsing per file written, see
+    `RunLayout.registration_file`.)"""
+    folder, name = os.path.split(os.fspath(path))
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+        os.makedirs(folder or ".", exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{name}.", suffix=".tmp", dir=folder or ".")
     except OSError as exc:
         raise _not_written(path, exc) from exc
     os.chmod(tmp, 0o666 & ~_UMASK)  # mkstemp creates 0600; final files get the usual mode
@@ -98,7 +100,7 @@ class CacheDropping:
         self.pool.shutdown()
 
 
-def _not_written(path: Path, exc: OSError) -> OutputError:
+def _not_written(path: Path | str, exc: OSError) -> OutputError:
     return OutputError(f"{path}: cannot write ({exc.strerror or type(exc).__name__}); free "
                        "space or choose a writable folder")
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import functools
 import json
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -78,7 +79,7 @@ class IngestedLog:
         rel = self.image_paths[frame][camera_index]
         if not rel:
             raise RunFolderError(f"frame {frame}: camera {self.cameras[camera_index]} has no image")
-        path = self.root / rel
+        path = os.path.join(self.root, rel)  # not a Path: see RunLayout.registration_file
         data = np.fromfile(path, dtype=np.uint8)
         bgr = cv2.imdecode(data, DECODE_FLAGS)
         if bgr is None:

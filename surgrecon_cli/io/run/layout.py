@@ -37,6 +37,7 @@ the sorted id list.
 
 from __future__ import annotations
 
+import os
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -144,6 +145,16 @@ class RunLayout:
 
     def registration(self, frame: int) -> Path:
         return self.registration_dir / f"{frame:06d}.npz"
+
+    def registration_file(self, frame: int) -> str:
+        """`registration(frame)` as a string, for the per-frame reads and writes of a
+        register worker: Python 3.11's pathlib interns every name it parses, so a Path per
+        frame adds its file name to the interpreter's table of interned strings and its
+        death removes it again; that churn (~2 names a frame here, ~4 for the frame's
+        images) rebuilds the 3.8 MB table every ~20,000 frames, and the C heap grows by
+        the new table when no hole of its size is free (docs/frame-step-cost.md, "Long
+        runs")."""
+        return os.path.join(self.registration_dir, f"{frame:06d}.npz")
 
     @property
     def register_progress(self) -> Path:
