@@ -187,9 +187,13 @@ def build_template(
     obs = track_observations(features, track_ids).observations
     unrefined = 0
     if cfg.refine_matches:
-        tracking = [None if im is None else tracking_view(im) for im in images]
+        pairs = refinable_pairs(prediction.baseline_ratio) & usable[:, None] & usable[None, :]
+        np.fill_diagonal(pairs, False)
+        # only the cameras with a refinable partner need their tracking image (a wide rig: none)
+        tracking = [tracking_view(im) if pairs[c].any() and im is not None else None
+                    for c, im in enumerate(images)]
         obs, kept = refine_observations(obs, tracking, models, opts.tracker, cfg.epipolar_px,
-                                        refinable_pairs(prediction.baseline_ratio))
+                                        pairs)
         obs, unrefined = obs.subset(kept), int((~kept).sum())
         seen = np.bincount(obs.point, minlength=n_tracks) >= 2
         obs, n_tracks = obs.renumbered(seen), int(seen.sum())
