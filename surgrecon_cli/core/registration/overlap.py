@@ -16,6 +16,7 @@ Inputs and outputs in metres.
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import numpy as np
 from scipy import sparse
@@ -194,6 +195,20 @@ class ColouredPoints:
         rim, centre, normal = rim_and_planes(xyz)
         return cls(xyz, rgb, rim, centre, normal)
 
+    @functools.cached_property
+    def tree(self) -> cKDTree:
+        """The points' k-d tree, built once for every look-up."""
+        return cKDTree(self.xyz)
+
+    def colour_at(self, positions: np.ndarray, spacing_m: float
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The colour (P, 3) smoothed at positions (P, 3) m: a Gaussian of σ spacing_m over
+        the STAY_TARGET_NEIGHBOURS nearest points, whose distances (P, k) m and indices
+        (P, k) come with it."""
+        d, j = self.tree.query(positions, k=STAY_TARGET_NEIGHBOURS)
+        w = np.exp(-0.5 * (d / spacing_m) ** 2) + 1e-12
+        return np.einsum("nk,nkc->nc", w, self.rgb[j]) / w.sum(axis=1)[:, None], d, j
+
 
 def stay_where_better(source: np.ndarray, registered: np.ndarray, supported: np.ndarray,
                       source_rgb: np.ndarray, target: ColouredPoints,
@@ -210,7 +225,6 @@ def stay_where_better(source: np.ndarray, registered: np.ndarray, supported: np.
     n = len(source)
     if not supported.any() or len(target.xyz) < STAY_TARGET_NEIGHBOURS:
         return np.ones(n)
-    tree = cKDTree(target.xyz)
     h = max(decision.spacing_m, 1e-9)
     g = decision.gradient * 1e3  # RGB units per metre
     tau2 = (STAY_TAU_NOISE * max(decision.noise, 1e-6)) ** 2
@@ -223,9 +237,7 @@ def stay_where_better(source: np.ndarray, registered: np.ndarray, supported: np.
     costs = np.zeros((m, len(STAY_SHARES)))
     known = np.ones((m, len(STAY_SHARES)))
     for a, share in enumerate(STAY_SHARES):
-        d, j = tree.query(source[sample] + share * move[sample], k=STAY_TARGET_NEIGHBOURS)
-        w = np.exp(-0.5 * (d / h) ** 2) + 1e-12
-        smoothed = np.einsum("nk,nkc->nc", w, target.rgb[j]) / w.sum(axis=1)[:, None]
+        smoothed, d, j = target.colour_at(source[sample] + share * move[sample], h)
         u = ((source_rgb[sample] - smoothed) ** 2).sum(axis=1) + (g * d[:, 0]) ** 2
         costs[:, a] = u / (u + tau2)
         if target.rim is not None:
@@ -261,16 +273,13 @@ def explained_by_identity(source: np.ndarray, registered: np.ndarray, supported:
         return still
     if target.centre is None or target.normal is None:
         target = ColouredPoints.analysed(target.xyz, target.rgb)
-    centre, normal, rgb_t = target.centre, target.normal, target.rgb
+    centre, normal = target.centre, target.normal
     assert centre is not None and normal is not None
-    tree = cKDTree(target.xyz)
     h = max(decision.spacing_m, 1e-9)
     noise = max(decision.noise, 1e-6)
 
     def fit(pos: np.ndarray, rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        d, j = tree.query(pos, k=STAY_TARGET_NEIGHBOURS)
-        w = np.exp(-0.5 * (d / h) ** 2) + 1e-12
-        smoothed = np.einsum("nk,nkc->nc", w, rgb_t[j]) / w.sum(axis=1)[:, None]
+        smoothed, _, j = target.colour_at(pos, h)
         near = j[:, 0]
         across = np.abs(((pos - centre[near]) * normal[near]).sum(axis=1))
         return ((rgb - smoothed) ** 2).sum(axis=1) / noise**2, across
