@@ -352,17 +352,12 @@ def truth_covers(points: np.ndarray, eye: np.ndarray, vertices: np.ndarray, face
     line of sight from camera 0's centre `eye` (3,) through it meets the surface. A truth
     mesh with holes (the breathing clips': cells without a measured disparity) maps a point
     over a hole to the hole's rim, millimetres away, an error of the truth, not the run."""
-    import open3d as o3d
+    from surgrecon_cli.sim.render import cast_rays, mesh_scene
 
-    scene = o3d.t.geometry.RaycastingScene()
-    mesh = o3d.t.geometry.TriangleMesh()
-    mesh.vertex.positions = o3d.core.Tensor(vertices.astype(np.float32))
-    mesh.triangle.indices = o3d.core.Tensor(faces.astype(np.int32))
-    scene.add_triangles(mesh)
     dirs = points - eye
     dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
-    rays = np.column_stack([np.broadcast_to(eye, dirs.shape), dirs]).astype(np.float32)
-    return np.isfinite(scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy())
+    rays = np.column_stack([np.broadcast_to(eye, dirs.shape), dirs])
+    return np.isfinite(cast_rays(mesh_scene(vertices, faces), rays)["t_hit"].numpy())
 
 
 COLUMNS = (("sigma_run", "σ run", ".3f"), ("sigma_ncc", "σ NCC", ".3f"),

@@ -193,17 +193,12 @@ def ground_truth_localisation_px(true_poses: np.ndarray, models: list[CameraMode
     """Localisation σ (px) from the simulator's truth (module docstring): true poses (2, 4, 4)
     of cameras 0 and 1 at frame 0, the true surface (V, 3) m / (F, 3), and pixels (M, 2, 2)
     of points seen by both cameras."""
-    import open3d as o3d
+    from surgrecon_cli.sim.render import cast_rays, mesh_scene
 
-    scene = o3d.t.geometry.RaycastingScene()
-    mesh = o3d.t.geometry.TriangleMesh()
-    mesh.vertex.positions = o3d.core.Tensor(vertices.astype(np.float32))
-    mesh.triangle.indices = o3d.core.Tensor(faces.astype(np.int32))
-    scene.add_triangles(mesh)
     origin, dirs = pixel_rays(pixels[:, 0], models[0], true_poses[0])
     origin = np.broadcast_to(origin, dirs.shape)
-    rays = np.concatenate([origin, dirs], 1).astype(np.float32)
-    t = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy().astype(float)
+    rays = np.concatenate([origin, dirs], 1)
+    t = cast_rays(mesh_scene(vertices, faces), rays)["t_hit"].numpy().astype(float)
     hit = origin + dirs * t[:, None]
     ok = np.isfinite(t)
     uv, _ = project(hit[ok], true_poses[1], models[1])
@@ -248,20 +243,14 @@ def ground_truth_tracking_errors(true_poses: np.ndarray, models: list[CameraMode
     where not tracked): true camera poses (F + 1, C, 4, 4) and surface vertices
     (F + 1, C, V, 3) m at each camera's image of frames 0..F, faces (F', 3), template pixels
     (N, C, 2) and tracked pixels (F, N, C, 2)."""
-    import open3d as o3d
+    from surgrecon_cli.sim.render import cast_rays, mesh_scene
 
     errors = np.full(tracked_px.shape, np.nan)
     for c in range(template_px.shape[1]):
         seen = np.flatnonzero(np.isfinite(template_px[:, c]).all(1))
-        scene = o3d.t.geometry.RaycastingScene()
-        mesh = o3d.t.geometry.TriangleMesh()
-        mesh.vertex.positions = o3d.core.Tensor(vertices[0, c].astype(np.float32))
-        mesh.triangle.indices = o3d.core.Tensor(faces.astype(np.int32))
-        scene.add_triangles(mesh)
         origin, dirs = pixel_rays(template_px[seen, c], models[c], true_poses[0, c])
         origin = np.broadcast_to(origin, dirs.shape)
-        hit = scene.cast_rays(o3d.core.Tensor(np.concatenate([origin, dirs], 1).astype(
-            np.float32)))
+        hit = cast_rays(mesh_scene(vertices[0, c], faces), np.concatenate([origin, dirs], 1))
         tri = hit["primitive_ids"].numpy().astype(np.int64)
         ok = np.isfinite(hit["t_hit"].numpy()) & (tri < len(faces))
         uv = hit["primitive_uvs"].numpy().astype(float)[ok]
