@@ -187,13 +187,14 @@ def build_template(
     obs = track_observations(features, track_ids).observations
     unrefined = 0
     if cfg.refine_matches:
-        pairs = refinable_pairs(prediction.baseline_ratio) & usable[:, None] & usable[None, :]
-        np.fill_diagonal(pairs, False)
+        refinable = (refinable_pairs(prediction.baseline_ratio) & usable[:, None]
+                     & usable[None, :])
+        np.fill_diagonal(refinable, False)
         # only the cameras with a refinable partner need their tracking image (a wide rig: none)
-        tracking = [tracking_view(im) if pairs[c].any() and im is not None else None
+        tracking = [tracking_view(im) if refinable[c].any() and im is not None else None
                     for c, im in enumerate(images)]
         obs, kept = refine_observations(obs, tracking, models, opts.tracker, cfg.epipolar_px,
-                                        pairs)
+                                        refinable)
         obs, unrefined = obs.subset(kept), int((~kept).sum())
         seen = np.bincount(obs.point, minlength=n_tracks) >= 2
         obs, n_tracks = obs.renumbered(seen), int(seen.sum())
