@@ -144,7 +144,7 @@ class RunLayout:
         return self.root / "registration"
 
     def registration(self, frame: int) -> Path:
-        return self.registration_dir / f"{frame:06d}.npz"
+        return Path(self.registration_file(frame))
 
     def registration_file(self, frame: int) -> str:
         """`registration(frame)` as a string, for the per-frame reads and writes of a
