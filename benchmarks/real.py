@@ -11,9 +11,13 @@ checkout). One table, a row per log:
 - σ run: the pixel noise the run measured (metrics/summary.json noise.pixel_px);
 - σ NCC: an independent localisation check on the same images (benchmarks/real_reference:
   NCC row offsets on the rectified frame-0 pair: NCC's own localisation error), and σ run over it;
+- σ loc: the localisation part of σ run (summary noise.localisation_px: the residuals less
+  each camera's median, the systematic offset a calibration error leaves);
 - σ disp: the run's own localisation error along the epipolar lines, where it makes depth
   (real_reference.disparity_localisation_px: its frame-0 disparities against NCC's and
-  StereoSGBM's, separated by the three-cornered hat), and σ run over it;
+  StereoSGBM's, separated by the three-cornered hat), and σ loc over it (a calibration
+  error moves views across the epipolar lines, which σ run and NCC's row offsets see and
+  disparities do not);
 - σ truth: simulator only, the localisation error against the true geometry;
 - trk run: the tracking noise the run measured (summary noise.tracking_px, the median over
   frames); trk rigid: real logs only, an independent check on a rigid scene (the SurgT clip;
@@ -266,7 +270,8 @@ def measure(name: str, run: Path, variant: str | None, seed: int | None,
     obs = read_observations(layout, n)
     summary = json.loads(layout.summary_json.read_text())
     quality = summary.get("quality", {}).get("per_frame", [])
-    row: dict[str, Any] = {"name": name, "sigma_run": summary["noise"]["pixel_px"]}
+    row: dict[str, Any] = {"name": name, "sigma_run": summary["noise"]["pixel_px"],
+                           "sigma_loc": summary["noise"].get("localisation_px")}
     row["sigma_ncc"] = ncc_localisation_px(log, obs.pixels[obs.camera == 0])
     row["trk_run"] = summary["noise"].get("tracking_px")
     template_px = obs.pixels_by_camera(n, len(log.models))  # every camera, as the run
@@ -361,8 +366,8 @@ def truth_covers(points: np.ndarray, eye: np.ndarray, vertices: np.ndarray, face
 
 
 COLUMNS = (("sigma_run", "σ run", ".3f"), ("sigma_ncc", "σ NCC", ".3f"),
-           ("ratio", "run/NCC", ".2f"), ("sigma_disp", "σ disp", ".3f"),
-           ("ratio_disp", "run/disp", ".2f"), ("sigma_truth", "σ truth", ".3f"),
+           ("ratio", "run/NCC", ".2f"), ("sigma_loc", "σ loc", ".3f"),
+           ("sigma_disp", "σ disp", ".3f"), ("ratio_disp", "loc/disp", ".2f"), ("sigma_truth", "σ truth", ".3f"),
            ("trk_run", "trk run", ".3f"), ("trk_rigid", "trk rigid", ".3f"),
            ("trk_truth", "trk truth", ".3f"), ("trk_ratio", "trk/check", ".2f"),
            ("tracked", "tracked", ".1%"), ("outlier", "outlier", ".1%"),
@@ -422,9 +427,9 @@ def print_table(rows: list[dict[str, Any]]) -> None:
         if "error" in r:
             print(f"{r['name']:<{width}}  failed: {r['error']}")
             continue
-        for key, check in (("ratio", "sigma_ncc"), ("ratio_disp", "sigma_disp")):
-            r[key] = (r["sigma_run"] / r[check]
-                      if r.get("sigma_run") and r.get(check) else None)
+        for key, value, check in (("ratio", "sigma_run", "sigma_ncc"),
+                                  ("ratio_disp", "sigma_loc", "sigma_disp")):
+            r[key] = r[value] / r[check] if r.get(value) and r.get(check) else None
         print(f"{r['name']:<{width}}" + "".join(f"{_fmt(r.get(k), s):>11}" for k, _, s in COLUMNS))
 
 

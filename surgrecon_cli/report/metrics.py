@@ -54,7 +54,7 @@ def measure(data: RunData, config: Config) -> Metrics:
     """Everything the report computes from the run."""
     noise = None
     if data.frames is not None:
-        noise = noise_figures(data.log.report, data.template_summary,
+        noise = noise_figures(data.log.report, data.log.cameras, data.template_summary,
                               data.frames.tracking_px[1:])
     rows = frame_rows(data)
     judged = None if data.frames is None else run_verdict(data)
@@ -77,15 +77,20 @@ def run_verdict(data: RunData) -> Verdict:
                    labels.get("sigma_scale_95"))
 
 
-def noise_figures(ingest_report: dict[str, Any], template_summary: dict[str, Any] | None,
+def noise_figures(ingest_report: dict[str, Any], cameras: tuple[str, ...],
+                  template_summary: dict[str, Any] | None,
                   tracking_px: np.ndarray) -> dict[str, Any]:
-    """The run's measured noise: pixel noise px (template), tracker jitter per camera (mm,
-    deg; ingest) and tracking noise px (median over the frames' tracking_px)."""
+    """The run's measured noise: pixel noise px (template) with its localisation part and
+    each camera's systematic offset (px, a calibration error), tracker jitter per camera
+    (mm, deg; ingest) and tracking noise px (median over the frames' tracking_px)."""
     stats = (template_summary or {}).get("stats", {})
     cams = ingest_report.get("cameras", {})
     tracking = tracking_px[np.isfinite(tracking_px)]
+    offsets = stats.get("calibration_offset_px") or []
     return {
         "pixel_px": stats.get("pixel_noise_px"),
+        "localisation_px": stats.get("localisation_px"),
+        "calibration_offset_px": dict(zip(cameras, offsets, strict=False)),
         "tracking_px": float(np.median(tracking)) if tracking.size else None,
         "tracker_jitter_mm": {c: r.get("tracker_jitter_mm") for c, r in cams.items()},
         "tracker_jitter_deg": {c: r.get("tracker_jitter_deg") for c, r in cams.items()},

@@ -144,6 +144,10 @@ def _quality(data: RunData, frames: FrameFigures, metrics: Metrics,
     sec.add(rh.table(("measured noise (1σ per axis)", "value"), [
         ("pixel noise at frame 0 (template residuals per degree of freedom)",
          _fmt_num(noise.get("pixel_px"), "px")),
+        ("of which localisation (each camera's median residual taken out)",
+         _fmt_num(noise.get("localisation_px"), "px")),
+        ("largest systematic offset of a camera's views (a calibration error: the median "
+         "residual)", _largest_offset(noise.get("calibration_offset_px") or {})),
         ("tracker position jitter (median over cameras)",
          _fmt_num(float(np.median(jitter)) if jitter else None, "mm")),
         ("tracker rotation jitter (median over cameras)",
@@ -224,6 +228,16 @@ def _cloud_caption(view: CloudView) -> str:
         return f"Frame {view.frame}: registered cloud."
     return (f"Frame {view.frame}: registered cloud coloured by class, projected into camera "
             f"{view.camera}'s image (left; points behind the tool hidden) and in 3D (right).")
+
+
+def _largest_offset(offsets: dict[str, list[float | None]]) -> str:
+    """'0.18 px (right)': the longest of the cameras' median residual vectors px, or '–'."""
+    lengths = {c: float(np.hypot(*v)) for c, v in offsets.items()
+               if v and all(x is not None for x in v)}
+    if not lengths:
+        return "–"
+    camera = max(lengths, key=lengths.__getitem__)
+    return f"{_fmt_num(lengths[camera], 'px')} ({camera})"
 
 
 def _fmt_num(value: Any, unit: str) -> str:

@@ -28,6 +28,7 @@ from ..noise.model import (
     body_pose_covariance,
     covariance_sigma,
     image_noise_sigma,
+    localisation_noise_px,
     localisation_variance_px2,
     pixel_noise_from_residuals,
     point_covariances,
@@ -213,8 +214,8 @@ def build_template(
     )
     # The noise is measured on the geometrically good points; a point is then kept when the
     # depth accuracy its rays buy is good enough (not by a fixed triangulation angle).
-    pixel_px, cov, image_cov = measured_covariances(tri.points, obs, frame, models, good,
-                                                    noise)
+    measured = measured_covariances(tri.points, obs, frame, models, good, noise)
+    pixel_px, cov, image_cov = measured.pixel_px, measured.covariance, measured.image_covariance
     sigma = covariance_sigma(np.nan_to_num(cov, nan=np.inf))
     precise = np.isfinite(sigma) & (sigma <= cfg.max_sigma_mm * 1e-3)
     imprecise = good & ~precise
@@ -249,6 +250,9 @@ def build_template(
         "rejected_geometry": int((~good).sum() - imprecise.sum()),
         "rejected_imprecise": int(imprecise.sum()),
         "pixel_noise_px": pixel_px,
+        "localisation_px": measured.localisation_px,
+        "calibration_offset_px": [[round(float(v), 4) if np.isfinite(v) else None for v in row]
+                                  for row in measured.offsets_px],
         "removed_tool": int(on_tool.sum()),
         "removed_off_surface": int(off_surface.sum()),
         "points": int(keep.sum()),
@@ -271,10 +275,23 @@ def build_template(
     )
 
 
+@dataclass(frozen=True)
+class MeasuredNoise:
+    """The template's measured pixel noise: pixel_px (px per axis, at least the localisation
+    bound), its localisation part localisation_px (the residuals less each camera's median,
+    core/noise/model.py `localisation_noise_px`) and those medians offsets_px (C, 2) px; every
+    point's covariance (N, 3, 3) m² in all and from image noise alone (image_covariance)."""
+
+    pixel_px: float
+    localisation_px: float
+    offsets_px: np.ndarray
+    covariance: np.ndarray
+    image_covariance: np.ndarray
+
+
 def measured_covariances(points: np.ndarray, obs: Observations, frame: TemplateFrame,
                          models: list[CameraModel], use: np.ndarray,
-                         noise: NoiseModel | None = None
-                         ) -> tuple[float, np.ndarray, np.ndarray]:
+                         noise: NoiseModel | None = None) -> MeasuredNoise:
     """Pixel noise σ_px (px) measured from the reprojection residuals of the points `use`
     (N,) bool (at least the localisation bound), and every point's covariance (N, 3, 3) m²
     from its views in `frame` (its images and poses), in all and from image noise alone.
@@ -289,6 +306,8 @@ def measured_covariances(points: np.ndarray, obs: Observations, frame: TemplateF
     residual, _ = reprojection_residuals(points, obs, poses, models)
     sel = use[obs.point]
     pixel_px = pixel_noise_from_residuals(residual[sel], obs.point[sel])
+    localisation_px, offsets = localisation_noise_px(residual[sel], obs.point[sel],
+                                                     obs.camera[sel])
     pixel_px = pixel_px if np.isfinite(pixel_px) and pixel_px > 0 else 1.0
     variance = np.full(len(obs.point), pixel_px**2)
     image_variance = variance.copy()
@@ -314,4 +333,6 @@ def measured_covariances(points: np.ndarray, obs: Observations, frame: TemplateF
     cov = point_covariances(obs.point, J, variance, len(points))
     image_cov = point_covariances(obs.point, J, image_variance, len(points))
     image_px = float(np.sqrt(np.median(image_variance[sel]))) if sel.any() else pixel_px
-    return image_px, cov, image_cov
+    offsets_px = np.full((len(models), 2), np.nan)
+    offsets_px[:len(offsets)] = offsets
+    return MeasuredNoise(image_px, localisation_px, offsets_px, cov, image_cov)
