@@ -367,7 +367,8 @@ def truth_covers(points: np.ndarray, eye: np.ndarray, vertices: np.ndarray, face
 
 COLUMNS = (("sigma_run", "σ run", ".3f"), ("sigma_ncc", "σ NCC", ".3f"),
            ("ratio", "run/NCC", ".2f"), ("sigma_loc", "σ loc", ".3f"),
-           ("sigma_disp", "σ disp", ".3f"), ("ratio_disp", "loc/disp", ".2f"), ("sigma_truth", "σ truth", ".3f"),
+           ("sigma_disp", "σ disp", ".3f"), ("ratio_disp", "loc/disp", ".2f"),
+           ("sigma_truth", "σ truth", ".3f"),
            ("trk_run", "trk run", ".3f"), ("trk_rigid", "trk rigid", ".3f"),
            ("trk_truth", "trk truth", ".3f"), ("trk_ratio", "trk/check", ".2f"),
            ("tracked", "tracked", ".1%"), ("outlier", "outlier", ".1%"),
