@@ -232,8 +232,8 @@ def _cloud_caption(view: CloudView) -> str:
 
 def _largest_offset(offsets: dict[str, list[float | None]]) -> str:
     """'0.18 px (right)': the longest of the cameras' median residual vectors px, or '–'."""
-    lengths = {c: float(np.hypot(*v)) for c, v in offsets.items()
-               if v and all(x is not None for x in v)}
+    lengths = {c: float(np.hypot(float(v[0]), float(v[1]))) for c, v in offsets.items()
+               if len(v) == 2 and v[0] is not None and v[1] is not None}
     if not lengths:
         return "–"
     camera = max(lengths, key=lengths.__getitem__)
