@@ -29,7 +29,9 @@ checkout). One table, a row per log:
 - static / shifting / deforming / unknown: label shares over point-frames, frames 1 on;
   "deform|lab" the share of labelled point-frames called deforming;
 - ref med / ref p95: labelled positions against a reference built from the images (DIS flow
-  on camera 0 + StereoSGBM depth), mm, frames 1 on;
+  on camera 0 + StereoSGBM depth), mm, frames 1 on; "refT med" / "refT p95" (logs with a
+  ground truth) that reference's own error against the truth where the truth covers the
+  point: what the reference can resolve;
 - macro-F1 and calib 2σ: logs with a ground truth beside them (`surgrecon evaluate`): the
   simulator's, and SurgT clips with `breathe=A` (real texture, known breathing motion:
   benchmarks/surgt_breathing.py);
@@ -139,12 +141,13 @@ def label_shares(layout: RunLayout, n_frames: int) -> dict[str, float]:
             "deform_of_labelled": counts[DEFORMING] / labelled}
 
 
-def reference_errors(layout: RunLayout, log: Any, obs: Any, n: int) -> tuple[float, float]:
-    """Median and p95 (mm) of labelled positions against the image reference, frames 1 on."""
+def reference_errors(layout: RunLayout, n_frames: int, obs: Any, n: int, ref: np.ndarray
+                     ) -> tuple[float, float]:
+    """Median and p95 (mm) of labelled positions against the image reference ref (T, M, 3) m
+    of the camera-0 observations, frames 1 on."""
     cam0 = obs.camera == 0
-    ref = reference_positions(log, obs.pixels[cam0])
     errors = []
-    for k in range(1, log.n_frames):
+    for k in range(1, n_frames):
         cloud = read_ply(layout.cloud(k))
         xyz = np.full((n, 3), np.nan)
         keep = cloud["label"] != UNKNOWN
@@ -289,7 +292,9 @@ def measure(name: str, run: Path, variant: str | None, seed: int | None,
     row["tracked"] = float(np.mean([q["observed_fraction"] for q in quality]))
     row["outlier"] = float(np.mean([q["outlier_fraction"] for q in quality]))
     row.update(label_shares(layout, log.n_frames))
-    row["ref_median_mm"], row["ref_p95_mm"] = reference_errors(layout, log, obs, n)
+    reference = reference_positions(log, obs.pixels[obs.camera == 0])
+    row["ref_median_mm"], row["ref_p95_mm"] = reference_errors(layout, log.n_frames, obs, n,
+                                                               reference)
     if layout.evaluation_json.exists():
         ev = json.loads(layout.evaluation_json.read_text())
         row["macro_f1"] = ev["labels"]["overall"]["macro_f1"]
@@ -299,6 +304,8 @@ def measure(name: str, run: Path, variant: str | None, seed: int | None,
         row["true_p95_mm"] = labelled.get("p95_mm")
     if gt_path_beside(log_path).exists():
         row.update(truth_label_checks(layout, log.n_frames, log_path))
+        row.update(reference_truth_errors(layout, log_path, obs.point[obs.camera == 0],
+                                          reference))
     else:
         row["motion_frames"] = motion_frames(layout, log, n)
         row.update(motion_summary(row["motion_frames"]))
@@ -351,6 +358,26 @@ def truth_label_checks(layout: RunLayout, n_frames: int, log_path: Path) -> dict
             "covered_p95_mm": float(np.percentile(e, 95)) if e.size else float("nan")}
 
 
+def reference_truth_errors(layout: RunLayout, log_path: Path, point: np.ndarray,
+                           reference: np.ndarray) -> dict[str, float]:
+    """The image reference's own error: its positions (T, M, 3) m of template points `point`
+    (M,) against the truth, where the truth covers them (`truth_covers`), frames 1 on,
+    median / p95 mm. A reference that is itself this far off cannot check a run closer."""
+    from surgrecon_cli.core.evaluate.scoring import map_to_surface
+    gt = load_ground_truth(gt_path_beside(log_path))
+    template = read_template(layout).points
+    mapping = map_to_surface(template, gt.vertices[0], gt.faces)
+    covered = truth_covers(template, load_ingested(layout.ingest_dir).poses[0, 0, :3, 3],
+                           gt.vertices[0], gt.faces)[point]
+    errors = [np.linalg.norm(reference[k][covered]
+                             - mapping.follow(gt.vertices[k], gt.faces)[point[covered]], axis=1)
+              for k in range(1, len(reference))]
+    e = np.concatenate(errors) * 1e3 if errors else np.zeros(0)
+    e = e[np.isfinite(e)]
+    return {"ref_truth_median_mm": float(np.median(e)) if e.size else float("nan"),
+            "ref_truth_p95_mm": float(np.percentile(e, 95)) if e.size else float("nan")}
+
+
 def truth_covers(points: np.ndarray, eye: np.ndarray, vertices: np.ndarray, faces: np.ndarray
                  ) -> np.ndarray:
     """Whether the true surface (V, 3) / (F, 3) m covers each template point (N, 3) m: the
@@ -375,7 +402,8 @@ COLUMNS = (("sigma_run", "σ run", ".3f"), ("sigma_ncc", "σ NCC", ".3f"),
            ("static", "static", ".1%"), ("shifting", "shift", ".1%"),
            ("deforming", "deform", ".1%"), ("unknown", "unknown", ".1%"),
            ("deform_of_labelled", "deform|lab", ".1%"), ("ref_median_mm", "ref med", ".2f"),
-           ("ref_p95_mm", "ref p95", ".2f"), ("macro_f1", "macroF1", ".3f"),
+           ("ref_p95_mm", "ref p95", ".2f"), ("ref_truth_median_mm", "refT med", ".2f"),
+           ("ref_truth_p95_mm", "refT p95", ".2f"), ("macro_f1", "macroF1", ".3f"),
            ("calib_2sigma", "calib2σ", ".1%"), ("true_median_mm", "true med", ".2f"),
            ("true_p95_mm", "true p95", ".2f"), ("covered", "covered", ".1%"),
            ("covered_median_mm", "cov med", ".2f"), ("covered_p95_mm", "cov p95", ".2f"),
