@@ -22,7 +22,7 @@ import numpy as np
 from scipy import sparse
 from scipy.spatial import cKDTree
 
-from .colour import ColourDecision
+from .colour import ColourDecision, Neighbourhoods
 
 FOLLOW_NEIGHBOURS = 16  # ours: supported neighbours an unsupported point moves with
 # ours: an unsupported point follows its supported neighbourhood in full within 2 % of the
@@ -104,14 +104,19 @@ def target_rim(xyz: np.ndarray, k: int = RIM_NEIGHBOURS,
 
 
 def rim_and_planes(xyz: np.ndarray, k: int = RIM_NEIGHBOURS, gap_deg: float = RIM_GAP_DEG,
-                   companions: int = RIM_COMPANIONS) -> tuple[np.ndarray, ...]:
+                   companions: int = RIM_COMPANIONS,
+                   near: Neighbourhoods | None = None) -> tuple[np.ndarray, ...]:
     """(rim (M,) bool as `target_rim`, centre (M, 3) m, normal (M, 3) unit): with each point's
-    local plane, the centroid and PCA normal of its k nearest neighbours (xyz (M, 3) m)."""
+    local plane, the centroid and PCA normal of its k nearest neighbours (xyz (M, 3) m);
+    near: the points' neighbour lists (`colour.Neighbourhoods`; None: measured here)."""
     m = len(xyz)
     if m <= 3:
         return np.zeros(m, bool), xyz.copy(), np.tile([0.0, 0.0, 1.0], (m, 1))
     k = min(k, m - 1)
-    nn = cKDTree(xyz).query(xyz, k=k + 1)[1]
+    if near is not None and near.indices.shape[1] >= k + 1:
+        nn = near.indices[:, :k + 1]
+    else:
+        nn = cKDTree(xyz).query(xyz, k=k + 1)[1]
     rel = xyz[nn[:, 1:]] - xyz[:, None, :]
     offset = rel.mean(axis=1)
     c = rel - offset[:, None, :]
@@ -181,24 +186,29 @@ def _smallest_axis(cov: np.ndarray) -> np.ndarray:
 class ColouredPoints:
     """Points xyz (M, 3) m with their colours rgb (M, 3) 0..1; rim (M,) bool: the points on
     the cloud's boundary (`target_rim`; None = none known); centre (M, 3) m and normal (M, 3)
-    unit: each point's local plane (`rim_and_planes`; None = not known)."""
+    unit: each point's local plane (`rim_and_planes`; None = not known); kdtree: the points'
+    k-d tree when already built (None: built on first use)."""
 
     xyz: np.ndarray
     rgb: np.ndarray
     rim: np.ndarray | None = None
     centre: np.ndarray | None = None
     normal: np.ndarray | None = None
+    kdtree: cKDTree | None = dataclasses.field(default=None, repr=False, compare=False)
 
     @classmethod
-    def analysed(cls, xyz: np.ndarray, rgb: np.ndarray) -> ColouredPoints:
-        """The points with their rim and local planes (`rim_and_planes`)."""
-        rim, centre, normal = rim_and_planes(xyz)
-        return cls(xyz, rgb, rim, centre, normal)
+    def analysed(cls, xyz: np.ndarray, rgb: np.ndarray,
+                 near: Neighbourhoods | None = None) -> ColouredPoints:
+        """The points with their rim and local planes (`rim_and_planes`); near: their tree
+        and neighbour lists when measured already (`colour.Neighbourhoods`, e.g. the colour
+        decision's of the agreeing target points), None: measured here."""
+        rim, centre, normal = rim_and_planes(xyz, near=near)
+        return cls(xyz, rgb, rim, centre, normal, None if near is None else near.tree)
 
     @functools.cached_property
     def tree(self) -> cKDTree:
         """The points' k-d tree, built once for every look-up."""
-        return cKDTree(self.xyz)
+        return self.kdtree if self.kdtree is not None else cKDTree(self.xyz)
 
     def colour_at(self, positions: np.ndarray, spacing_m: float
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -280,20 +290,26 @@ def explained_by_identity(source: np.ndarray, registered: np.ndarray, supported:
 
     def fit(pos: np.ndarray, rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         smoothed, _, j = target.colour_at(pos, h)
-        near = j[:, 0]
-        across = np.abs(((pos - centre[near]) * normal[near]).sum(axis=1))
-        return ((rgb - smoothed) ** 2).sum(axis=1) / noise**2, across
+        return ((rgb - smoothed) ** 2).sum(axis=1) / noise**2, across(pos, j[:, 0])
 
-    colour1, across1 = fit(registered[have], source_rgb[have])
-    spread = max(1.4826 * float(np.median(across1)), 1e-9)
-    gain = np.zeros(len(have))  # > 0: the motion fits better
+    def across(pos: np.ndarray, near: np.ndarray) -> np.ndarray:
+        return np.abs(((pos - centre[near]) * normal[near]).sum(axis=1))
+
     # where a point does not move both misfits are the same and not moving changes nothing:
-    # only the moving ones are sought and tested
+    # only the moving ones are sought and tested (the others count in the spread alone)
     moving = np.flatnonzero(np.any(registered[have] != source[have], axis=1))
     if len(moving) == 0:
         return still
+    resting = np.setdiff1d(np.arange(len(have)), moving, assume_unique=True)
+    across1 = np.empty(len(have))
+    colour1, across1[moving] = fit(registered[have[moving]], source_rgb[have[moving]])
+    if len(resting):
+        pos = registered[have[resting]]
+        across1[resting] = across(pos, target.tree.query(pos, k=1)[1])
+    spread = max(1.4826 * float(np.median(across1)), 1e-9)
+    gain = np.zeros(len(have))  # > 0: the motion fits better
     colour0, across0 = fit(source[have[moving]], source_rgb[have[moving]])
-    gain[moving] = (colour0 + (across0 / spread) ** 2 - colour1[moving]
+    gain[moving] = (colour0 + (across0 / spread) ** 2 - colour1
                     - (across1[moving] / spread) ** 2)
     k = min(IDENTITY_NEIGHBOURS, len(have))
     nb = cKDTree(source[have]).query(source[have[moving]], k=k)[1].reshape(len(moving), k)

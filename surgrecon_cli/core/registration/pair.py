@@ -185,7 +185,7 @@ def register_pair(
     if (colour_on and decision is not None and decision.weight_mm > 0 and s_rgb is not None
             and t_rgb is not None):
         agree = decision.agree
-        target = ColouredPoints.analysed(tgt[agree], t_rgb[agree])
+        target = ColouredPoints.analysed(tgt[agree], t_rgb[agree], decision.neighbours)
         share = stay_where_better(src, registered, supported, s_rgb, target, decision)
         known = _known_sources(len(src), ids, lm)
         share[known] = 1.0
