@@ -210,11 +210,14 @@ def test_smallest_axis_matches_eigh():
 
 
 
-def test_a_cut_pair_is_nowhere_worse_than_doing_nothing_beyond_the_targets_noise():
+@pytest.mark.parametrize("seed", [200, 208])
+def test_a_cut_pair_is_nowhere_worse_than_doing_nothing_beyond_the_targets_noise(seed):
     # issue 28: no 5 mm cell of the source (>= 10 points) with a median error more than the
-    # target's noise (0.2 mm) above doing nothing's; held-out seed (neither tuning 0-9 nor
-    # acceptance 100-104): the code before this test left +0.35 mm
-    pair = stray_colour_pair(5000, 200, partial=0.3)
+    # target's noise (0.2 mm) above doing nothing's; seeds neither tuning 0-9 nor acceptance
+    # 100-104: on 200 the code before this test left +0.35 mm; on 208, static tissue at the
+    # target's rim (a border both clouds share) dragged 0.3-0.5 mm inwards, +0.34 mm before
+    # the identity test let the neighbours inside decide for points at the rim
+    pair = stray_colour_pair(5000, seed, partial=0.3)
     res = register_pair(pair.source, pair.target, pair.source_rgb, pair.target_rgb)
     err = np.linalg.norm(res.registered - pair.truth, axis=1)
     still = np.linalg.norm(pair.source - pair.truth, axis=1)

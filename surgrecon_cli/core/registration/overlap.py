@@ -8,8 +8,9 @@ has no surface for it or where its match may lie past the target's cut.
   averaged over its neighbours) under which its neighbourhood's colour and surface misfit is
   lowest (`stay_where_better`), leaving out hypotheses at the rim of the target
   (`target_rim`); then a point does not move at all where that explains its neighbourhood's
-  data within a margin over the measured noises (`explained_by_identity`), and a point
-  matched onto the rim of a cut target (`matched_onto_cut`) follows as one without surface.
+  data within a margin over the measured noises (`explained_by_identity`; at the target's
+  rim its neighbours inside decide), and a point matched onto the rim of a cut target
+  (`matched_onto_cut`) follows as one without surface.
 Inputs and outputs in metres.
 """
 
@@ -71,7 +72,11 @@ RIM_COMPANIONS = 2
 # the target's local plane over its measured spread, squared) by more than IDENTITY_MARGIN
 # (worst cell on seeds 0-9 with 8 / 24 neighbours +0.31 / +0.22 mm, a margin of 2 / 4 +0.23 /
 # +0.32 mm; the own motion was fitted to these data, so it wins ties by a margin; the test on
-# `stay_where_better`'s sample of every 2nd point, sharing its look-ups: +0.40 mm); and with
+# `stay_where_better`'s sample of every 2nd point, sharing its look-ups: +0.40 mm); points
+# whose nearest target point, moved or not, is on the target's rim are left out of the means
+# (static tissue at a border both clouds share, dragged 0.3-0.5 mm inwards, won its motion
+# there by 4-6 per point on the across-plane term, planes fitted on one side: seed 208
+# +0.34 -> +0.02 mm, the worst over seeds 0-9 and 200-209 +0.34 -> +0.15); and with
 # colour an unsupported point follows its nearest supported points only within
 # FOLLOW_REACH_COLOURED x the diagonal, fading to not moving (nothing measured its motion:
 # following them out to 2-5 % as without colour left cut-away static cells +0.4 mm off, and
@@ -274,8 +279,10 @@ def explained_by_identity(source: np.ndarray, registered: np.ndarray, supported:
     / s)^2, s the robust spread of that distance at the registered positions (the target's
     noise as this run sees it); a point is explained by not moving unless its motion lowers
     the mean misfit of its IDENTITY_NEIGHBOURS nearest supported points by more than
-    IDENTITY_MARGIN. target: the agreeing target points, colours 0..1, with their planes
-    (computed when not given)."""
+    IDENTITY_MARGIN. A point whose nearest target point, moved or not, is on the target's rim
+    (`target.rim`) is left out of the means (there the misfits favour any motion onto the
+    target); one whose neighbours are all left out keeps its motion. target: the agreeing
+    target points, colours 0..1, with their planes (computed when not given)."""
     n = len(source)
     still = np.zeros(n, bool)
     have = np.flatnonzero(supported)
@@ -288,9 +295,14 @@ def explained_by_identity(source: np.ndarray, registered: np.ndarray, supported:
     h = max(decision.spacing_m, 1e-9)
     noise = max(decision.noise, 1e-6)
 
-    def fit(pos: np.ndarray, rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    rim = target.rim if target.rim is not None else np.zeros(len(target.xyz), bool)
+
+    def fit(pos: np.ndarray, rgb: np.ndarray) -> tuple[np.ndarray, ...]:
+        """Colour and across-plane misfits at pos, and whether its nearest target point is
+        on the target's rim."""
         smoothed, _, j = target.colour_at(pos, h)
-        return ((rgb - smoothed) ** 2).sum(axis=1) / noise**2, across(pos, j[:, 0])
+        return (((rgb - smoothed) ** 2).sum(axis=1) / noise**2, across(pos, j[:, 0]),
+                rim[j[:, 0]])
 
     def across(pos: np.ndarray, near: np.ndarray) -> np.ndarray:
         return np.abs(((pos - centre[near]) * normal[near]).sum(axis=1))
@@ -302,18 +314,26 @@ def explained_by_identity(source: np.ndarray, registered: np.ndarray, supported:
         return still
     resting = np.setdiff1d(np.arange(len(have)), moving, assume_unique=True)
     across1 = np.empty(len(have))
-    colour1, across1[moving] = fit(registered[have[moving]], source_rgb[have[moving]])
+    colour1, across1[moving], rim1 = fit(registered[have[moving]], source_rgb[have[moving]])
     if len(resting):
         pos = registered[have[resting]]
         across1[resting] = across(pos, target.tree.query(pos, k=1)[1])
     spread = max(1.4826 * float(np.median(across1)), 1e-9)
     gain = np.zeros(len(have))  # > 0: the motion fits better
-    colour0, across0 = fit(source[have[moving]], source_rgb[have[moving]])
+    colour0, across0, rim0 = fit(source[have[moving]], source_rgb[have[moving]])
     gain[moving] = (colour0 + (across0 / spread) ** 2 - colour1
                     - (across1[moving] / spread) ** 2)
+    # at the target's rim the misfits favour the motion whatever the truth (past the rim the
+    # colour is smoothed over one side and the plane is fitted on one side): a point whose
+    # position either way has its nearest target point on the rim tells nothing, and its
+    # neighbours decide for it; with none that tells, it keeps its motion
+    seen = np.ones(len(have))
+    seen[moving] = ~(rim0 | rim1)
     k = min(IDENTITY_NEIGHBOURS, len(have))
     nb = cKDTree(source[have]).query(source[have[moving]], k=k)[1].reshape(len(moving), k)
-    still[have[moving]] = gain[nb].mean(axis=1) <= IDENTITY_MARGIN
+    count = seen[nb].sum(axis=1)
+    mean_gain = (gain * seen)[nb].sum(axis=1) / np.maximum(count, 1.0)
+    still[have[moving]] = (count > 0) & (mean_gain <= IDENTITY_MARGIN)
     return still
 
 

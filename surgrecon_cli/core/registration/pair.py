@@ -17,7 +17,8 @@ Around the shared `register` (also the frame pipeline's), without changing it:
    smoothness drags and the nearest-match step then holds there, goes back to not moving;
    a hypothesis at the rim of the target (`target_rim`), where the true partner may lie
    past it, is left out; then a point does not move at all where that explains its
-   neighbourhood's data within a margin over the measured noises (`explained_by_identity`),
+   neighbourhood's data within a margin over the measured noises (`explained_by_identity`,
+   points at the target's rim left out of the neighbourhood),
    and a point matched onto the rim of a cut target (`matched_onto_cut`) follows as in 2;
 4. with colour used, solver settings of its own (`pair_config`) in place of the fields the
    caller left at their defaults;
