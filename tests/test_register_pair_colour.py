@@ -15,7 +15,6 @@ from surgrecon_cli.config import RegistrationConfig
 from surgrecon_cli.core.registration.colour import decide_colour
 from surgrecon_cli.core.registration.overlap import (
     ColouredPoints,
-    _smallest_axis,
     explained_by_identity,
     follow_supported,
     matched_onto_cut,
@@ -23,6 +22,7 @@ from surgrecon_cli.core.registration.overlap import (
     target_rim,
 )
 from surgrecon_cli.core.registration.pair import error_estimate_mm, pair_config
+from surgrecon_cli.core.registration.surface import smallest_axis
 from surgrecon_cli.registration import register_pair
 from surgrecon_cli.sim.pairs_catalog import make_pair
 from surgrecon_cli.sim.pairs_stray import stray_colour_pair
@@ -206,7 +206,11 @@ def test_smallest_axis_matches_eigh():
     a = np.random.default_rng(3).normal(size=(500, 3, 3))
     cov = a @ a.transpose(0, 2, 1)
     ref = np.linalg.eigh(cov)[1][:, :, 0]  # independent reference
-    assert np.all(np.abs((_smallest_axis(cov) * ref).sum(axis=1)) > 1 - 1e-6)
+    assert np.all(np.abs((smallest_axis(cov) * ref).sum(axis=1)) > 1 - 1e-6)
+    # collinear points (two zero eigenvalues): still a unit vector across their line
+    line = np.outer(np.linspace(-1.0, 1.0, 10), [1.0, 2.0, 0.5])
+    axis = smallest_axis((line.T @ line)[None])[0]
+    assert abs(np.linalg.norm(axis) - 1.0) < 1e-9 and abs(axis @ [1.0, 2.0, 0.5]) < 1e-6
 
 
 

@@ -24,6 +24,7 @@ from scipy import sparse
 from scipy.spatial import cKDTree
 
 from .colour import ColourDecision, Neighbourhoods
+from .surface import smallest_axis
 
 FOLLOW_NEIGHBOURS = 16  # ours: supported neighbours an unsupported point moves with
 # ours: an unsupported point follows its supported neighbourhood in full within 2 % of the
@@ -125,7 +126,7 @@ def rim_and_planes(xyz: np.ndarray, k: int = RIM_NEIGHBOURS, gap_deg: float = RI
     rel = xyz[nn[:, 1:]] - xyz[:, None, :]
     offset = rel.mean(axis=1)
     c = rel - offset[:, None, :]
-    normal = _smallest_axis(np.matmul(c.transpose(0, 2, 1), c))
+    normal = smallest_axis(np.matmul(c.transpose(0, 2, 1), c))
     # a tangent basis (u, v): u across the normal from the axis least along it
     axis = np.eye(3)[np.argmin(np.abs(normal), axis=1)]
     u = np.cross(normal, axis)
@@ -164,27 +165,6 @@ def follow_supported(source: np.ndarray, registered: np.ndarray, supported: np.n
     far = registered if beyond is None else beyond
     out[lost] = fade[:, None] * follow + (1.0 - fade[:, None]) * far[lost]
     return out
-
-
-def _smallest_axis(cov: np.ndarray) -> np.ndarray:
-    """(P, 3) unit eigenvectors of the smallest eigenvalue of symmetric cov (P, 3, 3), in
-    closed form (trigonometric eigenvalues; ~10x faster than a batched eigh)."""
-    q = np.trace(cov, axis1=1, axis2=2) / 3.0
-    off = cov[:, 0, 1] ** 2 + cov[:, 0, 2] ** 2 + cov[:, 1, 2] ** 2
-    diag = np.diagonal(cov, axis1=1, axis2=2) - q[:, None]
-    p = np.sqrt(np.maximum(((diag**2).sum(axis=1) + 2.0 * off) / 6.0, 1e-300))
-    eye = np.eye(3)
-    b = (cov - q[:, None, None] * eye) / p[:, None, None]
-    phi = np.arccos(np.clip(np.linalg.det(b) / 2.0, -1.0, 1.0)) / 3.0
-    shifted = cov - (q + 2.0 * p * np.cos(phi + 2.0 * np.pi / 3.0))[:, None, None] * eye
-    # the null direction of cov - lambda_min I: the largest cross product of two of its rows
-    cands = np.stack([np.cross(shifted[:, 0], shifted[:, 1]),
-                      np.cross(shifted[:, 0], shifted[:, 2]),
-                      np.cross(shifted[:, 1], shifted[:, 2])], axis=1)
-    norms = np.linalg.norm(cands, axis=2)
-    best = np.argmax(norms, axis=1)
-    rows = np.arange(len(cov))
-    return cands[rows, best] / np.maximum(norms[rows, best], 1e-300)[:, None]
 
 
 @dataclasses.dataclass(frozen=True)
