@@ -239,13 +239,13 @@ def stay_where_better(source: np.ndarray, registered: np.ndarray, supported: np.
             known[:, a] = ~target.rim[j[:, 0]]
     # a sum over about STAY_NEIGHBOURS sample points as two means over 8x fewer
     k = min(STAY_NEIGHBOURS // 8, m)
-    sample_tree = cKDTree(source[sample])
-    mean = _mean_operator(sample_tree.query(source[sample], k=k)[1].reshape(m, k), m)
+    # every source point's nearest sample points (the sample's own among them)
+    nb = cKDTree(source[sample]).query(source, k=k)[1].reshape(n, k)
+    mean = _mean_operator(nb[sample], m)
     seen = mean @ (mean @ known)
     summed = (mean @ (mean @ (costs * known))) / np.maximum(seen, 1e-12)
     summed[seen <= 0] = 0.0  # nothing seen: a tie keeps the motion
     best = np.asarray(STAY_SHARES)[np.argmin(summed, axis=1)]
-    nb = sample_tree.query(source, k=k)[1].reshape(n, k)
     return np.asarray(_mean_operator(nb, m) @ (mean @ best))
 
 
