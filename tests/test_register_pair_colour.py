@@ -89,6 +89,28 @@ def test_pair_config_replaces_only_the_defaults():
         wide = pair_config(default, 5000, spacing_m).mutual_spacings * spacing_m
         assert wide >= 0.25 * default.max_correspondence_mm * 1e-3 - 1e-12
     assert pair_config(default, 5000, 1e-3).mutual_spacings > default.mutual_spacings
+    # the last step's ADMM iterations capped, unless the caller chose them
+    assert pair_config(default, 5000).final_admm_iterations < default.final_admm_iterations
+    assert pair_config(RegistrationConfig(final_admm_iterations=80),
+                       5000).final_admm_iterations == 80
+
+
+def test_the_colour_decisions_neighbour_lists_give_the_same_rim_and_planes():
+    # register_pair hands the colour decision's k-d tree and neighbour lists of the agreeing
+    # target points on to the rim and plane analysis: the same as measuring them again
+    pair = stray_colour_pair(3000, 105)
+    d = _decide(pair)
+    assert d.neighbours is not None
+    xyz, rgb = pair.target[d.agree], pair.target_rgb[d.agree]
+    shared = ColouredPoints.analysed(xyz, rgb, d.neighbours)
+    alone = ColouredPoints.analysed(xyz, rgb)
+    assert shared.rim is not None and alone.rim is not None and shared.rim.any()
+    np.testing.assert_array_equal(shared.rim, alone.rim)
+    np.testing.assert_allclose(shared.centre, alone.centre, rtol=0, atol=1e-12)
+    assert shared.tree is d.neighbours.tree
+    probe = pair.source[:50]
+    np.testing.assert_array_equal(shared.tree.query(probe, k=3)[1],
+                                  alone.tree.query(probe, k=3)[1])
 
 
 def test_unsupported_points_follow_near_supported_ones_and_keep_their_own_far_away():
