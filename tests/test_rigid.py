@@ -182,3 +182,30 @@ def test_too_few_observed_points_give_the_identity(pairs):
     R_est, t_est = prealign(src, src @ R.T + t, observed=observed)
     np.testing.assert_array_equal(R_est, np.eye(3))
     np.testing.assert_array_equal(t_est, np.zeros(3))
+
+
+def test_mutual_check_keeps_exactly_the_pairs_a_brute_force_check_keeps():
+    # the matcher's mutual check skips the look-up where the triangle inequality settles it;
+    # the kept pairs must be those of the plain rule (the target's nearest moved point lies
+    # within the mutual distance of the querying point), here by brute force
+    from surgrecon_cli.core.registration.correspondences import match
+
+    rng = np.random.default_rng(11)
+    tgt = rng.uniform(0.0, 10.0, (400, 3))
+    moved = np.r_[tgt[:300] + rng.normal(0.0, 0.3, (300, 3)), rng.uniform(0.0, 10.0, (200, 3))]
+    matcher = build_matcher(tgt, len(moved), None, 0.0, KnownPairs())
+    every = np.ones(len(moved), bool)
+    unchecked = match(matcher, moved, None, 2.0, 0.0, every)  # 0: no mutual check
+    has = unchecked >= 0
+    assert has.sum() > 300
+    partner = tgt[np.maximum(unchecked, 0)]
+    back = np.argmin(np.linalg.norm(partner[:, None] - moved[None], axis=2), axis=1)
+    for mutual in (0.2, 0.6, 1.5, 4.0):
+        corr = match(matcher, moved, None, 2.0, mutual, every)
+        keep = has & (np.linalg.norm(moved[back] - moved, axis=1) <= mutual)
+        assert keep.sum() > 0
+        np.testing.assert_array_equal(corr, np.where(keep, unchecked, -1))
+    # both regimes occur: pairs the triangle inequality settles, pairs the check drops
+    dist = np.linalg.norm(moved - partner, axis=1)
+    assert np.sum(has & (2 * dist <= 0.6)) > 50
+    assert np.sum(has & (np.linalg.norm(moved[back] - moved, axis=1) > 0.6)) > 20

@@ -102,10 +102,12 @@ def match(
     tgt = matcher.candidates[j]
     dist = np.linalg.norm(moved_q[free] - matcher.target_q[tgt], axis=1)
     ok = dist <= max_distance
-    if mutual_distance > 0 and np.any(ok):
-        back_tree = cKDTree(moved_q)
-        _, back = back_tree.query(matcher.target_q[tgt[ok]], k=1)
-        sel = np.flatnonzero(ok)
+    # the target's nearest moved point b is no farther from it than the querying point i, so
+    # |b - i| <= 2 |target - i|: a match within half the mutual distance passes unlooked
+    # (with a margin for rounding); only the others are looked up
+    sel = np.flatnonzero(ok & (2.0 * dist > mutual_distance * (1.0 - 1e-9)))
+    if mutual_distance > 0 and len(sel):
+        _, back = cKDTree(moved_q).query(matcher.target_q[tgt[sel]], k=1)
         ok[sel] = np.linalg.norm(moved_q[back] - moved_q[free[sel]], axis=1) <= mutual_distance
     corr[free[ok]] = tgt[ok]
     return corr

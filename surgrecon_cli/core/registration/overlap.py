@@ -8,8 +8,9 @@ has no surface for it or where its match may lie past the target's cut.
   averaged over its neighbours) under which its neighbourhood's colour and surface misfit is
   lowest (`stay_where_better`), leaving out hypotheses at the rim of the target
   (`target_rim`); then a point does not move at all where that explains its neighbourhood's
-  data within a margin over the measured noises (`explained_by_identity`), and a point
-  matched onto the rim of a cut target (`matched_onto_cut`) follows as one without surface.
+  data within a margin over the measured noises (`explained_by_identity`; at the target's
+  rim its neighbours inside decide), and a point matched onto the rim of a cut target
+  (`matched_onto_cut`) follows as one without surface.
 Inputs and outputs in metres.
 """
 
@@ -22,7 +23,8 @@ import numpy as np
 from scipy import sparse
 from scipy.spatial import cKDTree
 
-from .colour import ColourDecision
+from .colour import ColourDecision, Neighbourhoods
+from .surface import smallest_axis
 
 FOLLOW_NEIGHBOURS = 16  # ours: supported neighbours an unsupported point moves with
 # ours: an unsupported point follows its supported neighbourhood in full within 2 % of the
@@ -71,7 +73,11 @@ RIM_COMPANIONS = 2
 # the target's local plane over its measured spread, squared) by more than IDENTITY_MARGIN
 # (worst cell on seeds 0-9 with 8 / 24 neighbours +0.31 / +0.22 mm, a margin of 2 / 4 +0.23 /
 # +0.32 mm; the own motion was fitted to these data, so it wins ties by a margin; the test on
-# `stay_where_better`'s sample of every 2nd point, sharing its look-ups: +0.40 mm); and with
+# `stay_where_better`'s sample of every 2nd point, sharing its look-ups: +0.40 mm); points
+# whose nearest target point, moved or not, is on the target's rim are left out of the means
+# (static tissue at a border both clouds share, dragged 0.3-0.5 mm inwards, won its motion
+# there by 4-6 per point on the across-plane term, planes fitted on one side: seed 208
+# +0.34 -> +0.02 mm, the worst over seeds 0-9 and 200-209 +0.34 -> +0.15); and with
 # colour an unsupported point follows its nearest supported points only within
 # FOLLOW_REACH_COLOURED x the diagonal, fading to not moving (nothing measured its motion:
 # following them out to 2-5 % as without colour left cut-away static cells +0.4 mm off, and
@@ -104,18 +110,23 @@ def target_rim(xyz: np.ndarray, k: int = RIM_NEIGHBOURS,
 
 
 def rim_and_planes(xyz: np.ndarray, k: int = RIM_NEIGHBOURS, gap_deg: float = RIM_GAP_DEG,
-                   companions: int = RIM_COMPANIONS) -> tuple[np.ndarray, ...]:
+                   companions: int = RIM_COMPANIONS,
+                   near: Neighbourhoods | None = None) -> tuple[np.ndarray, ...]:
     """(rim (M,) bool as `target_rim`, centre (M, 3) m, normal (M, 3) unit): with each point's
-    local plane, the centroid and PCA normal of its k nearest neighbours (xyz (M, 3) m)."""
+    local plane, the centroid and PCA normal of its k nearest neighbours (xyz (M, 3) m);
+    near: the points' neighbour lists (`colour.Neighbourhoods`; None: measured here)."""
     m = len(xyz)
     if m <= 3:
         return np.zeros(m, bool), xyz.copy(), np.tile([0.0, 0.0, 1.0], (m, 1))
     k = min(k, m - 1)
-    nn = cKDTree(xyz).query(xyz, k=k + 1)[1]
+    if near is not None and near.indices.shape[1] >= k + 1:
+        nn = near.indices[:, :k + 1]
+    else:
+        nn = cKDTree(xyz).query(xyz, k=k + 1)[1]
     rel = xyz[nn[:, 1:]] - xyz[:, None, :]
     offset = rel.mean(axis=1)
     c = rel - offset[:, None, :]
-    normal = _smallest_axis(np.matmul(c.transpose(0, 2, 1), c))
+    normal = smallest_axis(np.matmul(c.transpose(0, 2, 1), c))
     # a tangent basis (u, v): u across the normal from the axis least along it
     axis = np.eye(3)[np.argmin(np.abs(normal), axis=1)]
     u = np.cross(normal, axis)
@@ -156,49 +167,33 @@ def follow_supported(source: np.ndarray, registered: np.ndarray, supported: np.n
     return out
 
 
-def _smallest_axis(cov: np.ndarray) -> np.ndarray:
-    """(P, 3) unit eigenvectors of the smallest eigenvalue of symmetric cov (P, 3, 3), in
-    closed form (trigonometric eigenvalues; ~10x faster than a batched eigh)."""
-    q = np.trace(cov, axis1=1, axis2=2) / 3.0
-    off = cov[:, 0, 1] ** 2 + cov[:, 0, 2] ** 2 + cov[:, 1, 2] ** 2
-    diag = np.diagonal(cov, axis1=1, axis2=2) - q[:, None]
-    p = np.sqrt(np.maximum(((diag**2).sum(axis=1) + 2.0 * off) / 6.0, 1e-300))
-    eye = np.eye(3)
-    b = (cov - q[:, None, None] * eye) / p[:, None, None]
-    phi = np.arccos(np.clip(np.linalg.det(b) / 2.0, -1.0, 1.0)) / 3.0
-    shifted = cov - (q + 2.0 * p * np.cos(phi + 2.0 * np.pi / 3.0))[:, None, None] * eye
-    # the null direction of cov - lambda_min I: the largest cross product of two of its rows
-    cands = np.stack([np.cross(shifted[:, 0], shifted[:, 1]),
-                      np.cross(shifted[:, 0], shifted[:, 2]),
-                      np.cross(shifted[:, 1], shifted[:, 2])], axis=1)
-    norms = np.linalg.norm(cands, axis=2)
-    best = np.argmax(norms, axis=1)
-    rows = np.arange(len(cov))
-    return cands[rows, best] / np.maximum(norms[rows, best], 1e-300)[:, None]
-
-
 @dataclasses.dataclass(frozen=True)
 class ColouredPoints:
     """Points xyz (M, 3) m with their colours rgb (M, 3) 0..1; rim (M,) bool: the points on
     the cloud's boundary (`target_rim`; None = none known); centre (M, 3) m and normal (M, 3)
-    unit: each point's local plane (`rim_and_planes`; None = not known)."""
+    unit: each point's local plane (`rim_and_planes`; None = not known); kdtree: the points'
+    k-d tree when already built (None: built on first use)."""
 
     xyz: np.ndarray
     rgb: np.ndarray
     rim: np.ndarray | None = None
     centre: np.ndarray | None = None
     normal: np.ndarray | None = None
+    kdtree: cKDTree | None = dataclasses.field(default=None, repr=False, compare=False)
 
     @classmethod
-    def analysed(cls, xyz: np.ndarray, rgb: np.ndarray) -> ColouredPoints:
-        """The points with their rim and local planes (`rim_and_planes`)."""
-        rim, centre, normal = rim_and_planes(xyz)
-        return cls(xyz, rgb, rim, centre, normal)
+    def analysed(cls, xyz: np.ndarray, rgb: np.ndarray,
+                 near: Neighbourhoods | None = None) -> ColouredPoints:
+        """The points with their rim and local planes (`rim_and_planes`); near: their tree
+        and neighbour lists when measured already (`colour.Neighbourhoods`, e.g. the colour
+        decision's of the agreeing target points), None: measured here."""
+        rim, centre, normal = rim_and_planes(xyz, near=near)
+        return cls(xyz, rgb, rim, centre, normal, None if near is None else near.tree)
 
     @functools.cached_property
     def tree(self) -> cKDTree:
         """The points' k-d tree, built once for every look-up."""
-        return cKDTree(self.xyz)
+        return self.kdtree if self.kdtree is not None else cKDTree(self.xyz)
 
     def colour_at(self, positions: np.ndarray, spacing_m: float
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -244,13 +239,13 @@ def stay_where_better(source: np.ndarray, registered: np.ndarray, supported: np.
             known[:, a] = ~target.rim[j[:, 0]]
     # a sum over about STAY_NEIGHBOURS sample points as two means over 8x fewer
     k = min(STAY_NEIGHBOURS // 8, m)
-    sample_tree = cKDTree(source[sample])
-    mean = _mean_operator(sample_tree.query(source[sample], k=k)[1].reshape(m, k), m)
+    # every source point's nearest sample points (the sample's own among them)
+    nb = cKDTree(source[sample]).query(source, k=k)[1].reshape(n, k)
+    mean = _mean_operator(nb[sample], m)
     seen = mean @ (mean @ known)
     summed = (mean @ (mean @ (costs * known))) / np.maximum(seen, 1e-12)
     summed[seen <= 0] = 0.0  # nothing seen: a tie keeps the motion
     best = np.asarray(STAY_SHARES)[np.argmin(summed, axis=1)]
-    nb = sample_tree.query(source, k=k)[1].reshape(n, k)
     return np.asarray(_mean_operator(nb, m) @ (mean @ best))
 
 
@@ -264,8 +259,10 @@ def explained_by_identity(source: np.ndarray, registered: np.ndarray, supported:
     / s)^2, s the robust spread of that distance at the registered positions (the target's
     noise as this run sees it); a point is explained by not moving unless its motion lowers
     the mean misfit of its IDENTITY_NEIGHBOURS nearest supported points by more than
-    IDENTITY_MARGIN. target: the agreeing target points, colours 0..1, with their planes
-    (computed when not given)."""
+    IDENTITY_MARGIN. A point whose nearest target point, moved or not, is on the target's rim
+    (`target.rim`) is left out of the means (there the misfits favour any motion onto the
+    target); one whose neighbours are all left out keeps its motion. target: the agreeing
+    target points, colours 0..1, with their planes (computed when not given)."""
     n = len(source)
     still = np.zeros(n, bool)
     have = np.flatnonzero(supported)
@@ -278,26 +275,45 @@ def explained_by_identity(source: np.ndarray, registered: np.ndarray, supported:
     h = max(decision.spacing_m, 1e-9)
     noise = max(decision.noise, 1e-6)
 
-    def fit(pos: np.ndarray, rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        smoothed, _, j = target.colour_at(pos, h)
-        near = j[:, 0]
-        across = np.abs(((pos - centre[near]) * normal[near]).sum(axis=1))
-        return ((rgb - smoothed) ** 2).sum(axis=1) / noise**2, across
+    rim = target.rim if target.rim is not None else np.zeros(len(target.xyz), bool)
 
-    colour1, across1 = fit(registered[have], source_rgb[have])
-    spread = max(1.4826 * float(np.median(across1)), 1e-9)
-    gain = np.zeros(len(have))  # > 0: the motion fits better
+    def fit(pos: np.ndarray, rgb: np.ndarray) -> tuple[np.ndarray, ...]:
+        """Colour and across-plane misfits at pos, and whether its nearest target point is
+        on the target's rim."""
+        smoothed, _, j = target.colour_at(pos, h)
+        return (((rgb - smoothed) ** 2).sum(axis=1) / noise**2, across(pos, j[:, 0]),
+                rim[j[:, 0]])
+
+    def across(pos: np.ndarray, near: np.ndarray) -> np.ndarray:
+        return np.abs(((pos - centre[near]) * normal[near]).sum(axis=1))
+
     # where a point does not move both misfits are the same and not moving changes nothing:
-    # only the moving ones are sought and tested
+    # only the moving ones are sought and tested (the others count in the spread alone)
     moving = np.flatnonzero(np.any(registered[have] != source[have], axis=1))
     if len(moving) == 0:
         return still
-    colour0, across0 = fit(source[have[moving]], source_rgb[have[moving]])
-    gain[moving] = (colour0 + (across0 / spread) ** 2 - colour1[moving]
+    resting = np.setdiff1d(np.arange(len(have)), moving, assume_unique=True)
+    across1 = np.empty(len(have))
+    colour1, across1[moving], rim1 = fit(registered[have[moving]], source_rgb[have[moving]])
+    if len(resting):
+        pos = registered[have[resting]]
+        across1[resting] = across(pos, target.tree.query(pos, k=1)[1])
+    spread = max(1.4826 * float(np.median(across1)), 1e-9)
+    gain = np.zeros(len(have))  # > 0: the motion fits better
+    colour0, across0, rim0 = fit(source[have[moving]], source_rgb[have[moving]])
+    gain[moving] = (colour0 + (across0 / spread) ** 2 - colour1
                     - (across1[moving] / spread) ** 2)
+    # at the target's rim the misfits favour the motion whatever the truth (past the rim the
+    # colour is smoothed over one side and the plane is fitted on one side): a point whose
+    # position either way has its nearest target point on the rim tells nothing, and its
+    # neighbours decide for it; with none that tells, it keeps its motion
+    seen = np.ones(len(have))
+    seen[moving] = ~(rim0 | rim1)
     k = min(IDENTITY_NEIGHBOURS, len(have))
     nb = cKDTree(source[have]).query(source[have[moving]], k=k)[1].reshape(len(moving), k)
-    still[have[moving]] = gain[nb].mean(axis=1) <= IDENTITY_MARGIN
+    count = seen[nb].sum(axis=1)
+    mean_gain = (gain * seen)[nb].sum(axis=1) / np.maximum(count, 1.0)
+    still[have[moving]] = (count > 0) & (mean_gain <= IDENTITY_MARGIN)
     return still
 
 
