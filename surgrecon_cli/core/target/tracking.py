@@ -303,17 +303,21 @@ def retrack_from_neighbours(prev: TrackingView, cur: TrackingView, start: np.nda
     again (full pyramid, same checks) from their guess (M, 2) moved by the
     `neighbour_flow` of the found tracks' departures from their guesses, around their start
     pixels (M, 2); NEIGHBOUR_ROUNDS rounds, so a patch of tissue that moved far from the
-    prediction is reached from its rim inwards."""
+    prediction is reached from its rim inwards. A later round tracks again only the points
+    whose predicted flow changed (KLT from the same guess fails the same way)."""
     tracked, ok = found[0].copy(), found[1].copy()
+    tried = np.full((len(start), 2), np.nan)  # the flow each lost point was last tried with
     for _ in range(NEIGHBOUR_ROUNDS):
         lost = np.flatnonzero(~ok)
         if not len(lost) or not ok.any():
             break
         flow = neighbour_flow(start[ok], tracked[ok] - guess[ok], start[lost])
         lost_flow = np.isfinite(flow).all(1) & (np.linalg.norm(flow, axis=1) > 1.0)
+        lost_flow &= ~(flow == tried[lost]).all(1)
         lost, flow = lost[lost_flow], flow[lost_flow]
         if not len(lost):
             break
+        tried[lost] = flow
         again, again_ok = klt_track(prev, cur, start[lost], guess[lost] + flow, cfg)
         small = np.flatnonzero(~again_ok)
         if len(small):  # a deformed patch: a smaller window sees less of the deformation
