@@ -47,7 +47,7 @@ from scipy.spatial import cKDTree
 from ...config import TargetConfig
 from ..geometry.cameras import CameraModel, in_image, project, undistort_pixels
 from ..geometry.poses import invert_pose
-from ..geometry.tool import ray_segment_distance, tool_capsules, tool_pixel_mask
+from ..geometry.tool import tool_pixel_mask
 from ..noise.model import localisation_variance_px2
 from .frame_inputs import FrameInput, Rig, Sighting
 from .reacquire import descriptor_motion
@@ -243,28 +243,6 @@ def _scene(latest: np.ndarray, pixels: np.ndarray, found: np.ndarray, model: Cam
     return scene_motion(latest[fit], pixels[fit], model, pose)
 
 
-def behind_tools(points: np.ndarray, frame: FrameInput, rig: Rig, c: int) -> np.ndarray:
-    """(N,) bool: points (N, 3) m whose line of sight from camera c of `frame` passes
-    through a tool's capsule (its radius, without the image mask's margin): hidden, not
-    tracked (KLT on the tool's image fails after its full-depth and neighbour retries, the
-    costliest tracks of a frame; a track found there is masked out after tracking anyway,
-    with the margin)."""
-    out = np.zeros(len(points), bool)
-    tools = frame.tool_pose if frame.camera_tool_pose is None else frame.camera_tool_pose[c]
-    capsules = tool_capsules(tools, rig.tools)
-    origin = frame.poses[c][:3, 3]
-    fin = np.isfinite(points).all(1)
-    if not capsules or not np.isfinite(origin).all() or not fin.any():
-        return out
-    rays = points[fin] - origin
-    dirs = rays / np.maximum(np.linalg.norm(rays, axis=1, keepdims=True), 1e-12)
-    hit = np.zeros(len(dirs), bool)
-    for a, b, radius in capsules:
-        hit |= ray_segment_distance(origin, dirs, a, b)[0] <= radius
-    out[fin] = hit
-    return out
-
-
 def find_points(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig,
                 anchor_views: list[TrackingView | None] | None = None,
                 anchor_pixels: np.ndarray | None = None):
@@ -296,20 +274,16 @@ def find_points(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig,
         cur, prev = frame.views[c], base.views[c]
         if cur is None or prev is None:
             continue
-        motion = np.eye(4) if predicted is None else predicted[0]
-        hidden = behind_tools(latest @ motion[:3, :3].T + motion[:3, 3], frame, rig, c)
-        seen = np.where(hidden[:, None], np.nan, latest)  # the hidden ones are not tracked
-        px, ok = _chain(seen, base, frame, rig, c, predicted)
+        px, ok = _chain(latest, base, frame, rig, c, predicted)
         chain_ok = ok.copy()
         if predicted is None:  # the first camera whose tracks show it
             predicted = _scene(latest, px, ok, models[c], cur_poses[c])
         if direct is not None:  # lost on the way through the previous frame: tracked directly
-            back, back_ok = _direct(seen, direct, frame, rig, c, (~ok & ~hidden, predicted))
+            back, back_ok = _direct(latest, direct, frame, rig, c, (~ok, predicted))
             px[back_ok], ok[back_ok] = back[back_ok], True
         anchor = None if anchor_views is None else anchor_views[c]
         if anchor is not None and anchor_pixels is not None:
-            px, ok = _anchor(anchor, cur, np.where(hidden[:, None], np.nan, anchor_pixels[:, c]),
-                             px, models[c], cfg)
+            px, ok = _anchor(anchor, cur, anchor_pixels[:, c], px, models[c], cfg)
         rows = np.flatnonzero(ok)
         keep = in_image(px[rows], models[c], 2.0)
         tools = frame.tool_pose if frame.camera_tool_pose is None else frame.camera_tool_pose[c]
