@@ -254,11 +254,12 @@ def patch_ncc(image_a: np.ndarray, pixels_a: np.ndarray, image_b: np.ndarray,
         px = pixels.astype(np.float32)
         map_x = (px[:, 0, None, None] + offsets[None, None, :]).repeat(size, 1)
         map_y = (px[:, 1, None, None] + offsets[None, :, None]).repeat(size, 2)
-        flat_x = map_x.reshape(-1, size)
-        flat_y = map_y.reshape(-1, size)
-        out = cv2.remap(np.asarray(image, np.float32), flat_x, flat_y, cv2.INTER_LINEAR,
+        # one row of the maps per patch: remap's cost goes by rows (half that of a row
+        # per patch row)
+        out = cv2.remap(np.asarray(image, np.float32), map_x.reshape(-1, size * size),
+                        map_y.reshape(-1, size * size), cv2.INTER_LINEAR,
                         borderMode=cv2.BORDER_REPLICATE)
-        p = out.reshape(len(pixels), size * size).astype(np.float64)
+        p = out.astype(np.float64)
         return p - p.mean(1, keepdims=True)
 
     a, b = patches(image_a, pixels_a), patches(image_b, pixels_b)
