@@ -28,12 +28,13 @@ Per camera:
 A frame whose previous frame is not its base (re-basing every N_T >= 2 frames) is chained
 through the previous frame's images (base -> previous -> frame, `_via`: the previous
 frame's chained pixels are held in `Rig.chains` when this process tracked it, else tracked
-again), with the points lost on the way tracked directly from the base (`_direct`: those
-points alone, with their found neighbours for the neighbour retries): one frame's step of
-tissue pressed by a tool. Points lost in the chain are tracked again from their guess moved
-by the median departure of the tracks found around them (core/target/tracking.
-neighbour_flow), and the anchor step's guesses are moved the same way by the chained tracks
-around them.
+again), with the points lost on the way tracked directly from the base (`_direct_camera`:
+every point in the first camera, for the scene's motion, then those points alone with the
+points their neighbour retries look at; the same tracks as tracking every point directly):
+one frame's step of tissue pressed by a tool. Points lost in the chain are tracked again
+from their guess moved by the median departure of the tracks found around them
+(core/target/tracking.neighbour_flow), and the anchor step's guesses are moved the same way
+by the chained tracks around them.
 """
 
 from __future__ import annotations
@@ -53,7 +54,7 @@ from .frame_inputs import FrameInput, Rig, Sighting
 from .reacquire import descriptor_motion
 from .tracking import (
     NEIGHBOUR_RADIUS_PX,
-    NEIGHBOUR_TRACKS,
+    NEIGHBOUR_ROUNDS,
     TrackingView,
     TrackPrior,
     apply_motion,
@@ -118,19 +119,10 @@ def scene_motion(latest: np.ndarray, pixels: np.ndarray, model: CameraModel,
     return motion, float(np.percentile(error, 95))
 
 
-def _chain(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig, c: int,
-           predicted: tuple[np.ndarray, float] | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Step 1 for camera c: pixels (N, 2) (NaN = not found) and found (N,). `predicted`:
-    the scene's motion measured in another camera (`scene_motion`) and its residual px:
-    the guesses are the latest positions moved by it, without pilot tracks."""
-    prev, cur, prev_pose, cur_pose = base.views[c], frame.views[c], base.poses[c], frame.poses[c]
-    assert prev is not None and cur is not None  # find_points skips unusable cameras
-    model, cfg, n = rig.models[c], rig.cfg, len(latest)
-    guess, visible = visible_points(latest, model, cur_pose, cfg.occlusion_depth_m)
-    if predicted is not None:
-        motion = predicted[0]
-        guess = project(latest @ motion[:3, :3].T + motion[:3, 3], cur_pose, model)[0]
-        visible &= np.isfinite(guess).all(1) & in_image(np.nan_to_num(guess, nan=-1e9), model)
+def _starts(latest: np.ndarray, base: Sighting, model: CameraModel, c: int) -> np.ndarray:
+    """Where the points (N, 3) m at `latest` start in the base's image of camera c (N, 2)
+    px (NaN: not tracked): where they were found there, else, for a point another camera
+    found, its position projected there."""
     start = base.pixels[:, c].copy()
     # A point seen by no camera of the base frame has only the registration's extrapolated
     # position there: projected into the previous image, a stale one (a point back from
@@ -138,8 +130,25 @@ def _chain(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig, c: i
     # then tracks consistently in every camera (measured on SurgT turned 2°/frame: 5-10 %
     # of the points 40 px off for good). Those are re-acquired from the template (_anchor).
     missing = ~np.isfinite(start).all(1) & np.isfinite(base.pixels).all(2).any(1)
-    if missing.any() and np.isfinite(prev_pose).all():
-        start[missing] = project(latest[missing], prev_pose, model)[0]
+    if missing.any() and np.isfinite(base.poses[c]).all():
+        start[missing] = project(latest[missing], base.poses[c], model)[0]
+    return start
+
+
+def _chain(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig, c: int,
+           predicted: tuple[np.ndarray, float] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Step 1 for camera c: pixels (N, 2) (NaN = not found) and found (N,). `predicted`:
+    the scene's motion measured in another camera (`scene_motion`) and its residual px:
+    the guesses are the latest positions moved by it, without pilot tracks."""
+    prev, cur, cur_pose = base.views[c], frame.views[c], frame.poses[c]
+    assert prev is not None and cur is not None  # find_points skips unusable cameras
+    model, cfg, n = rig.models[c], rig.cfg, len(latest)
+    guess, visible = visible_points(latest, model, cur_pose, cfg.occlusion_depth_m)
+    if predicted is not None:
+        motion = predicted[0]
+        guess = project(latest @ motion[:3, :3].T + motion[:3, 3], cur_pose, model)[0]
+        visible &= np.isfinite(guess).all(1) & in_image(np.nan_to_num(guess, nan=-1e9), model)
+    start = _starts(latest, base, model, c)
     visible &= np.isfinite(start).all(1) & in_image(start, model, KLT_BORDER_PX)
     idx = np.flatnonzero(visible)
     # Two priors, piloted: the latest position projected with the current pose (the poses
@@ -211,29 +220,57 @@ def _direct(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig, c: 
             lost: tuple[np.ndarray, tuple[np.ndarray, float] | None]
             ) -> tuple[np.ndarray, np.ndarray]:
     """`_chain` from the base straight into `frame` for camera c, of the points lost
-    (N,) bool on the way through the previous frame and, for their neighbour retries
-    (core/target/tracking.retrack_from_neighbours), the NEIGHBOUR_TRACKS found nearest
-    each within NEIGHBOUR_RADIUS_PX in the base image; guided by the scene's motion
-    (lost[1], `scene_motion`; None: piloted). Pixels (N, 2) of the lost points (NaN = not
-    found), found (N,). (Every point tracked directly costs a second chain: 0.1 s of a
-    5-camera 640x512 frame.)"""
+    (N,) bool on the way through the previous frame and every point within
+    NEIGHBOUR_ROUNDS x NEIGHBOUR_RADIUS_PX of one in the base image: each round of
+    neighbour retries (core/target/tracking.retrack_from_neighbours) looks at the tracks
+    within NEIGHBOUR_RADIUS_PX, whose own retries looked as far again, so the lost points'
+    tracks are those of tracking every point (KLT tracks each point alone). Guided by the
+    scene's motion (lost[1], `scene_motion`; None: piloted). Pixels (N, 2) of the lost
+    points (NaN = not found), found (N,). (Every point tracked directly cost a second
+    chain: ~0.1 s of a 5-camera 640x512 frame.)"""
     rows, predicted = lost
-    start = base.pixels[:, c]
+    start = _starts(latest, base, rig.models[c], c)
     has = np.isfinite(start).all(1)
     source, query = np.flatnonzero(~rows & has), np.flatnonzero(rows & has)
     if not len(query):
         return np.full((len(rows), 2), np.nan), np.zeros(len(rows), bool)
     tracked = rows.copy()
-    if len(source):
-        k = min(NEIGHBOUR_TRACKS, len(source))
-        dist, idx = cKDTree(start[source]).query(start[query], k=k,
-                                                 distance_upper_bound=NEIGHBOUR_RADIUS_PX)
-        near = np.isfinite(dist.reshape(len(query), k))
-        tracked[source[idx.reshape(len(query), k)[near]]] = True
+    if len(source):  # every point within the neighbour retries' reach of a lost one
+        reach = NEIGHBOUR_ROUNDS * NEIGHBOUR_RADIUS_PX  # (a neighbour's own retries too)
+        near = cKDTree(start[query]).query(start[source], k=1, distance_upper_bound=reach)[0]
+        tracked[source[np.isfinite(near)]] = True
     only = Sighting(base.views, base.poses,
                     np.where(tracked[:, None, None], base.pixels, np.nan))
     pixels, found = _chain(latest, only, replace(frame, previous=None), rig, c, predicted)
     return np.where(rows[:, None], pixels, np.nan), found & rows
+
+
+def _direct_camera(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig, c: int,
+                   lost: tuple[np.ndarray, tuple[np.ndarray, float] | None]
+                   ) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, float] | None]:
+    """The points lost (lost[0], (N,) bool) on the way through the previous frame, tracked
+    from the base straight into camera c: pixels (N, 2) (NaN = not found, or masked:
+    `_unmasked`), found (N,) and the scene's motion these straight tracks show. Until that
+    motion is known (lost[1] None: the first camera), every point is tracked, piloted, and
+    the motion measured on them (`_scene`); then only the lost ones (`_direct`), guided by
+    it: the tracks, guesses and neighbour flows of tracking every point straight."""
+    rows, straight = lost
+    if straight is None:
+        pixels, found = _chain(latest, base, replace(frame, previous=None), rig, c)
+        straight = _scene(latest, pixels, found, rig.models[c], frame.poses[c])
+        found &= rows
+    else:
+        pixels, found = _direct(latest, base, frame, rig, c, (rows, straight))
+    idx = np.flatnonzero(found)
+    found[idx] = _unmasked(pixels[idx], frame, rig, c)
+    return np.where(found[:, None], pixels, np.nan), found, straight
+
+
+def _unmasked(pixels: np.ndarray, frame: FrameInput, rig: Rig, c: int) -> np.ndarray:
+    """(M,) bool: pixels (M, 2) of camera c inside its image (2 px in) and off the tools."""
+    tools = frame.tool_pose if frame.camera_tool_pose is None else frame.camera_tool_pose[c]
+    return in_image(pixels, rig.models[c], 2.0) & ~tool_pixel_mask(
+        pixels, rig.models[c], frame.poses[c], tools, rig.tools)
 
 
 def _scene(latest: np.ndarray, pixels: np.ndarray, found: np.ndarray, model: CameraModel,
@@ -269,26 +306,24 @@ def find_points(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig,
     found = np.zeros((n, n_cams), bool)
     localisation = np.full((n, n_cams), np.inf)
     chained = np.full((n, n_cams, 2), np.nan)  # by the chain alone (for rig.chains)
-    predicted = None
+    predicted = straight = None  # the scene's motion the chain's / the direct tracks show
     for c in range(n_cams):
         cur, prev = frame.views[c], base.views[c]
         if cur is None or prev is None:
             continue
         px, ok = _chain(latest, base, frame, rig, c, predicted)
         chain_ok = ok.copy()
+        if direct is not None:  # lost on the way through the previous frame: tracked directly
+            back, back_ok, straight = _direct_camera(latest, direct, frame, rig, c,
+                                                     (~ok, straight))
+            px[back_ok], ok[back_ok] = back[back_ok], True
         if predicted is None:  # the first camera whose tracks show it
             predicted = _scene(latest, px, ok, models[c], cur_poses[c])
-        if direct is not None:  # lost on the way through the previous frame: tracked directly
-            back, back_ok = _direct(latest, direct, frame, rig, c, (~ok, predicted))
-            px[back_ok], ok[back_ok] = back[back_ok], True
         anchor = None if anchor_views is None else anchor_views[c]
         if anchor is not None and anchor_pixels is not None:
             px, ok = _anchor(anchor, cur, anchor_pixels[:, c], px, models[c], cfg)
         rows = np.flatnonzero(ok)
-        keep = in_image(px[rows], models[c], 2.0)
-        tools = frame.tool_pose if frame.camera_tool_pose is None else frame.camera_tool_pose[c]
-        keep &= ~tool_pixel_mask(px[rows], models[c], cur_poses[c], tools, rig.tools)
-        rows = rows[keep]
+        rows = rows[_unmasked(px[rows], frame, rig, c)]
         pixels[rows, c] = px[rows]
         found[rows, c] = True
         localisation[rows, c] = localisation_variance_px2(
