@@ -139,6 +139,8 @@ def klt_crops(start: np.ndarray, guess: np.ndarray, shape: tuple[int, ...], leve
     the 1280x1024 simulator, 2-4 of ~1,300 converged tracks differ, by at most 0.04 px; so
     crops are used only where they spare a large image's pyramids.)"""
     h, w = shape[:2]
+    if w * h < CROP_SAVES_PX:  # nothing to spare
+        return None
     step = 2**levels
     margin = (window + 1) * step
     lo = np.minimum(np.floor(np.vstack([start.min(0), guess.min(0)]) - margin), [w, h])
