@@ -140,9 +140,21 @@ def _chain(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig, c: i
     """Step 1 for camera c: pixels (N, 2) (NaN = not found) and found (N,). `predicted`:
     the scene's motion measured in another camera (`scene_motion`) and its residual px:
     the guesses are the latest positions moved by it, without pilot tracks."""
-    prev, cur, cur_pose = base.views[c], frame.views[c], frame.poses[c]
+    idx, start, prior = _chain_inputs(latest, base, frame, rig, c, predicted)
+    prev, cur = base.views[c], frame.views[c]
     assert prev is not None and cur is not None  # find_points skips unusable cameras
-    model, cfg, n = rig.models[c], rig.cfg, len(latest)
+    tracked, ok, _ = track_adaptive(prev, cur, start, prior, rig.cfg)
+    pixels = np.full((len(latest), 2), np.nan)
+    pixels[idx[ok]] = tracked[ok]
+    return pixels, np.isfinite(pixels).all(1)
+
+
+def _chain_inputs(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig, c: int,
+                  predicted: tuple[np.ndarray, float] | None
+                  ) -> tuple[np.ndarray, np.ndarray, TrackPrior]:
+    """What `_chain` tracks in camera c: the rows (K,) of the points, their start pixels
+    (K, 2) in the base image and their prior."""
+    cur_pose, model, cfg = frame.poses[c], rig.models[c], rig.cfg
     guess, visible = visible_points(latest, model, cur_pose, cfg.occlusion_depth_m)
     if predicted is not None:
         motion = predicted[0]
@@ -158,10 +170,7 @@ def _chain(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig, c: i
         prior = TrackPrior(guess[idx], 2.0 * max(predicted[1], 1.0))
     else:
         prior = TrackPrior(guess[idx], alternative=start[idx])
-    tracked, ok, _ = track_adaptive(prev, cur, start[idx], prior, cfg)
-    pixels = np.full((n, 2), np.nan)
-    pixels[idx[ok]] = tracked[ok]
-    return pixels, np.isfinite(pixels).all(1)
+    return idx, start[idx], prior
 
 
 def _anchor(anchor: TrackingView, cur: TrackingView, anchor_pixels: np.ndarray,
@@ -219,30 +228,48 @@ def _via(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig) -> Sig
 def _direct(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig, c: int,
             lost: tuple[np.ndarray, tuple[np.ndarray, float] | None]
             ) -> tuple[np.ndarray, np.ndarray]:
-    """`_chain` from the base straight into `frame` for camera c, of the points lost
-    (N,) bool on the way through the previous frame and every point within
-    NEIGHBOUR_ROUNDS x NEIGHBOUR_RADIUS_PX of one in the base image: each round of
-    neighbour retries (core/target/tracking.retrack_from_neighbours) looks at the tracks
-    within NEIGHBOUR_RADIUS_PX, whose own retries looked as far again, so the lost points'
-    tracks are those of tracking every point (KLT tracks each point alone). Guided by the
-    scene's motion (lost[1], `scene_motion`; None: piloted). Pixels (N, 2) of the lost
-    points (NaN = not found), found (N,). (Every point tracked directly cost a second
-    chain: ~0.1 s of a 5-camera 640x512 frame.)"""
+    """`_chain` from the base straight into `frame` for camera c of the points lost (N,)
+    bool on the way through the previous frame, guided by the scene's motion (lost[1],
+    `scene_motion`; None: piloted), with the tracks of tracking every point: first the lost
+    points alone without neighbour retries (KLT tracks each point alone), then those that
+    failed again with every point within NEIGHBOUR_ROUNDS x NEIGHBOUR_RADIUS_PX of one in
+    the base image (each round of neighbour retries, core/target/tracking.
+    retrack_from_neighbours, looks at the tracks within NEIGHBOUR_RADIUS_PX, whose own
+    retries looked as far again). Pixels (N, 2) of the lost points (NaN = not found),
+    found (N,). (Every point tracked directly cost a second chain: ~0.1 s of a 5-camera
+    640x512 frame.)"""
     rows, predicted = lost
-    start = _starts(latest, base, rig.models[c], c)
-    has = np.isfinite(start).all(1)
-    source, query = np.flatnonzero(~rows & has), np.flatnonzero(rows & has)
-    if not len(query):
-        return np.full((len(rows), 2), np.nan), np.zeros(len(rows), bool)
-    tracked = rows.copy()
-    if len(source):  # every point within the neighbour retries' reach of a lost one
-        reach = NEIGHBOUR_ROUNDS * NEIGHBOUR_RADIUS_PX  # (a neighbour's own retries too)
-        near = cKDTree(start[query]).query(start[source], k=1, distance_upper_bound=reach)[0]
-        tracked[source[np.isfinite(near)]] = True
-    only = Sighting(base.views, base.poses,
-                    np.where(tracked[:, None, None], base.pixels, np.nan))
-    pixels, found = _chain(latest, only, replace(frame, previous=None), rig, c, predicted)
-    return np.where(rows[:, None], pixels, np.nan), found & rows
+    pixels, tried = _straight(latest, base, frame, rig, c, (rows, predicted, False))
+    failed = tried & ~np.isfinite(pixels).all(1)
+    if failed.any():
+        start = _starts(latest, base, rig.models[c], c)
+        has = np.flatnonzero(np.isfinite(start).all(1))
+        reach = NEIGHBOUR_ROUNDS * NEIGHBOUR_RADIUS_PX
+        near = cKDTree(start[failed]).query(start[has], k=1, distance_upper_bound=reach)[0]
+        around = failed.copy()
+        around[has[np.isfinite(near)]] = True
+        again, _ = _straight(latest, base, frame, rig, c, (around, predicted, True))
+        pixels[failed] = again[failed]
+    pixels = np.where(rows[:, None], pixels, np.nan)
+    return pixels, np.isfinite(pixels).all(1)
+
+
+def _straight(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig, c: int,
+              subset: tuple[np.ndarray, tuple[np.ndarray, float] | None, bool]
+              ) -> tuple[np.ndarray, np.ndarray]:
+    """`_chain` from the base straight into `frame` for camera c of the points subset[0]
+    (N,) bool, guided by subset[1], with neighbour retries if subset[2]: pixels (N, 2)
+    (NaN = not found) and which points were tracked (N,) bool."""
+    rows, predicted, retry = subset
+    only = Sighting(base.views, base.poses, np.where(rows[:, None, None], base.pixels, np.nan))
+    idx, start, prior = _chain_inputs(latest, only, replace(frame, previous=None), rig, c,
+                                      predicted)
+    prev, cur = base.views[c], frame.views[c]
+    assert prev is not None and cur is not None
+    tracked, ok, _ = track_adaptive(prev, cur, start, prior, rig.cfg, retry)
+    pixels = np.full((len(latest), 2), np.nan)
+    pixels[idx[ok]] = tracked[ok]
+    return pixels, np.isin(np.arange(len(latest)), idx)
 
 
 def _direct_camera(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig, c: int,

@@ -252,7 +252,7 @@ class TrackPrior:
 
 
 def track_adaptive(prev: TrackingView, cur: TrackingView, start: np.ndarray,
-                   prior: TrackPrior, cfg: TargetConfig
+                   prior: TrackPrior, cfg: TargetConfig, retry: bool = True
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """`klt_track` from `start` (M, 2) px with `prior`'s guesses, the pyramid depth chosen
     for its expected motion `motion_px` px (`klt_levels_for`), and a safe fallback: the
@@ -264,7 +264,8 @@ def track_adaptive(prev: TrackingView, cur: TrackingView, start: np.ndarray,
     the poses saying so), and the motion left is the expected one (`expected_motion_px`).
     `alternative` (M, 2): other guesses (e.g. no motion, where `guess` comes from the
     poses), piloted too unless `guess`'s pilots track PILOT_ENOUGH of their points; the one
-    whose pilot tracks more points is used. Returns tracked (M, 2), ok (M,) and each track's
+    whose pilot tracks more points is used. `retry`: the failed tracks get their neighbour
+    retries (`retrack_from_neighbours`). Returns tracked (M, 2), ok (M,) and each track's
     distance from its (corrected) guess (M,) px (NaN where not ok)."""
     guess, motion_px, alternative = prior.guess, prior.motion_px, prior.alternative
     full = cfg.klt_levels
@@ -288,7 +289,8 @@ def track_adaptive(prev: TrackingView, cur: TrackingView, start: np.ndarray,
     if len(again):
         tracked[again], ok[again] = klt_track(prev, cur, start[again], guess[again], cfg, full)
         moved[again] = np.linalg.norm(tracked[again] - guess[again], axis=1)
-    tracked, ok = retrack_from_neighbours(prev, cur, start, guess, (tracked, ok), cfg)
+    if retry:
+        tracked, ok = retrack_from_neighbours(prev, cur, start, guess, (tracked, ok), cfg)
     moved = np.linalg.norm(tracked - guess, axis=1)
     return tracked, ok, np.where(ok, moved, np.nan)
 
