@@ -23,10 +23,19 @@ from surgrecon_cli.core.target.frame_inputs import (
     Sighting,
     TemplateData,
 )
-from surgrecon_cli.core.target.track_points import find_points, scene_motion, visible_points
+from surgrecon_cli.core.target.track_points import (
+    _chain,
+    _direct_camera,
+    _unmasked,
+    find_points,
+    scene_motion,
+    visible_points,
+)
 from surgrecon_cli.core.target.tracking import (
     NEIGHBOUR_RADIUS_PX,
     NEIGHBOUR_TRACKS,
+    TrackingView,
+    klt_crops,
     klt_track,
     neighbour_flow,
     specular_mask,
@@ -223,6 +232,33 @@ def test_tissue_pressed_by_the_tool_is_tracked_through_the_previous_frame(press)
     assert np.median(rest["via"]) < 1.2 * np.median(rest["direct"]) + 0.1
 
 
+def test_points_lost_on_the_way_are_tracked_straight_as_among_every_point(press):
+    # A frame chained through its previous one tracks straight from the base only the
+    # points the chain lost (and those their neighbour retries look at): per camera the
+    # same tracks as tracking every point straight (KLT tracks each point alone), here on
+    # the pressed tissue, where the neighbour retries move the guesses.
+    scene, cfg, points, views = press
+    start = np.stack([project(scene.vertices[0][points], scene.true_poses[0, c], m)[0]
+                      for c, m in enumerate(scene.models)], 1)
+    latest = scene.vertices[0][points]
+    base = Sighting(views[0], scene.poses[0], start)
+    frame = FrameInput(4, views[2], scene.poses[2], scene.tool_poses[2])
+    rig = _rig(scene, cfg)
+    moved = scene.vertices[2][points] - scene.vertices[0][points]
+    lost = np.linalg.norm(moved - np.median(moved, 0), axis=1) > 1e-3  # the dent ...
+    lost[::9] = True  # ... and points spread over the view
+    _, every_found, motion = _direct_camera(latest, base, frame, rig, 0, (lost, None))
+    assert motion is not None and every_found.sum() > 0.5 * lost.sum()
+    for c in range(1, len(scene.models)):
+        pixels, found, _ = _direct_camera(latest, base, frame, rig, c, (lost, motion))
+        reference, ref_found = _chain(latest, base, frame, rig, c, motion)
+        ref_found &= lost
+        ref_found[ref_found] = _unmasked(reference[ref_found], frame, rig, c)
+        assert found.sum() > 0.5 * lost.sum()
+        assert np.array_equal(found, ref_found)
+        assert np.array_equal(pixels[found], reference[found])
+
+
 def test_a_frame_chained_through_its_previous_frame_starts_from_the_held_chain(sweep):
     # Base frame 0 -> previous 2 -> frame 4 (rendered 0, 2, 4): the previous frame, tracked
     # first, leaves its chained pixels in the memo; the frame then finds the same pixels as
@@ -269,3 +305,36 @@ def test_neighbour_flow_is_the_median_flow_of_the_nearest_tracks_in_reach():
                              if np.isfinite(values[:, j]).any() else np.nan
                              for j in range(2)])
         np.testing.assert_allclose(got[q], expected, atol=1e-12)
+
+
+def test_klt_on_crops_of_a_large_image_follows_a_known_shift():
+    # A 1280x1024 texture shifted by a known sub-pixel amount: a cluster of points is
+    # tracked on crops of both images (a fraction of them), to the shift and to where the
+    # whole images take it; a 640x512 image is not cropped (too little to spare).
+    rng = np.random.default_rng(5)
+    texture = cv2.GaussianBlur(rng.uniform(0, 255, (1024, 1280)).astype(np.float32), (0, 0), 2)
+    texture = np.clip(128 + 40 * (texture - texture.mean()) / texture.std(), 0, 255)
+    shift = np.array([3.3, -2.6])
+    moved = cv2.warpAffine(texture, np.float32([[1, 0, shift[0]], [0, 1, shift[1]]]),
+                           (1280, 1024), flags=cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
+
+    def view(image: np.ndarray) -> TrackingView:
+        grey = np.round(image).astype(np.uint8)
+        return TrackingView(grey, grey.astype(np.float32), 1.0, np.zeros(grey.shape, bool))
+
+    prev, cur = view(texture), view(moved)
+    start = np.array([900.0, 300.0]) + rng.uniform(-30, 30, (20, 2))
+    guess = start + shift + [0.8, -0.5]
+    cfg = Config().target
+    assert klt_crops(start, guess, prev.grey.shape, 3, cfg.klt_window_px) is not None
+    assert klt_crops(start / 2, guess / 2, (512, 640), 3, cfg.klt_window_px) is None
+    tracked, ok = klt_track(prev, cur, start, guess, cfg, levels=3)
+    assert ok.all()
+    assert np.abs(tracked - (start + shift)).max() < 0.15  # KLT on 8-bit images
+    whole, status, _ = cv2.calcOpticalFlowPyrLK(
+        prev.grey, cur.grey, start.astype(np.float32).reshape(-1, 1, 2),
+        guess.astype(np.float32).reshape(-1, 1, 2), winSize=(cfg.klt_window_px,) * 2,
+        maxLevel=3, flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+        criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01))
+    assert (status == 1).all()
+    assert np.abs(tracked - whole.reshape(-1, 2)).max() < 0.02

@@ -28,11 +28,13 @@ Per camera:
 A frame whose previous frame is not its base (re-basing every N_T >= 2 frames) is chained
 through the previous frame's images (base -> previous -> frame, `_via`: the previous
 frame's chained pixels are held in `Rig.chains` when this process tracked it, else tracked
-again), with the points lost on the way tracked directly from the base: one frame's step of
-tissue pressed by a tool. Points lost in the chain are tracked again from their guess moved
-by the median departure of the tracks found around them (core/target/tracking.
-neighbour_flow), and the anchor step's guesses are moved the same way by the chained tracks
-around them.
+again), with the points lost on the way tracked directly from the base (`_direct_camera`:
+every point in the first camera, for the scene's motion, then those points alone with the
+points their neighbour retries look at; the same tracks as tracking every point directly):
+one frame's step of tissue pressed by a tool. Points lost in the chain are tracked again
+from their guess moved by the median departure of the tracks found around them
+(core/target/tracking.neighbour_flow), and the anchor step's guesses are moved the same way
+by the chained tracks around them.
 """
 
 from __future__ import annotations
@@ -41,6 +43,7 @@ from dataclasses import replace
 
 import cv2
 import numpy as np
+from scipy.spatial import cKDTree
 
 from ...config import TargetConfig
 from ..geometry.cameras import CameraModel, in_image, project, undistort_pixels
@@ -50,6 +53,8 @@ from ..noise.model import localisation_variance_px2
 from .frame_inputs import FrameInput, Rig, Sighting
 from .reacquire import descriptor_motion
 from .tracking import (
+    NEIGHBOUR_RADIUS_PX,
+    NEIGHBOUR_ROUNDS,
     TrackingView,
     TrackPrior,
     apply_motion,
@@ -114,19 +119,10 @@ def scene_motion(latest: np.ndarray, pixels: np.ndarray, model: CameraModel,
     return motion, float(np.percentile(error, 95))
 
 
-def _chain(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig, c: int,
-           predicted: tuple[np.ndarray, float] | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Step 1 for camera c: pixels (N, 2) (NaN = not found) and found (N,). `predicted`:
-    the scene's motion measured in another camera (`scene_motion`) and its residual px:
-    the guesses are the latest positions moved by it, without pilot tracks."""
-    prev, cur, prev_pose, cur_pose = base.views[c], frame.views[c], base.poses[c], frame.poses[c]
-    assert prev is not None and cur is not None  # find_points skips unusable cameras
-    model, cfg, n = rig.models[c], rig.cfg, len(latest)
-    guess, visible = visible_points(latest, model, cur_pose, cfg.occlusion_depth_m)
-    if predicted is not None:
-        motion = predicted[0]
-        guess = project(latest @ motion[:3, :3].T + motion[:3, 3], cur_pose, model)[0]
-        visible &= np.isfinite(guess).all(1) & in_image(np.nan_to_num(guess, nan=-1e9), model)
+def _starts(latest: np.ndarray, base: Sighting, model: CameraModel, c: int) -> np.ndarray:
+    """Where the points (N, 3) m at `latest` start in the base's image of camera c (N, 2)
+    px (NaN: not tracked): where they were found there, else, for a point another camera
+    found, its position projected there."""
     start = base.pixels[:, c].copy()
     # A point seen by no camera of the base frame has only the registration's extrapolated
     # position there: projected into the previous image, a stale one (a point back from
@@ -134,8 +130,37 @@ def _chain(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig, c: i
     # then tracks consistently in every camera (measured on SurgT turned 2°/frame: 5-10 %
     # of the points 40 px off for good). Those are re-acquired from the template (_anchor).
     missing = ~np.isfinite(start).all(1) & np.isfinite(base.pixels).all(2).any(1)
-    if missing.any() and np.isfinite(prev_pose).all():
-        start[missing] = project(latest[missing], prev_pose, model)[0]
+    if missing.any() and np.isfinite(base.poses[c]).all():
+        start[missing] = project(latest[missing], base.poses[c], model)[0]
+    return start
+
+
+def _chain(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig, c: int,
+           predicted: tuple[np.ndarray, float] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Step 1 for camera c: pixels (N, 2) (NaN = not found) and found (N,). `predicted`:
+    the scene's motion measured in another camera (`scene_motion`) and its residual px:
+    the guesses are the latest positions moved by it, without pilot tracks."""
+    idx, start, prior = _chain_inputs(latest, base, frame, rig, c, predicted)
+    prev, cur = base.views[c], frame.views[c]
+    assert prev is not None and cur is not None  # find_points skips unusable cameras
+    tracked, ok, _ = track_adaptive(prev, cur, start, prior, rig.cfg)
+    pixels = np.full((len(latest), 2), np.nan)
+    pixels[idx[ok]] = tracked[ok]
+    return pixels, np.isfinite(pixels).all(1)
+
+
+def _chain_inputs(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig, c: int,
+                  predicted: tuple[np.ndarray, float] | None
+                  ) -> tuple[np.ndarray, np.ndarray, TrackPrior]:
+    """What `_chain` tracks in camera c: the rows (K,) of the points, their start pixels
+    (K, 2) in the base image and their prior."""
+    cur_pose, model, cfg = frame.poses[c], rig.models[c], rig.cfg
+    guess, visible = visible_points(latest, model, cur_pose, cfg.occlusion_depth_m)
+    if predicted is not None:
+        motion = predicted[0]
+        guess = project(latest @ motion[:3, :3].T + motion[:3, 3], cur_pose, model)[0]
+        visible &= np.isfinite(guess).all(1) & in_image(np.nan_to_num(guess, nan=-1e9), model)
+    start = _starts(latest, base, model, c)
     visible &= np.isfinite(start).all(1) & in_image(start, model, KLT_BORDER_PX)
     idx = np.flatnonzero(visible)
     # Two priors, piloted: the latest position projected with the current pose (the poses
@@ -145,10 +170,7 @@ def _chain(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig, c: i
         prior = TrackPrior(guess[idx], 2.0 * max(predicted[1], 1.0))
     else:
         prior = TrackPrior(guess[idx], alternative=start[idx])
-    tracked, ok, _ = track_adaptive(prev, cur, start[idx], prior, cfg)
-    pixels = np.full((n, 2), np.nan)
-    pixels[idx[ok]] = tracked[ok]
-    return pixels, np.isfinite(pixels).all(1)
+    return idx, start[idx], prior
 
 
 def _anchor(anchor: TrackingView, cur: TrackingView, anchor_pixels: np.ndarray,
@@ -203,6 +225,88 @@ def _via(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig) -> Sig
     return Sighting(prev.views, prev.poses, held)
 
 
+def _direct(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig, c: int,
+            lost: tuple[np.ndarray, tuple[np.ndarray, float] | None]
+            ) -> tuple[np.ndarray, np.ndarray]:
+    """`_chain` from the base straight into `frame` for camera c of the points lost (N,)
+    bool on the way through the previous frame, guided by the scene's motion (lost[1],
+    `scene_motion`; None: piloted), with the tracks of tracking every point: first the lost
+    points alone without neighbour retries (KLT tracks each point alone), then those that
+    failed again with every point within NEIGHBOUR_ROUNDS x NEIGHBOUR_RADIUS_PX of one in
+    the base image (each round of neighbour retries, core/target/tracking.
+    retrack_from_neighbours, looks at the tracks within NEIGHBOUR_RADIUS_PX, whose own
+    retries looked as far again). Pixels (N, 2) of the lost points (NaN = not found),
+    found (N,). (Every point tracked directly cost a second chain: ~0.1 s of a 5-camera
+    640x512 frame.)"""
+    rows, predicted = lost
+    pixels, tried = _straight(latest, base, frame, rig, c, (rows, predicted, False))
+    failed = tried & ~np.isfinite(pixels).all(1)
+    if failed.any():
+        start = _starts(latest, base, rig.models[c], c)
+        has = np.flatnonzero(np.isfinite(start).all(1))
+        reach = NEIGHBOUR_ROUNDS * NEIGHBOUR_RADIUS_PX
+        near = cKDTree(start[failed]).query(start[has], k=1, distance_upper_bound=reach)[0]
+        around = failed.copy()
+        around[has[np.isfinite(near)]] = True
+        again, _ = _straight(latest, base, frame, rig, c, (around, predicted, True))
+        pixels[failed] = again[failed]
+    pixels = np.where(rows[:, None], pixels, np.nan)
+    return pixels, np.isfinite(pixels).all(1)
+
+
+def _straight(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig, c: int,
+              subset: tuple[np.ndarray, tuple[np.ndarray, float] | None, bool]
+              ) -> tuple[np.ndarray, np.ndarray]:
+    """`_chain` from the base straight into `frame` for camera c of the points subset[0]
+    (N,) bool, guided by subset[1], with neighbour retries if subset[2]: pixels (N, 2)
+    (NaN = not found) and which points were tracked (N,) bool."""
+    rows, predicted, retry = subset
+    only = Sighting(base.views, base.poses, np.where(rows[:, None, None], base.pixels, np.nan))
+    idx, start, prior = _chain_inputs(latest, only, replace(frame, previous=None), rig, c,
+                                      predicted)
+    prev, cur = base.views[c], frame.views[c]
+    assert prev is not None and cur is not None
+    tracked, ok, _ = track_adaptive(prev, cur, start, prior, rig.cfg, retry)
+    pixels = np.full((len(latest), 2), np.nan)
+    pixels[idx[ok]] = tracked[ok]
+    return pixels, np.isin(np.arange(len(latest)), idx)
+
+
+def _direct_camera(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig, c: int,
+                   lost: tuple[np.ndarray, tuple[np.ndarray, float] | None]
+                   ) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, float] | None]:
+    """The points lost (lost[0], (N,) bool) on the way through the previous frame, tracked
+    from the base straight into camera c: pixels (N, 2) (NaN = not found, or masked:
+    `_unmasked`), found (N,) and the scene's motion these straight tracks show. Until that
+    motion is known (lost[1] None: the first camera), every point is tracked, piloted, and
+    the motion measured on them (`_scene`); then only the lost ones (`_direct`), guided by
+    it: the tracks, guesses and neighbour flows of tracking every point straight."""
+    rows, straight = lost
+    if straight is None:
+        pixels, found = _chain(latest, base, replace(frame, previous=None), rig, c)
+        straight = _scene(latest, pixels, found, rig.models[c], frame.poses[c])
+        found &= rows
+    else:
+        pixels, found = _direct(latest, base, frame, rig, c, (rows, straight))
+    idx = np.flatnonzero(found)
+    found[idx] = _unmasked(pixels[idx], frame, rig, c)
+    return np.where(found[:, None], pixels, np.nan), found, straight
+
+
+def _unmasked(pixels: np.ndarray, frame: FrameInput, rig: Rig, c: int) -> np.ndarray:
+    """(M,) bool: pixels (M, 2) of camera c inside its image (2 px in) and off the tools."""
+    tools = frame.tool_pose if frame.camera_tool_pose is None else frame.camera_tool_pose[c]
+    return in_image(pixels, rig.models[c], 2.0) & ~tool_pixel_mask(
+        pixels, rig.models[c], frame.poses[c], tools, rig.tools)
+
+
+def _scene(latest: np.ndarray, pixels: np.ndarray, found: np.ndarray, model: CameraModel,
+           pose: np.ndarray) -> tuple[np.ndarray, float] | None:
+    """`scene_motion` of the found (N,) tracks at pixels (N, 2) of points at latest (N, 3)."""
+    fit = found & np.isfinite(latest).all(1)
+    return scene_motion(latest[fit], pixels[fit], model, pose)
+
+
 def find_points(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig,
                 anchor_views: list[TrackingView | None] | None = None,
                 anchor_pixels: np.ndarray | None = None):
@@ -221,17 +325,15 @@ def find_points(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig,
     turned 7° since the template, 5 % of the points found), to ORB matches."""
     models, cur_poses, cfg = rig.models, frame.poses, rig.cfg
     n, n_cams = len(latest), len(models)
-    direct = None  # chained through the previous frame: every point tracked from the base
-    if frame.previous is not None:  # (the lost ones alone: a few points a frame differ)
+    direct = None  # the base, where the frame is chained through its previous frame
+    if frame.previous is not None:
         via = _via(latest, base, frame, rig)
-        if via is not base:
-            direct = find_points(latest, base, replace(frame, previous=None), rig)[0]
-            base = via
+        direct, base = (base, via) if via is not base else (None, base)
     pixels = np.full((n, n_cams, 2), np.nan)
     found = np.zeros((n, n_cams), bool)
     localisation = np.full((n, n_cams), np.inf)
     chained = np.full((n, n_cams, 2), np.nan)  # by the chain alone (for rig.chains)
-    predicted = None
+    predicted = straight = None  # the scene's motion the chain's / the direct tracks show
     for c in range(n_cams):
         cur, prev = frame.views[c], base.views[c]
         if cur is None or prev is None:
@@ -239,19 +341,16 @@ def find_points(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig,
         px, ok = _chain(latest, base, frame, rig, c, predicted)
         chain_ok = ok.copy()
         if direct is not None:  # lost on the way through the previous frame: tracked directly
-            back = ~ok & np.isfinite(direct[:, c]).all(1)
-            px[back], ok[back] = direct[back, c], True
-        if predicted is None:
-            fit = ok & np.isfinite(latest).all(1)
-            predicted = scene_motion(latest[fit], px[fit], models[c], cur_poses[c])
+            back, back_ok, straight = _direct_camera(latest, direct, frame, rig, c,
+                                                     (~ok, straight))
+            px[back_ok], ok[back_ok] = back[back_ok], True
+        if predicted is None:  # the first camera whose tracks show it
+            predicted = _scene(latest, px, ok, models[c], cur_poses[c])
         anchor = None if anchor_views is None else anchor_views[c]
         if anchor is not None and anchor_pixels is not None:
             px, ok = _anchor(anchor, cur, anchor_pixels[:, c], px, models[c], cfg)
         rows = np.flatnonzero(ok)
-        keep = in_image(px[rows], models[c], 2.0)
-        tools = frame.tool_pose if frame.camera_tool_pose is None else frame.camera_tool_pose[c]
-        keep &= ~tool_pixel_mask(px[rows], models[c], cur_poses[c], tools, rig.tools)
-        rows = rows[keep]
+        rows = rows[_unmasked(px[rows], frame, rig, c)]
         pixels[rows, c] = px[rows]
         found[rows, c] = True
         localisation[rows, c] = localisation_variance_px2(
