@@ -146,8 +146,8 @@ def _quality(data: RunData, frames: FrameFigures, metrics: Metrics,
          _fmt_num(noise.get("pixel_px"), "px")),
         ("of which localisation (each camera's median residual taken out)",
          _fmt_num(noise.get("localisation_px"), "px")),
-        ("largest systematic offset of a camera's views (a calibration error: the median "
-         "residual)", _largest_offset(noise.get("calibration_offset_px") or {})),
+        ("largest systematic offset of a camera's views (the median residual: a calibration "
+         "error, or the frame-0 pose error of a camera on its own tracker)", _largest_offset(noise.get("calibration_offset_px") or {})),
         ("tracker position jitter (median over cameras)",
          _fmt_num(float(np.median(jitter)) if jitter else None, "mm")),
         ("tracker rotation jitter (median over cameras)",

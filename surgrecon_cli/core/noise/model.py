@@ -163,8 +163,9 @@ def calibration_offsets_px(residuals_px: np.ndarray, camera: np.ndarray,
     vectors (M, 2) (camera (M,) the camera of each). Localisation errors average out of the
     median; a calibration error does not: a stereo pair whose extrinsics are slightly off puts
     every match the same fraction of a pixel off its epipolar line (SurgT's rectified rows:
-    0.37 px at 1280×1024), which the triangulation leaves in its views' residuals. NaN rows
-    for cameras without residuals."""
+    0.37 px at 1280×1024), which the triangulation leaves in its views' residuals; so does the
+    frame-0 pose error of a camera on its own tracker. NaN rows for cameras without
+    residuals."""
     r = np.asarray(residuals_px, float).reshape(-1, 2)
     cam = np.asarray(camera, np.int64).reshape(-1)
     offsets = np.full((n_cameras, 2), np.nan)
@@ -179,7 +180,7 @@ def localisation_noise_px(residuals_px: np.ndarray, point_index: np.ndarray,
     """The localisation part of the pixel noise: σ (px, per axis) of the reprojection
     residuals (M, 2) once each camera's systematic offset (`calibration_offsets_px`) is taken
     out, and those offsets (C, 2) px. `pixel_noise_from_residuals` on the raw residuals
-    measures both; without a calibration error the two agree."""
+    measures both; without a calibration or pose error the two agree."""
     cam = np.asarray(camera, np.int64).reshape(-1)
     offsets = calibration_offsets_px(residuals_px, cam, int(cam.max()) + 1 if cam.size else 0)
     centred = np.asarray(residuals_px, float).reshape(-1, 2) - np.nan_to_num(offsets)[cam]
