@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
@@ -16,7 +17,9 @@ from surgrecon_cli.core.noise.frame_noise import tracking_excess_px2, triangulat
 from surgrecon_cli.core.noise.model import (
     NoiseModel,
     covariance_sigma,
+    image_noise_sigma,
     localisation_noise_px,
+    localisation_variance_px2,
     pixel_noise_from_residuals,
     point_covariances,
     pose_jitter,
@@ -215,3 +218,38 @@ def test_one_triangulation_serves_any_subset_of_points():
     np.testing.assert_allclose(sub_tri.residual_px, alone.tri.residual_px, rtol=0, atol=1e-9)
     np.testing.assert_array_equal(sub_tri.in_front, alone.tri.in_front)
     assert np.median(np.linalg.norm(sub_tri.points - points[rows], axis=1)) < 1e-4
+
+
+def test_image_noise_sigma_recovers_known_noise_on_a_smooth_image():
+    # a smooth shading plus Gaussian noise of sigma 3 grey levels, 8-bit and float: the
+    # estimate is the noise, not the shading
+    rng = np.random.default_rng(3)
+    yy, xx = np.mgrid[0:512, 0:640]
+    smooth = 90 + 0.05 * xx + 30 * np.sin(yy / 90.0)
+    noisy = smooth + rng.normal(0, 3.0, smooth.shape)
+    assert abs(image_noise_sigma(np.clip(np.round(noisy), 0, 255).astype(np.uint8)) - 3.0) < 0.25
+    assert abs(image_noise_sigma(noisy.astype(np.float32)) - 3.0) < 0.15
+
+
+def test_localisation_bound_at_the_image_border_reflects_the_image():
+    # the Cramér-Rao bound of windows that reach over the border, against the same sums
+    # on an explicitly reflected (numpy "reflect" = OpenCV's REFLECT_101) copy of the image
+    rng = np.random.default_rng(4)
+    g = cv2.GaussianBlur(rng.uniform(0, 255, (120, 160)).astype(np.float32), (0, 0), 1.5)
+    window, sigma = 21, 2.0
+    pixels = np.array([[0.0, 0.0], [159.0, 119.0], [3.2, 60.0], [80.0, 118.6], [80.0, 60.0],
+                       [157.0, 2.0]])
+    got = localisation_variance_px2(g, pixels, window, sigma)
+    pad = window // 2 + 1
+    padded = np.pad(g, pad, mode="reflect")
+    gx = cv2.Sobel(padded, cv2.CV_64F, 1, 0, ksize=3, scale=1 / 8)
+    gy = cv2.Sobel(padded, cv2.CV_64F, 0, 1, ksize=3, scale=1 / 8)
+    half = window // 2
+    for (u, v), value in zip(np.round(pixels).astype(int), got, strict=True):
+        rows = slice(v + pad - half, v + pad + half + 1)
+        cols = slice(u + pad - half, u + pad + half + 1)
+        a = (gx[rows, cols] ** 2).sum()
+        b = (gx[rows, cols] * gy[rows, cols]).sum()
+        c = (gy[rows, cols] ** 2).sum()
+        expected = sigma**2 * (a + c) / (a * c - b * b) / 2
+        assert np.isclose(value, expected, rtol=1e-5)

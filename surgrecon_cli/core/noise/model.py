@@ -200,7 +200,10 @@ def image_noise_sigma(grey: np.ndarray) -> float:
     response = cv2.sepFilter2D(g, depth, kernel, kernel,
                                borderType=cv2.BORDER_REPLICATE)[1:-1, 1:-1]
     h, w = g.shape
-    total = cv2.norm(np.ascontiguousarray(response), cv2.NORM_L1)  # Σ |response|
+    if depth == cv2.CV_16S:  # Σ |response|: integers, exact in any order (no copy)
+        total = cv2.norm(response, cv2.NORM_L1)
+    else:
+        total = cv2.norm(np.ascontiguousarray(response), cv2.NORM_L1)
     return float(np.sqrt(np.pi / 2) * total / (6.0 * (w - 2) * (h - 2)))
 
 
@@ -238,17 +241,29 @@ def _gradient_sums(g: np.ndarray, u: np.ndarray, v: np.ndarray,
         a, b, c = (m[v, u].astype(float) for m in sums)
         return a, b, c
     pad = half + 1
-    padded = cv2.copyMakeBorder(g, pad, pad, pad, pad, cv2.BORDER_REFLECT_101)
     steps = np.arange(-pad, pad + 1)
-    rows = (v + pad)[:, None, None] + steps[None, :, None]
-    cols = (u + pad)[:, None, None] + steps[None, None, :]
-    patch = padded[rows, cols]  # (M, window + 2, window + 2)
+    h, w = g.shape
+    if pad < min(h, w):  # the patches' pixels, borders reflected by index (no padded copy)
+        patch = g[_reflect_101(v[:, None] + steps, h)[:, :, None],
+                  _reflect_101(u[:, None] + steps, w)[:, None, :]]
+    else:  # an image smaller than a patch: reflected repeatedly
+        padded = cv2.copyMakeBorder(g, pad, pad, pad, pad, cv2.BORDER_REFLECT_101)
+        patch = padded[(v + pad)[:, None, None] + steps[None, :, None],
+                       (u + pad)[:, None, None] + steps[None, None, :]]
+    # patch: (M, window + 2, window + 2)
     dx = patch[:, :, 2:] - patch[:, :, :-2]  # central differences, then [1 2 1] / 8 across
     dy = patch[:, 2:, :] - patch[:, :-2, :]
     gx = (dx[:, :-2] + 2.0 * dx[:, 1:-1] + dx[:, 2:]) / 8.0
     gy = (dy[:, :, :-2] + 2.0 * dy[:, :, 1:-1] + dy[:, :, 2:]) / 8.0
     return ((gx * gx).sum((1, 2), dtype=float), (gx * gy).sum((1, 2), dtype=float),
             (gy * gy).sum((1, 2), dtype=float))
+
+
+def _reflect_101(index: np.ndarray, n: int) -> np.ndarray:
+    """Indices (any shape) within one reflection of an axis of n pixels mapped onto it as
+    OpenCV's BORDER_REFLECT_101 does (-1 -> 1, n -> n - 2)."""
+    index = np.abs(index)
+    return np.where(index > n - 1, 2 * (n - 1) - index, index)
 
 
 def pose_jitter(stamps_ns: np.ndarray, positions: np.ndarray,

@@ -77,13 +77,18 @@ def specular_mask(image: np.ndarray) -> np.ndarray:
     light."""
     r, g, b = cv2.split(image)  # per-pixel max / min of 3 channels: ~50x numpy's reduce
     top = cv2.max(cv2.max(r, g), b)
+    bright = top >= SPECULAR_VALUE
+    if not bright.any():  # no near-white pixel: the chroma is not needed
+        return bright
     chroma = cv2.subtract(top, cv2.min(cv2.min(r, g), b))
-    return (top >= SPECULAR_VALUE) & (chroma <= SPECULAR_CHROMA)
+    return bright & (chroma <= SPECULAR_CHROMA)
 
 
 def specular_zone(highlight: np.ndarray) -> np.ndarray:
     """Highlights (H, W) bool grown by SPECULAR_MARGIN_PX: where a feature or track is not
     trusted (its window is dominated by the highlight's edges)."""
+    if not highlight.any():
+        return np.zeros(highlight.shape, bool)
     side = 2 * SPECULAR_MARGIN_PX + 1
     return cv2.dilate(highlight.astype(np.uint8), np.ones((side, side), np.uint8)) > 0
 
