@@ -20,9 +20,12 @@ import pytest
 
 from surgrecon_cli.io.run.artefacts import (
     FrameRegistration,
+    read_frame_cloud,
     read_registration,
+    write_frame_cloud,
     write_registration,
 )
+from surgrecon_cli.io.run.atomic import write_npz
 from surgrecon_cli.io.run.ingest_store import IngestedLog
 from surgrecon_cli.io.run.layout import RunLayout
 
@@ -96,3 +99,23 @@ def test_frame_image_loaded_without_interning_its_name(tmp_path: Path,
     interned.clear()
     np.testing.assert_array_equal(log.load_image(FRAME, 0), rgb)
     assert not [name for name in interned if f"{FRAME:06d}" in name or name == "00"]
+
+
+def test_frame_cloud_and_classified_rows_without_interning_their_names(
+        tmp_path: Path, interned: list[str]) -> None:
+    """classify writes a cloud and a scratch file per frame; measure and report read the
+    clouds back."""
+    layout = RunLayout(tmp_path / "run")
+    assert layout.cloud_file(FRAME) == str(layout.cloud(FRAME))
+    positions = np.random.default_rng(4).normal(size=(6, 3)) * 0.01
+    interned.clear()
+    write_frame_cloud(layout, FRAME, positions, np.full((6, 3), 90, np.uint8),
+                      np.arange(6, dtype=np.uint8), np.zeros(6), {})
+    back = read_frame_cloud(layout, FRAME)
+    write_npz(layout.classified(FRAME), labels=np.arange(6, dtype=np.uint8))
+    with np.load(layout.classified(FRAME)) as z:
+        assert list(z["labels"]) == list(range(6))
+    assert not [name for name in interned if f"{FRAME:06d}" in name]
+    np.testing.assert_allclose(back["x"], positions[:, 0], rtol=1e-6)  # float32 on disk
+    assert list(back["label"]) == list(range(6))
+    assert layout.cloud(FRAME).is_file()

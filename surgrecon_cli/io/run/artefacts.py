@@ -8,6 +8,7 @@ against the template and fail in one line naming the file and the stage to re-ru
 from __future__ import annotations
 
 import json
+import os
 from dataclasses import MISSING, dataclass, fields
 from pathlib import Path
 from typing import Any
@@ -296,7 +297,7 @@ def write_frame_cloud(layout: RunLayout, frame: int, positions: np.ndarray, rgb:
     """One frame's labelled cloud (N points by point_id), atomically; `residual` (N,) m is
     NaN where the point had no target."""
     n = len(positions)
-    write_cloud_ply(layout.cloud(frame), positions, rgb=rgb,
+    write_cloud_ply(layout.cloud_file(frame), positions, rgb=rgb,
                     point_id=np.arange(n, dtype=np.int32), label=labels.astype(np.uint8),
                     residual=np.asarray(residual, np.float32), extra=extra)
 
@@ -304,8 +305,8 @@ def write_frame_cloud(layout: RunLayout, frame: int, positions: np.ndarray, rgb:
 def read_frame_cloud(layout: RunLayout, frame: int) -> dict[str, np.ndarray]:
     """One frame's labelled cloud as written by `write_frame_cloud`: {property: (M,)} in
     point_id order, M <= N (points without a finite position are not in the file)."""
-    path = layout.cloud(frame)
-    if not path.is_file():
+    path = layout.cloud_file(frame)
+    if not os.path.isfile(path):
         raise RunFolderError(f"{path}: missing; run `surgrecon classify {layout.root}` first")
     cloud = read_ply(path)
     if "point_id" not in cloud or "label" not in cloud:

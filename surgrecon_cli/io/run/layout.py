@@ -174,16 +174,22 @@ class RunLayout:
     def classified_dir(self) -> Path:
         return self.classify_dir / "frames"
 
-    def classified(self, frame: int) -> Path:
-        """One frame's classification before hysteresis (classify's scratch file)."""
-        return self.classified_dir / f"{frame:06d}.npz"
+    def classified(self, frame: int) -> str:
+        """One frame's classification before hysteresis (classify's scratch file), a string
+        path as `registration_file` says why."""
+        return os.path.join(self.classified_dir, f"{frame:06d}.npz")
 
     @property
     def clouds_dir(self) -> Path:
         return self.root / "clouds"
 
     def cloud(self, frame: int) -> Path:
-        return self.clouds_dir / f"{frame:06d}.ply"
+        return Path(self.cloud_file(frame))
+
+    def cloud_file(self, frame: int) -> str:
+        """`cloud(frame)` as a string, for classify's per-frame writes and the reads of later
+        stages (as `registration_file`)."""
+        return os.path.join(self.clouds_dir, f"{frame:06d}.ply")
 
     # contact and indentation
     @property

@@ -145,7 +145,7 @@ def write_cloud_ply(
 
 
 # ----------------------------------------------------------------------------- reading
-def _check_counts(path: Path, head: bytes, size: int) -> None:
+def _check_counts(path: Path | str, head: bytes, size: int) -> None:
     """Reject a file without the magic or `end_header` in its first 64 KiB, or with an
     element of more records than bytes after the header (before anything is allocated)."""
     if not head.startswith(b"ply"):
@@ -164,7 +164,7 @@ def _check_counts(path: Path, head: bytes, size: int) -> None:
                              f"records, at most {size - end} bytes follow the header")
 
 
-def _parse_error(path: Path, exc: PlyElementParseError) -> InputError:
+def _parse_error(path: Path | str, exc: PlyElementParseError) -> InputError:
     """One line for plyfile's error on an element's data."""
     what = {"early end-of-file": "truncated PLY file",
             "early end-of-line": "wrong number of values in an ascii line",
@@ -177,9 +177,8 @@ def _parse_error(path: Path, exc: PlyElementParseError) -> InputError:
 def read_ply_counted(path: Path | str) -> tuple[dict[str, np.ndarray], int]:
     """Like `read_ply`, also returning how many vertices with a non-finite x, y or z were
     dropped."""
-    path = Path(path)
     try:
-        with path.open("rb") as f:
+        with open(path, "rb") as f:
             _check_counts(path, f.read(_MAX_HEADER), os.fstat(f.fileno()).st_size)
             f.seek(0)
             ply = PlyData.read(f)  # binary elements without lists are memory-mapped
