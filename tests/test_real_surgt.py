@@ -9,6 +9,7 @@ marked slow."""
 from __future__ import annotations
 
 import json
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -95,21 +96,17 @@ def test_surgt_noise_is_measured_not_the_floor(surgt_run):
 
 def rectified_row_offset_px(layout: RunLayout) -> float:
     """An independent measurement of the calibration's error across the epipolar lines: the
-    frame-0 pair rectified with its calibration (OpenCV's stereoRectify), matched by SIFT on
-    the rectified images (sub-pixel keypoints, Lowe's ratio test), and the median vertical
-    offset of the matches whose horizontal disparity is plausible (right − left rows, px)."""
+    frame-0 pair rectified with its calibration (OpenCV's stereoRectify, through
+    benchmarks/real_reference.py's `Rectified`), matched by SIFT on the rectified images
+    (sub-pixel keypoints, Lowe's ratio test), and the median vertical offset of the matches
+    whose horizontal disparity is plausible (right − left rows, px)."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    try:
+        from real_reference import Rectified
+    finally:
+        sys.path.pop(0)
     log = load_ingested(layout.ingest_dir)
-    (m0, m1), poses = log.models[:2], log.poses[0, :2]
-    rel = np.linalg.inv(poses[1]) @ poses[0]
-    size = (m0.width, m0.height)
-    r0, r1, p0, p1, *_ = cv2.stereoRectify(m0.K, m0.dist, m1.K, m1.dist, size, rel[:3, :3],
-                                           rel[:3, 3], alpha=0)
-    grey = []
-    for m, r, p, image in zip((m0, m1), (r0, r1), (p0, p1), log.frame_images(0)[:2],
-                              strict=True):
-        mx, my = cv2.initUndistortRectifyMap(m.K, m.dist, r, p, size, cv2.CV_32FC1)
-        grey.append(cv2.remap(cv2.cvtColor(image, cv2.COLOR_RGB2GRAY), mx, my,
-                              cv2.INTER_LINEAR))
+    grey = Rectified(log.models, log.poses[0, :2]).images(*log.frame_images(0)[:2])
     sift = cv2.SIFT_create(4000)
     (k0, d0), (k1, d1) = (sift.detectAndCompute(g, None) for g in grey)
     pairs = cv2.BFMatcher(cv2.NORM_L2).knnMatch(d0, d1, k=2)
