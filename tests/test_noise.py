@@ -94,7 +94,7 @@ def test_calibration_offset_is_split_from_the_localisation_noise():
     obs.pixels[obs.camera == 1] += offset
     tri = triangulate(obs, poses, models, len(points))
     residual, _ = reprojection_residuals(tri.points, obs, poses, models)
-    localisation, offsets = localisation_noise_px(residual, obs.point, obs.camera)
+    localisation, offsets = localisation_noise_px(residual, obs.point, obs.camera, 2)
     assert abs(localisation - 0.15) <= 0.15 * 0.15
     assert pixel_noise_from_residuals(residual, obs.point) >= 1.5 * 0.15
     # The epipolar line of the patch centre in camera 1: the images of two points on camera

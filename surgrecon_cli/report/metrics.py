@@ -82,8 +82,8 @@ def noise_figures(ingest_report: dict[str, Any], cameras: tuple[str, ...],
                   tracking_px: np.ndarray) -> dict[str, Any]:
     """The run's measured noise: pixel noise px (template) with its localisation part and
     each camera's systematic offset (px: a calibration error or a tracked camera's frame-0
-    pose error), tracker jitter per camera
-    (mm, deg; ingest) and tracking noise px (median over the frames' tracking_px)."""
+    pose error), tracker jitter per camera (mm, deg; ingest) and tracking noise px (median
+    over the frames' tracking_px)."""
     stats = (template_summary or {}).get("stats", {})
     cams = ingest_report.get("cameras", {})
     tracking = tracking_px[np.isfinite(tracking_px)]

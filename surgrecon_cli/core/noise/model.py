@@ -176,13 +176,13 @@ def calibration_offsets_px(residuals_px: np.ndarray, camera: np.ndarray,
 
 
 def localisation_noise_px(residuals_px: np.ndarray, point_index: np.ndarray,
-                          camera: np.ndarray) -> tuple[float, np.ndarray]:
+                          camera: np.ndarray, n_cameras: int) -> tuple[float, np.ndarray]:
     """The localisation part of the pixel noise: σ (px, per axis) of the reprojection
     residuals (M, 2) once each camera's systematic offset (`calibration_offsets_px`) is taken
     out, and those offsets (C, 2) px. `pixel_noise_from_residuals` on the raw residuals
     measures both; without a calibration or pose error the two agree."""
     cam = np.asarray(camera, np.int64).reshape(-1)
-    offsets = calibration_offsets_px(residuals_px, cam, int(cam.max()) + 1 if cam.size else 0)
+    offsets = calibration_offsets_px(residuals_px, cam, n_cameras)
     centred = np.asarray(residuals_px, float).reshape(-1, 2) - np.nan_to_num(offsets)[cam]
     return pixel_noise_from_residuals(centred, point_index), offsets
 

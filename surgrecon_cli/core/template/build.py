@@ -307,7 +307,7 @@ def measured_covariances(points: np.ndarray, obs: Observations, frame: TemplateF
     sel = use[obs.point]
     pixel_px = pixel_noise_from_residuals(residual[sel], obs.point[sel])
     localisation_px, offsets = localisation_noise_px(residual[sel], obs.point[sel],
-                                                     obs.camera[sel])
+                                                     obs.camera[sel], len(models))
     pixel_px = pixel_px if np.isfinite(pixel_px) and pixel_px > 0 else 1.0
     variance = np.full(len(obs.point), pixel_px**2)
     image_variance = variance.copy()
@@ -333,6 +333,4 @@ def measured_covariances(points: np.ndarray, obs: Observations, frame: TemplateF
     cov = point_covariances(obs.point, J, variance, len(points))
     image_cov = point_covariances(obs.point, J, image_variance, len(points))
     image_px = float(np.sqrt(np.median(image_variance[sel]))) if sel.any() else pixel_px
-    offsets_px = np.full((len(models), 2), np.nan)
-    offsets_px[:len(offsets)] = offsets
-    return MeasuredNoise(image_px, localisation_px, offsets_px, cov, image_cov)
+    return MeasuredNoise(image_px, localisation_px, offsets, cov, image_cov)
