@@ -24,7 +24,7 @@ from scipy import sparse
 from scipy.spatial import cKDTree
 
 from .colour import ColourDecision, Neighbourhoods
-from .surface import smallest_axis
+from .surface import local_planes
 
 FOLLOW_NEIGHBOURS = 16  # ours: supported neighbours an unsupported point moves with
 # ours: an unsupported point follows its supported neighbourhood in full within 2 % of the
@@ -123,10 +123,8 @@ def rim_and_planes(xyz: np.ndarray, k: int = RIM_NEIGHBOURS, gap_deg: float = RI
         nn = near.indices[:, :k + 1]
     else:
         nn = cKDTree(xyz).query(xyz, k=k + 1)[1]
+    centre, normal, _ = local_planes(xyz, nn[:, 1:])
     rel = xyz[nn[:, 1:]] - xyz[:, None, :]
-    offset = rel.mean(axis=1)
-    c = rel - offset[:, None, :]
-    normal = smallest_axis(np.matmul(c.transpose(0, 2, 1), c))
     # a tangent basis (u, v): u across the normal from the axis least along it
     axis = np.eye(3)[np.argmin(np.abs(normal), axis=1)]
     u = np.cross(normal, axis)
@@ -137,8 +135,7 @@ def rim_and_planes(xyz: np.ndarray, k: int = RIM_NEIGHBOURS, gap_deg: float = RI
     gaps = np.diff(angle, axis=1, append=angle[:, :1] + 2 * np.pi)
     rim = gaps.max(axis=1) > np.deg2rad(gap_deg)
     # a rim is a line: a point flagged alone among its neighbours is a sampling accident
-    return (np.asarray(rim & (rim[nn[:, 1:]].sum(axis=1) >= companions)), xyz + offset,
-            normal)
+    return np.asarray(rim & (rim[nn[:, 1:]].sum(axis=1) >= companions)), centre, normal
 
 
 def follow_supported(source: np.ndarray, registered: np.ndarray, supported: np.ndarray,

@@ -71,7 +71,7 @@ def smallest_axis(cov: np.ndarray) -> np.ndarray:
     return out
 
 
-def _planes(q: np.ndarray, nn: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def local_planes(q: np.ndarray, nn: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Centroid, normal and distance of each point to the plane of its neighbours nn (M, k)
     (the point itself excluded, so an off-surface point does not pull its own plane)."""
     nb = q[nn]
@@ -92,7 +92,7 @@ def analyse_target(q: np.ndarray, tree: cKDTree) -> TargetSurface:
         normal = np.tile([0.0, 0.0, 1.0], (m, 1))
         return TargetSurface(centroid=q.copy(), normal=normal, stray=np.zeros(m, bool),
                              spacing=spacing, noise=0.0)
-    centroid, normal, off = _planes(q, nn[:, 1:])
+    centroid, normal, off = local_planes(q, nn[:, 1:])
     noise = MAD_SCALE * float(np.median(off))
     stray = off > STRAY_SIGMAS * max(noise, 0.5 * spacing)
     return TargetSurface(centroid=centroid, normal=normal, stray=stray, spacing=spacing,
