@@ -303,9 +303,8 @@ def measure(name: str, run: Path, variant: str | None, seed: int | None,
         row["true_median_mm"] = labelled.get("median_mm")
         row["true_p95_mm"] = labelled.get("p95_mm")
     if gt_path_beside(log_path).exists():
-        row.update(truth_label_checks(layout, log.n_frames, log_path))
-        row.update(reference_truth_errors(layout, log_path, obs.point[obs.camera == 0],
-                                          reference))
+        row.update(truth_label_checks(layout, log.n_frames, log_path,
+                                      (obs.point[obs.camera == 0], reference)))
     else:
         row["motion_frames"] = motion_frames(layout, log, n)
         row.update(motion_summary(row["motion_frames"]))
@@ -314,9 +313,13 @@ def measure(name: str, run: Path, variant: str | None, seed: int | None,
     return row
 
 
-def truth_label_checks(layout: RunLayout, n_frames: int, log_path: Path) -> dict[str, float]:
-    """Deforming where the truth is confidently rigid, and truly moving point-frames called
-    moving (frames 1 on; module docstring)."""
+def truth_label_checks(layout: RunLayout, n_frames: int, log_path: Path,
+                       reference: tuple[np.ndarray, np.ndarray]) -> dict[str, float]:
+    """Deforming where the truth is confidently rigid, truly moving point-frames called
+    moving, labelled positions against the truth where it covers them, and the image
+    reference's own error there (reference: template points (M,) and their reference
+    positions (T, M, 3) m: a reference that is itself this far off cannot check a run
+    closer); frames 1 on; module docstring."""
     from surgrecon_cli.config import Config
     from surgrecon_cli.core.classify.labels import rigid_fit_rms
     from surgrecon_cli.core.classify.rules import template_neighbourhoods
@@ -332,18 +335,21 @@ def truth_label_checks(layout: RunLayout, n_frames: int, log_path: Path) -> dict
     start = mapping.follow(gt.vertices[0], gt.faces)  # the true frame-0 material points
     covered = truth_covers(template, load_ingested(layout.ingest_dir).poses[0, 0, :3, 3],
                            gt.vertices[0], gt.faces)
+    point, positions = reference
+    ref_covered = covered[point]
     rigid = moving = rigid_deforming = moving_found = 0
-    errors = []
+    errors, ref_errors = [], []
     for k in range(1, n_frames):
         label = np.full(len(template), UNKNOWN)
         cloud = read_ply(layout.cloud(k))
         label[cloud["point_id"]] = cloud["label"]
         xyz = np.column_stack([cloud[a] for a in "xyz"]).astype(float)
         use = covered[cloud["point_id"]] & (cloud["label"] != UNKNOWN)
-        errors.append(np.linalg.norm(
-            xyz[use] - mapping.follow(gt.vertices[k], gt.faces)[cloud["point_id"][use]], axis=1))
-        true_rms = rigid_fit_rms(start, mapping.follow(gt.vertices[k], gt.faces), index,
-                                 mask) * 1e3
+        true_k = mapping.follow(gt.vertices[k], gt.faces)
+        errors.append(np.linalg.norm(xyz[use] - true_k[cloud["point_id"][use]], axis=1))
+        ref_errors.append(np.linalg.norm(positions[k][ref_covered]
+                                         - true_k[point[ref_covered]], axis=1))
+        true_rms = rigid_fit_rms(start, true_k, index, mask) * 1e3
         confident = true_rms < 0.5 * cfg.deform_mm
         rigid += int(confident.sum())
         rigid_deforming += int((confident & (label == DEFORMING)).sum())
@@ -351,31 +357,15 @@ def truth_label_checks(layout: RunLayout, n_frames: int, log_path: Path) -> dict
         moving += int(truly.sum())
         moving_found += int((truly & np.isin(label, (SHIFTING, DEFORMING))).sum())
     e = np.concatenate(errors) * 1e3
+    r = np.concatenate(ref_errors) * 1e3
+    r = r[np.isfinite(r)]
     return {"deforming_of_rigid": rigid_deforming / max(rigid, 1),
             "moving_detected": moving_found / moving if moving else float("nan"),
             "covered": float(covered.mean()),
             "covered_median_mm": float(np.median(e)) if e.size else float("nan"),
-            "covered_p95_mm": float(np.percentile(e, 95)) if e.size else float("nan")}
-
-
-def reference_truth_errors(layout: RunLayout, log_path: Path, point: np.ndarray,
-                           reference: np.ndarray) -> dict[str, float]:
-    """The image reference's own error: its positions (T, M, 3) m of template points `point`
-    (M,) against the truth, where the truth covers them (`truth_covers`), frames 1 on,
-    median / p95 mm. A reference that is itself this far off cannot check a run closer."""
-    from surgrecon_cli.core.evaluate.scoring import map_to_surface
-    gt = load_ground_truth(gt_path_beside(log_path))
-    template = read_template(layout).points
-    mapping = map_to_surface(template, gt.vertices[0], gt.faces)
-    covered = truth_covers(template, load_ingested(layout.ingest_dir).poses[0, 0, :3, 3],
-                           gt.vertices[0], gt.faces)[point]
-    errors = [np.linalg.norm(reference[k][covered]
-                             - mapping.follow(gt.vertices[k], gt.faces)[point[covered]], axis=1)
-              for k in range(1, len(reference))]
-    e = np.concatenate(errors) * 1e3 if errors else np.zeros(0)
-    e = e[np.isfinite(e)]
-    return {"ref_truth_median_mm": float(np.median(e)) if e.size else float("nan"),
-            "ref_truth_p95_mm": float(np.percentile(e, 95)) if e.size else float("nan")}
+            "covered_p95_mm": float(np.percentile(e, 95)) if e.size else float("nan"),
+            "ref_truth_median_mm": float(np.median(r)) if r.size else float("nan"),
+            "ref_truth_p95_mm": float(np.percentile(r, 95)) if r.size else float("nan")}
 
 
 def truth_covers(points: np.ndarray, eye: np.ndarray, vertices: np.ndarray, faces: np.ndarray
