@@ -137,6 +137,39 @@ def test_pose_gap_makes_camera_unusable_not_an_error(tmp_path: Path, capsys):
     assert row.split()[6] == "2"  # the pose-gaps column
 
 
+def _fixed_rig(messages):
+    """Camera poses world -> endoscope_c_optical on /tf become one latched /tf_static
+    transform each, world -> rig -> optical (the pose at the log's start): a rig fixed in
+    the world, as a lab's bag records it."""
+    rig = make_pose(np.array([0.01, 0.02, 0.3]), np.array([0.0, 0.0, 0.0, 1.0]))
+    out = [m for m in messages if not (m[0] == "/tf" and m[2].child_frame_id.endswith("_optical"))]
+    statics = [PoseRecord(T0, "world", "rig", rig[:3, 3], np.array([0.0, 0.0, 0.0, 1.0]))]
+    for c in (0, 1, 2):
+        in_rig = np.linalg.inv(rig) @ synth_log.camera_pose(c, np.array([T0]))[0]
+        statics.append(PoseRecord(T0, "rig", f"endoscope_{c}_optical", in_rig[:3, 3],
+                                  synth_log.camera_quat(c, np.array([T0]))[0]))
+    return [("/tf_static", T0 + MS, r) for r in statics] + out
+
+
+def test_a_rig_fixed_on_tf_static_is_placed_in_every_frame(tmp_path: Path, capsys):
+    # A chain of latched transforms holds for the whole log: every frame, however far from
+    # the one stamp /tf_static carries (the log spans 7 pose gaps of 100 ms).
+    spec = SynthSpec(tf_topic="/tf", frames=8, mutate=_fixed_rig)
+    log = synth_log.write(tmp_path / "log.mcap", spec)
+    run = tmp_path / "run"
+    assert main(["ingest", str(log), "-o", str(run), "--set", 'topics.camera_pose="/tf_static"',
+                 "--set", 'topics.camera_frame="endoscope_{camera}_optical"',
+                 "--set", 'topics.tool_pose="/tf"', "--set", 'topics.tool_frame="raven_tool_tip"']
+                ) == 0
+    assert "no tracked pose" not in capsys.readouterr().err
+    ingested = load_ingested(run / "ingest")
+    assert ingested.usable.all() and ingested.n_frames == 8
+    for c in range(3):
+        want = synth_log.camera_pose(c, np.array([T0]))[0]
+        np.testing.assert_allclose(ingested.poses[:, c], np.broadcast_to(want, (8, 4, 4)),
+                                   atol=1e-9)
+
+
 def test_rerun_needs_force(tmp_path: Path, capsys):
     log = synth_log.write(tmp_path / "log.mcap")
     run = tmp_path / "run"

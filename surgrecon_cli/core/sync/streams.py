@@ -104,6 +104,9 @@ class PoseStream:
     conflict_sizes: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
     """Stamps (K,) ns where samples conflicted and were dropped (`validate_pose_stream`),
     and their largest disagreement (K, 2): position m, rotation rad."""
+    constant: bool = False
+    """The one sample holds at every stamp (a chain of latched `/tf_static` transforms: a
+    rig fixed in the world), not only between samples."""
 
     def __len__(self) -> int:
         return int(self.stamps_ns.shape[0])
@@ -167,12 +170,16 @@ def poses_at(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Interpolated poses (Q, 4, 4) at stamps (Q,) ns, NaN where invalid, and valid (Q,) bool.
 
-    Invalid: before the first / after the last sample, or inside a gap > `max_gap_ns`.
+    Invalid: before the first / after the last sample, or inside a gap > `max_gap_ns`; a
+    constant stream is valid everywhere.
     """
     query = np.asarray(query_ns, dtype=np.int64).reshape(-1)
     out = np.full((len(query), 4, 4), np.nan)
     if len(query) == 0:
         return out, np.zeros(0, dtype=bool)
+    if stream.constant and len(stream):
+        out[:] = make_pose(stream.positions[:1], stream.quats[:1])
+        return out, np.ones(len(query), dtype=bool)
     pos, quat, valid = interpolate_poses(
         stream.stamps_ns, stream.positions, stream.quats, query, int(max_gap_ns)
     )

@@ -9,7 +9,7 @@ moved into the world through the tree at its own stamps.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -29,37 +29,45 @@ class WorldTree:
     max_gap_ns: int
 
 
-def _stream(name: str, stamps_ns: np.ndarray, poses: np.ndarray) -> PoseStream:
-    """A validated stream from poses (M, 4, 4), dropping stamps where it is unknown (NaN)."""
+def _stream(name: str, stamps_ns: np.ndarray, poses: np.ndarray,
+            constant: bool = False) -> PoseStream:
+    """A validated stream from poses (M, 4, 4), dropping stamps where it is unknown (NaN);
+    `constant`: it holds at every stamp (`PoseStream.constant`)."""
     valid = np.isfinite(poses).all(axis=(1, 2))
     poses = poses[valid]
-    return validate_pose_stream(name, stamps_ns[valid], poses[:, :3, 3],
-                                matrix_to_quat(poses[:, :3, :3]))
+    stream = validate_pose_stream(name, stamps_ns[valid], poses[:, :3, 3],
+                                  matrix_to_quat(poses[:, :3, :3]))
+    return replace(stream, constant=constant)
 
 
 def chain_stream(tree: TfTree, world_frame: str, frame: str, span_ns: tuple[int, int],
                  max_gap_ns: int, name: str) -> PoseStream:
     """The pose of `frame` in `world_frame` sampled at its chain's dynamic stamps (the
-    union over the chain's dynamic edges); a chain of static edges only is constant, given
-    at the ends of `span_ns` (the log's time span). Raises InputError (naming both frames)
-    when they are not connected."""
+    union over the chain's dynamic edges); a chain of static edges only is constant: one
+    sample (at the start of `span_ns`, the log's time span) that holds at every stamp,
+    however long the log (a rig fixed in the world, published once on `/tf_static`).
+    Raises InputError (naming both frames) when they are not connected."""
     source_edges, target_edges = tree.chain(world_frame, frame)
     dynamic = [e.stream.stamps_ns for e in (*source_edges, *target_edges) if not e.static]
-    stamps = (np.unique(np.concatenate(dynamic)) if dynamic
-              else np.array(sorted(set(span_ns)), np.int64))
+    if not dynamic:
+        stamps = np.array([min(span_ns)], np.int64)
+        return _stream(name, stamps, tree.lookup(world_frame, frame, stamps, max_gap_ns), True)
+    stamps = np.unique(np.concatenate(dynamic))
     return _stream(name, stamps, tree.lookup(world_frame, frame, stamps, max_gap_ns))
 
 
 def transformed(stream: PoseStream, pose: np.ndarray, name: str) -> PoseStream:
     """The stream `name` left-multiplied by a fixed pose (4, 4), e.g. the robot's base in
     the world (`tool.base_to_world`)."""
-    return _stream(name, stream.stamps_ns, pose @ make_pose(stream.positions, stream.quats))
+    return _stream(name, stream.stamps_ns, pose @ make_pose(stream.positions, stream.quats),
+                   stream.constant)
 
 
 def moved_by(stream: PoseStream, offset: np.ndarray, name: str) -> PoseStream:
     """The stream `name` right-multiplied by a fixed pose (4, 4): the poses of a frame
     rigidly attached to the stream's (e.g. a camera on the ECM, by its hand-eye pose)."""
-    return _stream(name, stream.stamps_ns, make_pose(stream.positions, stream.quats) @ offset)
+    return _stream(name, stream.stamps_ns, make_pose(stream.positions, stream.quats) @ offset,
+                   stream.constant)
 
 
 def stream_to_world(stream: PoseStream, name: str, frame: str, world: WorldTree,
