@@ -65,12 +65,15 @@ def test_jpeg_and_png_bytes_are_copied(tmp_path: Path, ext: str):
 
 
 def test_16_bit_png_stays_16_bit_and_tiff_bmp_become_lossless_png(tmp_path: Path):
+    # Four folder layouts, each read left first: left/right, image_0/image_1, cam0/cam1 and
+    # Hamlyn's rectified image01/image02.
     png16 = stereo_folder(tmp_path / "a", frames=2, ext=".png", depth16=True)
     tiff = stereo_folder(tmp_path / "b", frames=2, ext=".tiff", depth16=True,
                          names=("image_0", "image_1"))
     bmp = stereo_folder(tmp_path / "c", frames=2, ext=".bmp", names=("cam0", "cam1"))
+    hamlyn = stereo_folder(tmp_path / "d", frames=2, ext=".png", names=("image01", "image02"))
     opencv_calibration(tmp_path / "calib.yaml")
-    for src, files in (("a", png16), ("b", tiff), ("c", bmp)):
+    for src, files in (("a", png16), ("b", tiff), ("c", bmp), ("d", hamlyn)):
         out = tmp_path / f"{src}.mcap"
         assert _convert(tmp_path / src, "-o", out, "--calibration", tmp_path / "calib.yaml") == 0
         log = read_log(out)

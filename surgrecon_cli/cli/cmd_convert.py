@@ -89,9 +89,10 @@ def convert_cmd(src: Path | None, out: Path, calibration: tuple[Path, ...], left
     ROS 2 MCAP log (CompressedImage, CameraInfo, /tf) and OUT.toml, a config that runs it.
 
     SRC is a folder with two image folders (left/right, Left/Right, left_image/right_image,
-    image_0/image_1, cam0/cam1, or --left/--right), images in name order (PNG, JPEG, BMP,
-    TIFF; 8 or 16 bit), or a stereo video (side by side or top-bottom). Without
-    --camera-poses the rig is fixed in the world: a moving camera then shows as moving tissue.
+    image_0/image_1, image01/image02 as Hamlyn's rectified sequences, cam0/cam1, or
+    --left/--right), images in name order (PNG, JPEG, BMP, TIFF; 8 or 16 bit), or a stereo
+    video (side by side or top-bottom). Without --camera-poses the rig is fixed in the world:
+    a moving camera then shows as moving tissue.
     Then: surgrecon run OUT.mcap -o RUN --config OUT.toml
 
     \b
