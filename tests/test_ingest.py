@@ -137,24 +137,34 @@ def test_pose_gap_makes_camera_unusable_not_an_error(tmp_path: Path, capsys):
     assert row.split()[6] == "2"  # the pose-gaps column
 
 
-def _fixed_rig(messages):
-    """Camera poses world -> endoscope_c_optical on /tf become one latched /tf_static
-    transform each, world -> rig -> optical (the pose at the log's start): a rig fixed in
-    the world, as a lab's bag records it."""
+def _fixed_rig(messages, resent_ms: int = 0):
+    """Camera poses world -> endoscope_c_optical on /tf become world -> rig -> optical, all
+    fixed (the poses at the log's start): rig -> optical latched on /tf_static, world -> rig
+    too, or with `resent_ms` re-sent on /tf every ~`resent_ms` ms (+-10 %, as ROS 1's tf
+    static_transform_publisher does). A rig fixed in the world, as a lab's bag records it."""
     rig = make_pose(np.array([0.01, 0.02, 0.3]), np.array([0.0, 0.0, 0.0, 1.0]))
     out = [m for m in messages if not (m[0] == "/tf" and m[2].child_frame_id.endswith("_optical"))]
-    statics = [PoseRecord(T0, "world", "rig", rig[:3, 3], np.array([0.0, 0.0, 0.0, 1.0]))]
+    to_rig = [PoseRecord(T0, "world", "rig", rig[:3, 3], np.array([0.0, 0.0, 0.0, 1.0]))]
+    statics = [] if resent_ms else to_rig
     for c in (0, 1, 2):
         in_rig = np.linalg.inv(rig) @ synth_log.camera_pose(c, np.array([T0]))[0]
         statics.append(PoseRecord(T0, "rig", f"endoscope_{c}_optical", in_rig[:3, 3],
                                   synth_log.camera_quat(c, np.array([T0]))[0]))
+    if resent_ms:
+        periods = resent_ms * (1.0 + 0.1 * np.random.default_rng(0).uniform(-1, 1, 40))
+        for t in T0 + np.round(np.cumsum(periods) * MS).astype(np.int64) - resent_ms * MS:
+            out.append(("/tf", int(t) + MS, PoseRecord(int(t), "world", "rig", *(
+                to_rig[0].position, to_rig[0].orientation))))
     return [("/tf_static", T0 + MS, r) for r in statics] + out
 
 
-def test_a_rig_fixed_on_tf_static_is_placed_in_every_frame(tmp_path: Path, capsys):
+@pytest.mark.parametrize("resent_ms", [0, 100])
+def test_a_fixed_rig_is_placed_in_every_frame(tmp_path: Path, capsys, resent_ms: int):
     # A chain of latched transforms holds for the whole log: every frame, however far from
-    # the one stamp /tf_static carries (the log spans 7 pose gaps of 100 ms).
-    spec = SynthSpec(tf_topic="/tf", frames=8, mutate=_fixed_rig)
+    # the one stamp /tf_static carries (the log spans 7 pose gaps of 100 ms); so does a
+    # fixed transform re-sent on /tf with a jittery period (gaps above 100 ms).
+    spec = SynthSpec(tf_topic="/tf", frames=8,
+                     mutate=lambda messages: _fixed_rig(messages, resent_ms))
     log = synth_log.write(tmp_path / "log.mcap", spec)
     run = tmp_path / "run"
     assert main(["ingest", str(log), "-o", str(run), "--set", 'topics.camera_pose="/tf_static"',

@@ -11,7 +11,10 @@ the frames form a forest; an *edge* is one (parent, child) pair with all its sam
   rotation); a query before its first sample, after its last, or inside a gap between two
   samples longer than `max_gap_ns`, is invalid (NaN), never extrapolated.
 - A static edge (from `/tf_static`) is latched: constant over the whole log whatever its stamp;
-  when it is published several times the last sample wins (as in tf2).
+  when it is published several times the last sample wins (as in tf2). So is an edge on `/tf`
+  whose every sample (two or more) is the same transform: a fixed transform re-sent every
+  period (ROS 1's tf `static_transform_publisher`), whose period's jitter would otherwise
+  leave images in "gaps" of a pose that never changes.
 
 `TfTree.lookup(target, source, stamps)` returns T_target_source (Q, 4, 4): the pose of `source`
 in `target` (p_target = T @ p_source), composed from the source up to the frames' common
@@ -267,10 +270,11 @@ def _edge(child: str, group: list[EdgeSamples]) -> TfEdge:
             f"{name} is published both as static ({static} on /tf_static) and as "
             f"dynamic ({counts[e.parent] - static} on /tf); publish it on one of them")
     stamps, values = e.stamps_ns, e.values
-    if e.static:  # latched: the last one published wins
+    static = e.static or (len(stamps) >= 2 and bool((values == values[0]).all()))
+    if static:  # latched: the last one published wins
         stamps, values = stamps[-1:], values[-1:]
     stream = validate_pose_stream(name, stamps, values[:, :3], values[:, 3:])
-    return TfEdge(e.parent, child, e.static, stream, len(e.stamps_ns))
+    return TfEdge(e.parent, child, static, stream, len(e.stamps_ns))
 
 
 def _cycles(by_child: dict[str, TfEdge]) -> dict[str, str]:
