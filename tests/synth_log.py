@@ -7,7 +7,7 @@ axis, so linear + slerp interpolation reproduces it exactly between tracker samp
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import cv2
@@ -168,3 +168,26 @@ def write(path: Path, spec: SynthSpec | None = None, encoding: str = "ros2",
     """Write the synthetic log (small chunks, so that damage tests hit a middle chunk)."""
     write_log(path, messages(spec or SynthSpec()), encoding, chunk_size=chunk_size)
     return path
+
+
+# A stereo pair calibrated as ROS does it: x_right = STEREO_R x_left + STEREO_T (m).
+STEREO_R = cv2.Rodrigues(np.array([0.01, -0.03, 0.005]))[0]
+STEREO_T = np.array([-0.0055, 0.0002, 0.0003])
+
+
+def ros_stereo(messages: list[Message]) -> list[Message]:
+    """Cameras 0 and 1 without poses, their CameraInfo carrying the rectification R and
+    projection P that cv2.stereoRectify gives for STEREO_R, STEREO_T (Tx = -fx' B)."""
+    K = [intrinsics(c) for c in (0, 1)]
+    D = [np.array([-0.01 * c, 0.001, 0, 0, 0]) for c in (0, 1)]
+    R1, R2, P1, P2, *_ = cv2.stereoRectify(K[0], D[0], K[1], D[1], (W, H),
+                                           STEREO_R, STEREO_T)
+    out = []
+    for topic, t, rec in messages:
+        if topic.endswith("/pose"):
+            continue
+        if topic.endswith("/calibration"):
+            c = int(topic.split("_")[1].split("/")[0])
+            rec = replace(rec, R=(R1, R2)[c], P=(P1, P2)[c])
+        out.append((topic, t, rec))
+    return out

@@ -14,6 +14,7 @@ from surgrecon_cli.config import TopicsConfig, load_config
 from surgrecon_cli.core.geometry.poses import invert_pose, make_pose, matrix_to_quat
 from surgrecon_cli.info import camera_pattern, scan_log
 from surgrecon_cli.io.logs.records import PoseRecord
+from surgrecon_cli.io.run.ingest_store import load_ingested
 
 ROOT = Path(__file__).resolve().parents[1]
 SAMPLE = ROOT / "sample_data" / "sample.mcap"
@@ -225,3 +226,20 @@ def test_not_an_mcap_file(tmp_path: Path, capsys):
 def test_camera_pattern(names, ids, pattern, captured):
     got, caps = camera_pattern(names, ids, prefer=("compressed", "color", "rect"))
     assert got == pattern and sorted(caps.values()) == captured
+
+
+def test_a_ros_stereo_pair_without_poses_is_placed_by_its_camera_info(tmp_path: Path, capsys):
+    # No pose topic, CameraInfo with a stereo R and P: info suggests camera_pose =
+    # "camera_info", and the config it writes ingests the pair where its extrinsics put it.
+    log = synth_log.write(tmp_path / "log.mcap", synth_log.SynthSpec(
+        cameras=(0, 1), mutate=synth_log.ros_stereo))
+    cfg = tmp_path / "stereo.toml"
+    out = _info(capsys, log, "--write-config", cfg)
+    assert "stereo baseline 5.5 mm" in out
+    assert "its CameraInfo R and P, fixed in world" in out
+    assert load_config(cfg).topics.camera_pose == "camera_info"
+    assert main(["ingest", str(log), "-o", str(tmp_path / "run"), "--config", str(cfg),
+                 "--quiet"]) == 0
+    right = load_ingested(tmp_path / "run" / "ingest").poses[0, 1]
+    np.testing.assert_allclose(right[:3, 3], -synth_log.STEREO_R.T @ synth_log.STEREO_T,
+                               atol=1e-9)

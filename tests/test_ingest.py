@@ -180,6 +180,37 @@ def test_a_fixed_rig_is_placed_in_every_frame(tmp_path: Path, capsys, resent_ms:
                                    atol=1e-9)
 
 
+@pytest.mark.parametrize("encoding", ENCODINGS)
+def test_a_ros_stereo_pair_is_placed_by_its_camera_info(tmp_path: Path, encoding: str):
+    # No pose topic: topics.camera_pose = "camera_info" places the pair by its CameraInfo R
+    # and P, the left camera at the origin, the right where the stereo extrinsics put it.
+    spec = SynthSpec(cameras=(0, 1), mutate=synth_log.ros_stereo)
+    log = synth_log.write(tmp_path / "log.mcap", spec, encoding)
+    run = tmp_path / "run"
+    assert run_ingest(log, run, "--set", 'topics.camera_pose="camera_info"') == 0
+    ingested = load_ingested(run / "ingest")
+    assert ingested.usable.all()
+    right_in_left = np.eye(4)
+    right_in_left[:3, :3] = synth_log.STEREO_R.T
+    right_in_left[:3, 3] = -synth_log.STEREO_R.T @ synth_log.STEREO_T
+    np.testing.assert_allclose(ingested.poses[:, 0], np.broadcast_to(np.eye(4), (6, 4, 4)),
+                               atol=1e-9)
+    np.testing.assert_allclose(ingested.poses[:, 1], np.broadcast_to(right_in_left, (6, 4, 4)),
+                               atol=1e-9)
+
+
+def test_camera_info_poses_need_a_stereo_calibration(tmp_path: Path, capsys):
+    # CameraInfo of monocular calibrations (R = I, P = [K | 0]): one line, nothing written.
+    spec = SynthSpec(cameras=(0, 1), mutate=lambda ms: [m for m in ms
+                                                        if not m[0].endswith("/pose")])
+    log = synth_log.write(tmp_path / "log.mcap", spec)
+    assert main(["ingest", str(log), "-o", str(tmp_path / "run"), "--set",
+                 'topics.camera_pose="camera_info"']) == 2
+    err = capsys.readouterr().err
+    assert "cameras 0, 1 give the rig no baseline" in err and len(err.splitlines()) == 1
+    assert not (tmp_path / "run" / "ingest").exists()
+
+
 def test_rerun_needs_force(tmp_path: Path, capsys):
     log = synth_log.write(tmp_path / "log.mcap")
     run = tmp_path / "run"

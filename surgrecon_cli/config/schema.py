@@ -9,6 +9,9 @@ from dataclasses import dataclass, field
 from .fields import _doc, _require, check_bounds
 from .registration import RegistrationConfig
 
+CAMERA_INFO_POSES = "camera_info"
+"""topics.camera_pose naming no topic: the cameras are placed by their CameraInfo R and P."""
+
 
 @dataclass(frozen=True)
 class TopicsConfig:
@@ -18,7 +21,9 @@ class TopicsConfig:
     camera_info: str = _doc("/endoscope_{camera}/calibration", "intrinsics topic pattern")
     camera_pose: str = _doc(
         "/navigation/endoscope_{camera}/pose",
-        "camera-to-world pose topic pattern, or the transform topic (e.g. /tf)",
+        "camera-to-world pose topic pattern, or the transform topic (e.g. /tf), or "
+        "\"camera_info\": no poses, a stereo rig fixed in the world placed by its CameraInfo "
+        "R and P (ROS stereo calibration: Tx = -fx' baseline), its first camera at the origin",
     )
     camera_frame: str = _doc(
         "endoscope_{camera}_optical",
@@ -37,6 +42,11 @@ class TopicsConfig:
         "one topic for every camera (no {camera}; e.g. the dVRK ECM's /ECM/measured_cp): x y z "
         "qx qy qz qw (m) per camera in sorted camera-id order, or 7 numbers for all; empty = "
         "camera_pose is per camera", bounds=(-1000.0, 1000.0))
+
+    @property
+    def poses_from_camera_info(self) -> bool:
+        """No pose topic: a fixed rig placed by its CameraInfo R and P (`CAMERA_INFO_POSES`)."""
+        return self.camera_pose == CAMERA_INFO_POSES
 
     def __post_init__(self) -> None:
         check_bounds(self, "topics")

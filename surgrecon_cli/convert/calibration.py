@@ -33,8 +33,8 @@ from typing import Any
 import numpy as np
 
 from ..core.geometry.distortion import DISTORTION_MODELS
-from ..core.geometry.poses import invert_pose, nearest_rotation
-from ..errors import InputError
+from ..core.geometry.poses import invert_pose, nearest_rotation, rectified_rig_pose
+from ..errors import GeometryError, InputError
 from .calibration_files import RECTIFIED_KEYS, read_calibration_file
 
 UNITS = {"m": 1.0, "mm": 1e-3}
@@ -181,15 +181,15 @@ def _coefficients(D: np.ndarray, model: str, name: str, path: Path) -> np.ndarra
 
 
 def _ros_pose(d: Mapping[str, Any], path: Path, name: str) -> np.ndarray:
-    """Camera-to-(rectified first camera) pose from a ROS camera_info's P and R (file units):
-    x_rect = R x_raw, and the rectified camera sits at (-Tx/fx', -Ty/fy', 0)."""
+    """Camera-to-(rectified first camera) pose from a ROS camera_info's P and R (file units,
+    `core.geometry.poses.rectified_rig_pose`)."""
     P = _shaped(d["projection_matrix"], (3, 4), f"{name} projection_matrix", path)
     R = _shaped(d.get("rectification_matrix", np.eye(3)), (3, 3),
                 f"{name} rectification_matrix", path)
-    pose = np.eye(4)
-    pose[:3, :3] = nearest_rotation(R)
-    pose[:3, 3] = [-P[0, 3] / P[0, 0], -P[1, 3] / P[1, 1], 0.0]
-    return pose
+    try:
+        return rectified_rig_pose(R, P)
+    except GeometryError as exc:
+        raise InputError(f"calibration file {path}: camera {name!r}: {exc}") from exc
 
 
 def _relative_to_first(cams: list[CameraCalibration]) -> list[CameraCalibration]:

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 from mcap.records import Channel, Message, Schema
 
 from ..core.sync.streams import mean_rate_hz
@@ -34,8 +35,10 @@ class ChannelInfo:
     """One channel: `kind` what its schema carries ("" if surgrecon cannot read it), message
     count, log times (ns) of the first and last message (-1 if none), mean rate (Hz; 0 =
     none: one message, or all within 1 ms, `core.sync.streams.mean_rate_hz`), the
-    first message's frame id ("" if none or not read), a short `detail`, and for transform
-    channels `static` (latched) and the child frames."""
+    first message's frame id ("" if none or not read), a short `detail`, for transform
+    channels `static` (latched) and the child frames, and for camera intrinsics the
+    `stereo_baseline_m` their projection P places the camera off its rig's first camera
+    (|(Tx, Ty)| / fx′, m; 0 = none: a monocular calibration, or the first camera)."""
 
     topic: str
     schema_name: str
@@ -49,6 +52,7 @@ class ChannelInfo:
     detail: str = ""
     static: bool = False
     child_frames: tuple[str, ...] = ()
+    stereo_baseline_m: float = 0.0
 
     @property
     def span_s(self) -> float:
@@ -89,7 +93,8 @@ class _FirstMessages:
 
     def __init__(self) -> None:
         self._deserializers: dict[str, Any] = {}
-        self.found: dict[int, tuple[str, str, str]] = {}  # channel id -> kind, frame, detail
+        # channel id -> kind, frame, detail, stereo baseline (m)
+        self.found: dict[int, tuple[str, str, str, float]] = {}
 
     def select(self, channel: Channel, schema: Schema | None) -> str:
         name = schema.name if schema else ""
@@ -108,29 +113,37 @@ class _FirstMessages:
         except Exception as exc:  # third-party decoders raise anything on malformed bytes
             if (enc, name) in DECODERS:
                 self.found[channel.id] = (decoder.kind, "", "first message does not decode "
-                                                            f"({type(exc).__name__})")
+                                                            f"({type(exc).__name__})", 0.0)
             return  # generic JSON that is not joint states
         record = records[0] if records else None
         if decoder.kind == "joint_states" and not (
                 isinstance(record, JointStateRecord) and len(record.positions)):
             if (enc, name) in DECODERS:
-                self.found[channel.id] = (decoder.kind, "", "no joints")
+                self.found[channel.id] = (decoder.kind, "", "no joints", 0.0)
             return
         self.found[channel.id] = (decoder.kind, *_frame_and_detail(record))
 
 
-def _frame_and_detail(record: Any) -> tuple[str, str]:
+def _frame_and_detail(record: Any) -> tuple[str, str, float]:
+    """A first message's frame id, detail and stereo baseline (m, `ChannelInfo`)."""
     if isinstance(record, ImageRecord):
         if record.width:
-            return record.frame_id, f"{record.width}x{record.height} {record.format}"
-        return record.frame_id, record.format
+            return record.frame_id, f"{record.width}x{record.height} {record.format}", 0.0
+        return record.frame_id, record.format, 0.0
     if isinstance(record, CameraInfoRecord):
-        return record.frame_id, f"{record.width}x{record.height} {record.distortion_model}"
+        detail = f"{record.width}x{record.height} {record.distortion_model}"
+        baseline = 0.0
+        if record.P is not None:
+            P = np.asarray(record.P, float)
+            baseline = float(np.hypot(P[0, 3] / P[0, 0], P[1, 3] / P[1, 1]))
+        if baseline > 0:
+            detail += f", stereo baseline {baseline * 1e3:.1f} mm"
+        return record.frame_id, detail, baseline
     if isinstance(record, PoseRecord):
-        return record.frame_id, f"in {record.frame_id}" if record.frame_id else ""
+        return record.frame_id, f"in {record.frame_id}" if record.frame_id else "", 0.0
     if isinstance(record, JointStateRecord):
-        return "", f"{len(record.positions)} joints"
-    return "", ""
+        return "", f"{len(record.positions)} joints", 0.0
+    return "", "", 0.0
 
 
 def _scan_file(path: Path, time_source: str) -> tuple[LogScan, TransformLog, dict]:
@@ -160,12 +173,12 @@ class _Merged:
     def __init__(self, c: ChannelScan) -> None:
         self.c = c
         self.count, self.first_ns, self.last_ns = 0, -1, -1
-        self.kind, self.frame_id, self.detail = "", "", ""
+        self.kind, self.frame_id, self.detail, self.baseline = "", "", "", 0.0
         self.transforms: int | None = None  # None: not a transform channel
         self.static = False
         self.child_frames: set[str] = set()
 
-    def add(self, c: ChannelScan, first: tuple[str, str, str] | None,
+    def add(self, c: ChannelScan, first: tuple[str, str, str, float] | None,
             tf_log: TransformLog) -> None:
         if c.count:
             self.first_ns = c.first_log_ns if self.first_ns < 0 else min(self.first_ns,
@@ -178,7 +191,7 @@ class _Merged:
             self.static = self.static or is_static_channel(c.topic, c.metadata)
             self.child_frames.update(tf_log.child_frames.get(c.topic, ()))
         elif first is not None and not self.kind:
-            self.kind, self.frame_id, self.detail = first
+            self.kind, self.frame_id, self.detail, self.baseline = first
 
     def info(self) -> ChannelInfo:
         c = self.c
@@ -191,7 +204,8 @@ class _Merged:
                                self.count, self.first_ns, self.last_ns, rate, "", detail,
                                self.static, frames)
         return ChannelInfo(c.topic, c.schema_name, c.message_encoding, self.kind, self.count,
-                           self.first_ns, self.last_ns, rate, self.frame_id, self.detail)
+                           self.first_ns, self.last_ns, rate, self.frame_id, self.detail,
+                           stereo_baseline_m=self.baseline)
 
 
 def scan_channels(files: Sequence[Path], time_source: str = "header") -> ChannelScanResult:

@@ -15,6 +15,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 from ..config import TopicsConfig
+from ..config.schema import CAMERA_INFO_POSES
 from ..core.sync.tf_tree import TfTree
 from ..io.logs.topics import TopicRoles
 from .channels import ChannelInfo
@@ -68,6 +69,8 @@ class PoseChain:
         `/pose/topic (40.0 Hz) in tracker -(static)-> world` for a pose topic."""
         if self.via_tf:
             head = self.frame
+        elif self.topic == CAMERA_INFO_POSES:
+            head = f"its CameraInfo R and P, fixed in {self.world}"
         else:
             rate = _rate(self.rate_hz)
             head = (f"{self.topic}{f' ({rate})' if rate else ''} in "
@@ -166,6 +169,9 @@ def plan_poses(channels: Sequence[ChannelInfo], tree: TfTree | None, topics: Top
     out = []
     for cid in cameras:
         who = f"camera {cid}"
+        if topics.poses_from_camera_info:
+            out.append(PoseChain(who, CAMERA_INFO_POSES, "", False, world))
+            continue
         if tf_topics:
             frame = topics.camera_frame.replace("{camera}", cid)
             hops, problem = _connect(tree, world, frame)

@@ -13,6 +13,7 @@ from __future__ import annotations
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
+from ..config.schema import CAMERA_INFO_POSES
 from ..core.sync.tf_tree import TfTree
 from .channels import ChannelInfo
 from .dvrk import dvrk_arms, psm_topics
@@ -102,6 +103,14 @@ def guess_roles(channels: Sequence[ChannelInfo], tree: TfTree | None
             topics["camera_pose"] = pose_pattern
             if frame_from_images:
                 topics["camera_frame"] = frame_from_images
+        elif len(info_caps) > 1 and any(c.stereo_baseline_m > 0 for c in infos
+                                        if c.topic in info_caps) and not tf_channels:
+            baseline = max(c.stereo_baseline_m for c in infos if c.topic in info_caps)
+            roles["camera_pose"] = RoleGuess(
+                "camera_pose", tuple(pose_names), CAMERA_INFO_POSES, ids,
+                note=f"no pose topic: a stereo rig fixed in the world, placed by its "
+                     f"CameraInfo R and P (baseline {baseline * 1e3:.1f} mm)")
+            topics["camera_pose"] = CAMERA_INFO_POSES
         elif "ECM" in dvrk_arms(pose_names):
             ecm = dvrk_arms(pose_names)["ECM"]
             roles["camera_pose"] = RoleGuess(

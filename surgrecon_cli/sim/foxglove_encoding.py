@@ -54,13 +54,14 @@ def foxglove_message(record: Record, json_mode: bool) -> tuple[str, dict[str, An
         }
     if isinstance(record, CameraInfoRecord):
         K = np.asarray(record.K, float).reshape(3, 3)
+        R, P = record.written_rectification()
         return "foxglove.CameraCalibration", {
             "timestamp": ts, "frame_id": record.frame_id, "width": record.width,
             "height": record.height, "distortion_model": record.distortion_model,
             "D": [float(x) for x in np.asarray(record.D, float).ravel()],
             "K": [float(x) for x in K.ravel()],
-            "R": [float(x) for x in np.eye(3).ravel()],
-            "P": [float(x) for x in np.hstack([K, np.zeros((3, 1))]).ravel()],
+            "R": [float(x) for x in R.ravel()],
+            "P": [float(x) for x in P.ravel()],
         }
     if isinstance(record, PoseRecord):
         p = dict(zip("xyz", (float(x) for x in record.position), strict=True))

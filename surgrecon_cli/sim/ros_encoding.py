@@ -156,9 +156,9 @@ def ros_message(record: Record, ros1: bool, seq: int = 0) -> tuple[str, dict[str
         }
     if isinstance(record, CameraInfoRecord):
         K = np.asarray(record.K, float).reshape(3, 3)
-        P = np.hstack([K, np.zeros((3, 1))])
+        R, P = record.written_rectification()
         names = ("D", "K", "R", "P") if ros1 else ("d", "k", "r", "p")
-        values = (np.asarray(record.D, float).ravel(), K.ravel(), np.eye(3).ravel(), P.ravel())
+        values = (np.asarray(record.D, float).ravel(), K.ravel(), R.ravel(), P.ravel())
         return "sensor_msgs/CameraInfo", {
             "header": header(record.frame_id), "height": record.height, "width": record.width,
             "distortion_model": record.distortion_model,

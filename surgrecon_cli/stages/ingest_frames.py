@@ -16,18 +16,19 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..config import Config
-from ..core.geometry.poses import make_pose
+from ..core.geometry.poses import invert_pose, make_pose, rectified_rig_pose
 from ..core.sync.streams import PoseStream, base_to_world_pose, fmt_stamp
 from ..core.sync.tf_samples import concat_samples
 from ..core.sync.tf_tree import TfTree, build_tf_tree
 from ..core.sync.world_poses import (
     WorldTree,
     chain_stream,
+    fixed_stream,
     moved_by,
     stream_to_world,
     transformed,
 )
-from ..errors import InputError, quoted
+from ..errors import GeometryError, InputError, quoted
 from ..io.logs.reader import LogReader
 from ..io.logs.transforms import read_transforms
 from .ingest_streams import CameraStreams, Poses
@@ -61,9 +62,15 @@ def world_poses(ids: Sequence[str], cams: Sequence[CameraStreams], tool: Poses,
     gap_ns = round(config.ingest.pose_gap_ms * 1e6)
     tree = _tree(reader, config, allow_truncated)
     conflicts = _Conflicts(tree, world)
-    streams, sources = [], {}
+    streams: list[PoseStream] = []
+    sources: dict[str, str] = {}
+    placed = topics.poses_from_camera_info  # a fixed rig: no pose topic to read
+    if placed:
+        streams, sources = _camera_info_rig(ids, cams, span_ns)
     for index, (cid, cam) in enumerate(zip(ids, cams, strict=True)):
         what = f"camera {cid}"
+        if placed:
+            break
         if topics.camera_from_ecm and cam.poses is None and shared is not None:
             hand_eye = _hand_eye(topics.camera_from_ecm, index, len(ids))
             streams.append(moved_by(stream_to_world(
@@ -104,6 +111,37 @@ def world_poses(ids: Sequence[str], cams: Sequence[CameraStreams], tool: Poses,
             span_ns, gap_ns, (f"tools[{k}]", f"tools[{k}].frame", f"tools[{k}].base_to_world"))
         extra.append(stream)
     return WorldPoses(streams, tool_stream, sources, conflicts.counts, extra)
+
+
+def _camera_info_rig(ids: Sequence[str], cams: Sequence[CameraStreams], span_ns: tuple[int, int]
+                     ) -> tuple[list[PoseStream], dict[str, str]]:
+    """`topics.camera_pose = "camera_info"`: each camera fixed in the world where its
+    CameraInfo's R and P place it in the rig (`core.geometry.poses.rectified_rig_pose`), the
+    first camera's raw frame the world; InputError naming the topic when a camera's info has
+    no R and P, or when they give the rig no baseline."""
+    in_rectified = []
+    for cid, cam in zip(ids, cams, strict=True):
+        if cam.rectification is None:
+            raise InputError(
+                f"camera {cid}: topics.camera_pose = \"camera_info\" but {cam.info_topic} "
+                "carries no stereo rectification R and projection P; record the cameras' poses "
+                "(a pose topic or TF), or convert the images with a calibration file")
+        try:
+            in_rectified.append(rectified_rig_pose(*cam.rectification))
+        except GeometryError as exc:
+            raise InputError(f"camera {cid}: {cam.info_topic}: {exc}") from exc
+    to_world = invert_pose(in_rectified[0])
+    poses = [to_world @ pose for pose in in_rectified]
+    if len(poses) > 1 and max(np.linalg.norm(p[:3, 3]) for p in poses) == 0.0:
+        raise InputError(
+            f"topics.camera_pose = \"camera_info\": the CameraInfo projections of cameras "
+            f"{', '.join(ids)} give the rig no baseline (P's Tx and Ty are 0 in every one); "
+            "record the cameras' poses (a pose topic or TF)")
+    streams = [fixed_stream(f"{cam.info_topic} R, P", pose, span_ns[0])
+               for cam, pose in zip(cams, poses, strict=True)]
+    sources = {cid: f"{cam.info_topic} R and P (a fixed rig, {ids[0]} at the world origin)"
+               for cid, cam in zip(ids, cams, strict=True)}
+    return streams, sources
 
 
 class _Conflicts:

@@ -69,6 +69,7 @@ class CameraStreams:
     files: list[str] = field(default_factory=list)  # staged paths relative to the staging root
     info_topic: str = ""
     model: CameraModel | None = None
+    rectification: tuple[np.ndarray, np.ndarray] | None = None  # its first CameraInfo's R, P
     info_changed: bool = False
     poses: Poses | None = None
     pose_topic: str = ""
@@ -217,6 +218,8 @@ class StreamCollector:
                 logger.warning("%s: %s; points imaged there are misplaced", where, corners)
             cam.model = model
             cam.info_topic = item.topic
+            if record.R is not None and record.P is not None:
+                cam.rectification = (record.R, record.P)
             sizes = np.array(cam.sizes, dtype=np.int64).reshape(-1, 2)
             for k, (w, h) in enumerate(sizes):
                 self._check_size(item.camera, cam.stamps[k], int(w), int(h))

@@ -141,6 +141,21 @@ def nearest_rotation(A: np.ndarray) -> np.ndarray:
     return U @ (D[..., :, None] * Vt)
 
 
+def rectified_rig_pose(rectification: np.ndarray, projection: np.ndarray) -> np.ndarray:
+    """Pose (4, 4) of a camera in the rectified frame of its stereo rig's first camera, from
+    its ROS CameraInfo: x_rect = R x_raw (`rectification` (3, 3)), and its rectified frame
+    sits at (−Tx/fx′, −Ty/fy′, 0) there (`projection` P (3, 4): Tx = P[0, 3], fx′ = P[0, 0];
+    the lengths are P's, metres in a ROS message)."""
+    R = np.asarray(rectification, float).reshape(3, 3)
+    P = np.asarray(projection, float).reshape(3, 4)
+    if not (np.isfinite(R).all() and np.isfinite(P).all()) or P[0, 0] == 0 or P[1, 1] == 0:
+        raise GeometryError("a rectified camera needs a finite R and a P with fx', fy' != 0")
+    pose = np.eye(4)
+    pose[:3, :3] = nearest_rotation(R)
+    pose[:3, 3] = [-P[0, 3] / P[0, 0], -P[1, 3] / P[1, 1], 0.0]
+    return pose
+
+
 def point_to_segment_distance(points: np.ndarray, start: np.ndarray, end: np.ndarray) -> np.ndarray:
     """Distance (N,) m from points (N, 3) to the segment start-end (3,)."""
     axis = end - start

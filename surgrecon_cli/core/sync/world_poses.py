@@ -56,6 +56,11 @@ def chain_stream(tree: TfTree, world_frame: str, frame: str, span_ns: tuple[int,
     return _stream(name, stamps, tree.lookup(world_frame, frame, stamps, max_gap_ns))
 
 
+def fixed_stream(name: str, pose: np.ndarray, stamp_ns: int) -> PoseStream:
+    """A pose (4, 4) that holds at every stamp (`PoseStream.constant`), given at `stamp_ns`."""
+    return _stream(name, np.array([stamp_ns], np.int64), np.asarray(pose, float)[None], True)
+
+
 def transformed(stream: PoseStream, pose: np.ndarray, name: str) -> PoseStream:
     """The stream `name` left-multiplied by a fixed pose (4, 4), e.g. the robot's base in
     the world (`tool.base_to_world`)."""

@@ -34,7 +34,8 @@ class CameraInfoRecord:
     rational_polynomial: k1 k2 p1 p2 k3 k4 k5 k6; equidistant: k1 k2 k3 k4), ROS binning
     (0 = 1) and roi = (x_offset, y_offset, width, height, do_rectify) in full-resolution px
     (all zero = full image). `core.geometry.cameras.CameraModel.from_camera_info` turns these into
-    the model of the published images."""
+    the model of the published images. R (3, 3) and P (3, 4): the stereo rectification and
+    projection (P[0, 3] = Tx = −fx′·B, metres), None where the message has none."""
 
     stamp_ns: int
     frame_id: str
@@ -46,6 +47,16 @@ class CameraInfoRecord:
     binning_x: int = 0
     binning_y: int = 0
     roi: tuple[int, int, int, int, bool] = (0, 0, 0, 0, False)
+    R: np.ndarray | None = None
+    P: np.ndarray | None = None
+
+    def written_rectification(self) -> tuple[np.ndarray, np.ndarray]:
+        """R (3, 3) and P (3, 4) as a CameraInfo message carries them: the recorded ones,
+        else those of an unrectified monocular camera (identity, [K | 0])."""
+        if self.R is not None and self.P is not None:
+            return np.asarray(self.R, float), np.asarray(self.P, float)
+        K = np.asarray(self.K, float).reshape(3, 3)
+        return np.eye(3), np.hstack([K, np.zeros((3, 1))])
 
 
 @dataclass(frozen=True)

@@ -53,11 +53,13 @@ class TopicRoles:
 
     def __init__(self, topics: TopicsConfig, extra_tools: tuple[str, ...] = ()) -> None:
         self.config = topics
-        self.patterns = {role: getattr(topics, role) for role in ROLES if getattr(topics, role)}
+        self.patterns = {role: getattr(topics, role) for role in ROLES if getattr(topics, role)
+                         and not (role == "camera_pose" and topics.poses_from_camera_info)}
         self._topic_re = {role: pattern_regex(p) for role, p in self.patterns.items()}
         self._extra_re = [pattern_regex(p) for p in extra_tools]
         # Every role the config names must be found in the log.
-        self.required = (*REQUIRED_ROLES, *(r for r in OPTIONAL_ROLES if r in self.patterns))
+        self.required = (*(r for r in REQUIRED_ROLES if r in self.patterns),
+                         *(r for r in OPTIONAL_ROLES if r in self.patterns))
         if extra_tools:
             self.patterns[EXTRA_TOOL_ROLE] = " ".join(extra_tools)
             self.required = (*self.required, EXTRA_TOOL_ROLE)

@@ -11,6 +11,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Protocol
 
+import numpy as np
 from mcap.records import Schema
 
 from ..records import Record
@@ -19,6 +20,17 @@ KINDS = ("image", "camera_info", "pose", "transforms", "joint_states")
 """What a schema carries; a topic role accepts some kinds (see `topics.ROLE_KINDS`)."""
 
 Convert = Callable[[Any], list[Record]]
+
+
+def rectification(r: Any, p: Any) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """A camera calibration message's R (3, 3) and P (3, 4) when it has them (9 and 12
+    numbers, P's focal lengths set), else None each (ROS CameraInfo, Foxglove
+    CameraCalibration)."""
+    R = None if r is None else np.asarray(list(r), dtype=float).ravel()
+    P = None if p is None else np.asarray(list(p), dtype=float).ravel()
+    if R is None or P is None or R.size != 9 or P.size != 12 or not (P[0] and P[5]):
+        return None, None
+    return R.reshape(3, 3), P.reshape(3, 4)
 
 
 @dataclass(frozen=True)

@@ -19,7 +19,7 @@ from mcap_protobuf.decoder import DecoderFactory
 from ....core.geometry.distortion import distortion_model_name
 from ..records import CameraInfoRecord, ImageRecord, JointStateRecord, PoseRecord, Record
 from ..video import CODECS as VIDEO_FORMATS
-from .base import stamp_ns
+from .base import rectification, stamp_ns
 
 
 class ProtobufDeserializer:
@@ -120,10 +120,12 @@ def camera_calibration(msg: Any) -> list[Record]:
     canonical as for ROS CameraInfo."""
     K = _floats(msg.K)
     D = _floats(msg.D)
+    R, P = rectification(msg.R, msg.P)
     return [CameraInfoRecord(
         _time(msg.timestamp), msg.frame_id or "", int(msg.width or 0), int(msg.height or 0),
         K.reshape(3, 3) if K.size == 9 else K, D,
         distortion_model_name(str(msg.distortion_model or ""), D),
+        R=R, P=P,
     )]
 
 

@@ -16,6 +16,7 @@ Ros1Deserializer = partial(ros_common.FactoryDeserializer, DecoderFactory, "ros1
 """ROS 1 bytes -> message objects with attribute access."""
 
 FLAVOR = ros_common.RosFlavor(
-    stamp=lambda header: stamp_ns(header.stamp.secs, header.stamp.nsecs), d="D", k="K")
+    stamp=lambda header: stamp_ns(header.stamp.secs, header.stamp.nsecs), d="D", k="K", r="R",
+    p="P")
 
 DECODE = ros_common.bind(FLAVOR)

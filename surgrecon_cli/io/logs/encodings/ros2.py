@@ -13,6 +13,7 @@ Ros2Deserializer = partial(ros_common.FactoryDeserializer, DecoderFactory, "cdr"
 """CDR bytes -> message objects with attribute access."""
 
 FLAVOR = ros_common.RosFlavor(
-    stamp=lambda header: stamp_ns(header.stamp.sec, header.stamp.nanosec), d="d", k="k")
+    stamp=lambda header: stamp_ns(header.stamp.sec, header.stamp.nanosec), d="d", k="k", r="r",
+    p="p")
 
 DECODE = ros_common.bind(FLAVOR)

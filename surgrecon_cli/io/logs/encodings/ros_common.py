@@ -13,6 +13,7 @@ from mcap.records import Schema
 
 from ....core.geometry.distortion import distortion_model_name
 from ..records import CameraInfoRecord, ImageRecord, JointStateRecord, PoseRecord, Record
+from .base import rectification
 
 
 class FactoryDeserializer:
@@ -38,6 +39,8 @@ class RosFlavor:
     stamp: Callable[[Any], int]
     d: str
     k: str
+    r: str
+    p: str
 
 
 def compressed_image(msg: Any, ros: RosFlavor) -> list[Record]:
@@ -66,7 +69,7 @@ def camera_info(msg: Any, ros: RosFlavor) -> list[Record]:
         K.reshape(3, 3) if K.size == 9 else K, D,
         distortion_model_name(str(msg.distortion_model), D),
         int(getattr(msg, "binning_x", 0) or 0), int(getattr(msg, "binning_y", 0) or 0),
-        roi_values,
+        roi_values, *rectification(getattr(msg, ros.r, None), getattr(msg, ros.p, None)),
     )]
 
 
