@@ -175,13 +175,22 @@ STEREO_R = cv2.Rodrigues(np.array([0.01, -0.03, 0.005]))[0]
 STEREO_T = np.array([-0.0055, 0.0002, 0.0003])
 
 
+def _stereo_rectify() -> tuple[np.ndarray, ...]:
+    """cv2.stereoRectify of cameras 0 and 1 for STEREO_R, STEREO_T: R1, R2, P1, P2."""
+    K = [intrinsics(c) for c in (0, 1)]
+    D = [np.array([-0.01 * c, 0.001, 0, 0, 0]) for c in (0, 1)]
+    return cv2.stereoRectify(K[0], D[0], K[1], D[1], (W, H), STEREO_R, STEREO_T)[:4]
+
+
+def ros_stereo_projections() -> tuple[np.ndarray, np.ndarray]:
+    """The projections P (3, 4) `ros_stereo` gives cameras 0 and 1."""
+    return _stereo_rectify()[2], _stereo_rectify()[3]
+
+
 def ros_stereo(messages: list[Message]) -> list[Message]:
     """Cameras 0 and 1 without poses, their CameraInfo carrying the rectification R and
     projection P that cv2.stereoRectify gives for STEREO_R, STEREO_T (Tx = -fx' B)."""
-    K = [intrinsics(c) for c in (0, 1)]
-    D = [np.array([-0.01 * c, 0.001, 0, 0, 0]) for c in (0, 1)]
-    R1, R2, P1, P2, *_ = cv2.stereoRectify(K[0], D[0], K[1], D[1], (W, H),
-                                           STEREO_R, STEREO_T)
+    R1, R2, P1, P2 = _stereo_rectify()
     out = []
     for topic, t, rec in messages:
         if topic.endswith("/pose"):

@@ -199,6 +199,27 @@ def test_a_ros_stereo_pair_is_placed_by_its_camera_info(tmp_path: Path, encoding
                                atol=1e-9)
 
 
+def test_rectified_images_take_the_projection_and_the_rectified_orientation(tmp_path: Path):
+    # image_rect* topics: modelled by P without distortion and turned by R, so that the two
+    # rectified cameras look the same way (R2 STEREO_R = R1) and the right one sits on the
+    # left one's x axis, -Tx / fx' away.
+    spec = SynthSpec(cameras=(0, 1), mutate=synth_log.ros_stereo,
+                     image_topic="/endoscope_{c}/image_rect_color")
+    log = synth_log.write(tmp_path / "log.mcap", spec)
+    run = tmp_path / "run"
+    assert run_ingest(log, run, "--set", 'topics.camera_pose="camera_info"', "--set",
+                      'topics.image="/endoscope_{camera}/image_rect_color"') == 0
+    ingested = load_ingested(run / "ingest")
+    P = synth_log.ros_stereo_projections()
+    for c in (0, 1):
+        np.testing.assert_allclose(ingested.models[c].K, P[c][:, :3])
+        assert not np.any(ingested.models[c].dist)
+    left, right = ingested.poses[0, 0], ingested.poses[0, 1]
+    np.testing.assert_allclose(left[:3, :3], right[:3, :3], atol=1e-9)
+    offset = left[:3, :3].T @ (right[:3, 3] - left[:3, 3])
+    np.testing.assert_allclose(offset, [-P[1][0, 3] / P[1][0, 0], 0, 0], atol=1e-9)
+
+
 def test_camera_info_poses_need_a_stereo_calibration(tmp_path: Path, capsys):
     # CameraInfo of monocular calibrations (R = I, P = [K | 0]): one line, nothing written.
     spec = SynthSpec(cameras=(0, 1), mutate=lambda ms: [m for m in ms

@@ -18,6 +18,10 @@ class TopicsConfig:
     """Which topic plays which role; `{camera}` captures the camera id."""
 
     image: str = _doc("/endoscope_{camera}/color/compressed", "image topic pattern")
+    image_rectified: str = _doc(
+        "auto", "'yes': the images are rectified (ROS image_proc's image_rect*), modelled by "
+        "their CameraInfo's P without distortion and turned by its R; 'no': raw; 'auto': "
+        "'yes' when a part of the image topic name starts with image_rect")
     camera_info: str = _doc("/endoscope_{camera}/calibration", "intrinsics topic pattern")
     camera_pose: str = _doc(
         "/navigation/endoscope_{camera}/pose",
@@ -44,12 +48,21 @@ class TopicsConfig:
         "camera_pose is per camera", bounds=(-1000.0, 1000.0))
 
     @property
+    def rectified(self) -> bool:
+        """The images are rectified (`image_rectified`)."""
+        if self.image_rectified == "auto":
+            return any(part.startswith("image_rect") for part in self.image.split("/"))
+        return self.image_rectified == "yes"
+
+    @property
     def poses_from_camera_info(self) -> bool:
         """No pose topic: a fixed rig placed by its CameraInfo R and P (`CAMERA_INFO_POSES`)."""
         return self.camera_pose == CAMERA_INFO_POSES
 
     def __post_init__(self) -> None:
         check_bounds(self, "topics")
+        _require(self.image_rectified in ("auto", "yes", "no"), "topics.image_rectified",
+                 f"must be 'auto', 'yes' or 'no', got {self.image_rectified!r}")
         _require(len(self.camera_from_ecm) % 7 == 0, "topics.camera_from_ecm",
                  "must be x y z qx qy qz qw per camera (a multiple of 7 numbers)")
         for key in ("image", "camera_info"):

@@ -87,7 +87,7 @@ def ingest(
     staging = layout.ingest_staging(uuid.uuid4().hex[:12])
     staging.mkdir()  # (mkdtemp would make it 0700; this respects the umask)
     try:
-        collector = StreamCollector(staging)
+        collector = StreamCollector(staging, config.topics.rectified)
         for item in reader:
             collector.add(item)
         collector.finish()

@@ -94,6 +94,10 @@ def world_poses(ids: Sequence[str], cams: Sequence[CameraStreams], tool: Poses,
                                        WorldTree(tree, world, gap_ns), what))
         sources[cid] = _topic_text(cam.pose_topic, frame, world)
         conflicts.chain(cid, frame)
+    if topics.rectified:
+        streams = _rectified(ids, cams, streams)
+        sources = {cid: f"{text}, turned by its CameraInfo R (rectified images)"
+                   for cid, text in sources.items()}
     if not topics.tool_pose:
         tool_stream = tool.validated()
     else:
@@ -142,6 +146,21 @@ def _camera_info_rig(ids: Sequence[str], cams: Sequence[CameraStreams], span_ns:
     sources = {cid: f"{cam.info_topic} R and P (a fixed rig, {ids[0]} at the world origin)"
                for cid, cam in zip(ids, cams, strict=True)}
     return streams, sources
+
+
+def _rectified(ids: Sequence[str], cams: Sequence[CameraStreams], streams: list[PoseStream]
+               ) -> list[PoseStream]:
+    """The poses of rectified images (`topics.image_rectified`): each camera's raw pose
+    turned by its CameraInfo's rectification R (x_rect = R x_raw; the centre stays)."""
+    out = []
+    for cid, cam, stream in zip(ids, cams, streams, strict=True):
+        if cam.rectification is None:
+            raise InputError(f"camera {cid}: {cam.info_topic} carries no rectification R for "
+                             "the rectified images (topics.image_rectified)")
+        turn = np.eye(4)
+        turn[:3, :3] = cam.rectification[0].T
+        out.append(moved_by(stream, turn, f"camera {cid} turned by {cam.info_topic} R"))
+    return out
 
 
 class _Conflicts:

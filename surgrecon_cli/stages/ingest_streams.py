@@ -83,8 +83,9 @@ class CameraStreams:
 class StreamCollector:
     """Feed `add(item)` every LogItem; images go to `root/staged/CC/NNNNNNNN.ext`."""
 
-    def __init__(self, root: Path) -> None:
+    def __init__(self, root: Path, rectified: bool = False) -> None:
         self.root = Path(root)
+        self.rectified = rectified  # images modelled by their CameraInfo's P, no distortion
         self.cameras: dict[str, CameraStreams] = {}
         self.tool = Poses("tool pose")
         self.tool_topic = ""
@@ -201,19 +202,25 @@ class StreamCollector:
     def _info(self, item: LogItem, record: CameraInfoRecord) -> None:
         cam = self._camera(item.camera)
         where = f"{item.topic}: intrinsics at stamp {fmt_stamp(record.stamp_ns)}"
+        K, D, distortion = record.K, record.D, record.distortion_model
+        if self.rectified:  # ROS image_geometry: rectified images are modelled by P
+            if record.P is None:
+                raise InputError(f"{where} carry no projection P for the rectified images "
+                                 "(topics.image_rectified); set topics.image_rectified = "
+                                 "\"no\" if the images are raw")
+            K, D, distortion = np.asarray(record.P)[:, :3], np.zeros(5), "plumb_bob"
         try:
             model = CameraModel.from_camera_info(
-                record.K, record.D, record.distortion_model, int(record.width),
-                int(record.height), record.binning_x, record.binning_y, record.roi)
+                K, D, distortion, int(record.width), int(record.height), record.binning_x,
+                record.binning_y, record.roi)
         except (GeometryError, ValueError) as exc:
             raise InputError(f"{where} are invalid ({exc})") from exc
         if cam.model is None:
-            why = implausible_intrinsics(record.K, int(record.width), int(record.height), model)
+            why = implausible_intrinsics(K, int(record.width), int(record.height), model)
             if why is not None:
                 raise InputError(f"{where} cannot be a real camera's: {why}; fix the "
                                  "calibration, or leave the camera out of topics.image")
-            corners = folds_before_corners(record.K, int(record.width), int(record.height),
-                                           model)
+            corners = folds_before_corners(K, int(record.width), int(record.height), model)
             if corners is not None:
                 logger.warning("%s: %s; points imaged there are misplaced", where, corners)
             cam.model = model
