@@ -135,7 +135,7 @@ def _roles_section(info: LogInfo) -> str:
         if r.role == "tf":
             continue
         label = f"  {_ROLE_LABELS[r.role]:<13}"
-        if not r.topics:
+        if not r.topics and not r.pattern:
             lines.append(f"{label} none" + (f" ({r.role} = \"\")"
                                             if r.role in ("tool_pose", "joint_states") else ""))
             continue
