@@ -321,16 +321,22 @@ def matched_onto_cut(source: np.ndarray, registered: np.ndarray, supported: np.n
                      target: ColouredPoints, spacing_m: float) -> np.ndarray:
     """(N,) bool: supported points whose registered position (N, 3) m lies within
     CUT_RIM_SPACINGS x spacing_m (the target's spacing, m) of a point on the target's rim
-    (`target.rim`) while the source (N, 3) m goes on past them: within CUT_LOST_SPACINGS x
+    (`target.rim`), or past the rim (its nearest target point a rim point more than
+    spacing_m away), while the source (N, 3) m goes on past them: within CUT_LOST_SPACINGS x
     spacing_m of a source point not `supported` (N,) bool. Their partner may lie past the
     rim of a cut target: the data do not measure their motion."""
     out = np.zeros(len(source), bool)
     if target.rim is None or not target.rim.any() or supported.all() or not supported.any():
         return out
     reach = CUT_RIM_SPACINGS * spacing_m
-    near = cKDTree(target.xyz[target.rim]).query(registered[supported],
+    have = np.flatnonzero(supported)
+    near = cKDTree(target.xyz[target.rim]).query(registered[have],
                                                  distance_upper_bound=reach)[0] <= reach
-    cand = np.flatnonzero(supported)[near]
+    # past the rim: the nearest target point is a rim point more than a spacing away (inside
+    # the surface a point lies within about half a spacing of its nearest sample)
+    d, j = target.tree.query(registered[have])
+    past = target.rim[j] & (d > spacing_m)
+    cand = have[near | past]
     if len(cand):
         reach = CUT_LOST_SPACINGS * spacing_m
         lost = cKDTree(source[~supported]).query(source[cand], distance_upper_bound=reach)[0]
