@@ -95,6 +95,11 @@ FOLLOW_REACH_COLOURED = (0.0, 0.01)
 # p95 up by 0.02 / 0.10 mm; within 3 / 4 spacings of a lost point: +0.22 / +0.22 mm, and
 # tissue_partial +0.89 / +0.48; 8: as 6; over 6 spacings inside the source's own rim in
 # place of the lost points: the same cells, stray_colour 5k p95 +0.03 mm, 20 ms more)
+# A supported position past the rim (its nearest target point a rim point more than one
+# spacing away: inside the surface a point lies within about half a spacing of its nearest
+# sample) counts too: `register`'s support gate reaches 3 spacings, and on seed 8 points
+# whose partners lie 1-3 mm past the cut slid 0.8-1.5 mm past the rim (worst cell +0.107 ->
+# +0.044 mm; seeds 0-9 and 200-209 otherwise the same or lower)
 CUT_RIM_SPACINGS = 2.0
 CUT_LOST_SPACINGS = 6.0
 
