@@ -294,6 +294,24 @@ def test_only_points_matched_onto_the_rim_of_a_cut_are_taken_for_unmeasured():
     assert not matched_onto_cut(xyz, xyz, np.ones(4000, bool), target, spacing).any()
 
 
+def test_points_past_the_rim_of_a_cut_but_within_the_support_gate_are_taken_for_unmeasured():
+    # issue 28, stray_colour_partial 5k seed 8: points whose true position lies 1-3 mm past a
+    # cut target's rim slid onto it, stayed within `register`'s support gate (3 spacings)
+    # 0.8-1.5 mm past the rim and kept a motion nothing measured (+0.11 mm cell). Here: a
+    # sheet whose target lost its side u > 25 mm; source points up to 3 spacings past the cut
+    # count as supported, those farther not
+    xyz, _ = _curved_sheet(4000, 8)
+    uv_u = np.random.default_rng(8).uniform(0.0, 40.0, (4000, 2))[:, 0]  # _curved_sheet's u
+    spacing = 40e-3 / np.sqrt(4000)
+    keep = uv_u < 25.0
+    target = ColouredPoints.analysed(xyz[keep], np.zeros((int(keep.sum()), 3)))
+    supported = uv_u < 25.0 + 3.0 * spacing * 1e3
+    at_cut = matched_onto_cut(xyz, xyz, supported, target, spacing)
+    past = ~keep & supported & (uv_u > 25.0 + 2.2 * spacing * 1e3)  # beyond 2 spacings
+    assert past.sum() > 20 and np.mean(at_cut[past]) > 0.8
+    assert not at_cut[uv_u < 20.0].any()  # not inside, nor on the border both clouds share
+
+
 def test_unsupported_points_can_fade_to_not_moving():
     rng = np.random.default_rng(4)
     src = np.c_[rng.uniform(0, 0.03, (3000, 2)), np.zeros(3000)]
