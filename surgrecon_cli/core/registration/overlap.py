@@ -84,6 +84,15 @@ RIM_COMPANIONS = 2
 # out to any distance +2.3 mm)
 IDENTITY_NEIGHBOURS = 16
 IDENTITY_MARGIN = 2.8
+# the colour misfit u (|colour difference|^2 over the measured noise^2: under noise alone
+# ~ chi^2 with 3 degrees of freedom / 3) counts as u c / (u + c): c the 95 % quantile of
+# that law (7.81 / 3), so a point whose colour the target does not show near it (its
+# samples left out as colour strays or missing at the target's border, a random-coloured
+# stray kept) weighs at most c, not 20-150 (stray_colour_partial 5k, fresh seeds 300-319:
+# static cells at the border both clouds share, dragged 1.3 mm, won their motion by
+# such points: seed 313 +1.26 -> +0.02 mm, seed 308 +0.42 -> +0.18; the same figures for
+# c from 7.81 / 3 to 9.49)
+IDENTITY_COLOUR_CAP = 7.81 / 3.0
 FOLLOW_REACH_COLOURED = (0.0, 0.01)
 # ours, tuned on the same: a supported point whose registered position lies within
 # CUT_RIM_SPACINGS target spacings of the target's rim (`target_rim`) and within
@@ -303,8 +312,8 @@ def explained_by_identity(source: np.ndarray, registered: np.ndarray, supported:
     spread = max(1.4826 * float(np.median(across1)), 1e-9)
     gain = np.zeros(len(have))  # > 0: the motion fits better
     colour0, across0, rim0 = fit(source[have[moving]], source_rgb[have[moving]])
-    gain[moving] = (colour0 + (across0 / spread) ** 2 - colour1
-                    - (across1[moving] / spread) ** 2)
+    gain[moving] = (robust_colour(colour0) + (across0 / spread) ** 2
+                    - robust_colour(colour1) - (across1[moving] / spread) ** 2)
     # at the target's rim the misfits favour the motion whatever the truth (past the rim the
     # colour is smoothed over one side and the plane is fitted on one side): a point whose
     # position either way has its nearest target point on the rim tells nothing, and its
@@ -317,6 +326,12 @@ def explained_by_identity(source: np.ndarray, registered: np.ndarray, supported:
     mean_gain = (gain * seen)[nb].sum(axis=1) / np.maximum(count, 1.0)
     still[have[moving]] = (count > 0) & (mean_gain <= IDENTITY_MARGIN)
     return still
+
+
+def robust_colour(u: np.ndarray) -> np.ndarray:
+    """The robust colour misfit u c / (u + c) of colour misfits u (noise units, squared),
+    c = IDENTITY_COLOUR_CAP: ~u for misfits noise explains, at most c."""
+    return u * IDENTITY_COLOUR_CAP / (u + IDENTITY_COLOUR_CAP)
 
 
 def matched_onto_cut(source: np.ndarray, registered: np.ndarray, supported: np.ndarray,
