@@ -268,13 +268,13 @@ def explained_by_identity(source: np.ndarray, registered: np.ndarray, supported:
     moving explains the data about as well as their motion does. Per point and position, the
     misfit is `robust_colour`(|source colour - target colour smoothed at it|^2 / noise^2, the
     colour noise measured on the target) + (distance across the local plane of its nearest
-    target point / s)^2, s the robust spread of that distance at the registered positions (the target's
-    noise as this run sees it); a point is explained by not moving unless its motion lowers
-    the mean misfit of its IDENTITY_NEIGHBOURS nearest supported points by more than
+    target point / s)^2, s the robust spread of that distance at the registered positions (the
+    target's noise as this run sees it); a point is explained by not moving unless its motion
+    lowers the mean misfit of its IDENTITY_NEIGHBOURS nearest supported points by more than
     IDENTITY_MARGIN. A point whose nearest target point, moved or not, is on the target's rim
     (`target.rim`) is left out of the means (there the misfits favour any motion onto the
-    target); one whose neighbours are all left out keeps its motion. target: the agreeing
-    target points, colours 0..1, with their planes (computed when not given)."""
+    target); one whose neighbours are all left out keeps its motion. target: the agreeing target
+    points, colours 0..1, with their planes (computed when not given)."""
     n = len(source)
     still = np.zeros(n, bool)
     have = np.flatnonzero(supported)
