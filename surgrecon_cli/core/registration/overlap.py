@@ -9,8 +9,11 @@ has no surface for it or where its match may lie past the target's cut.
   lowest (`stay_where_better`), leaving out hypotheses at the rim of the target
   (`target_rim`); then a point does not move at all where that explains its neighbourhood's
   data within a margin over the measured noises (`explained_by_identity`; at the target's
-  rim its neighbours inside decide), and a point matched onto the rim of a cut target
-  (`matched_onto_cut`) follows as one without surface.
+  rim its neighbours inside decide); a point whose deformation node it shares with points
+  without target surface (`coupled_to_unsupported`) keeps only the part of its motion across
+  the target's surface (`across_only`) where that explains its neighbourhood's data within
+  the same margin; and a point matched onto the rim of a cut target (`matched_onto_cut`)
+  follows as one without surface.
 Inputs and outputs in metres.
 """
 
@@ -23,6 +26,7 @@ import numpy as np
 from scipy import sparse
 from scipy.spatial import cKDTree
 
+from . import graph
 from .colour import ColourDecision, Neighbourhoods
 from .surface import local_planes
 
@@ -263,7 +267,8 @@ def stay_where_better(source: np.ndarray, registered: np.ndarray, supported: np.
 
 def explained_by_identity(source: np.ndarray, registered: np.ndarray, supported: np.ndarray,
                           source_rgb: np.ndarray, target: ColouredPoints,
-                          decision: ColourDecision) -> np.ndarray:
+                          decision: ColourDecision, alternative: np.ndarray | None = None,
+                          robust: bool = True) -> np.ndarray:
     """(N,) bool: the supported points that move (source -> registered (N, 3) m) for which not
     moving explains the data about as well as their motion does. Per point and position, the
     misfit is `robust_colour`(|source colour - target colour smoothed at it|^2 / noise^2, the
@@ -274,7 +279,9 @@ def explained_by_identity(source: np.ndarray, registered: np.ndarray, supported:
     IDENTITY_MARGIN. A point whose nearest target point, moved or not, is on the target's rim
     (`target.rim`) is left out of the means (there the misfits favour any motion onto the
     target); one whose neighbours are all left out keeps its motion. target: the agreeing target
-    points, colours 0..1, with their planes (computed when not given)."""
+    points, colours 0..1, with their planes (computed when not given). alternative: positions
+    (N, 3) m tested in place of not moving (None: source); robust False: the colour misfit
+    counts in full (a slide's evidence is kept whole)."""
     n = len(source)
     still = np.zeros(n, bool)
     have = np.flatnonzero(supported)
@@ -301,7 +308,8 @@ def explained_by_identity(source: np.ndarray, registered: np.ndarray, supported:
 
     # where a point does not move both misfits are the same and not moving changes nothing:
     # only the moving ones are sought and tested (the others count in the spread alone)
-    moving = np.flatnonzero(np.any(registered[have] != source[have], axis=1))
+    alt = source if alternative is None else alternative
+    moving = np.flatnonzero(np.any(registered[have] != alt[have], axis=1))
     if len(moving) == 0:
         return still
     resting = np.setdiff1d(np.arange(len(have)), moving, assume_unique=True)
@@ -312,9 +320,9 @@ def explained_by_identity(source: np.ndarray, registered: np.ndarray, supported:
         across1[resting] = across(pos, target.tree.query(pos, k=1)[1])
     spread = max(1.4826 * float(np.median(across1)), 1e-9)
     gain = np.zeros(len(have))  # > 0: the motion fits better
-    colour0, across0, rim0 = fit(source[have[moving]], source_rgb[have[moving]])
-    gain[moving] = (robust_colour(colour0) + (across0 / spread) ** 2
-                    - robust_colour(colour1) - (across1[moving] / spread) ** 2)
+    colour0, across0, rim0 = fit(alt[have[moving]], source_rgb[have[moving]])
+    c0, c1 = (robust_colour(colour0), robust_colour(colour1)) if robust else (colour0, colour1)
+    gain[moving] = c0 + (across0 / spread) ** 2 - c1 - (across1[moving] / spread) ** 2
     # at the target's rim the misfits favour the motion whatever the truth (past the rim the
     # colour is smoothed over one side and the plane is fitted on one side): a point whose
     # position either way has its nearest target point on the rim tells nothing, and its
@@ -327,6 +335,36 @@ def explained_by_identity(source: np.ndarray, registered: np.ndarray, supported:
     mean_gain = (gain * seen)[nb].sum(axis=1) / np.maximum(count, 1.0)
     still[have[moving]] = (count > 0) & (mean_gain <= IDENTITY_MARGIN)
     return still
+
+
+def coupled_to_unsupported(source: np.ndarray, supported: np.ndarray, max_nodes: int,
+                           interp_neighbors: int) -> np.ndarray:
+    """(N,) bool: supported points (N,) bool of source (N, 3) m that share a deformation node
+    with a point not supported: `register`'s nodes (`graph.sample_nodes`, max_nodes; the
+    same points at any scale and offset) and each point's interp_neighbors blended ones
+    (`graph.interpolation`, non-zero weights). Their motion is blended from nodes whose
+    motion the points without target surface took part in."""
+    out = np.zeros(len(source), bool)
+    if supported.all() or not supported.any() or max_nodes <= 0 or len(source) <= max_nodes:
+        return out
+    nodes = source[graph.sample_nodes(source, max_nodes)]
+    idx, w = graph.interpolation(source, nodes, cKDTree(nodes), interp_neighbors)
+    touched = np.zeros(len(nodes), bool)
+    touched[idx[~supported][w[~supported] > 0]] = True
+    return supported & (touched[idx] & (w > 0)).any(axis=1)
+
+
+def across_only(source: np.ndarray, registered: np.ndarray,
+                target: ColouredPoints) -> np.ndarray:
+    """(N, 3) m: each source point (N, 3) m moved by only the part of its motion (registered
+    - source) along the normal of the target point nearest its registered position (the
+    slide along the surface dropped)."""
+    if target.normal is None:
+        target = ColouredPoints.analysed(target.xyz, target.rgb)
+    assert target.normal is not None
+    normal = target.normal[target.tree.query(registered, k=1)[1]]
+    move = registered - source
+    return source + normal * (move * normal).sum(axis=1)[:, None]
 
 
 def robust_colour(u: np.ndarray) -> np.ndarray:

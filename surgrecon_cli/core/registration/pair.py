@@ -41,6 +41,8 @@ from .colour import ColourDecision, decide_colour
 from .overlap import (
     FOLLOW_REACH_COLOURED,
     ColouredPoints,
+    across_only,
+    coupled_to_unsupported,
     explained_by_identity,
     follow_supported,
     matched_onto_cut,
@@ -202,6 +204,18 @@ def register_pair(
         registered = src + share[:, None] * (result.registered - src)
         identity = np.concatenate([np.eye(3), np.zeros((3, 1))], axis=1)
         transforms = share[:, None, None] * transforms + (1 - share[:, None, None]) * identity
+        # next to points without target surface, `register`'s along-surface slide is coupled
+        # to motions nothing measured: it is dropped unless it explains the data better
+        near_lost = coupled_to_unsupported(src, supported, cfg.max_nodes,
+                                           cfg.interp_neighbors) & (share > 0) & ~known
+        if near_lost.any():
+            across = across_only(src, registered, target)
+            near_lost &= explained_by_identity(src, registered, supported, s_rgb, target,
+                                               decision, alternative=across, robust=False)
+            registered[near_lost] = across[near_lost]
+            transforms[near_lost] = np.concatenate(
+                [np.broadcast_to(np.eye(3), (int(near_lost.sum()), 3, 3)),
+                 (across[near_lost] - src[near_lost])[:, :, None]], axis=2)
         # nothing measured the motion of a point without target surface, or matched onto
         # the rim of a cut target: beyond its supported neighbours' reach it does not move
         lost = ~supported | (matched_onto_cut(src, registered, supported, target,
