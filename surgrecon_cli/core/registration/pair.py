@@ -206,8 +206,9 @@ def register_pair(
         transforms = share[:, None, None] * transforms + (1 - share[:, None, None]) * identity
         # next to points without target surface, `register`'s along-surface slide is coupled
         # to motions nothing measured: it is dropped unless it explains the data better
-        near_lost = coupled_to_unsupported(src, supported, cfg.max_nodes,
-                                           cfg.interp_neighbors) & (share > 0) & ~known
+        near_lost = (coupled_to_unsupported(src, supported, cfg.max_nodes,
+                                            cfg.interp_neighbors, cfg.k_neighbors)
+                     & (share > 0) & ~known)
         if near_lost.any():
             across = across_only(src, registered, target)
             near_lost &= explained_by_identity(src, registered, supported, s_rgb, target,
