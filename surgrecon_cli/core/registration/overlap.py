@@ -281,7 +281,7 @@ def stay_where_better(source: np.ndarray, registered: np.ndarray, supported: np.
 def explained_by_identity(source: np.ndarray, registered: np.ndarray, supported: np.ndarray,
                           source_rgb: np.ndarray, target: ColouredPoints,
                           decision: ColourDecision, alternative: np.ndarray | None = None,
-                          robust: bool = True) -> np.ndarray:
+                          robust: bool = True, only: np.ndarray | None = None) -> np.ndarray:
     """(N,) bool: the supported points that move (source -> registered (N, 3) m) for which not
     moving explains the data about as well as their motion does. Per point and position, the
     misfit is `robust_colour`(|source colour - target colour smoothed at it|^2 / noise^2, the
@@ -294,7 +294,8 @@ def explained_by_identity(source: np.ndarray, registered: np.ndarray, supported:
     target); one whose neighbours are all left out keeps its motion. target: the agreeing target
     points, colours 0..1, with their planes (computed when not given). alternative: positions
     (N, 3) m tested in place of not moving (None: source); robust False: the colour misfit
-    counts in full (a slide's evidence is kept whole)."""
+    counts in full (a slide's evidence is kept whole). only: (N,) bool, the points asked about
+    (None: every supported one; the answer is meant for them alone)."""
     n = len(source)
     still = np.zeros(n, bool)
     have = np.flatnonzero(supported)
@@ -323,6 +324,14 @@ def explained_by_identity(source: np.ndarray, registered: np.ndarray, supported:
     # only the moving ones are sought and tested (the others count in the spread alone)
     alt = source if alternative is None else alternative
     moving = np.flatnonzero(np.any(registered[have] != alt[have], axis=1))
+    k = min(IDENTITY_NEIGHBOURS, len(have))
+    source_tree = cKDTree(source[have])
+    if only is not None:  # the points asked about and the neighbours they average over
+        asked = np.flatnonzero(only[have])
+        needed = np.zeros(len(have), bool)
+        if len(asked):
+            needed[source_tree.query(source[have[asked]], k=k)[1].ravel()] = True
+        moving = moving[needed[moving]]
     if len(moving) == 0:
         return still
     resting = np.setdiff1d(np.arange(len(have)), moving, assume_unique=True)
@@ -342,8 +351,7 @@ def explained_by_identity(source: np.ndarray, registered: np.ndarray, supported:
     # neighbours decide for it; with none that tells, it keeps its motion
     seen = np.ones(len(have))
     seen[moving] = ~(rim0 | rim1)
-    k = min(IDENTITY_NEIGHBOURS, len(have))
-    nb = cKDTree(source[have]).query(source[have[moving]], k=k)[1].reshape(len(moving), k)
+    nb = source_tree.query(source[have[moving]], k=k)[1].reshape(len(moving), k)
     count = seen[nb].sum(axis=1)
     mean_gain = (gain * seen)[nb].sum(axis=1) / np.maximum(count, 1.0)
     still[have[moving]] = (count > 0) & (mean_gain <= IDENTITY_MARGIN)

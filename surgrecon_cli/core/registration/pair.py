@@ -212,7 +212,8 @@ def register_pair(
         if near_lost.any():
             across = across_only(src, registered, target)
             near_lost &= explained_by_identity(src, registered, supported, s_rgb, target,
-                                               decision, alternative=across, robust=False)
+                                               decision, alternative=across, robust=False,
+                                               only=near_lost)
             registered[near_lost] = across[near_lost]
             transforms[near_lost] = np.concatenate(
                 [np.broadcast_to(np.eye(3), (int(near_lost.sum()), 3, 3)),
