@@ -18,8 +18,12 @@ Around the shared `register` (also the frame pipeline's), without changing it:
    a hypothesis at the rim of the target (`target_rim`), where the true partner may lie
    past it, is left out; then a point does not move at all where that explains its
    neighbourhood's data within a margin over the measured noises (`explained_by_identity`,
-   points at the target's rim left out of the neighbourhood),
-   and a point matched onto the rim of a cut target (`matched_onto_cut`) follows as in 2;
+   points at the target's rim left out of the neighbourhood, the colour misfit counted
+   robustly), a point whose deformation node it shares with a cut-away part
+   (`coupled_to_unsupported`) keeps only its motion across the target's surface
+   (`across_only`) unless its slide along it explains its neighbourhood's data better by
+   the same margin, and a point matched onto the rim of a cut target (`matched_onto_cut`)
+   follows as in 2;
 4. with colour used, solver settings of its own (`pair_config`) in place of the fields the
    caller left at their defaults;
 5. an error estimate that says what it can see (`error_estimate_mm`);
