@@ -15,6 +15,8 @@ from surgrecon_cli.config import RegistrationConfig
 from surgrecon_cli.core.registration.colour import decide_colour
 from surgrecon_cli.core.registration.overlap import (
     ColouredPoints,
+    across_only,
+    coupled_to_unsupported,
     explained_by_identity,
     follow_supported,
     matched_onto_cut,
@@ -323,3 +325,35 @@ def test_unsupported_points_can_fade_to_not_moving():
     far = src[:, 0] > 0.015 + 4.3e-3
     np.testing.assert_allclose(out[far], src[far], atol=1e-12)
     np.testing.assert_array_equal(out[supported], reg[supported])
+
+
+def test_points_next_to_a_cut_away_part_are_coupled_to_it_and_a_missed_border_sample_is_not():
+    # a 40 mm sheet of 5000 points, 250 nodes (about 2.5 mm apart): the part u > 28 mm has no
+    # target surface; the points coupled to it lie next to it (the blend of 4 nodes, then one
+    # ring of smoothness neighbours: all within 2 node spacings of the cut, some out to 4)
+    xyz, _ = _curved_sheet(5000, 11)
+    u = np.random.default_rng(11).uniform(0.0, 40.0, (5000, 2))[:, 0]  # _curved_sheet's u
+    supported = u < 28.0
+    coupled = coupled_to_unsupported(xyz, supported, 250, 4, 8)
+    assert not coupled[~supported].any()
+    assert coupled[(u > 26.0) & supported].mean() > 0.9  # right at the cut
+    assert coupled[(u > 23.0) & supported].mean() > 0.9
+    assert not coupled[u < 15.0].any()  # 13 mm (5 node spacings) inside: untouched
+    # a full sheet with a few scattered points the resampling left without target surface
+    scattered = np.ones(5000, bool)
+    scattered[np.random.default_rng(12).choice(5000, 12, replace=False)] = False
+    assert not coupled_to_unsupported(xyz, scattered, 250, 4, 8).any()
+
+
+def test_across_only_keeps_the_motion_along_the_targets_normal_and_drops_the_slide():
+    xyz, _ = _curved_sheet(3000, 13)
+    target = ColouredPoints.analysed(xyz, np.zeros((3000, 3)))
+    normal = target.normal
+    assert normal is not None
+    # each point moved 0.3 mm along its local normal and slid 1 mm along the surface
+    slide = np.cross(normal, [0.0, 0.0, 1.0])
+    slide /= np.linalg.norm(slide, axis=1)[:, None]
+    registered = xyz + 0.3e-3 * normal + 1e-3 * slide
+    d = np.linalg.norm(across_only(xyz, registered, target) - (xyz + 0.3e-3 * normal), axis=1)
+    assert np.median(d) < 0.05e-3  # the 1 mm slide gone, the 0.3 mm across kept
+
