@@ -278,24 +278,51 @@ def stay_where_better(source: np.ndarray, registered: np.ndarray, supported: np.
     return np.asarray(_mean_operator(nb, m) @ (mean @ best))
 
 
+@dataclasses.dataclass(frozen=True)
+class MotionTest:
+    """What `explained_by` tests: source (N, 3) m, registered (N, 3) m, supported (N,) bool,
+    source_rgb (N, 3) 0..1; alternative (N, 3) m: the positions tested in place of the
+    motion (None: the source, not moving); robust: the colour misfit counted robustly
+    (`robust_colour`; False: in full, so a slide's evidence is kept whole); only (N,) bool:
+    the points asked about (None: every supported one; the answer is meant for them)."""
+
+    source: np.ndarray
+    registered: np.ndarray
+    supported: np.ndarray
+    source_rgb: np.ndarray
+    alternative: np.ndarray | None = None
+    robust: bool = True
+    only: np.ndarray | None = None
+
+
 def explained_by_identity(source: np.ndarray, registered: np.ndarray, supported: np.ndarray,
                           source_rgb: np.ndarray, target: ColouredPoints,
-                          decision: ColourDecision, alternative: np.ndarray | None = None,
-                          robust: bool = True, only: np.ndarray | None = None) -> np.ndarray:
+                          decision: ColourDecision) -> np.ndarray:
     """(N,) bool: the supported points that move (source -> registered (N, 3) m) for which not
-    moving explains the data about as well as their motion does. Per point and position, the
-    misfit is `robust_colour`(|source colour - target colour smoothed at it|^2 / noise^2, the
-    colour noise measured on the target) + (distance across the local plane of its nearest
-    target point / s)^2, s the robust spread of that distance at the registered positions (the
-    target's noise as this run sees it); a point is explained by not moving unless its motion
+    moving explains the data about as well as their motion does (`explained_by`, colours
+    source_rgb (N, 3) 0..1, supported (N,) bool)."""
+    return explained_by(MotionTest(source, registered, supported, source_rgb), target,
+                        decision)
+
+
+def explained_by(test: MotionTest, target: ColouredPoints,
+                 decision: ColourDecision) -> np.ndarray:
+    """(N,) bool: the supported points of `test` that move (source -> registered) for which
+    its alternative (not moving by default) explains the data about as well as their motion
+    does. Per point and position, the misfit is `robust_colour`(|source colour - target
+    colour smoothed at it|^2 / noise^2, the colour noise measured on the target; in full
+    when not test.robust) + (distance across the local plane of its nearest target point /
+    s)^2, s the robust spread of that distance at the registered positions (the target's
+    noise as this run sees it); a point is explained by the alternative unless its motion
     lowers the mean misfit of its IDENTITY_NEIGHBOURS nearest supported points by more than
-    IDENTITY_MARGIN. A point whose nearest target point, moved or not, is on the target's rim
-    (`target.rim`) is left out of the means (there the misfits favour any motion onto the
-    target); one whose neighbours are all left out keeps its motion. target: the agreeing target
-    points, colours 0..1, with their planes (computed when not given). alternative: positions
-    (N, 3) m tested in place of not moving (None: source); robust False: the colour misfit
-    counts in full (a slide's evidence is kept whole). only: (N,) bool, the points asked about
-    (None: every supported one; the answer is meant for them alone)."""
+    IDENTITY_MARGIN. A point whose nearest target point, at either position, is on the
+    target's rim (`target.rim`) is left out of the means (there the misfits favour any
+    motion onto the target); one whose neighbours are all left out keeps its motion.
+    target: the agreeing target points, colours 0..1, with their planes (computed when not
+    given)."""
+    source, registered, supported = test.source, test.registered, test.supported
+    source_rgb, alternative, robust, only = (test.source_rgb, test.alternative, test.robust,
+                                             test.only)
     n = len(source)
     still = np.zeros(n, bool)
     have = np.flatnonzero(supported)

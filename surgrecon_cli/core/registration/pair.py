@@ -45,8 +45,10 @@ from .colour import ColourDecision, decide_colour
 from .overlap import (
     FOLLOW_REACH_COLOURED,
     ColouredPoints,
+    MotionTest,
     across_only,
     coupled_to_unsupported,
+    explained_by,
     explained_by_identity,
     follow_supported,
     matched_onto_cut,
@@ -215,9 +217,9 @@ def register_pair(
                      & (share > 0) & ~known)
         if near_lost.any():
             across = across_only(src, registered, target)
-            near_lost &= explained_by_identity(src, registered, supported, s_rgb, target,
-                                               decision, alternative=across, robust=False,
-                                               only=near_lost)
+            near_lost &= explained_by(MotionTest(src, registered, supported, s_rgb, across,
+                                                 robust=False, only=near_lost),
+                                      target, decision)
             registered[near_lost] = across[near_lost]
             transforms[near_lost] = np.concatenate(
                 [np.broadcast_to(np.eye(3), (int(near_lost.sum()), 3, 3)),
