@@ -9,8 +9,11 @@ has no surface for it or where its match may lie past the target's cut.
   lowest (`stay_where_better`), leaving out hypotheses at the rim of the target
   (`target_rim`); then a point does not move at all where that explains its neighbourhood's
   data within a margin over the measured noises (`explained_by_identity`; at the target's
-  rim its neighbours inside decide), and a point matched onto the rim of a cut target
-  (`matched_onto_cut`) follows as one without surface.
+  rim its neighbours inside decide); a point whose deformation node it shares with points
+  without target surface (`coupled_to_unsupported`) keeps only the part of its motion across
+  the target's surface (`across_only`) where that explains its neighbourhood's data within
+  the same margin; and a point matched onto the rim of a cut target (`matched_onto_cut`)
+  follows as one without surface.
 Inputs and outputs in metres.
 """
 
@@ -23,6 +26,7 @@ import numpy as np
 from scipy import sparse
 from scipy.spatial import cKDTree
 
+from . import graph
 from .colour import ColourDecision, Neighbourhoods
 from .surface import local_planes
 
@@ -85,6 +89,29 @@ RIM_COMPANIONS = 2
 IDENTITY_NEIGHBOURS = 16
 IDENTITY_MARGIN = 2.8
 FOLLOW_REACH_COLOURED = (0.0, 0.01)
+# the colour misfit u of explained_by_identity (|colour difference|^2 over the measured
+# noise^2: under noise alone about chi^2 with 3 degrees of freedom / 3) counts as
+# u c / (u + c), c its 99.9 % quantile (16.27 / 3): a point whose colour the target does not
+# show near it (its samples left out as colour strays, or sparse at the target's border; a
+# random-coloured stray kept) weighs at most c, not 20-150 noises. Fresh seeds 300-319 of
+# stray_colour_partial 5k: static tissue at the border both clouds share, dragged 1.3 mm by
+# `register`, won its motion by a few such points (seed 313 +1.256 -> +0.015 mm, 308 +0.423
+# -> +0.177); the same worst cells for c from 7.81 / 3 (95 %) to 9.49; at 12 and above seed
+# 313 is back (+0.85 mm)
+IDENTITY_COLOUR_CAP = 16.27 / 3.0
+# ours, tuned on stray_colour_partial 5k seeds 0-9, 200-209, 300-319: next to a cut,
+# `register` drags the supported tissue away from the cut along the surface (seed 300: 1.9 /
+# 1.7 / 1.2 / 0.6 / 0.1 mm within 1 / 2 / 4 / 6 / 9 mm of the points without target surface;
+# the nodes there blend the cut-away points' matches onto the rim, and the smoothness carries
+# them on); a supported point blending a node whose weight comes mostly from points without
+# target surface, or one of its smoothness neighbours (1 ring: about the 6 mm the drag
+# reaches), keeps only its motion across the surface unless the slide explains its
+# neighbourhood's data better by IDENTITY_MARGIN, the colour counted in full (seed 300 +0.58 ->
+# +0.26 mm, 308 +0.18 -> +0.02, 203 +0.13 -> 0; no ring: 300 +0.55; any node touched, 1 ring:
+# stray_colour 2k p95 0.60 -> 0.89 mm, from a border node the resampling left; the colour
+# counted robustly (any node touched): medians of seeds 9 / 204 +0.03 / +0.08 mm; without
+# the test: +0.06 / +0.15)
+COUPLED_RINGS = 1
 # ours, tuned on the same: a supported point whose registered position lies within
 # CUT_RIM_SPACINGS target spacings of the target's rim (`target_rim`) and within
 # CUT_LOST_SPACINGS of a source point without target surface (the source goes on past the
@@ -95,6 +122,11 @@ FOLLOW_REACH_COLOURED = (0.0, 0.01)
 # p95 up by 0.02 / 0.10 mm; within 3 / 4 spacings of a lost point: +0.22 / +0.22 mm, and
 # tissue_partial +0.89 / +0.48; 8: as 6; over 6 spacings inside the source's own rim in
 # place of the lost points: the same cells, stray_colour 5k p95 +0.03 mm, 20 ms more)
+# A supported position past the rim (its nearest target point a rim point more than one
+# spacing away: inside the surface a point lies within about half a spacing of its nearest
+# sample) counts too: `register`'s support gate reaches 3 spacings, and on seed 8 points
+# whose partners lie 1-3 mm past the cut slid 0.8-1.5 mm past the rim (worst cell +0.107 ->
+# +0.044 mm; seeds 0-9 and 200-209 otherwise the same or lower)
 CUT_RIM_SPACINGS = 2.0
 CUT_LOST_SPACINGS = 6.0
 
@@ -246,20 +278,51 @@ def stay_where_better(source: np.ndarray, registered: np.ndarray, supported: np.
     return np.asarray(_mean_operator(nb, m) @ (mean @ best))
 
 
+@dataclasses.dataclass(frozen=True)
+class MotionTest:
+    """What `explained_by` tests: source (N, 3) m, registered (N, 3) m, supported (N,) bool,
+    source_rgb (N, 3) 0..1; alternative (N, 3) m: the positions tested in place of the
+    motion (None: the source, not moving); robust: the colour misfit counted robustly
+    (`robust_colour`; False: in full, so a slide's evidence is kept whole); only (N,) bool:
+    the points asked about (None: every supported one; the answer is meant for them)."""
+
+    source: np.ndarray
+    registered: np.ndarray
+    supported: np.ndarray
+    source_rgb: np.ndarray
+    alternative: np.ndarray | None = None
+    robust: bool = True
+    only: np.ndarray | None = None
+
+
 def explained_by_identity(source: np.ndarray, registered: np.ndarray, supported: np.ndarray,
                           source_rgb: np.ndarray, target: ColouredPoints,
                           decision: ColourDecision) -> np.ndarray:
     """(N,) bool: the supported points that move (source -> registered (N, 3) m) for which not
-    moving explains the data about as well as their motion does. Per point and position, the
-    misfit is |source colour - target colour smoothed at it|^2 / noise^2 (the colour noise
-    measured on the target) + (distance across the local plane of its nearest target point
-    / s)^2, s the robust spread of that distance at the registered positions (the target's
-    noise as this run sees it); a point is explained by not moving unless its motion lowers
-    the mean misfit of its IDENTITY_NEIGHBOURS nearest supported points by more than
-    IDENTITY_MARGIN. A point whose nearest target point, moved or not, is on the target's rim
-    (`target.rim`) is left out of the means (there the misfits favour any motion onto the
-    target); one whose neighbours are all left out keeps its motion. target: the agreeing
-    target points, colours 0..1, with their planes (computed when not given)."""
+    moving explains the data about as well as their motion does (`explained_by`, colours
+    source_rgb (N, 3) 0..1, supported (N,) bool)."""
+    return explained_by(MotionTest(source, registered, supported, source_rgb), target,
+                        decision)
+
+
+def explained_by(test: MotionTest, target: ColouredPoints,
+                 decision: ColourDecision) -> np.ndarray:
+    """(N,) bool: the supported points of `test` that move (source -> registered) for which
+    its alternative (not moving by default) explains the data about as well as their motion
+    does. Per point and position, the misfit is `robust_colour`(|source colour - target
+    colour smoothed at it|^2 / noise^2, the colour noise measured on the target; in full
+    when not test.robust) + (distance across the local plane of its nearest target point /
+    s)^2, s the robust spread of that distance at the registered positions (the target's
+    noise as this run sees it); a point is explained by the alternative unless its motion
+    lowers the mean misfit of its IDENTITY_NEIGHBOURS nearest supported points by more than
+    IDENTITY_MARGIN. A point whose nearest target point, at either position, is on the
+    target's rim (`target.rim`) is left out of the means (there the misfits favour any
+    motion onto the target); one whose neighbours are all left out keeps its motion.
+    target: the agreeing target points, colours 0..1, with their planes (computed when not
+    given)."""
+    source, registered, supported = test.source, test.registered, test.supported
+    source_rgb, alternative, robust, only = (test.source_rgb, test.alternative, test.robust,
+                                             test.only)
     n = len(source)
     still = np.zeros(n, bool)
     have = np.flatnonzero(supported)
@@ -286,7 +349,16 @@ def explained_by_identity(source: np.ndarray, registered: np.ndarray, supported:
 
     # where a point does not move both misfits are the same and not moving changes nothing:
     # only the moving ones are sought and tested (the others count in the spread alone)
-    moving = np.flatnonzero(np.any(registered[have] != source[have], axis=1))
+    alt = source if alternative is None else alternative
+    moving = np.flatnonzero(np.any(registered[have] != alt[have], axis=1))
+    k = min(IDENTITY_NEIGHBOURS, len(have))
+    source_tree = cKDTree(source[have])
+    if only is not None:  # the points asked about and the neighbours they average over
+        asked = np.flatnonzero(only[have])
+        needed = np.zeros(len(have), bool)
+        if len(asked):
+            needed[source_tree.query(source[have[asked]], k=k)[1].ravel()] = True
+        moving = moving[needed[moving]]
     if len(moving) == 0:
         return still
     resting = np.setdiff1d(np.arange(len(have)), moving, assume_unique=True)
@@ -297,37 +369,88 @@ def explained_by_identity(source: np.ndarray, registered: np.ndarray, supported:
         across1[resting] = across(pos, target.tree.query(pos, k=1)[1])
     spread = max(1.4826 * float(np.median(across1)), 1e-9)
     gain = np.zeros(len(have))  # > 0: the motion fits better
-    colour0, across0, rim0 = fit(source[have[moving]], source_rgb[have[moving]])
-    gain[moving] = (colour0 + (across0 / spread) ** 2 - colour1
-                    - (across1[moving] / spread) ** 2)
+    colour0, across0, rim0 = fit(alt[have[moving]], source_rgb[have[moving]])
+    c0, c1 = (robust_colour(colour0), robust_colour(colour1)) if robust else (colour0, colour1)
+    gain[moving] = c0 + (across0 / spread) ** 2 - c1 - (across1[moving] / spread) ** 2
     # at the target's rim the misfits favour the motion whatever the truth (past the rim the
     # colour is smoothed over one side and the plane is fitted on one side): a point whose
     # position either way has its nearest target point on the rim tells nothing, and its
     # neighbours decide for it; with none that tells, it keeps its motion
     seen = np.ones(len(have))
     seen[moving] = ~(rim0 | rim1)
-    k = min(IDENTITY_NEIGHBOURS, len(have))
-    nb = cKDTree(source[have]).query(source[have[moving]], k=k)[1].reshape(len(moving), k)
+    nb = source_tree.query(source[have[moving]], k=k)[1].reshape(len(moving), k)
     count = seen[nb].sum(axis=1)
     mean_gain = (gain * seen)[nb].sum(axis=1) / np.maximum(count, 1.0)
     still[have[moving]] = (count > 0) & (mean_gain <= IDENTITY_MARGIN)
     return still
 
 
+def coupled_to_unsupported(source: np.ndarray, supported: np.ndarray, max_nodes: int,
+                           interp_neighbors: int, k_neighbors: int) -> np.ndarray:
+    """(N,) bool: supported points (N,) bool of source (N, 3) m whose motion `register`
+    blends from a node next to a part without target surface: its nodes
+    (`graph.sample_nodes`, max_nodes; the same points at any scale and offset), each point's
+    interp_neighbors blended ones (`graph.interpolation`), the nodes whose blend weight comes
+    mostly (> 1/2) from points not supported and which have such a node among their
+    k_neighbors smoothness neighbours (a part that spans nodes: a cut, not a border sample
+    the resampling missed), and their smoothness neighbours (COUPLED_RINGS rings)."""
+    out = np.zeros(len(source), bool)
+    if supported.all() or not supported.any() or max_nodes <= 0 or len(source) <= max_nodes:
+        return out
+    nodes = source[graph.sample_nodes(source, max_nodes)]
+    tree = cKDTree(nodes)
+    idx, w = graph.interpolation(source, nodes, tree, interp_neighbors)
+    total = np.bincount(idx.ravel(), w.ravel(), len(nodes))
+    lost = np.bincount(idx[~supported].ravel(), w[~supported].ravel(), len(nodes))
+    mostly = lost > 0.5 * total
+    ea, eb = graph.neighbour_edges(nodes, tree, k_neighbors)
+    touched = mostly & (np.bincount(ea[mostly[eb]], minlength=len(nodes)) > 0)
+    for _ in range(COUPLED_RINGS):
+        ring = touched.copy()
+        ring[eb[touched[ea]]] = True
+        touched = ring
+    return supported & (touched[idx] & (w > 0)).any(axis=1)
+
+
+def across_only(source: np.ndarray, registered: np.ndarray,
+                target: ColouredPoints) -> np.ndarray:
+    """(N, 3) m: each source point (N, 3) m moved by only the part of its motion (registered
+    - source) along the normal of the target point nearest its registered position (the
+    slide along the surface dropped)."""
+    if target.normal is None:
+        target = ColouredPoints.analysed(target.xyz, target.rgb)
+    assert target.normal is not None
+    normal = target.normal[target.tree.query(registered, k=1)[1]]
+    move = registered - source
+    return source + normal * (move * normal).sum(axis=1)[:, None]
+
+
+def robust_colour(u: np.ndarray) -> np.ndarray:
+    """The robust colour misfit u c / (u + c) of colour misfits u (noise units, squared),
+    c = IDENTITY_COLOUR_CAP: ~u for misfits noise explains, at most c."""
+    return u * IDENTITY_COLOUR_CAP / (u + IDENTITY_COLOUR_CAP)
+
+
 def matched_onto_cut(source: np.ndarray, registered: np.ndarray, supported: np.ndarray,
                      target: ColouredPoints, spacing_m: float) -> np.ndarray:
     """(N,) bool: supported points whose registered position (N, 3) m lies within
     CUT_RIM_SPACINGS x spacing_m (the target's spacing, m) of a point on the target's rim
-    (`target.rim`) while the source (N, 3) m goes on past them: within CUT_LOST_SPACINGS x
+    (`target.rim`), or past the rim (its nearest target point a rim point more than
+    spacing_m away), while the source (N, 3) m goes on past them: within CUT_LOST_SPACINGS x
     spacing_m of a source point not `supported` (N,) bool. Their partner may lie past the
     rim of a cut target: the data do not measure their motion."""
     out = np.zeros(len(source), bool)
     if target.rim is None or not target.rim.any() or supported.all() or not supported.any():
         return out
     reach = CUT_RIM_SPACINGS * spacing_m
-    near = cKDTree(target.xyz[target.rim]).query(registered[supported],
+    have = np.flatnonzero(supported)
+    near = cKDTree(target.xyz[target.rim]).query(registered[have],
                                                  distance_upper_bound=reach)[0] <= reach
-    cand = np.flatnonzero(supported)[near]
+    # past the rim: the nearest target point is a rim point more than a spacing away (inside
+    # the surface a point lies within about half a spacing of its nearest sample)
+    d, j = target.tree.query(registered[have])
+    past = target.rim[j] & (d > spacing_m)
+    cand = have[near | past]
     if len(cand):
         reach = CUT_LOST_SPACINGS * spacing_m
         lost = cKDTree(source[~supported]).query(source[cand], distance_upper_bound=reach)[0]

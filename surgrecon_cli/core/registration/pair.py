@@ -18,8 +18,12 @@ Around the shared `register` (also the frame pipeline's), without changing it:
    a hypothesis at the rim of the target (`target_rim`), where the true partner may lie
    past it, is left out; then a point does not move at all where that explains its
    neighbourhood's data within a margin over the measured noises (`explained_by_identity`,
-   points at the target's rim left out of the neighbourhood),
-   and a point matched onto the rim of a cut target (`matched_onto_cut`) follows as in 2;
+   points at the target's rim left out of the neighbourhood, the colour misfit counted
+   robustly), a point whose deformation node it shares with a cut-away part
+   (`coupled_to_unsupported`) keeps only its motion across the target's surface
+   (`across_only`) unless its slide along it explains its neighbourhood's data better by
+   the same margin, and a point matched onto the rim of a cut target (`matched_onto_cut`)
+   follows as in 2;
 4. with colour used, solver settings of its own (`pair_config`) in place of the fields the
    caller left at their defaults;
 5. an error estimate that says what it can see (`error_estimate_mm`);
@@ -41,6 +45,10 @@ from .colour import ColourDecision, decide_colour
 from .overlap import (
     FOLLOW_REACH_COLOURED,
     ColouredPoints,
+    MotionTest,
+    across_only,
+    coupled_to_unsupported,
+    explained_by,
     explained_by_identity,
     follow_supported,
     matched_onto_cut,
@@ -202,6 +210,20 @@ def register_pair(
         registered = src + share[:, None] * (result.registered - src)
         identity = np.concatenate([np.eye(3), np.zeros((3, 1))], axis=1)
         transforms = share[:, None, None] * transforms + (1 - share[:, None, None]) * identity
+        # next to points without target surface, `register`'s along-surface slide is coupled
+        # to motions nothing measured: it is dropped unless it explains the data better
+        near_lost = (coupled_to_unsupported(src, supported, cfg.max_nodes,
+                                            cfg.interp_neighbors, cfg.k_neighbors)
+                     & (share > 0) & ~known)
+        if near_lost.any():
+            across = across_only(src, registered, target)
+            near_lost &= explained_by(MotionTest(src, registered, supported, s_rgb, across,
+                                                 robust=False, only=near_lost),
+                                      target, decision)
+            registered[near_lost] = across[near_lost]
+            transforms[near_lost] = np.concatenate(
+                [np.broadcast_to(np.eye(3), (int(near_lost.sum()), 3, 3)),
+                 (across[near_lost] - src[near_lost])[:, :, None]], axis=2)
         # nothing measured the motion of a point without target surface, or matched onto
         # the rim of a cut target: beyond its supported neighbours' reach it does not move
         lost = ~supported | (matched_onto_cut(src, registered, supported, target,
