@@ -130,15 +130,20 @@ def _first_per_group(group: np.ndarray, value: np.ndarray, n_groups: int):
 
 
 def ray_depths(
-    xi: np.ndarray, xj: np.ndarray, pose_i: np.ndarray, pose_j: np.ndarray
+    xi: np.ndarray, xj: np.ndarray, pose_i: np.ndarray, pose_j: np.ndarray,
+    pairs: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> np.ndarray:
     """Depth (M,) m in camera i of the closest approach of the rays through normalised
-    points xi (M, 2) of camera i and xj (M, 2) of camera j (NaN for parallel rays)."""
+    points xi (M, 2) of camera i and xj (M, 2) of camera j (NaN for parallel rays); with
+    `pairs` (ia, jb) (M,) each, of the rays through xi[ia] and xj[jb] (xi, xj then hold each
+    image's points once: what depends on one ray is computed once per point)."""
+    ia, jb = pairs if pairs is not None else (slice(None), slice(None))
     di = np.column_stack([xi, np.ones(len(xi))]) @ pose_i[:3, :3].T
     dj = np.column_stack([xj, np.ones(len(xj))]) @ pose_j[:3, :3].T
     w0 = pose_i[:3, 3] - pose_j[:3, 3]
-    a, b, c = (di * di).sum(1), (di * dj).sum(1), (dj * dj).sum(1)
-    d, e = di @ w0, dj @ w0
+    a, c = (di * di).sum(1)[ia], (dj * dj).sum(1)[jb]
+    d, e = (di @ w0)[ia], (dj @ w0)[jb]
+    b = (di[ia] * dj[jb]).sum(1)
     denom = a * c - b * b
     with np.errstate(divide="ignore", invalid="ignore"):
         return np.where(denom > 1e-12, (b * e - c * d) / denom, np.nan)  # z of x̃ = (x, y, 1)
@@ -176,7 +181,7 @@ def match_pair(view_i: CameraView, view_j: CameraView, gates: PairGates) -> np.n
         return np.zeros((0, 2), int)
     E = essential_matrix(pose_i, pose_j)
     ia, jb = epipolar_candidates(E, fi.normalized, fj.normalized, f_i, f_j, epipolar_px)
-    z = ray_depths(fi.normalized[ia], fj.normalized[jb], pose_i, pose_j)
+    z = ray_depths(fi.normalized, fj.normalized, pose_i, pose_j, (ia, jb))
     inside = (z >= depth_range[0]) & (z <= depth_range[1])
     return ratio_mutual_matches(fi.descriptors, fj.descriptors, ia[inside], jb[inside], ratio)
 
