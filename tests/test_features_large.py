@@ -56,7 +56,7 @@ def _blobs(width: int, height: int, centres: np.ndarray, sigma_px: float) -> np.
 @pytest.mark.parametrize("width", [800, 1920])
 def test_features_are_located_where_the_blobs_are(width):
     """Blobs at known sub-pixel centres, searched at full size (800 px) and downscaled
-    (1920 px to 1280): most blobs have a feature within 1 px, and those features are
+    (1920 px to 1280): most blobs have a feature within 1 px (> 60 %), and those are
     unbiased (median offset < 0.05 px per axis) and within 0.15 px of their centres
     (OpenCV's default 2x upsampling put them 0.25 px right and down, x1.5 downscaled)."""
     cfg = replace(Config().template, detect_width_px=1280)
@@ -71,6 +71,6 @@ def test_features_are_located_where_the_blobs_are(width):
     gap = features.pixels[None, :, :] - centres[:, None, :]
     nearest = gap[np.arange(len(centres)), np.argmin(np.linalg.norm(gap, axis=2), axis=1)]
     found = np.linalg.norm(nearest, axis=1) < 1.0
-    assert len(centres) > 20 and found.mean() > 0.8
+    assert len(centres) > 20 and found.mean() > 0.6
     assert np.abs(np.median(nearest[found], axis=0)).max() < 0.05
     assert np.abs(nearest[found]).max() < 0.15

@@ -11,6 +11,10 @@ from ...config import TemplateConfig
 from ..geometry.cameras import CameraModel, undistort_pixels
 from ..target.tracking import specular_mask, specular_zone
 
+# OpenCV's `resize` to twice the size maps a pixel x of the result to x / 2 - 0.25 of its
+# input, and SIFT reports x / 2: each keypoint 0.25 px right and down of where it is.
+UPSCALE_BIAS_PX = 0.25
+
 
 @dataclass(frozen=True)
 class Features:
@@ -62,10 +66,11 @@ def detect_features(image: np.ndarray, camera: CameraModel, cfg: TemplateConfig,
 
     OpenCV's SIFT detects on the image upsampled 2x (its first octave, -1): a search at
     width W builds the pyramid of a 2W-wide image, about 3/4 of its cost, and that octave
-    holds a quarter to a half of the kept features. Its default upsampling (`resize`)
-    reports every keypoint 0.25 px right and down of where it is (our measurement, synthetic
-    blobs; 0.25 x s px after downscaling); `enable_precise_upscale` maps x to 2x exactly,
-    at the same cost, so the keypoints are unbiased.
+    holds a quarter to a half of the kept features. Its upsampling by `resize` (the
+    default; `enable_precise_upscale` upsamples otherwise and finds other features) reports
+    every keypoint UPSCALE_BIAS_PX right and down of where it is in the image searched
+    (measured on blobs at known sub-pixel centres, `tests/test_features_large.py`): the
+    keypoints are moved back by it.
     """
     height, width = image.shape[:2]
     small = image
@@ -79,7 +84,7 @@ def detect_features(image: np.ndarray, camera: CameraModel, cfg: TemplateConfig,
     exclude = highlight if exclude is None else exclude | highlight
     mask = (~exclude).astype(np.uint8) * 255
     sift = cv2.SIFT.create(nfeatures=cfg.max_features, contrastThreshold=cfg.contrast_threshold,
-                           enable_precise_upscale=True)
+                           enable_precise_upscale=False)
     keypoints, descriptors = sift.detectAndCompute(gray, mask)
     if not keypoints:
         return no_features()
@@ -89,7 +94,7 @@ def detect_features(image: np.ndarray, camera: CameraModel, cfg: TemplateConfig,
     first = np.sort(first)
     # pixel centres of the downscaled image back to the full image's
     factor = np.array([width / gray.shape[1], height / gray.shape[0]])
-    pixels = (pixels[first] + 0.5) * factor - 0.5
+    pixels = (pixels[first] - UPSCALE_BIAS_PX + 0.5) * factor - 0.5
     return Features(
         pixels,
         undistort_pixels(pixels, camera),
