@@ -314,11 +314,14 @@ def test_band_search_returns_exactly_the_brute_force_candidates(motion):
         np.testing.assert_array_equal(np.column_stack([ia, jb]), expected)
 
 
-def test_lazy_ratio_matches_equal_the_dense_rule():
+@pytest.mark.parametrize("stride", [1, 8, 1000])
+def test_lazy_ratio_matches_equal_the_dense_rule(stride, monkeypatch):
     """SIFT-like descriptors (integers 0..255; look-alike rows, exact duplicates for ties)
     and random candidate sets: the matches equal those of the rule on the whole distance
     matrix (best candidate; runner-up = nearest other feature of j, candidate or not;
-    mutual among candidates, earliest row on ties)."""
+    mutual among candidates, earliest row on ties), whichever columns the ratio test's
+    first pass samples (all, every 8th, the first only)."""
+    monkeypatch.setattr(matching, "SAMPLE_STRIDE", stride)
     rng = np.random.default_rng(5)
     db = rng.integers(0, 256, (300, 128)).astype(np.float32)
     da = rng.integers(0, 256, (250, 128)).astype(np.float32)

@@ -177,8 +177,9 @@ class TemplateConfig:
         0.008, "SIFT contrast threshold (OpenCV default 0.04; tissue is low-contrast)",
         bounds=(0, 1)
     )
-    detect_width_px: int = _doc(0, "wider images: SIFT on the image scaled to this width (0: off)",
-                                bounds=(0, 9999))
+    detect_width_px: int = _doc(
+        1280, "wider images: SIFT on the image scaled to this width (0: off)", bounds=(0, 9999)
+    )
     ratio: float = _doc(
         0.9, "Lowe ratio test (against the runner-up inside or outside the epipolar segment)",
         bounds=(0, 1)

@@ -11,6 +11,10 @@ from ...config import TemplateConfig
 from ..geometry.cameras import CameraModel, undistort_pixels
 from ..target.tracking import specular_mask, specular_zone
 
+# OpenCV's `resize` to twice the size maps a pixel x of the result to x / 2 - 0.25 of its
+# input, and SIFT reports x / 2: each keypoint 0.25 px right and down of where it is.
+UPSCALE_BIAS_PX = 0.25
+
 
 @dataclass(frozen=True)
 class Features:
@@ -57,10 +61,16 @@ def detect_features(image: np.ndarray, camera: CameraModel, cfg: TemplateConfig,
     The contrast threshold is half OpenCV's default: endoscopic tissue is low-contrast and we
     want hundreds to thousands of features per image (our choice, not the paper's). Images
     wider than `cfg.detect_width_px` are searched downscaled to exactly that width, by a
-    factor s = width / detect_width_px (area average, aspect kept; SIFT's finest octave,
-    the image upsampled 2x, then has 4/s² of the full image's pixels instead of 4x); the
-    pixels are given in the full image. `cfg.max_features`, `cfg.contrast_threshold`:
-    SIFT's.
+    factor s = width / detect_width_px (area average, aspect kept); the pixels are given in
+    the full image. `cfg.max_features`, `cfg.contrast_threshold`: SIFT's.
+
+    OpenCV's SIFT detects on the image upsampled 2x (its first octave, -1): a search at
+    width W builds the pyramid of a 2W-wide image, about 3/4 of its cost, and that octave
+    holds a quarter to a half of the kept features. Its upsampling by `resize` (the
+    default; `enable_precise_upscale` upsamples otherwise and finds other features) reports
+    every keypoint UPSCALE_BIAS_PX right and down of where it is in the image searched
+    (measured on blobs at known sub-pixel centres, `tests/test_features_large.py`): the
+    keypoints are moved back by it.
     """
     height, width = image.shape[:2]
     small = image
@@ -73,7 +83,8 @@ def detect_features(image: np.ndarray, camera: CameraModel, cfg: TemplateConfig,
     highlight = specular_zone(specular_mask(small))
     exclude = highlight if exclude is None else exclude | highlight
     mask = (~exclude).astype(np.uint8) * 255
-    sift = cv2.SIFT.create(nfeatures=cfg.max_features, contrastThreshold=cfg.contrast_threshold)
+    sift = cv2.SIFT.create(nfeatures=cfg.max_features, contrastThreshold=cfg.contrast_threshold,
+                           enable_precise_upscale=False)
     keypoints, descriptors = sift.detectAndCompute(gray, mask)
     if not keypoints:
         return no_features()
@@ -83,7 +94,7 @@ def detect_features(image: np.ndarray, camera: CameraModel, cfg: TemplateConfig,
     first = np.sort(first)
     # pixel centres of the downscaled image back to the full image's
     factor = np.array([width / gray.shape[1], height / gray.shape[0]])
-    pixels = (pixels[first] + 0.5) * factor - 0.5
+    pixels = (pixels[first] - UPSCALE_BIAS_PX + 0.5) * factor - 0.5
     return Features(
         pixels,
         undistort_pixels(pixels, camera),

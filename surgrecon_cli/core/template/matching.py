@@ -16,6 +16,7 @@ from ..geometry.poses import invert_pose
 from .features import Features
 
 BLOCK_CELLS = 1 << 22  # ours: float32 cells (16 MB) of one block of a matching matrix
+SAMPLE_STRIDE = 8  # ours: the ratio test's first pass sees every 8th descriptor of the other image
 
 
 def essential_matrix(pose_i: np.ndarray, pose_j: np.ndarray) -> np.ndarray:
@@ -129,15 +130,20 @@ def _first_per_group(group: np.ndarray, value: np.ndarray, n_groups: int):
 
 
 def ray_depths(
-    xi: np.ndarray, xj: np.ndarray, pose_i: np.ndarray, pose_j: np.ndarray
+    xi: np.ndarray, xj: np.ndarray, pose_i: np.ndarray, pose_j: np.ndarray,
+    pairs: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> np.ndarray:
     """Depth (M,) m in camera i of the closest approach of the rays through normalised
-    points xi (M, 2) of camera i and xj (M, 2) of camera j (NaN for parallel rays)."""
+    points xi (M, 2) of camera i and xj (M, 2) of camera j (NaN for parallel rays); with
+    `pairs` (ia, jb) (M,) each, of the rays through xi[ia] and xj[jb] (xi, xj then hold each
+    image's points once: what depends on one ray is computed once per point)."""
+    ia, jb = pairs if pairs is not None else (slice(None), slice(None))
     di = np.column_stack([xi, np.ones(len(xi))]) @ pose_i[:3, :3].T
     dj = np.column_stack([xj, np.ones(len(xj))]) @ pose_j[:3, :3].T
     w0 = pose_i[:3, 3] - pose_j[:3, 3]
-    a, b, c = (di * di).sum(1), (di * dj).sum(1), (dj * dj).sum(1)
-    d, e = di @ w0, dj @ w0
+    a, c = (di * di).sum(1)[ia], (dj * dj).sum(1)[jb]
+    d, e = (di @ w0)[ia], (dj @ w0)[jb]
+    b = (di[ia] * dj[jb]).sum(1)
     denom = a * c - b * b
     with np.errstate(divide="ignore", invalid="ignore"):
         return np.where(denom > 1e-12, (b * e - c * d) / denom, np.nan)  # z of x̃ = (x, y, 1)
@@ -175,7 +181,7 @@ def match_pair(view_i: CameraView, view_j: CameraView, gates: PairGates) -> np.n
         return np.zeros((0, 2), int)
     E = essential_matrix(pose_i, pose_j)
     ia, jb = epipolar_candidates(E, fi.normalized, fj.normalized, f_i, f_j, epipolar_px)
-    z = ray_depths(fi.normalized[ia], fj.normalized[jb], pose_i, pose_j)
+    z = ray_depths(fi.normalized, fj.normalized, pose_i, pose_j, (ia, jb))
     inside = (z >= depth_range[0]) & (z <= depth_range[1])
     return ratio_mutual_matches(fi.descriptors, fj.descriptors, ia[inside], jb[inside], ratio)
 
@@ -192,7 +198,9 @@ def ratio_mutual_matches(
     nearest candidate of its b (mutual). The squared distances of the candidate pairs are
     computed pair by pair; a row's distances to every b only for the rows still matched
     after the mutual check and the ratio test among candidates (in blocks of rows,
-    `row_blocks`, never as one Na x Nb matrix)."""
+    `row_blocks`, never as one Na x Nb matrix), and first to every SAMPLE_STRIDE-th b
+    only: a b that beats a row fails it, so the rows it fails need no other b (a template
+    at 1920x1080: ~2/3 of them; the same matches)."""
     rows_with, ia = np.unique(ia, return_inverse=True)  # a row without candidates never matches
     da = da[rows_with]
     n_a, n_b = len(da), len(db)
@@ -212,17 +220,37 @@ def ratio_mutual_matches(
     best_b = jb[best_c]  # every row has a candidate
     rows_all = np.arange(n_a)
     alive = (col_row[best_b] == rows_all) & (best < (ratio**2) * second)
-    # the best non-candidate can still be closer than the second candidate: every b
-    check = np.flatnonzero(alive)
-    for rows in row_blocks(len(check), n_b):
+    # the best non-candidate can still be closer than the second candidate. A row that
+    # fails is mostly beaten by many b, so every SAMPLE_STRIDE-th b fails most of them
+    # first (any b that beats a row fails it, as the nearest would); the rest see every b.
+    for columns in (np.arange(0, n_b, SAMPLE_STRIDE), np.arange(n_b)):
+        alive &= ~_beaten(da, db, sq_a, sq_b, np.flatnonzero(alive), columns, best_b,
+                          best, ratio**2)
+    return np.column_stack([rows_with[alive], best_b[alive]])
+
+
+def _beaten(da: np.ndarray, db: np.ndarray, sq_a: np.ndarray, sq_b: np.ndarray,
+            check: np.ndarray, columns: np.ndarray, best_b: np.ndarray, best: np.ndarray,
+            ratio2: float) -> np.ndarray:
+    """(Na,) bool, True for the rows `check` of descriptors da (Na, 128) float32 beaten in
+    the ratio test by a descriptor of db (Nb, 128) among `columns` (ascending) other than
+    the row's best, `best_b` (Na,), at squared distance `best` (Na,): best >= ratio2 x its
+    squared distance. sq_a, sq_b: squared norms; computed in blocks of rows
+    (`row_blocks`)."""
+    out = np.zeros(len(da), bool)
+    n_c = len(columns)
+    db, sq_b = db[columns], sq_b[columns]
+    at = np.minimum(np.searchsorted(columns, best_b), n_c - 1)  # the best's column, if there
+    for rows in row_blocks(len(check), n_c):
         r = check[rows]
         full = da[r] @ db.T
         full *= -2.0
         full += sq_b
-        full[np.arange(len(r)), best_b[r]] = np.inf
+        own = np.flatnonzero(columns[at[r]] == best_b[r])
+        full[own, at[r[own]]] = np.inf
         runner = np.maximum(full.min(axis=1) + sq_a[r], 0.0)
-        alive[r] &= best[r] < (ratio**2) * runner
-    return np.column_stack([rows_with[alive], best_b[alive]])
+        out[r] = best[r] >= ratio2 * runner
+    return out
 
 
 def build_tracks(
