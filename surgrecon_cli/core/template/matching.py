@@ -224,19 +224,20 @@ def ratio_mutual_matches(
     # fails is mostly beaten by many b, so every SAMPLE_STRIDE-th b fails most of them
     # first (any b that beats a row fails it, as the nearest would); the rest see every b.
     for columns in (np.arange(0, n_b, SAMPLE_STRIDE), np.arange(n_b)):
-        alive &= ~_beaten(da, db, sq_a, sq_b, np.flatnonzero(alive), columns, best_b,
-                          best, ratio**2)
+        alive &= ~_beaten((da, sq_a), (db, sq_b), np.flatnonzero(alive), columns,
+                          (best_b, best), ratio**2)
     return np.column_stack([rows_with[alive], best_b[alive]])
 
 
-def _beaten(da: np.ndarray, db: np.ndarray, sq_a: np.ndarray, sq_b: np.ndarray,
-            check: np.ndarray, columns: np.ndarray, best_b: np.ndarray, best: np.ndarray,
+def _beaten(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray],
+            check: np.ndarray, columns: np.ndarray, best: tuple[np.ndarray, np.ndarray],
             ratio2: float) -> np.ndarray:
-    """(Na,) bool, True for the rows `check` of descriptors da (Na, 128) float32 beaten in
-    the ratio test by a descriptor of db (Nb, 128) among `columns` (ascending) other than
-    the row's best, `best_b` (Na,), at squared distance `best` (Na,): best >= ratio2 x its
-    squared distance. sq_a, sq_b: squared norms; computed in blocks of rows
-    (`row_blocks`)."""
+    """(Na,) bool, True for the rows `check` of descriptors a = (da (Na, 128) float32, their
+    squared norms sq_a) beaten in the ratio test by a descriptor of b = (db (Nb, 128),
+    sq_b) among `columns` (ascending) other than the row's best: best = (its index best_b
+    (Na,), its squared distance (Na,)), beaten when that distance >= ratio2 x the other's.
+    Computed in blocks of rows (`row_blocks`)."""
+    (da, sq_a), (db, sq_b), (best_b, best_d2) = a, b, best
     out = np.zeros(len(da), bool)
     n_c = len(columns)
     db, sq_b = db[columns], sq_b[columns]
@@ -249,7 +250,7 @@ def _beaten(da: np.ndarray, db: np.ndarray, sq_a: np.ndarray, sq_b: np.ndarray,
         own = np.flatnonzero(columns[at[r]] == best_b[r])
         full[own, at[r[own]]] = np.inf
         runner = np.maximum(full.min(axis=1) + sq_a[r], 0.0)
-        out[r] = best[r] >= ratio2 * runner
+        out[r] = best_d2[r] >= ratio2 * runner
     return out
 
 
