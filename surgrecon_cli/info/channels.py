@@ -21,8 +21,10 @@ from typing import Any
 import numpy as np
 from mcap.records import Channel, Message, Schema
 
+from ..core.geometry.poses import rectified_rig_pose
 from ..core.sync.streams import mean_rate_hz
 from ..core.sync.tf_samples import TransformSamples, concat_samples
+from ..errors import GeometryError
 from ..io.logs.encodings.base import KINDS
 from ..io.logs.encodings.registry import DECODERS, DESERIALIZERS, find_decoder
 from ..io.logs.records import CameraInfoRecord, ImageRecord, JointStateRecord, PoseRecord
@@ -133,9 +135,12 @@ def _frame_and_detail(record: Any) -> tuple[str, str, float]:
     if isinstance(record, CameraInfoRecord):
         detail = f"{record.width}x{record.height} {record.distortion_model}"
         baseline = 0.0
-        if record.P is not None:
-            P = np.asarray(record.P, float)
-            baseline = float(np.hypot(P[0, 3] / P[0, 0], P[1, 3] / P[1, 1]))
+        if record.R is not None and record.P is not None:
+            try:
+                offset = rectified_rig_pose(record.R, record.P)[:3, 3]
+            except GeometryError:  # a non-finite calibration: no baseline shown
+                offset = np.zeros(3)
+            baseline = float(np.linalg.norm(offset))
         if baseline > 0:
             detail += f", stereo baseline {baseline * 1e3:.1f} mm"
         return record.frame_id, detail, baseline

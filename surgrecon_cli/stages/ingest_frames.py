@@ -64,13 +64,11 @@ def world_poses(ids: Sequence[str], cams: Sequence[CameraStreams], tool: Poses,
     conflicts = _Conflicts(tree, world)
     streams: list[PoseStream] = []
     sources: dict[str, str] = {}
-    placed = topics.poses_from_camera_info  # a fixed rig: no pose topic to read
-    if placed:
+    if topics.poses_from_camera_info:  # a fixed rig: no pose topic to read
         streams, sources = _camera_info_rig(ids, cams, span_ns)
-    for index, (cid, cam) in enumerate(zip(ids, cams, strict=True)):
+    by_topic = () if topics.poses_from_camera_info else zip(ids, cams, strict=True)
+    for index, (cid, cam) in enumerate(by_topic):
         what = f"camera {cid}"
-        if placed:
-            break
         if topics.camera_from_ecm and cam.poses is None and shared is not None:
             hand_eye = _hand_eye(topics.camera_from_ecm, index, len(ids))
             streams.append(moved_by(stream_to_world(
