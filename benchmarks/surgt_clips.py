@@ -18,6 +18,11 @@ A SPEC is comma-separated `key=value` (any order, all optional):
     breathe=2   the first selected frame's tissue breathes with this amplitude (mm), its
                 motion known (benchmarks/surgt_breathing.py); writes clip.gt.npz
     period=39   frames of one breath (default: the clip's length)
+    gain=0.2    both eyes' brightness scaled by 1 + gain · (0, 1/3, 2/3, 1, 2/3, ...) of the
+                pitch's triangle wave: an endoscope's auto-exposure following its light
+    shade=0.3   a brightness ramp across each image whose slope follows the same wave
+                (1 ± shade/2 at the left and right edges at its peaks): the scope's light
+                moving with it, lighting the tissue from another side
 e.g. `step=3,scale=0.5` -> frames 0, 3, 6, 9 at 640x512. The clip is written as left/right
 image folders with its calibration (intrinsics scaled) and converted with `surgrecon
 convert` (the rig is fixed in the world, so the scene moves rigidly in the rig frame).
@@ -37,7 +42,8 @@ CLIP_FPS = 5  # frames a second the clips are converted at
 
 def parse_spec(spec: str) -> dict[str, float]:
     out = {"step": 1.0, "scale": 1.0, "reverse": 0.0, "jpeg": 0.0, "frames": 10.0,
-           "length": 0.0, "pitch": 0.0, "breathe": 0.0, "period": 0.0}
+           "length": 0.0, "pitch": 0.0, "breathe": 0.0, "period": 0.0,
+           "gain": 0.0, "shade": 0.0}
     for item in filter(None, spec.split(",")):
         key, _, value = item.partition("=")
         if key not in out:
@@ -93,6 +99,14 @@ def breathing_clip(frame: np.ndarray, opts: dict[str, float], out_dir: Path
     return [np.hstack(pair) for pair in pairs]
 
 
+def relit(view: np.ndarray, wave: float, gain: float, shade: float) -> np.ndarray:
+    """view (H, W, 3) uint8 with its brightness scaled by 1 + gain · wave and a ramp across
+    it of slope shade · wave (wave in [-1, 1]), rounded and clipped to 8 bits."""
+    ramp = np.linspace(-0.5, 0.5, view.shape[1]) * shade * wave
+    scale = (1.0 + gain * wave + ramp)[None, :, None]
+    return np.clip(np.rint(view * scale), 0, 255).astype(np.uint8)
+
+
 def make_clip(spec: str, out_dir: Path) -> tuple[Path, Path]:
     """Build the clip of `spec` under out_dir; returns (log.mcap, config.toml)."""
     from surgrecon_cli.cli.main import main as cli
@@ -120,6 +134,8 @@ def make_clip(spec: str, out_dir: Path) -> tuple[Path, Path]:
                 r = rot if side == "left" else r_rel @ rot @ r_rel.T
                 h = K[side] @ r @ np.linalg.inv(K[side])
                 view = cv2.warpPerspective(view, h, (1280, 1024), flags=cv2.INTER_LINEAR)
+            if opts["gain"] or opts["shade"]:
+                view = relit(view, tri[i % len(tri)] / 3.0, opts["gain"], opts["shade"])
             if opts["scale"] != 1.0:
                 size = (round(1280 * opts["scale"]), round(1024 * opts["scale"]))
                 view = cv2.resize(view, size, interpolation=cv2.INTER_AREA)
