@@ -82,7 +82,8 @@ from .shape import (
 # neighbours or stay); stray_colour_partial 5k seeds 0-9 and 200-209: medians within
 # +-0.004 mm, worst cells the same or lower, ~0.05 s less per cut pair
 PAIR_SETTINGS: dict[str, float] = {"max_nodes": 250, "rigid_iterations": 10,
-                                   "mutual_spacings": 5.0, "final_admm_iterations": 25}
+                                   "mutual_spacings": 5.0, "final_admm_iterations": 25,
+                                   "match_eps": 0.0}
 MUTUAL_GATE_FRACTION = 0.25
 PAIR_DENSE_POINTS = 5000
 PAIR_DENSE_OUTER = 8
