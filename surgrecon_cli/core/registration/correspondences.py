@@ -12,8 +12,7 @@ from scipy.spatial import cKDTree
 
 # ours: approximate nearest neighbours, within (1 + MATCH_EPS) x the nearest distance; in
 # position + colour this about thirds the search time and changes ~4 % of the matches (the
-# default of `match_eps`; the approximate match leans the way the k-d tree's cells split
-# the target, the same way in every outer step: `register_pair` searches exactly)
+# default of `match_eps`; `register_pair` with colour searches exactly, pair.py)
 MATCH_EPS = 1.0
 
 
@@ -112,7 +111,7 @@ def match(
     # (with a margin for rounding); only the others are looked up
     sel = np.flatnonzero(ok & (2.0 * dist > mutual_distance * (1.0 - 1e-9)))
     if mutual_distance > 0 and len(sel):
-        _, back = cKDTree(moved_q).query(matcher.target_q[tgt[sel]], k=1)
+        _, back = cKDTree(moved_q, balanced_tree=False).query(matcher.target_q[tgt[sel]], k=1)
         ok[sel] = np.linalg.norm(moved_q[back] - moved_q[free[sel]], axis=1) <= mutual_distance
     corr[free[ok]] = tgt[ok]
     return corr
