@@ -8,14 +8,11 @@ source point truly went); acceptance seeds (100+) only: the weights were tuned o
 
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 import pytest
 
 from surgrecon_cli.config import RegistrationConfig
 from surgrecon_cli.core.registration.colour import decide_colour
-from surgrecon_cli.core.registration.correspondences import KnownPairs, build_matcher, match
 from surgrecon_cli.core.registration.overlap import (
     ColouredPoints,
     across_only,
@@ -98,33 +95,6 @@ def test_pair_config_replaces_only_the_defaults():
     assert pair_config(default, 5000).final_admm_iterations < default.final_admm_iterations
     assert pair_config(RegistrationConfig(final_admm_iterations=80),
                        5000).final_admm_iterations == 80
-
-
-
-def test_pair_matches_are_the_nearest_in_position_and_colour():
-    # brute force is the reference: with pair_config's settings every free match is the
-    # target nearest in position + colour; the shared default may take one up to (1 + eps)x
-    # farther (approximate search), and a caller's own setting is kept
-    rng = np.random.default_rng(7)
-    target = np.c_[rng.uniform(0, 20e-3, (3000, 2)), rng.normal(0, 0.2e-3, 3000)]
-    target_rgb = rng.uniform(0, 1, (3000, 3))
-    moved = target[:1500] + rng.normal(0, 0.5e-3, (1500, 3))
-    source_rgb = np.clip(target_rgb[:1500] + rng.normal(0, 0.05, (1500, 3)), 0, 1)
-    scale = 40e-3  # m per RGB unit
-    joint = np.linalg.norm(np.c_[moved, scale * source_rgb][:, None, :]
-                           - np.c_[target, scale * target_rgb][None, :, :], axis=2)
-    matcher = build_matcher(target, len(moved), target_rgb, scale, KnownPairs())
-    every = np.ones(len(moved), bool)
-    for eps in (pair_config(RegistrationConfig(), 5000).match_eps,
-                RegistrationConfig().match_eps):
-        corr = match(dataclasses.replace(matcher, eps=eps), moved, source_rgb, np.inf, 0.0,
-                     every)
-        found = joint[np.arange(len(moved)), corr]
-        assert np.all(found <= (1 + eps) * joint.min(axis=1) * (1 + 1e-12))
-        if eps == 0:
-            assert np.array_equal(corr, joint.argmin(axis=1))
-    assert RegistrationConfig().match_eps > 0  # the frame pipeline's search is unchanged
-    assert pair_config(RegistrationConfig(match_eps=0.5), 5000).match_eps == 0.5
 
 
 def test_the_colour_decisions_neighbour_lists_give_the_same_rim_and_planes():

@@ -57,9 +57,6 @@ class RegistrationConfig:
         3.0, "drop a match whose target's nearest source is this many spacings away (0 = off)",
         bounds=(0, 1000)
     )
-    match_eps: float = _doc(
-        1.0, "a nearest match in position + colour may be up to (1 + this) x farther than the "
-        "nearest (approximate search, faster; 0 = exact)", bounds=(0, 100))
     reweight_mm: float = _doc(1.0, "l1 data reweighting w = e / (|r| + e), e in mm (0 = off)",
         bounds=(0, 1000))
     outlier_mm: float = _doc(1.0, "final correspondence residual above this flags an outlier (mm)",
@@ -97,7 +94,7 @@ class RegistrationConfig:
         _require(self.mu_growth >= 1, key + "mu_growth", "must be >= 1")
         _require(1 <= self.relaxation < 2, key + "relaxation", "must be in [1, 2)")
         _require(self.tolerance_mm > 0, key + "tolerance_mm", "must be > 0")
-        for name in ("color_weight_mm", "mutual_spacings", "match_eps", "reweight_mm"):
+        for name in ("color_weight_mm", "mutual_spacings", "reweight_mm"):
             _require(getattr(self, name) >= 0, key + name, "must be >= 0")
         for name in ("max_correspondence_mm", "outlier_mm"):
             _require(getattr(self, name) > 0, key + name, "must be > 0")

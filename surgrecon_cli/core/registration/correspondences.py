@@ -11,8 +11,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 # ours: approximate nearest neighbours, within (1 + MATCH_EPS) x the nearest distance; in
-# position + colour this about thirds the search time and changes ~4 % of the matches (the
-# default of `match_eps`; `register_pair` with colour searches exactly, pair.py)
+# position + colour this about thirds the search time and changes ~4 % of the matches
 MATCH_EPS = 1.0
 
 
@@ -22,7 +21,6 @@ class Matcher:
 
     `candidates` (K,) target indices searched; `tree` indexes [xyz, colour_scale * rgb]
     (or xyz alone) of those points. `known` (N,) target index fixed per source point or -1.
-    `eps`: a free match lies within (1 + eps) x the nearest joint distance (0 = exact).
     """
 
     target_q: np.ndarray
@@ -31,7 +29,6 @@ class Matcher:
     colour_scale: float
     target_rgb: np.ndarray | None
     known: np.ndarray
-    eps: float = MATCH_EPS
 
 
 @dataclass(frozen=True)
@@ -89,8 +86,7 @@ def match(
 ) -> np.ndarray:
     """Target index per source point (-1 = none) for the current moved source `moved_q`.
 
-    Free points (no known pair, `allowed`) take the nearest free target in position + colour
-    (within matcher.eps of it),
+    Free points (no known pair, `allowed`) take the nearest free target in position + colour,
     kept only if (a) its distance in position is at most `max_distance` and (b) the target's
     nearest moved source point lies within `mutual_distance` of the querying point (a loose
     mutual check that drops matches onto the rim of a partial target and onto stray points).
@@ -102,7 +98,7 @@ def match(
     feats = moved_q[free]
     if matcher.target_rgb is not None and source_rgb is not None:
         feats = np.concatenate([feats, matcher.colour_scale * source_rgb[free]], axis=1)
-    _, j = matcher.tree.query(feats, k=1, eps=matcher.eps)
+    _, j = matcher.tree.query(feats, k=1, eps=MATCH_EPS)
     tgt = matcher.candidates[j]
     dist = np.linalg.norm(moved_q[free] - matcher.target_q[tgt], axis=1)
     ok = dist <= max_distance

@@ -80,14 +80,9 @@ from .shape import (
 # pairs the long tail (38-95 iterations) is the weak pull on the points without target
 # surface, whose positions `register_pair` replaces anyway (they follow their supported
 # neighbours or stay); stray_colour_partial 5k seeds 0-9 and 200-209: medians within
-# +-0.004 mm, worst cells the same or lower, ~0.05 s less per cut pair. Matches are the
-# exact nearest in position + colour (`match_eps` 0; the shared default takes any within
-# 2x the nearest distance): stray_colour_partial 5k, 140 seeds (0-9, 200-209, 300-319,
-# 500-519, 700-779), sum of the worst cells 2.58 -> 2.07 mm, cells above +0.1 mm 8 -> 4
-# (docs/registration_strays.md), ~0.01 s more at 5k
+# +-0.004 mm, worst cells the same or lower, ~0.05 s less per cut pair
 PAIR_SETTINGS: dict[str, float] = {"max_nodes": 250, "rigid_iterations": 10,
-                                   "mutual_spacings": 5.0, "final_admm_iterations": 25,
-                                   "match_eps": 0.0}
+                                   "mutual_spacings": 5.0, "final_admm_iterations": 25}
 MUTUAL_GATE_FRACTION = 0.25
 PAIR_DENSE_POINTS = 5000
 PAIR_DENSE_OUTER = 8

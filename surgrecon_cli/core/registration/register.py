@@ -14,7 +14,6 @@ Inputs in metres; config thresholds in millimetres. Pure numpy/scipy, no I/O.
 
 from __future__ import annotations
 
-import dataclasses
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -206,9 +205,8 @@ def register(
     if tgt_rgb is not None:
         colour_scale = (norm.mm(cfg.color_weight_mm) if cfg.color_weight_mm > 0 else
                         colour_weight(tq, tgt_rgb, tgt_tree, ~surf.stray, gate))
-    matcher = dataclasses.replace(
-        build_matcher(tq, n, tgt_rgb, colour_scale, KnownPairs(ids, lm), usable=~surf.stray),
-        eps=cfg.match_eps)
+    matcher = build_matcher(tq, n, tgt_rgb, colour_scale, KnownPairs(ids, lm),
+                            usable=~surf.stray)
     usable_idx = np.flatnonzero(~surf.stray)
     usable_tree = cKDTree(tq[usable_idx])
     mutual = cfg.mutual_spacings * max(norm.spacing, tgt_spacing)

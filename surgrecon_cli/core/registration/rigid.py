@@ -170,8 +170,7 @@ def rigid_prealign(
     rgb = source_rgb[sub] if source_rgb is not None else None
     sub_matcher = Matcher(target_q=matcher.target_q, candidates=matcher.candidates,
                           tree=matcher.tree, colour_scale=matcher.colour_scale,
-                          target_rgb=matcher.target_rgb, known=matcher.known[sub],
-                          eps=matcher.eps)
+                          target_rgb=matcher.target_rgb, known=matcher.known[sub])
     every = np.ones(len(sub), bool)
     normals = _Normals(matcher.target_q, target_tree)
     # mutual gate on the subsample: drops pairs onto the rim of a partial target (ours: 3x)
