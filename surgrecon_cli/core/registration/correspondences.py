@@ -107,7 +107,7 @@ def match(
     # (with a margin for rounding); only the others are looked up
     sel = np.flatnonzero(ok & (2.0 * dist > mutual_distance * (1.0 - 1e-9)))
     if mutual_distance > 0 and len(sel):
-        _, back = cKDTree(moved_q).query(matcher.target_q[tgt[sel]], k=1)
+        _, back = cKDTree(moved_q, balanced_tree=False).query(matcher.target_q[tgt[sel]], k=1)
         ok[sel] = np.linalg.norm(moved_q[back] - moved_q[free[sel]], axis=1) <= mutual_distance
     corr[free[ok]] = tgt[ok]
     return corr

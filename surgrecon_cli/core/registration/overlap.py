@@ -186,7 +186,7 @@ def follow_supported(source: np.ndarray, registered: np.ndarray, supported: np.n
     if len(have) == 0 or len(lost) == 0:
         return out
     k = min(FOLLOW_NEIGHBOURS, len(have))
-    d, nn = cKDTree(source[have]).query(source[lost], k=k)
+    d, nn = cKDTree(source[have], balanced_tree=False).query(source[lost], k=k)
     d, nn = d.reshape(len(lost), k), nn.reshape(len(lost), k)
     fade = np.clip((reach_m[1] - d[:, 0]) / (reach_m[1] - reach_m[0]), 0.0, 1.0)
     moves = (registered - source)[have[nn]]
@@ -269,7 +269,7 @@ def stay_where_better(source: np.ndarray, registered: np.ndarray, supported: np.
     # a sum over about STAY_NEIGHBOURS sample points as two means over 8x fewer
     k = min(STAY_NEIGHBOURS // 8, m)
     # every source point's nearest sample points (the sample's own among them)
-    nb = cKDTree(source[sample]).query(source, k=k)[1].reshape(n, k)
+    nb = cKDTree(source[sample], balanced_tree=False).query(source, k=k)[1].reshape(n, k)
     mean = _mean_operator(nb[sample], m)
     seen = mean @ (mean @ known)
     summed = (mean @ (mean @ (costs * known))) / np.maximum(seen, 1e-12)
@@ -352,7 +352,7 @@ def explained_by(test: MotionTest, target: ColouredPoints,
     alt = source if alternative is None else alternative
     moving = np.flatnonzero(np.any(registered[have] != alt[have], axis=1))
     k = min(IDENTITY_NEIGHBOURS, len(have))
-    source_tree = cKDTree(source[have])
+    source_tree = cKDTree(source[have], balanced_tree=False)
     if only is not None:  # the points asked about and the neighbours they average over
         asked = np.flatnonzero(only[have])
         needed = np.zeros(len(have), bool)
@@ -444,7 +444,7 @@ def matched_onto_cut(source: np.ndarray, registered: np.ndarray, supported: np.n
         return out
     reach = CUT_RIM_SPACINGS * spacing_m
     have = np.flatnonzero(supported)
-    near = cKDTree(target.xyz[target.rim]).query(registered[have],
+    near = cKDTree(target.xyz[target.rim], balanced_tree=False).query(registered[have],
                                                  distance_upper_bound=reach)[0] <= reach
     # past the rim: the nearest target point is a rim point more than a spacing away (inside
     # the surface a point lies within about half a spacing of its nearest sample)
@@ -453,7 +453,8 @@ def matched_onto_cut(source: np.ndarray, registered: np.ndarray, supported: np.n
     cand = have[near | past]
     if len(cand):
         reach = CUT_LOST_SPACINGS * spacing_m
-        lost = cKDTree(source[~supported]).query(source[cand], distance_upper_bound=reach)[0]
+        lost = cKDTree(source[~supported], balanced_tree=False).query(
+            source[cand], distance_upper_bound=reach)[0]
         out[cand[lost <= reach]] = True
     return out
 
