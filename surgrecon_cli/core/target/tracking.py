@@ -208,14 +208,18 @@ def klt_track(
     )
     p0 = start.astype(np.float32).reshape(-1, 1, 2)
     p1: np.ndarray = guess.astype(np.float32).reshape(-1, 1, 2).copy()
-    p1, st1 = _pyr_lk(prev.grey, cur.grey, p0, p1, params)
+    # The cheap checks first, KLT only for the points that may pass them: a start on a
+    # highlight fails whatever the track (it keeps its guess), and the backward pass (as
+    # costly as the forward one) runs only for the forward tracks that pass the highlight
+    # and patch checks (most lost tracks fail the patch check). Each point is tracked
+    # alone, on the crops all M would take: the same tracks pass as in any order.
+    moved = ~on_specular(prev, start)
+    if moved.any():
+        p1[moved], st1 = _pyr_lk(prev.grey, cur.grey, p0, p1, params, moved)
+        moved[moved] = st1.ravel() == 1
     tracked = p1.reshape(-1, 2).astype(np.float64)
-    moved = st1.ravel() == 1
-    # The cheap checks first: the backward pass (as costly as the forward one) only for the
-    # tracks that pass them (most lost tracks fail the patch check); each point is tracked
-    # alone, so the same tracks pass all three as in any order.
     ok = moved.copy()
-    ok[ok] &= ~on_specular(prev, start[ok]) & ~on_specular(cur, tracked[ok])
+    ok[ok] &= ~on_specular(cur, tracked[ok])
     ok[ok] &= patch_ncc(prev.grey_f32, start[ok], cur.grey_f32, tracked[ok],
                         NCC_PATCH_PX) >= cfg.min_ncc
     if ok.any():  # backward, from the forward tracks that passed, on the crops of all found
