@@ -306,10 +306,10 @@ def track_adaptive(prev: TrackingView, cur: TrackingView, start: np.ndarray,
     tracked, ok = klt_track(prev, cur, start, guess, cfg, levels)
     reach = cfg.klt_window_px / 4.0 * 2.0**levels
     moved = np.linalg.norm(tracked - guess, axis=1)
-    again = ~ok | (moved > reach)
-    if levels < full and prior.hidden is not None and again.any():
-        again[again] = ~prior.hidden(guess[again])
-    again = np.flatnonzero(again) if levels < full else np.zeros(0, int)
+    lost = ~ok
+    if levels < full and prior.hidden is not None and lost.any():
+        lost[lost] = ~prior.hidden(guess[lost])
+    again = np.flatnonzero(lost | (moved > reach)) if levels < full else np.zeros(0, int)
     if len(again):
         tracked[again], ok[again] = klt_track(prev, cur, start[again], guess[again], cfg, full)
         moved[again] = np.linalg.norm(tracked[again] - guess[again], axis=1)
