@@ -19,7 +19,6 @@ from surgrecon_cli.core.geometry.tool import (
     camera_tool_poses,
     points_near_tool,
     tool_capsules,
-    tool_hides,
     tool_pixel_mask,
 )
 from surgrecon_cli.core.template.build import TemplateFrame, build_template
@@ -62,27 +61,6 @@ def test_every_tool_is_masked_and_removed():
     px, _ = project(np.array([[0.02, 0, 0.0]]), camera_pose, model)
     assert not tool_pixel_mask(px, model, camera_pose, TIP_DOWN, ToolConfig()).any()
     assert tool_pixel_mask(px, model, camera_pose, both, (ToolConfig(), JAW)).all()
-
-
-def test_pixels_deep_inside_the_silhouette_are_hidden():
-    """A shaft of 4 mm radius lying 10 cm below a camera of 400 px focal length spans
-    16 px either side of its axis in the image (the mask 6 px more): tool_hides at 8 px
-    holds the pixels within 16 - 8 px of the axis, not those farther out, which the mask
-    still covers."""
-    from surgrecon_cli.core.geometry.cameras import CameraModel, project
-
-    camera_pose = make_pose(np.array([0.0, 0, 0.1]), np.array([1.0, 0, 0, 0]))  # looks down
-    model = CameraModel(np.array([[400.0, 0, 160], [0, 400.0, 120], [0, 0, 1]]), np.zeros(5),
-                        320, 240)
-    along_x = make_pose(np.zeros(3), np.array([0.0, np.sqrt(0.5), 0.0, np.sqrt(0.5)]))
-    cfg = ToolConfig(shaft_radius_m=0.004, mask_margin_px=6.0)
-    axis, _ = project(np.array([[0.03, 0.0, 0.0]]), camera_pose, model)
-    across = np.array([0.0, 5.0, 6.5, -6.5, 9.5, 12.0, -12.0, 20.0])  # px from the axis
-    px = axis + np.column_stack([np.zeros_like(across), across])
-    hidden = tool_hides(px, model, camera_pose, along_x, cfg, 8.0)
-    np.testing.assert_array_equal(hidden, np.abs(across) < 8.0)
-    assert tool_pixel_mask(px, model, camera_pose, along_x, cfg).all()
-    assert not tool_hides(px, model, camera_pose, np.full((4, 4), np.nan), cfg, 8.0).any()
 
 
 def test_tools_tables_are_read_checked_and_written(tmp_path: Path):

@@ -195,34 +195,12 @@ def tool_pixel_mask(
 ) -> np.ndarray:
     """(N,) bool: pixels (N, 2) whose rays hit a tool capsule inflated by the px margin (rays
     at pixel accuracy: OpenCV's undistortion without the Newton polish)."""
-    return _rays_within(pixels, (camera, cam_to_world), tool_capsules(tool_pose, cfg),
-                        _margins(cfg, "mask_margin_px"))
-
-
-def tool_hides(
-    pixels: np.ndarray,
-    camera: CameraModel,
-    cam_to_world: np.ndarray,
-    tool_pose: ToolPoses,
-    cfg: ToolConfigs,
-    inside_px: float,
-) -> np.ndarray:
-    """(N,) bool: pixels (N, 2) at least `inside_px` px inside a tool capsule's silhouette
-    (its rays pass that far within the capsule's radius, at the capsule's depth): tissue
-    there is hidden, and so is tissue within `inside_px` px of there."""
-    return _rays_within(pixels, (camera, cam_to_world), tool_capsules(tool_pose, cfg),
-                        -inside_px)
-
-
-def _rays_within(pixels: np.ndarray, view: tuple[CameraModel, np.ndarray],
-                 capsules: list[Capsule], margin_px: float) -> np.ndarray:
-    """(N,) bool: pixels (N, 2) of a camera (view: model, cam-to-world pose) whose rays pass
-    within a capsule's radius plus `margin_px` px at its depth."""
-    camera, cam_to_world = view
+    capsules = tool_capsules(tool_pose, cfg)
     out = np.zeros(len(pixels), bool)
     if not capsules or len(pixels) == 0:
         return out
     origin, dirs = pixel_rays(pixels, camera, cam_to_world, polish=False)
+    margin_px = _margins(cfg, "mask_margin_px")
     for a, b, radius in capsules:
         dist, s = ray_segment_distance(origin, dirs, a, b)
         out |= dist <= radius + margin_px * s / camera.K[0, 0]

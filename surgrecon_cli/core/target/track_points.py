@@ -39,9 +39,7 @@ by the chained tracks around them.
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import replace
-from functools import partial
 
 import cv2
 import numpy as np
@@ -50,7 +48,7 @@ from scipy.spatial import cKDTree
 from ...config import TargetConfig
 from ..geometry.cameras import CameraModel, in_image, project, undistort_pixels
 from ..geometry.poses import invert_pose
-from ..geometry.tool import tool_capsules, tool_hides, tool_pixel_mask
+from ..geometry.tool import tool_pixel_mask
 from ..noise.model import localisation_variance_px2
 from .frame_inputs import FrameInput, Rig, Sighting
 from .reacquire import descriptor_motion
@@ -68,10 +66,6 @@ from .tracking import (
 KLT_BORDER_PX = 8.0  # a track starts this far inside the image at least (px)
 MIN_SCENE_FIT = 12  # tracks of one camera needed to measure the scene's motion (PnP)
 SCENE_FIT_PX = 2.0  # RANSAC inlier bound of that fit (px)
-TOOL_HIDDEN_PX = 16.0  # ours: a lost track whose guess is this deep in a tool's silhouette
-# (px) is not tried again: its true pixel is on the tool, where a found track is masked out
-# (measured at 8 px: the anchor step lost tissue the tool pushed farther than its guess,
-# `stereo` seed 202 macro-F1 0.787 -> 0.780; at 16 px 0.787, docs/frame-step-cost.md)
 
 
 def visible_points(
@@ -172,36 +166,21 @@ def _chain_inputs(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Ri
     # Two priors, piloted: the latest position projected with the current pose (the poses
     # know how the camera moved), or where the point was (its latest position is stale
     # where the registration lagged, or the poses miss the motion: an untracked camera).
-    hidden = _hidden(frame, rig, c)
     if predicted is not None:
-        prior = TrackPrior(guess[idx], 2.0 * max(predicted[1], 1.0), hidden=hidden)
+        prior = TrackPrior(guess[idx], 2.0 * max(predicted[1], 1.0))
     else:
-        prior = TrackPrior(guess[idx], alternative=start[idx], hidden=hidden)
+        prior = TrackPrior(guess[idx], alternative=start[idx])
     return idx, start[idx], prior
 
 
-def _hidden(frame: FrameInput, rig: Rig, c: int
-            ) -> Callable[[np.ndarray], np.ndarray] | None:
-    """Which pixels (K, 2) of camera c a tool hides in `frame` (`tool_hides`,
-    TOOL_HIDDEN_PX deep), (K,) bool; None without a tool in view."""
-    tools = frame.tool_pose if frame.camera_tool_pose is None else frame.camera_tool_pose[c]
-    if not tool_capsules(tools, rig.tools) or not np.isfinite(frame.poses[c]).all():
-        return None
-    return partial(tool_hides, camera=rig.models[c], cam_to_world=frame.poses[c],
-                   tool_pose=tools, cfg=rig.tools, inside_px=TOOL_HIDDEN_PX)
-
-
-def _anchor(views: tuple[TrackingView, TrackingView], anchor_pixels: np.ndarray,
-            pixels: np.ndarray, model: CameraModel, cfg: TargetConfig,
-            hidden: Callable[[np.ndarray], np.ndarray] | None = None
+def _anchor(anchor: TrackingView, cur: TrackingView, anchor_pixels: np.ndarray,
+            pixels: np.ndarray, model: CameraModel, cfg: TargetConfig
             ) -> tuple[np.ndarray, np.ndarray]:
     """Step 2 for one camera: the chained pixels (N, 2) (NaN = not found) and found (N,),
-    with the points not found re-acquired from the template's image (views: the template's
-    and the current image), from where the image motion since the template puts them:
-    fitted to the chained tracks, or where they are too few (tracking lost), to ORB matches
-    between the two images (core/reacquire.descriptor_motion); none whose guess a tool
-    hides (`hidden`, `TrackPrior`)."""
-    anchor, cur = views
+    with the points not found re-acquired from the template's image, from where the image
+    motion since the template puts them: fitted to the chained tracks, or where they are
+    too few (tracking lost), to ORB matches between the two images
+    (core/reacquire.descriptor_motion)."""
     found = np.isfinite(pixels).all(1)
     has = np.isfinite(anchor_pixels).all(1) & in_image(
         np.nan_to_num(anchor_pixels, nan=-1e9), model, KLT_BORDER_PX)
@@ -220,10 +199,8 @@ def _anchor(views: tuple[TrackingView, TrackingView], anchor_pixels: np.ndarray,
     near = np.isfinite(local).all(1)
     guess[lost[near]] += local[near]
     idx = np.flatnonzero(has & ~found & in_image(guess, model, KLT_BORDER_PX))
-    if hidden is not None and len(idx):
-        idx = idx[~hidden(guess[idx])]
-    tracked, ok, _ = track_adaptive(anchor, cur, anchor_pixels[idx],
-                                    TrackPrior(guess[idx], hidden=hidden), cfg)
+    tracked, ok, _ = track_adaptive(anchor, cur, anchor_pixels[idx], TrackPrior(guess[idx]),
+                                    cfg)
     pixels = pixels.copy()
     pixels[idx[ok]] = tracked[ok]
     return pixels, np.isfinite(pixels).all(1)
@@ -371,8 +348,7 @@ def find_points(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig,
             predicted = _scene(latest, px, ok, models[c], cur_poses[c])
         anchor = None if anchor_views is None else anchor_views[c]
         if anchor is not None and anchor_pixels is not None:
-            px, ok = _anchor((anchor, cur), anchor_pixels[:, c], px, models[c], cfg,
-                             _hidden(frame, rig, c))
+            px, ok = _anchor(anchor, cur, anchor_pixels[:, c], px, models[c], cfg)
         rows = np.flatnonzero(ok)
         rows = rows[_unmasked(px[rows], frame, rig, c)]
         pixels[rows, c] = px[rows]

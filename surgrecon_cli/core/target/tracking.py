@@ -4,7 +4,6 @@ forward-backward and photometrically (Su et al. 2019, section II.B: the target c
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -261,15 +260,12 @@ def apply_motion(motion: np.ndarray, pixels: np.ndarray) -> np.ndarray:
 @dataclass(frozen=True)
 class TrackPrior:
     """Where M tracks are expected in the current image (`track_adaptive`): guess (M, 2) px,
-    the motion to expect from it motion_px px (NaN = unknown), alternative (M, 2) px
-    other guesses (or None) and `hidden`: which of K guesses (K, 2) px lie where a tool
-    hides the tissue (K,) bool (None: nothing is hidden); a track lost there is not tried
-    again (its true pixel is on the tool, where no track is kept)."""
+    the motion to expect from it motion_px px (NaN = unknown) and alternative (M, 2) px
+    other guesses (or None)."""
 
     guess: np.ndarray
     motion_px: float = float("nan")
     alternative: np.ndarray | None = None
-    hidden: Callable[[np.ndarray], np.ndarray] | None = None
 
 
 def track_adaptive(prev: TrackingView, cur: TrackingView, start: np.ndarray,
@@ -306,16 +302,12 @@ def track_adaptive(prev: TrackingView, cur: TrackingView, start: np.ndarray,
     tracked, ok = klt_track(prev, cur, start, guess, cfg, levels)
     reach = cfg.klt_window_px / 4.0 * 2.0**levels
     moved = np.linalg.norm(tracked - guess, axis=1)
-    lost = ~ok
-    if levels < full and prior.hidden is not None and lost.any():
-        lost[lost] = ~prior.hidden(guess[lost])
-    again = np.flatnonzero(lost | (moved > reach)) if levels < full else np.zeros(0, int)
+    again = np.flatnonzero(~ok | (moved > reach)) if levels < full else np.zeros(0, int)
     if len(again):
         tracked[again], ok[again] = klt_track(prev, cur, start[again], guess[again], cfg, full)
         moved[again] = np.linalg.norm(tracked[again] - guess[again], axis=1)
     if retry:
-        tracked, ok = retrack_from_neighbours(prev, cur, start, replace(prior, guess=guess),
-                                              (tracked, ok), cfg)
+        tracked, ok = retrack_from_neighbours(prev, cur, start, guess, (tracked, ok), cfg)
     moved = np.linalg.norm(tracked - guess, axis=1)
     return tracked, ok, np.where(ok, moved, np.nan)
 
@@ -378,16 +370,14 @@ def _nanmedian_axis1(values: np.ndarray) -> np.ndarray:
 
 
 def retrack_from_neighbours(prev: TrackingView, cur: TrackingView, start: np.ndarray,
-                            prior: TrackPrior, found: tuple[np.ndarray, np.ndarray],
+                            guess: np.ndarray, found: tuple[np.ndarray, np.ndarray],
                             cfg: TargetConfig) -> tuple[np.ndarray, np.ndarray]:
     """The first pass's `found` = (tracks (M, 2), ok (M,)), with the failed ones tracked
-    again (full pyramid, same checks) from their guess (M, 2) (`prior.guess`) moved by the
+    again (full pyramid, same checks) from their guess (M, 2) moved by the
     `neighbour_flow` of the found tracks' departures from their guesses, around their start
     pixels (M, 2); NEIGHBOUR_ROUNDS rounds, so a patch of tissue that moved far from the
     prediction is reached from its rim inwards. A later round tracks again only the points
-    whose predicted flow changed (KLT from the same guess fails the same way), and none
-    whose new guess a tool hides (`prior.hidden`)."""
-    guess = prior.guess
+    whose predicted flow changed (KLT from the same guess fails the same way)."""
     tracked, ok = found[0].copy(), found[1].copy()
     tried = np.full((len(start), 2), np.nan)  # the flow each lost point was last tried with
     for _ in range(NEIGHBOUR_ROUNDS):
@@ -398,9 +388,6 @@ def retrack_from_neighbours(prev: TrackingView, cur: TrackingView, start: np.nda
         lost_flow = np.isfinite(flow).all(1) & (np.linalg.norm(flow, axis=1) > 1.0)
         lost_flow &= ~(flow == tried[lost]).all(1)
         lost, flow = lost[lost_flow], flow[lost_flow]
-        if prior.hidden is not None and len(lost):
-            shown = ~prior.hidden(guess[lost] + flow)
-            lost, flow = lost[shown], flow[shown]
         if not len(lost):
             break
         tried[lost] = flow
