@@ -211,7 +211,8 @@ def klt_track(
     # highlight fails whatever the track (it keeps its guess), and the backward pass (as
     # costly as the forward one) runs only for the forward tracks that pass the highlight
     # and patch checks (most lost tracks fail the patch check). Each point is tracked
-    # alone, on the crops all M would take: the same tracks pass as in any order.
+    # alone, on the crops of the points of its direction's full pass (forward: all M;
+    # backward: every track found forward): the same tracks pass as in any order.
     moved = ~on_specular(prev, start)
     if moved.any():
         p1[moved], st1 = _pyr_lk(prev.grey, cur.grey, p0, p1, params, moved)
@@ -221,7 +222,7 @@ def klt_track(
     ok[ok] &= ~on_specular(cur, tracked[ok])
     ok[ok] &= patch_ncc(prev.grey_f32, start[ok], cur.grey_f32, tracked[ok],
                         NCC_PATCH_PX) >= cfg.min_ncc
-    if ok.any():  # backward, from the forward tracks that passed, on the crops of all found
+    if ok.any():  # backward, from the forward tracks that passed the checks
         back, st2 = _pyr_lk(cur.grey, prev.grey, p1[moved], p0[moved].copy(), params,
                             ok[moved])
         fb = np.linalg.norm((back - p0[ok]).reshape(-1, 2), axis=1)
