@@ -163,12 +163,16 @@ def klt_crops(start: np.ndarray, guess: np.ndarray, shape: tuple[int, ...], leve
 
 
 def _pyr_lk(prev: np.ndarray, cur: np.ndarray, p0: np.ndarray, p1: np.ndarray,
-            params: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
+            params: dict[str, Any], only: np.ndarray | None = None
+            ) -> tuple[np.ndarray, np.ndarray]:
     """cv2.calcOpticalFlowPyrLK from p0 (M, 1, 2) float32 in prev to the initial p1 in cur
     (images (H, W) uint8), on crops of both (`klt_crops`) where they pay: tracked (M, 1, 2)
-    float32 and status (M, 1)."""
+    float32 and status (M, 1). `only` (M,) bool: only those K points are tracked (K, 1, 2),
+    status (K, 1), on the crops all M would take (the same tracks as tracking all M)."""
     crop = klt_crops(p0.reshape(-1, 2), p1.reshape(-1, 2), prev.shape, params["maxLevel"],
                      params["winSize"][0])
+    if only is not None:
+        p0, p1 = p0[only], p1[only]
     if crop is None:
         out, status, _ = cv2.calcOpticalFlowPyrLK(prev, cur, p0, p1, **params)
         return out, status
@@ -203,17 +207,26 @@ def klt_track(
     )
     p0 = start.astype(np.float32).reshape(-1, 1, 2)
     p1: np.ndarray = guess.astype(np.float32).reshape(-1, 1, 2).copy()
-    p1, st1 = _pyr_lk(prev.grey, cur.grey, p0, p1, params)
+    # The cheap checks first, KLT only for the points that may pass them: a start on a
+    # highlight fails whatever the track (it keeps its guess), and the backward pass (as
+    # costly as the forward one) runs only for the forward tracks that pass the highlight
+    # and patch checks (most lost tracks fail the patch check). Each point is tracked
+    # alone, on the crops of the points of its direction's full pass (forward: all M;
+    # backward: every track found forward): the same tracks pass as in any order.
+    moved = ~on_specular(prev, start)
+    if moved.any():
+        p1[moved], st1 = _pyr_lk(prev.grey, cur.grey, p0, p1, params, moved)
+        moved[moved] = st1.ravel() == 1
     tracked = p1.reshape(-1, 2).astype(np.float64)
-    ok = st1.ravel() == 1
-    if ok.any():  # backward from the forward tracks only (each point is tracked alone)
-        back: np.ndarray = p0[ok].copy()
-        back, st2 = _pyr_lk(cur.grey, prev.grey, p1[ok], back, params)
-        fb = np.linalg.norm((back - p0[ok]).reshape(-1, 2), axis=1)
-        ok[ok] = (st2.ravel() == 1) & (fb <= cfg.klt_fb_px)
-    ok[ok] &= ~on_specular(prev, start[ok]) & ~on_specular(cur, tracked[ok])
+    ok = moved.copy()
+    ok[ok] &= ~on_specular(cur, tracked[ok])
     ok[ok] &= patch_ncc(prev.grey_f32, start[ok], cur.grey_f32, tracked[ok],
                         NCC_PATCH_PX) >= cfg.min_ncc
+    if ok.any():  # backward, from the forward tracks that passed the checks
+        back, st2 = _pyr_lk(cur.grey, prev.grey, p1[moved], p0[moved].copy(), params,
+                            ok[moved])
+        fb = np.linalg.norm((back - p0[ok]).reshape(-1, 2), axis=1)
+        ok[ok] = (st2.ravel() == 1) & (fb <= cfg.klt_fb_px)
     return tracked, ok
 
 
