@@ -42,6 +42,7 @@ import numpy as np
 from ...config import RegistrationConfig
 from ..geometry.poses import compose_affines
 from .colour import ColourDecision, decide_colour
+from .colour_flow import colour_flow, node_blend
 from .overlap import (
     FOLLOW_REACH_COLOURED,
     ColouredPoints,
@@ -134,6 +135,19 @@ def _keep_targets(n_target: int, decision: ColourDecision | None, target_ids: An
     return np.flatnonzero(keep)
 
 
+def _flowed(result: RegistrationResult, test: MotionTest, target: ColouredPoints,
+            decision: ColourDecision, cfg: RegistrationConfig) -> RegistrationResult:
+    """result with its supported points (test.supported) shifted along the target's surface
+    by `colour_flow` over `register`'s deformation nodes (cfg.max_nodes, interp_neighbors,
+    k_neighbors);
+    their transforms gain the shift."""
+    nodes = node_blend(test.source, cfg.max_nodes, cfg.interp_neighbors, cfg.k_neighbors)
+    moved = colour_flow(test, target, decision, nodes)
+    transforms = result.transforms.copy()
+    transforms[:, :, 3] += moved - result.registered
+    return dataclasses.replace(result, registered=moved, transforms=transforms)
+
+
 def register_pair(
     source_xyz: np.ndarray,
     target_xyz: np.ndarray,
@@ -201,8 +215,10 @@ def register_pair(
             and t_rgb is not None):
         agree = decision.agree
         target = ColouredPoints.analysed(tgt[agree], t_rgb[agree], decision.neighbours)
-        share = stay_where_better(src, registered, supported, s_rgb, target, decision)
         known = _known_sources(len(src), ids, lm)
+        result = _flowed(result, MotionTest(src, result.registered, supported & ~known, s_rgb),
+                         target, decision, cfg)
+        share = stay_where_better(src, registered, supported, s_rgb, target, decision)
         share[known] = 1.0
         registered = src + share[:, None] * (registered - src)
         share[explained_by_identity(src, registered, supported, s_rgb, target, decision)
