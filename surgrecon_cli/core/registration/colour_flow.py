@@ -18,25 +18,22 @@ Inputs and outputs in metres, colours 0..1.
 
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 from scipy import sparse
-from scipy.spatial import cKDTree
 
 from . import graph
-
 from .colour import ColourDecision
 from .overlap import ColouredPoints, MotionTest
 
 FLOW_TARGET_NEIGHBOURS = 16  # target points each local colour model is fitted over
 FLOW_SIGMA_SPACINGS = 1.5  # Gaussian weight of the local fit, in target spacings
-FLOW_STEPS = 3
+FLOW_STEPS = 3  # Gauss-Newton steps
 FLOW_ROBUST = 16.27  # chi-square, 3 degrees of freedom, 99.9 %: the Cauchy scale
-FLOW_MIN_GAIN = 9.21  # chi-square, 2 degrees of freedom, 99 %: a node's least gain
-FLOW_MAX_STEP_SPACINGS = 1.0
-FLOW_DEBIAS = 1.0
-FLOW_STRIDE = 2  # every 2nd supported point is a data point  # a node's largest shift per step, in target spacings
+FLOW_MIN_GAIN = 6.63  # chi-square, 1 degree of freedom, 99 %: least gain of a direction
+FLOW_MAX_STEP_SPACINGS = 1.0  # a node's largest shift per step, in target spacings
+FLOW_DEBIAS = 1.0  # share of the fitted gradient's expected noise taken off J^T J
+FLOW_STRIDE = 1  # the data: every supported point
+FLOW_MIN_DROP = 9.21  # chi-square, 2 degrees of freedom, 99 %: a node's least final gain
 
 
 def tangent_bases(normal: np.ndarray) -> np.ndarray:
@@ -52,8 +49,9 @@ def local_colour_model(positions: np.ndarray, target: ColouredPoints, spacing_m:
                        ) -> tuple[np.ndarray, ...]:
     """At positions (P, 3) m: the target's colour (P, 3), its gradient (P, 2, 3) per metre
     along the tangent basis (P, 3, 2) of the nearest target point's plane, the variance
-    factor of the fitted colour (P,) and the covariance factor of the gradient (P, 2, 2)
-    per metre^2 (their covariance / a target point's colour variance); a weighted
+    factor of the fitted colour (P,), the covariance factor of the gradient (P, 2, 2)
+    per metre^2 (their covariance / a target point's colour variance) and the nearest
+    target point (P,); a weighted
     least-squares plane through the FLOW_TARGET_NEIGHBOURS nearest target points' colours."""
     assert target.normal is not None
     k = min(FLOW_TARGET_NEIGHBOURS, len(target.xyz))
@@ -91,14 +89,14 @@ def local_colour_model(positions: np.ndarray, target: ColouredPoints, spacing_m:
                     axis=1)
     cov_g = inv @ quad @ inv
     var = w2.sum(axis=1) + np.einsum("pi,pij,pj->p", back, cov_g, back)
-    return colour, grad / spacing_m, basis, var, cov_g / spacing_m**2
+    return colour, grad / spacing_m, basis, var, cov_g / spacing_m**2, j[:, 0]
 
 
 def colour_flow(test: MotionTest, target: ColouredPoints, decision: ColourDecision,
-                nodes: NodeBlend) -> np.ndarray:
+                nodes: graph.NodeBlend) -> np.ndarray:
     """(N, 3) m: the supported points of test (registered positions, source colours) shifted
     along the target's surface by their nodes' pooled colour shifts (module docstring);
-    nodes: `register`'s deformation nodes (`node_blend`); a node's shift pools its
+    nodes: `register`'s deformation nodes (`graph.node_blend`); a node's shift pools its
     smoothness neighbours' points too. Points not supported do not move and do not count."""
     pos = test.registered.copy()
     have = np.flatnonzero(test.supported)
@@ -106,19 +104,39 @@ def colour_flow(test: MotionTest, target: ColouredPoints, decision: ColourDecisi
         return pos
     h = max(decision.spacing_m, 1e-9)
     s2 = max(decision.noise, 1e-6) ** 2
-    n_nodes, k = nodes.pool.shape[0], nodes.idx.shape[1]
+    n_nodes, k = nodes.count, nodes.idx.shape[1]
+    pool = sparse.csr_matrix((np.ones(len(nodes.a) + n_nodes), (
+        np.r_[nodes.a, np.arange(n_nodes)], np.r_[nodes.b, np.arange(n_nodes)])),
+        shape=(n_nodes, n_nodes))  # each node with its smoothness neighbours
     weights = sparse.csr_matrix((nodes.w[have].ravel(), nodes.idx[have].ravel(),
                                  np.arange(0, len(have) * k + 1, k)), shape=(len(have), n_nodes))
     # the data: a spread sample of the supported points (every FLOW_STRIDE-th)
     data = np.arange(0, len(have), FLOW_STRIDE)
-    pooled = (nodes.pool @ weights[data].T).tocsr()  # sample points to their nodes' pools
+    pooled = (pool @ weights[data].T).tocsr()  # sample points to their nodes' pools
     rgb = test.source_rgb[have[data]]
-    for _ in range(FLOW_STEPS):
-        colour, grad, basis, var, cov_g = local_colour_model(pos[have[data]], target, h)
+    start = pos[have].copy()
+    moved = np.zeros((n_nodes, 3))  # each node's shift so far
+    first = None
+    for step in range(FLOW_STEPS + 1):
+        colour, grad, basis, var, cov_g, near = local_colour_model(pos[have[data]], target, h)
         resid = rgb - colour  # (P, 3)
         noise2 = s2 * (1.0 + var)
         u = (resid**2).sum(axis=1) / noise2
-        rho = 1.0 / (1.0 + u / FLOW_ROBUST) / noise2
+        seen = np.ones(len(u))
+        if target.rim is not None:  # at the rim of a cut the fit extrapolates from one side
+            seen[target.rim[near]] = 0.0
+        # each node's pooled robust misfit (Cauchy), the same data at every step
+        misfit = pooled @ (seen * FLOW_ROBUST * np.log1p(u / FLOW_ROBUST))
+        if first is None:
+            first = misfit
+            # where the model explains the data worse than at the median node (texture
+            # finer than the target resolves), the node's gains count in units of its own
+            # misfit per point
+            level = misfit / np.maximum(pooled @ seen, 1e-12)
+            excess = np.maximum(level / max(float(np.median(level)), 1e-12), 1.0)
+        if step == FLOW_STEPS:
+            break
+        rho = seen / (1.0 + u / FLOW_ROBUST) / noise2
         # in the point's tangent basis: J^T J (2x2) less the expected part of the fitted
         # gradient's own noise (s^2 cov_g over the three channels: it would shrink the
         # shifts towards 0), and J^T r (2)
@@ -134,48 +152,24 @@ def colour_flow(test: MotionTest, target: ColouredPoints, decision: ColourDecisi
         nb = tangent_bases(normal)
         h2 = nb.transpose(0, 2, 1) @ hess.reshape(-1, 3, 3) @ nb
         b2 = (nb.transpose(0, 2, 1) @ grad_n[:, :, None])[:, :, 0]
-        h2 += 1e-9 * (np.trace(h2, axis1=1, axis2=2)[:, None, None] + 1e-30) * np.eye(2)
-        t2 = np.linalg.solve(h2, b2[:, :, None])[:, :, 0]
-        lowest = np.linalg.eigvalsh(h2)[:, 0]
-        gain = (t2 * b2).sum(axis=1)  # the Gauss-Newton decrease of the summed misfit
+        # along each principal direction of the pooled information on its own: the
+        # component moves only where its gain beats noise (a texture that changes along
+        # one direction only says nothing about the other)
+        lam, vec = np.linalg.eigh(h2)
+        along = (vec.transpose(0, 2, 1) @ b2[:, :, None])[:, :, 0]  # (M, 2)
+        gain = along**2 / np.maximum(lam, 1e-30) / excess[:, None]
+        comp = np.where((gain > FLOW_MIN_GAIN) & (lam > 0), along / np.maximum(lam, 1e-30),
+                        0.0)
+        t2 = (vec @ comp[:, :, None])[:, :, 0]
         size = np.linalg.norm(t2, axis=1)
-        cap = FLOW_MAX_STEP_SPACINGS * h
-        t2 *= np.minimum(1.0, cap / np.maximum(size, 1e-30))[:, None]
-        t2[(gain <= FLOW_MIN_GAIN) | (lowest <= 0)] = 0.0
+        t2 *= np.minimum(1.0, FLOW_MAX_STEP_SPACINGS * h / np.maximum(size, 1e-30))[:, None]
         if not t2.any():
             break
-        shift = weights @ (nb @ t2[:, :, None])[:, :, 0]
-        pos[have] += shift
+        step_nodes = (nb @ t2[:, :, None])[:, :, 0]
+        moved += step_nodes
+        pos[have] += weights @ step_nodes
+    # a node keeps its shift only where its pooled misfit fell by more than chance would
+    # give a fitted 2D shift (the Gauss-Newton model may have misled it)
+    keep = first - misfit > FLOW_MIN_DROP * excess
+    pos[have] = start + weights @ (moved * keep[:, None])
     return pos
-
-
-@dataclasses.dataclass(frozen=True)
-class NodeBlend:
-    """Each point's deformation nodes idx (N, k) and blend weights w (N, k), and pool
-    (M, M): each node's sum over itself and its smoothness neighbours (`register`'s graph)."""
-
-    idx: np.ndarray
-    w: np.ndarray
-    pool: sparse.csr_matrix
-
-
-def node_blend(source: np.ndarray, max_nodes: int, interp_neighbors: int,
-               k_neighbors: int) -> NodeBlend:
-    """The deformation nodes of source (N, 3) m as `register` samples, blends and links
-    them (`graph.sample_nodes`, `graph.interpolation`, `graph.neighbour_edges`; the same
-    nodes at any scale and offset); one node per point when max_nodes is 0 or the cloud is
-    that small."""
-    n = len(source)
-    if max_nodes <= 0 or n <= max_nodes:
-        nodes = source
-        idx, w = np.arange(n)[:, None], np.ones((n, 1))
-        tree = cKDTree(nodes)
-    else:
-        nodes = source[graph.sample_nodes(source, max_nodes)]
-        tree = cKDTree(nodes)
-        idx, w = graph.interpolation(source, nodes, tree, interp_neighbors)
-    a, b = graph.neighbour_edges(nodes, tree, k_neighbors)
-    m = len(nodes)
-    pool = sparse.csr_matrix((np.ones(len(a) + m), (np.r_[a, np.arange(m)],
-                                                    np.r_[b, np.arange(m)])), shape=(m, m))
-    return NodeBlend(idx, w, pool)

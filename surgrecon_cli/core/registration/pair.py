@@ -42,7 +42,8 @@ import numpy as np
 from ...config import RegistrationConfig
 from ..geometry.poses import compose_affines
 from .colour import ColourDecision, decide_colour
-from .colour_flow import colour_flow, node_blend
+from .colour_flow import colour_flow
+from .graph import NodeBlend, node_blend
 from .overlap import (
     FOLLOW_REACH_COLOURED,
     ColouredPoints,
@@ -136,12 +137,9 @@ def _keep_targets(n_target: int, decision: ColourDecision | None, target_ids: An
 
 
 def _flowed(result: RegistrationResult, test: MotionTest, target: ColouredPoints,
-            decision: ColourDecision, cfg: RegistrationConfig) -> RegistrationResult:
+            decision: ColourDecision, nodes: NodeBlend) -> RegistrationResult:
     """result with its supported points (test.supported) shifted along the target's surface
-    by `colour_flow` over `register`'s deformation nodes (cfg.max_nodes, interp_neighbors,
-    k_neighbors);
-    their transforms gain the shift."""
-    nodes = node_blend(test.source, cfg.max_nodes, cfg.interp_neighbors, cfg.k_neighbors)
+    by `colour_flow` over `register`'s deformation nodes; their transforms gain the shift."""
     moved = colour_flow(test, target, decision, nodes)
     transforms = result.transforms.copy()
     transforms[:, :, 3] += moved - result.registered
@@ -216,8 +214,9 @@ def register_pair(
         agree = decision.agree
         target = ColouredPoints.analysed(tgt[agree], t_rgb[agree], decision.neighbours)
         known = _known_sources(len(src), ids, lm)
+        nodes = node_blend(src, cfg.max_nodes, cfg.interp_neighbors, cfg.k_neighbors)
         result = _flowed(result, MotionTest(src, result.registered, supported & ~known, s_rgb),
-                         target, decision, cfg)
+                         target, decision, nodes)
         share = stay_where_better(src, registered, supported, s_rgb, target, decision)
         share[known] = 1.0
         registered = src + share[:, None] * (registered - src)
@@ -229,7 +228,7 @@ def register_pair(
         # next to points without target surface, `register`'s along-surface slide is coupled
         # to motions nothing measured: it is dropped unless it explains the data better
         near_lost = (coupled_to_unsupported(src, supported, cfg.max_nodes,
-                                            cfg.interp_neighbors, cfg.k_neighbors)
+                                            cfg.interp_neighbors, cfg.k_neighbors, nodes)
                      & (share > 0) & ~known)
         if near_lost.any():
             across = across_only(src, registered, target)
