@@ -27,7 +27,7 @@ from .overlap import ColouredPoints, MotionTest
 
 FLOW_TARGET_NEIGHBOURS = 16  # target points each local colour model is fitted over
 FLOW_SIGMA_SPACINGS = 1.5  # Gaussian weight of the local fit, in target spacings
-FLOW_STEPS = 3  # Gauss-Newton steps
+FLOW_STEPS = 2  # Gauss-Newton steps
 FLOW_ROBUST = 16.27  # chi-square, 3 degrees of freedom, 99.9 %: the Cauchy scale
 FLOW_MIN_GAIN = 6.63  # chi-square, 1 degree of freedom, 99 %: least gain of a direction
 FLOW_MAX_STEP_SPACINGS = 1.0  # a node's largest shift per step, in target spacings
