@@ -45,50 +45,45 @@ def tangent_bases(normal: np.ndarray) -> np.ndarray:
     return np.stack([e1, np.cross(normal, e1)], axis=2)
 
 
-def local_colour_model(positions: np.ndarray, target: ColouredPoints, spacing_m: float
-                       ) -> tuple[np.ndarray, ...]:
+def local_colour_model(positions: np.ndarray, target: ColouredPoints, spacing_m: float,
+                       lists: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
     """At positions (P, 3) m: the target's colour (P, 3), its gradient (P, 2, 3) per metre
     along the tangent basis (P, 3, 2) of the nearest target point's plane, the variance
-    factor of the fitted colour (P,), the covariance factor of the gradient (P, 2, 2)
-    per metre^2 (their covariance / a target point's colour variance) and the nearest
-    target point (P,); a weighted
-    least-squares plane through the FLOW_TARGET_NEIGHBOURS nearest target points' colours."""
+    factor of the fitted colour (P,), the covariance factor of the gradient (P, 2, 2) per
+    metre^2 (their covariance / a target point's colour variance) and the nearest target
+    point (P,); a weighted least-squares plane through the colours of the
+    FLOW_TARGET_NEIGHBOURS target points nearest each position, or, given lists (M, >= k)
+    (each target point's nearest, itself first), those of its nearest target point."""
     assert target.normal is not None
     k = min(FLOW_TARGET_NEIGHBOURS, len(target.xyz))
-    d, j = target.tree.query(positions, k=k)
-    d, j = d.reshape(len(positions), k), j.reshape(len(positions), k)
+    if lists is not None and len(lists) == len(target.xyz) and lists.shape[1] >= k:
+        j = lists[target.tree.query(positions, k=1)[1], :k]
+        offset = target.xyz[j] - positions[:, None, :]
+        d = np.linalg.norm(offset, axis=2)
+    else:
+        d, j = target.tree.query(positions, k=k)
+        d, j = d.reshape(len(positions), k), j.reshape(len(positions), k)
+        offset = target.xyz[j] - positions[:, None, :]
     basis = tangent_bases(target.normal[j[:, 0]])
-    offset = target.xyz[j] - positions[:, None, :]
-    u = (offset * basis[:, None, :, 0]).sum(axis=2) / spacing_m  # (P, k), spacings
-    v = (offset * basis[:, None, :, 1]).sum(axis=2) / spacing_m
+    uv = offset @ basis / spacing_m  # (P, k, 2), spacings
     w = np.exp(-0.5 * (d / (FLOW_SIGMA_SPACINGS * spacing_m)) ** 2) + 1e-9
     w /= w.sum(axis=1)[:, None]
-    # centred on the weighted mean position: colour = mean + gradient (x - mean)
-    u -= (w * u).sum(axis=1)[:, None]
-    v -= (w * v).sum(axis=1)[:, None]
-    mean_u, mean_v = (w * u).sum(axis=1), (w * v).sum(axis=1)  # ~0, kept for exactness
-    suu, suv, svv = (w * u * u).sum(axis=1), (w * u * v).sum(axis=1), (w * v * v).sum(axis=1)
-    det = np.maximum(suu * svv - suv**2, 1e-12)
-    inv = np.stack([np.stack([svv, -suv], axis=1), np.stack([-suv, suu], axis=1)],
-                   axis=1) / det[:, None, None]  # (P, 2, 2)
+    # centred on the weighted mean position: colour = mean + gradient (x - mean); the
+    # position itself lies at back = -(the weighted mean offset)
+    back = -(w[:, None, :] @ uv)  # (P, 1, 2)
+    uv += back
+    wuv = uv * w[:, :, None]
+    s = wuv.transpose(0, 2, 1) @ uv  # (P, 2, 2)
+    det = np.maximum(s[:, 0, 0] * s[:, 1, 1] - s[:, 0, 1] ** 2, 1e-12)
+    inv = np.empty_like(s)
+    inv[:, 0, 0], inv[:, 1, 1] = s[:, 1, 1] / det, s[:, 0, 0] / det
+    inv[:, 0, 1] = inv[:, 1, 0] = -s[:, 0, 1] / det
     rgb = target.rgb[j]  # (P, k, 3)
-    mean_rgb = np.einsum("pk,pkc->pc", w, rgb)
-    moments = np.stack([np.einsum("pk,pkc->pc", w * u, rgb),
-                        np.einsum("pk,pkc->pc", w * v, rgb)], axis=1)  # (P, 2, 3)
-    grad = inv @ moments  # per spacing
-    # the mean position lies at -(mean of the offsets) from the point
-    centre = np.stack([mean_u, mean_v], axis=1)
-    back = -(offset * w[:, :, None]).sum(axis=1) / spacing_m
-    back = np.stack([(back * basis[:, :, 0]).sum(axis=1),
-                     (back * basis[:, :, 1]).sum(axis=1)], axis=1) - centre
-    colour = mean_rgb + (back[:, :, None] * grad).sum(axis=1)
+    grad = inv @ (wuv.transpose(0, 2, 1) @ rgb)  # (P, 2, 3) per spacing
+    colour = (w[:, None, :] @ rgb + back @ grad)[:, 0, :]
     # covariances with independent noise of unit variance
-    w2 = w * w
-    quad = np.stack([np.stack([(w2 * u * u).sum(axis=1), (w2 * u * v).sum(axis=1)], axis=1),
-                     np.stack([(w2 * u * v).sum(axis=1), (w2 * v * v).sum(axis=1)], axis=1)],
-                    axis=1)
-    cov_g = inv @ quad @ inv
-    var = w2.sum(axis=1) + np.einsum("pi,pij,pj->p", back, cov_g, back)
+    cov_g = inv @ ((wuv * w[:, :, None]).transpose(0, 2, 1) @ uv) @ inv
+    var = (w * w).sum(axis=1) + (back @ cov_g @ back.transpose(0, 2, 1))[:, 0, 0]
     return colour, grad / spacing_m, basis, var, cov_g / spacing_m**2, j[:, 0]
 
 
@@ -115,10 +110,12 @@ def colour_flow(test: MotionTest, target: ColouredPoints, decision: ColourDecisi
     pooled = (pool @ weights[data].T).tocsr()  # sample points to their nodes' pools
     rgb = test.source_rgb[have[data]]
     start = pos[have].copy()
+    lists = None  # each position's own nearest target points (not its nearest's lists)
     moved = np.zeros((n_nodes, 3))  # each node's shift so far
     first = None
     for step in range(FLOW_STEPS + 1):
-        colour, grad, basis, var, cov_g, near = local_colour_model(pos[have[data]], target, h)
+        colour, grad, basis, var, cov_g, near = local_colour_model(pos[have[data]], target, h,
+                                                                   lists)
         resid = rgb - colour  # (P, 3)
         noise2 = s2 * (1.0 + var)
         u = (resid**2).sum(axis=1) / noise2
