@@ -215,8 +215,11 @@ def register_pair(
         target = ColouredPoints.analysed(tgt[agree], t_rgb[agree], decision.neighbours)
         known = _known_sources(len(src), ids, lm)
         nodes = node_blend(src, cfg.max_nodes, cfg.interp_neighbors, cfg.k_neighbors)
+        # the shares below judge `register`'s own motion (registered) against not moving;
+        # the share kept applies to the motion refined along the surface from colour
         result = _flowed(result, MotionTest(src, result.registered, supported & ~known, s_rgb),
                          target, decision, nodes)
+        transforms = result.transforms.copy()
         share = stay_where_better(src, registered, supported, s_rgb, target, decision)
         share[known] = 1.0
         registered = src + share[:, None] * (registered - src)
