@@ -137,9 +137,15 @@ def _keep_targets(n_target: int, decision: ColourDecision | None, target_ids: An
 
 
 def _flowed(result: RegistrationResult, test: MotionTest, target: ColouredPoints,
-            decision: ColourDecision, nodes: NodeBlend) -> RegistrationResult:
+            decision: ColourDecision, nodes: NodeBlend | None,
+            cut: bool) -> RegistrationResult:
     """result with its supported points (test.supported) shifted along the target's surface
-    by `colour_flow` over `register`'s deformation nodes; their transforms gain the shift."""
+    by `colour_flow` over `register`'s deformation nodes, their transforms gaining the
+    shift, when cut (part of the source without target surface spans nodes,
+    `coupled_to_unsupported`); else result as it is. On full pairs the matches reach every
+    partner and the step's 0.06-0.08 s (5k) would break the time goal."""
+    if not cut or nodes is None:
+        return result
     moved = colour_flow(test, target, decision, nodes)
     transforms = result.transforms.copy()
     transforms[:, :, 3] += moved - result.registered
@@ -214,11 +220,17 @@ def register_pair(
         agree = decision.agree
         target = ColouredPoints.analysed(tgt[agree], t_rgb[agree], decision.neighbours)
         known = _known_sources(len(src), ids, lm)
-        nodes = node_blend(src, cfg.max_nodes, cfg.interp_neighbors, cfg.k_neighbors)
-        # the shares below judge `register`'s own motion (registered) against not moving;
-        # the share kept applies to the motion refined along the surface from colour
-        result = _flowed(result, MotionTest(src, result.registered, supported & ~known, s_rgb),
-                         target, decision, nodes)
+        # `register`'s nodes, wanted only where part of the source lacks target surface
+        nodes = (node_blend(src, cfg.max_nodes, cfg.interp_neighbors, cfg.k_neighbors)
+                 if 0 < supported.sum() < len(src) else None)
+        coupled = coupled_to_unsupported(src, supported, cfg.max_nodes, cfg.interp_neighbors,
+                                         cfg.k_neighbors, nodes)
+        # at a cut, `register`'s smoothness drags tissue along the surface by motions
+        # nothing measured: the along-surface part is refined from the colour pooled over
+        # the nodes (`colour_flow`). The shares below judge `register`'s own motion
+        # (registered) against not moving; the share kept applies to the refined motion
+        result = _flowed(result, MotionTest(src, registered, supported & ~known, s_rgb),
+                         target, decision, nodes, bool(coupled.any()))
         transforms = result.transforms.copy()
         share = stay_where_better(src, registered, supported, s_rgb, target, decision)
         share[known] = 1.0
@@ -230,9 +242,7 @@ def register_pair(
         transforms = share[:, None, None] * transforms + (1 - share[:, None, None]) * identity
         # next to points without target surface, `register`'s along-surface slide is coupled
         # to motions nothing measured: it is dropped unless it explains the data better
-        near_lost = (coupled_to_unsupported(src, supported, cfg.max_nodes,
-                                            cfg.interp_neighbors, cfg.k_neighbors, nodes)
-                     & (share > 0) & ~known)
+        near_lost = coupled & (share > 0) & ~known
         if near_lost.any():
             across = across_only(src, registered, target)
             near_lost &= explained_by(MotionTest(src, registered, supported, s_rgb, across,
