@@ -1,18 +1,22 @@
 """Along-surface shifts pooled over deformation nodes from the target's colour field
-(`register_pair`, with colour used; issue 28).
+(`register_pair` at a cut, with colour used; issue 28).
 
 A nearest match in position + colour pins one point along the surface to about sqrt(2) s / g
 (colour noise s against a texture gradient g, 0.7-0.9 mm on the stray tissues) and follows
 the point when it is slid (0.6 of the slide): a cell of points settles at its matches' noise
 / (1 - follow). Here the target's colour around each moved point is a local linear model on
-the target's tangent plane (colour and its 2D gradient, weighted least squares over the
-FLOW_TARGET_NEIGHBOURS nearest target points), and each deformation node takes the
-tangential shift t that minimises the robust sum over its blended points of
-|source colour - model colour at x + t|^2 / noise^2 (one Gauss-Newton step; Cauchy weights at
-the 99.9 % quantile of the misfit under noise alone, so strays do not decide it). A node
-moves only where the step lowers that sum by more than FLOW_MIN_GAIN (chi-square with 2
-degrees of freedom, 99 %: on flat texture, or with too few points, it does not move), by at
-most one target spacing per step; points take the blend of their nodes' shifts.
+the tangent plane of its nearest target point (colour and 2D gradient, weighted least
+squares over the FLOW_TARGET_NEIGHBOURS nearest target points; the fitted gradient's own
+expected noise is taken off J^T J), and each deformation node takes the tangential shift t
+that minimises the robust sum over the points blended to it and to its smoothness
+neighbours of |source colour - model colour at x + t|^2 / noise^2 (one Gauss-Newton step per
+iteration, FLOW_STEPS; Cauchy weights at the 99.9 % quantile of the misfit under noise
+alone, so strays do not decide it; target rim points give no data). Each principal direction
+of a node's pooled information moves only where its gain beats FLOW_MIN_GAIN (on flat
+texture, or along the direction a one-way texture does not measure, it does not move), by
+at most FLOW_MAX_STEP_SPACINGS target spacings per step; at the end a node keeps its shift
+only where its pooled misfit fell by more than FLOW_MIN_DROP (scaled by its misfit per point
+over the median node's where larger). Points take the blend of their nodes' shifts.
 Inputs and outputs in metres, colours 0..1.
 """
 

@@ -23,7 +23,9 @@ Around the shared `register` (also the frame pipeline's), without changing it:
    (`coupled_to_unsupported`) keeps only its motion across the target's surface
    (`across_only`) unless its slide along it explains its neighbourhood's data better by
    the same margin, and a point matched onto the rim of a cut target (`matched_onto_cut`)
-   follows as in 2;
+   follows as in 2; on a cut pair, before those tests, the motion's part along the surface
+   is refined from the colour pooled over `register`'s nodes (`colour_flow`; the tests
+   judge `register`'s own motion, the share kept applies to the refined one);
 4. with colour used, solver settings of its own (`pair_config`) in place of the fields the
    caller left at their defaults;
 5. an error estimate that says what it can see (`error_estimate_mm`);
