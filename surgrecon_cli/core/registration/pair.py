@@ -145,7 +145,7 @@ def _flowed(result: RegistrationResult, test: MotionTest, target: ColouredPoints
     by `colour_flow` over `register`'s deformation nodes, their transforms gaining the
     shift, when cut (part of the source without target surface spans nodes,
     `coupled_to_unsupported`); else result as it is. On full pairs the matches reach every
-    partner and the step's 0.06-0.08 s (5k) would break the time goal."""
+    partner and the step's 0.07-0.1 s (5k) would break the time goal."""
     if not cut or nodes is None:
         return result
     moved = colour_flow(test, target, decision, nodes)
