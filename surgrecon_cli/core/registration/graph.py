@@ -166,3 +166,33 @@ def linear_selector(m: int) -> sp.csr_matrix:
     """L (3M x 4M): picks the 3x3 linear part (rows 0..2) of every node block."""
     cols = (4 * np.arange(m)[:, None] + np.arange(3)).ravel()
     return sp.csr_matrix((np.ones(3 * m), (np.arange(3 * m), cols)), shape=(3 * m, 4 * m))
+
+
+@dataclass(frozen=True)
+class NodeBlend:
+    """Deformation nodes of a cloud: each point's nodes idx (N, k) and blend weights w (N, k)
+    (`interpolation`), the directed smoothness edges a, b (E,) (`neighbour_edges`) and the
+    node count."""
+
+    idx: np.ndarray
+    w: np.ndarray
+    a: np.ndarray
+    b: np.ndarray
+    count: int
+
+
+def node_blend(xyz: np.ndarray, max_nodes: int, interp_neighbors: int,
+               k_neighbors: int) -> NodeBlend:
+    """The deformation nodes of xyz (N, 3) as `register` samples, blends and links them
+    (the same nodes at any scale and offset of the cloud); one node per point when max_nodes
+    is 0 or the cloud is that small."""
+    n = len(xyz)
+    if max_nodes <= 0 or n <= max_nodes:
+        nodes, idx, w = xyz, np.arange(n)[:, None], np.ones((n, 1))
+        tree = cKDTree(nodes)
+    else:
+        nodes = xyz[sample_nodes(xyz, max_nodes)]
+        tree = cKDTree(nodes)
+        idx, w = interpolation(xyz, nodes, tree, interp_neighbors)
+    a, b = neighbour_edges(nodes, tree, k_neighbors)
+    return NodeBlend(idx, w, a, b, len(nodes))

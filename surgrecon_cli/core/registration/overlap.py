@@ -386,25 +386,25 @@ def explained_by(test: MotionTest, target: ColouredPoints,
 
 
 def coupled_to_unsupported(source: np.ndarray, supported: np.ndarray, max_nodes: int,
-                           interp_neighbors: int, k_neighbors: int) -> np.ndarray:
+                           interp_neighbors: int, k_neighbors: int,
+                           nodes: graph.NodeBlend | None = None) -> np.ndarray:
     """(N,) bool: supported points (N,) bool of source (N, 3) m whose motion `register`
     blends from a node next to a part without target surface: its nodes
-    (`graph.sample_nodes`, max_nodes; the same points at any scale and offset), each point's
-    interp_neighbors blended ones (`graph.interpolation`), the nodes whose blend weight comes
-    mostly (> 1/2) from points not supported and which have such a node among their
-    k_neighbors smoothness neighbours (a part that spans nodes: a cut, not a border sample
-    the resampling missed), and their smoothness neighbours (COUPLED_RINGS rings)."""
+    (`graph.node_blend`, max_nodes, each point's interp_neighbors blended ones, k_neighbors
+    smoothness neighbours; nodes: the same when already built), the nodes whose blend
+    weight comes mostly (> 1/2) from points not supported and which have such a node among
+    their smoothness neighbours (a part that spans nodes: a cut, not a border sample the
+    resampling missed), and their smoothness neighbours (COUPLED_RINGS rings)."""
     out = np.zeros(len(source), bool)
     if supported.all() or not supported.any() or max_nodes <= 0 or len(source) <= max_nodes:
         return out
-    nodes = source[graph.sample_nodes(source, max_nodes)]
-    tree = cKDTree(nodes)
-    idx, w = graph.interpolation(source, nodes, tree, interp_neighbors)
-    total = np.bincount(idx.ravel(), w.ravel(), len(nodes))
-    lost = np.bincount(idx[~supported].ravel(), w[~supported].ravel(), len(nodes))
+    if nodes is None:
+        nodes = graph.node_blend(source, max_nodes, interp_neighbors, k_neighbors)
+    idx, w, ea, eb = nodes.idx, nodes.w, nodes.a, nodes.b
+    total = np.bincount(idx.ravel(), w.ravel(), nodes.count)
+    lost = np.bincount(idx[~supported].ravel(), w[~supported].ravel(), nodes.count)
     mostly = lost > 0.5 * total
-    ea, eb = graph.neighbour_edges(nodes, tree, k_neighbors)
-    touched = mostly & (np.bincount(ea[mostly[eb]], minlength=len(nodes)) > 0)
+    touched = mostly & (np.bincount(ea[mostly[eb]], minlength=nodes.count) > 0)
     for _ in range(COUPLED_RINGS):
         ring = touched.copy()
         ring[eb[touched[ea]]] = True
