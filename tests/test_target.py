@@ -16,36 +16,48 @@ from surgrecon_cli.core.template.build import TemplateFrame, build_template
 from surgrecon_cli.sim.scene import SimConfig
 
 
-@pytest.fixture(scope="module")
-def tracked():
-    # Frames 5 -> 6 with a deep breath (10 mm amplitude): the breathing region shifts by
-    # ~1.2 mm, the dent deepens by ~1.7 mm, the rest of the dome stays still. Frame 5 plays
-    # the template's frame here.
-    sim = SimConfig(cameras=6, frames=20, width=480, height=360, seed=5, breath_amplitude=0.010)
+def _tracked_pair(sim: SimConfig, true_poses: bool, tracker_noise: bool):
+    """Template of frame 5, target of frame 6 (the scene's poses, or its true ones; the
+    noise the template's measured pixel noise, with the simulator's tracker noise on one
+    body when tracker_noise): the template, the target and the template points' true
+    positions at both frames."""
     scene = render_frames(sim, [5, 6])
+    poses = scene.true_poses if true_poses else scene.poses
     cfg = Config()
     template = build_template(
-        TemplateFrame(scene.images[0], scene.poses[0], scene.tool_poses[0]), scene.models,
+        TemplateFrame(scene.images[0], poses[0], scene.tool_poses[0]), scene.models,
         cfg.template, cfg.tool,
     )
     n, n_cams = len(template.points), len(scene.models)
     pixels = np.full((n, n_cams, 2), np.nan)
     obs = template.observations
     pixels[obs.point, obs.camera] = obs.pixels
-    # The scene's poses are exact: the noise is the template's measured pixel noise.
     noise = NoiseModel(pixel_px=template.pixel_noise_px, tracking_px=0.0,
-                       tracker_position_m=0.0, tracker_rotation_rad=0.0)
+                       tracker_position_m=sim.tracker_noise_pos if tracker_noise else 0.0,
+                       tracker_rotation_rad=(float(np.radians(sim.tracker_noise_deg))
+                                             if tracker_noise else 0.0),
+                       shared_body=(True,) * n_cams if tracker_noise else ())
     data = TemplateData(template.points, template.rgb, template.covariance,
                         np.zeros((n, 3, 3)), pixels)
     rig = Rig(list(scene.models), noise, cfg.target, cfg.tool)
-    base = Sighting([tracking_view(image) for image in scene.images[0]], scene.poses[0], pixels)
-    frame = FrameInput(1, [tracking_view(image) for image in scene.images[1]], scene.poses[1],
+    base = Sighting([tracking_view(image) for image in scene.images[0]], poses[0], pixels)
+    frame = FrameInput(1, [tracking_view(image) for image in scene.images[1]], poses[1],
                        scene.tool_poses[1])
     target = build_target(data, rig, template.points, base, frame)
     mapping = map_to_surface(template.points, scene.vertices[0], scene.faces)
     truth0 = mapping.follow(scene.vertices[0], scene.faces)
     truth1 = mapping.follow(scene.vertices[1], scene.faces)
     return template, target, truth0, truth1
+
+
+@pytest.fixture(scope="module")
+def tracked():
+    # Frames 5 -> 6 with a deep breath (10 mm amplitude): the breathing region shifts by
+    # ~1.2 mm, the dent deepens by ~1.7 mm, the rest of the dome stays still. Frame 5 plays
+    # the template's frame here. The scene's poses are exact: the noise is the template's
+    # measured pixel noise.
+    sim = SimConfig(cameras=6, frames=20, width=480, height=360, seed=5, breath_amplitude=0.010)
+    return _tracked_pair(sim, true_poses=False, tracker_noise=False)
 
 
 def test_still_points_are_intra_camera_inliers(tracked):
@@ -96,32 +108,8 @@ def test_a_narrow_baseline_target_follows_motion_along_the_lines_of_sight():
     where they moved (re-triangulated), not at frame 0, while the still dome stays put."""
     sim = SimConfig(cameras=2, stereo_baseline=0.005, frames=20, width=480, height=360, seed=5,
                     breath_amplitude=0.010)
-    scene = render_frames(sim, [5, 6])
-    cfg = Config()
-    template = build_template(
-        TemplateFrame(scene.images[0], scene.true_poses[0], scene.tool_poses[0]), scene.models,
-        cfg.template, cfg.tool,
-    )
-    n = len(template.points)
-    pixels = np.full((n, 2, 2), np.nan)
-    obs = template.observations
-    pixels[obs.point, obs.camera] = obs.pixels
     # exact poses, but the run budgets the simulator's tracker noise on one stereo body
-    noise = NoiseModel(pixel_px=template.pixel_noise_px, tracking_px=0.0,
-                       tracker_position_m=sim.tracker_noise_pos,
-                       tracker_rotation_rad=float(np.radians(sim.tracker_noise_deg)),
-                       shared_body=(True, True))
-    data = TemplateData(template.points, template.rgb, template.covariance,
-                        np.zeros((n, 3, 3)), pixels)
-    rig = Rig(list(scene.models), noise, cfg.target, cfg.tool)
-    base = Sighting([tracking_view(image) for image in scene.images[0]], scene.true_poses[0],
-                    pixels)
-    frame = FrameInput(1, [tracking_view(image) for image in scene.images[1]],
-                       scene.true_poses[1], scene.tool_poses[1])
-    target = build_target(data, rig, template.points, base, frame)
-    mapping = map_to_surface(template.points, scene.vertices[0], scene.faces)
-    truth0 = mapping.follow(scene.vertices[0], scene.faces)
-    truth1 = mapping.follow(scene.vertices[1], scene.faces)
+    template, target, truth0, truth1 = _tracked_pair(sim, true_poses=True, tracker_noise=True)
     moved = np.linalg.norm(truth1 - truth0, axis=1)
     passed = (target.status == INTRA) & (moved > 0.3e-3)
     assert passed.sum() > 20  # the per-view check lets them through (49 of 381)
