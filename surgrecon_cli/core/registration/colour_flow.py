@@ -35,8 +35,6 @@ FLOW_STEPS = 2  # Gauss-Newton steps
 FLOW_ROBUST = 16.27  # chi-square, 3 degrees of freedom, 99.9 %: the Cauchy scale
 FLOW_MIN_GAIN = 6.63  # chi-square, 1 degree of freedom, 99 %: least gain of a direction
 FLOW_MAX_STEP_SPACINGS = 1.0  # a node's largest shift per step, in target spacings
-FLOW_DEBIAS = 1.0  # share of the fitted gradient's expected noise taken off J^T J
-FLOW_STRIDE = 1  # the data: every supported point
 FLOW_MIN_DROP = 9.21  # chi-square, 2 degrees of freedom, 99 %: a node's least final gain
 
 
@@ -49,25 +47,19 @@ def tangent_bases(normal: np.ndarray) -> np.ndarray:
     return np.stack([e1, np.cross(normal, e1)], axis=2)
 
 
-def local_colour_model(positions: np.ndarray, target: ColouredPoints, spacing_m: float,
-                       lists: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
+def local_colour_model(positions: np.ndarray, target: ColouredPoints,
+                       spacing_m: float) -> tuple[np.ndarray, ...]:
     """At positions (P, 3) m: the target's colour (P, 3), its gradient (P, 2, 3) per metre
     along the tangent basis (P, 3, 2) of the nearest target point's plane, the variance
     factor of the fitted colour (P,), the covariance factor of the gradient (P, 2, 2) per
     metre^2 (their covariance / a target point's colour variance) and the nearest target
     point (P,); a weighted least-squares plane through the colours of the
-    FLOW_TARGET_NEIGHBOURS target points nearest each position, or, given lists (M, >= k)
-    (each target point's nearest, itself first), those of its nearest target point."""
+    FLOW_TARGET_NEIGHBOURS target points nearest each position."""
     assert target.normal is not None
     k = min(FLOW_TARGET_NEIGHBOURS, len(target.xyz))
-    if lists is not None and len(lists) == len(target.xyz) and lists.shape[1] >= k:
-        j = lists[target.tree.query(positions, k=1)[1], :k]
-        offset = target.xyz[j] - positions[:, None, :]
-        d = np.linalg.norm(offset, axis=2)
-    else:
-        d, j = target.tree.query(positions, k=k)
-        d, j = d.reshape(len(positions), k), j.reshape(len(positions), k)
-        offset = target.xyz[j] - positions[:, None, :]
+    d, j = target.tree.query(positions, k=k)
+    d, j = d.reshape(len(positions), k), j.reshape(len(positions), k)
+    offset = target.xyz[j] - positions[:, None, :]
     basis = tangent_bases(target.normal[j[:, 0]])
     uv = offset @ basis / spacing_m  # (P, k, 2), spacings
     w = np.exp(-0.5 * (d / (FLOW_SIGMA_SPACINGS * spacing_m)) ** 2) + 1e-9
@@ -109,17 +101,13 @@ def colour_flow(test: MotionTest, target: ColouredPoints, decision: ColourDecisi
         shape=(n_nodes, n_nodes))  # each node with its smoothness neighbours
     weights = sparse.csr_matrix((nodes.w[have].ravel(), nodes.idx[have].ravel(),
                                  np.arange(0, len(have) * k + 1, k)), shape=(len(have), n_nodes))
-    # the data: a spread sample of the supported points (every FLOW_STRIDE-th)
-    data = np.arange(0, len(have), FLOW_STRIDE)
-    pooled = (pool @ weights[data].T).tocsr()  # sample points to their nodes' pools
-    rgb = test.source_rgb[have[data]]
+    pooled = (pool @ weights.T).tocsr()  # the supported points to their nodes' pools
+    rgb = test.source_rgb[have]
     start = pos[have].copy()
-    lists = None  # each position's own nearest target points (not its nearest's lists)
     moved = np.zeros((n_nodes, 3))  # each node's shift so far
     first = None
     for step in range(FLOW_STEPS + 1):
-        colour, grad, basis, var, cov_g, near = local_colour_model(pos[have[data]], target, h,
-                                                                   lists)
+        colour, grad, basis, var, cov_g, near = local_colour_model(pos[have], target, h)
         resid = rgb - colour  # (P, 3)
         noise2 = s2 * (1.0 + var)
         u = (resid**2).sum(axis=1) / noise2
@@ -141,7 +129,7 @@ def colour_flow(test: MotionTest, target: ColouredPoints, decision: ColourDecisi
         # in the point's tangent basis: J^T J (2x2) less the expected part of the fitted
         # gradient's own noise (s^2 cov_g over the three channels: it would shrink the
         # shifts towards 0), and J^T r (2)
-        jtj = grad @ grad.transpose(0, 2, 1) - FLOW_DEBIAS * s2 * cov_g
+        jtj = grad @ grad.transpose(0, 2, 1) - s2 * cov_g
         jtr = (grad @ resid[:, :, None])[:, :, 0]
         hess = pooled @ (rho[:, None, None] * (basis @ jtj @ basis.transpose(0, 2, 1))
                          ).reshape(-1, 9)

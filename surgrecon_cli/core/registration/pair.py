@@ -222,9 +222,10 @@ def register_pair(
         agree = decision.agree
         target = ColouredPoints.analysed(tgt[agree], t_rgb[agree], decision.neighbours)
         known = _known_sources(len(src), ids, lm)
-        # `register`'s nodes, wanted only where part of the source lacks target surface
+        # `register`'s nodes, wanted only where part of the source lacks target surface and
+        # the nodes are fewer than the points (`coupled_to_unsupported`'s cases)
         nodes = (node_blend(src, cfg.max_nodes, cfg.interp_neighbors, cfg.k_neighbors)
-                 if 0 < supported.sum() < len(src) else None)
+                 if 0 < supported.sum() < len(src) and 0 < cfg.max_nodes < len(src) else None)
         coupled = coupled_to_unsupported(src, supported, cfg.max_nodes, cfg.interp_neighbors,
                                          cfg.k_neighbors, nodes)
         # at a cut, `register`'s smoothness drags tissue along the surface by motions
