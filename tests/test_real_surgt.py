@@ -88,8 +88,11 @@ def test_surgt_noise_is_measured_not_the_floor(surgt_run):
     # Real images locate features to tenths of a pixel (an independent NCC check on this
     # clip, benchmarks/real_reference.py: 0.44 px), far above the Cramér-Rao floor.
     assert summary["noise"]["pixel_px"] >= 0.1
+    # Tracks locked to the template (core/target/template_lock.py) drift little over a
+    # still scene: what they carry is set by the independent check below; the floor the
+    # tracking noise once fell to here was 0.006 px.
     tracking = summary["noise"]["tracking_px"]
-    assert tracking >= 0.1
+    assert tracking >= 0.05
     check = epipolar_tracking_sigma(layout)
     assert check / 1.5 <= tracking <= 1.5 * check
 

@@ -32,10 +32,14 @@ core/registration/frame_step.py: σ is the RMS of a 3D position error, metres) a
    S / dof 2.5). Is it large enough to count? The rigid-fit RMS of the *registered*
    positions (the spec's rule applied to the estimated field) reaches `deform_mm` (the
    spec's tolerance) with every direction counted by how well it is measured
-   (`resolved_rms_mm`: each member's residual weighted by (scale Σ_j + deform_mm²/3 I)⁻¹,
+   (`resolved_rms_mm`: each member's residual weighted by (Σ_j + deform_mm²/3 I)⁻¹,
    normalised so that without noise it is the plain RMS; Σ_j the covariance of the
    member's displacement from frame 0, `displacement_covariance`: the template's frame-0
-   image error, which tracking carries into every later measurement, cancels in it).
+   image error, which tracking carries into every later measurement, cancels in it; not
+   scaled by the frame's noise scale, which the directions across the lines of sight set:
+   with tracks locked to the template the model understates those 1.5-2x while it states
+   depth right, and the scaled weights discounted real dents along the lines of sight,
+   stereo simulator deforming recall 0.64 -> 0.55).
    Both, or it is shifting. (The measured positions answer the first question well but
    their plain RMS, debiased by their noise, underestimates borderline dents — 0.16–0.20
    mm for a true 0.27–0.28 mm on the shipped sample — while the registered field's RMS
@@ -395,7 +399,7 @@ def classify_frame(template: np.ndarray, frame: RegisteredFrame, nb: Neighbourho
         at = np.searchsorted(judged, rows)
         significant = (dof[at] > 0) & (stat[at] / scale > chi2.isf(cfg.significance,
                                                                     np.maximum(dof[at], 1.0)))
-        measure = resolved_rms_mm(template, registered, scale * np.asarray(
+        measure = resolved_rms_mm(template, registered, np.asarray(
             evidence.departure_cov, float), nb, rows, cfg.deform_mm)
         deforming = significant & (measure >= cfg.deform_mm)
     else:

@@ -23,7 +23,13 @@ Per camera:
    sweep of 10 deg or more, KLT's
    translation-only window is biased by the changed perspective and shading (measured on
    `rig-sweep` after 4 frames: 0.35 px median, 1.1 px p95; chained 0.2 px, 0.6 px), more
-   than the chain's drift over the same frames.
+   than the chain's drift over the same frames (step 3 aligns the frame-0 patch warped
+   to the current view instead);
+3. lock: every found point with a frame-0 pixel in that camera is moved to where its
+   frame-0 patch, warped by the local image map of its neighbouring tracks, matches best
+   (core/target/template_lock.py): the drift the chain and the base's tracks carried is
+   taken out. The chained pixels held for the next frame (`rig.chains`) stay as tracked,
+   so that a frame tracked again through its previous frame finds the same ones.
 
 A frame whose previous frame is not its base (re-basing every N_T >= 2 frames) is chained
 through the previous frame's images (base -> previous -> frame, `_via`: the previous
@@ -52,6 +58,7 @@ from ..geometry.tool import tool_pixel_mask
 from ..noise.model import localisation_variance_px2
 from .frame_inputs import FrameInput, Rig, Sighting
 from .reacquire import descriptor_motion
+from .template_lock import lock_to_template
 from .tracking import (
     NEIGHBOUR_RADIUS_PX,
     NEIGHBOUR_ROUNDS,
@@ -347,14 +354,17 @@ def find_points(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig,
         if predicted is None:  # the first camera whose tracks show it
             predicted = _scene(latest, px, ok, models[c], cur_poses[c])
         anchor = None if anchor_views is None else anchor_views[c]
+        locked = px
         if anchor is not None and anchor_pixels is not None:
             px, ok = _anchor(anchor, cur, anchor_pixels[:, c], px, models[c], cfg)
+            locked = lock_to_template(anchor, cur, anchor_pixels[:, c],
+                                      np.where(ok[:, None], px, np.nan), cfg.klt_window_px)
         rows = np.flatnonzero(ok)
-        rows = rows[_unmasked(px[rows], frame, rig, c)]
-        pixels[rows, c] = px[rows]
+        rows = rows[_unmasked(locked[rows], frame, rig, c)]
+        pixels[rows, c] = locked[rows]
         found[rows, c] = True
         localisation[rows, c] = localisation_variance_px2(
-            cur.grey_f32, px[rows], cfg.klt_window_px, cur.noise_sigma)
+            cur.grey_f32, locked[rows], cfg.klt_window_px, cur.noise_sigma)
         mine = rows[chain_ok[rows]]
         chained[mine, c] = px[mine]
     if frame.previous is None and rig.chains is not None:

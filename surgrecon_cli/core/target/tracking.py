@@ -5,6 +5,7 @@ forward-backward and photometrically (Su et al. 2019, section II.B: the target c
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from functools import cached_property
 from typing import Any
 
 import cv2
@@ -68,6 +69,15 @@ class TrackingView:
     grey_f32: np.ndarray
     noise_sigma: float
     specular: np.ndarray
+
+    @cached_property
+    def gradients(self) -> np.ndarray:
+        """(H, W, 3) float32: the image and its x and y gradients (central differences),
+        built when first asked for (a template's views, core/target/template_lock.py)."""
+        grey = self.grey_f32
+        dx = cv2.Sobel(grey, cv2.CV_32F, 1, 0, ksize=1, scale=0.5)
+        dy = cv2.Sobel(grey, cv2.CV_32F, 0, 1, ksize=1, scale=0.5)
+        return cv2.merge([grey, dx, dy])
 
 
 def specular_mask(image: np.ndarray) -> np.ndarray:
