@@ -28,3 +28,45 @@ def test_a_single_stereo_pair_runs_to_a_template_and_a_report(tmp_path: Path):
     summary = json.loads((run / "metrics" / "summary.json").read_text(encoding="utf-8"))
     assert summary["frames"] == 1 and summary["template_points"] > 500
     assert (run / "clouds" / "000000.ply").is_file() and (run / "report.html").is_file()
+
+
+def _half_size_folder(root: Path, count: int) -> None:
+    """The clip's first frames at half size (640x512 per eye) as left/ and right/ PNG files,
+    as a user's recording of a lower-resolution stream would be."""
+    import av
+    import cv2
+
+    with av.open(str(SURGT / "video.mp4")) as container:
+        for i, frame in zip(range(count), container.decode(video=0), strict=False):
+            img = frame.to_ndarray(format="bgr24")
+            for side, view in (("left", img[:, :1280]), ("right", img[:, 1280:])):
+                (root / side).mkdir(parents=True, exist_ok=True)
+                small = cv2.resize(view, (640, 512), interpolation=cv2.INTER_AREA)
+                assert cv2.imwrite(str(root / side / f"{i:06d}.png"), small)
+
+
+def test_images_smaller_than_an_unsized_calibration_are_refused(tmp_path: Path, capsys):
+    # The SurgT calibration states no image size and was made at 1280x1024 (cx 597, cy 520):
+    # on 640x512 images its principal point is near the corner, and every depth and
+    # displacement would be silently wrong (a converted run called the moving clip static).
+    _half_size_folder(tmp_path / "rec", 2)
+    out = tmp_path / "rec.mcap"
+    assert main(["convert", str(tmp_path / "rec"), "-o", str(out), "--calibration",
+                 str(SURGT / "calibration.yaml"), "-q"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1
+    assert "principal point" in err and "640x512" in err and "--scale-calibration" in err
+    assert not out.exists() and not out.with_suffix(".toml").exists()
+    # As the message says: the calibrated size in the file, and --scale-calibration.
+    sized = tmp_path / "calibration.yaml"
+    sized.write_text((SURGT / "calibration.yaml").read_text(encoding="utf-8")
+                     + "imageSize: [ 1280, 1024 ]\n", encoding="utf-8")
+    assert main(["convert", str(tmp_path / "rec"), "-o", str(out), "--calibration", str(sized),
+                 "--scale-calibration", "-q"]) == 0
+    from convert_inputs import read_log
+
+    info = read_log(out)["/camera/left/camera_info"][0][1]
+    assert (info.width, info.height) == (640, 512)
+    # M1 of the file: fx 1035.308, cx 596.955 px at 1280 wide; pixel centres u' = (u+0.5)/2-0.5
+    assert abs(info.k[0] - 1035.30811 / 2) < 1e-3
+    assert abs(info.k[2] - ((596.955017 + 0.5) / 2 - 0.5)) < 1e-3
