@@ -70,3 +70,21 @@ def test_images_smaller_than_an_unsized_calibration_are_refused(tmp_path: Path, 
     # M1 of the file: fx 1035.308, cx 596.955 px at 1280 wide; pixel centres u' = (u+0.5)/2-0.5
     assert abs(info.k[0] - 1035.30811 / 2) < 1e-3
     assert abs(info.k[2] - ((596.955017 + 0.5) / 2 - 0.5)) < 1e-3
+
+
+def test_a_resized_stereo_video_names_the_options_that_convert_it(tmp_path: Path, capsys):
+    # A side-by-side video recorded at half the calibrated size: auto cannot pick the layout
+    # from the calibrated size, and the error names the two options that convert it.
+    from convert_inputs import opencv_calibration, read_log, stereo_video
+
+    stereo_video(tmp_path / "small.mkv", frames=2, size=(160, 120))
+    opencv_calibration(tmp_path / "calib.yaml", size=(320, 240))
+    out = tmp_path / "small.mcap"
+    args = ["convert", str(tmp_path / "small.mkv"), "-o", str(out), "--calibration",
+            str(tmp_path / "calib.yaml"), "-q"]
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert "--stereo-layout" in err and "--scale-calibration" in err and not out.exists()
+    assert main([*args, "--stereo-layout", "side-by-side", "--scale-calibration"]) == 0
+    info = read_log(out)["/camera/left/camera_info"][0][1]
+    assert (info.width, info.height) == (160, 120)

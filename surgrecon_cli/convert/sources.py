@@ -266,5 +266,6 @@ def choose_layout(layout: str, size: tuple[int, int], eye: tuple[int, int]) -> s
             return "top-bottom"
         raise InputError(f"the stereo video is {w}x{h} px; neither its halves side by side "
                          f"({w // 2}x{h}) nor top-bottom ({w}x{h // 2}) are the calibrated "
-                         f"{eye[0]}x{eye[1]} px")
+                         f"{eye[0]}x{eye[1]} px: give --stereo-layout (and --scale-calibration "
+                         "if the video is the calibrated images resized)")
     return "side-by-side" if w > h else "top-bottom"
