@@ -88,3 +88,15 @@ def test_a_resized_stereo_video_names_the_options_that_convert_it(tmp_path: Path
     assert main([*args, "--stereo-layout", "side-by-side", "--scale-calibration"]) == 0
     info = read_log(out)["/camera/left/camera_info"][0][1]
     assert (info.width, info.height) == (160, 120)
+
+
+def test_a_stated_unit_that_makes_the_rig_metres_wide_is_warned_of(tmp_path: Path, capsys):
+    # SurgT's T is in mm (a 4.14 mm baseline); `--units m` makes it 4.14 m, which no
+    # endoscope is: convert honours it (the user said so) but says what it implies. (The
+    # run then finds no camera pair that can share a view.)
+    out = tmp_path / "m.mcap"
+    assert _convert(out, "--frames", "0:1", "--units", "m") == 0
+    err = capsys.readouterr().err
+    assert "4.143 m apart" in err and "--units mm" in err
+    assert _convert(out, "--frames", "0:1") == 0  # the guess, mm: nothing to warn of
+    assert "apart" not in capsys.readouterr().err

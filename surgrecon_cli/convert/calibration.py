@@ -25,6 +25,7 @@ metres.
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -36,6 +37,8 @@ from ..core.geometry.distortion import DISTORTION_MODELS
 from ..core.geometry.poses import invert_pose, nearest_rotation, rectified_rig_pose
 from ..errors import GeometryError, InputError
 from .calibration_files import RECTIFIED_KEYS, read_calibration_file
+
+logger = logging.getLogger(__name__)
 
 UNITS = {"m": 1.0, "mm": 1e-3}
 _K_KEYS = ("K", "M", "camera_matrix", "cameraMatrix", "intrinsics", "k")
@@ -233,6 +236,11 @@ def _in_metres(raw: list[CameraCalibration], units: str | None, path: Path) -> R
     unit = units or ("mm" if largest > 1.0 else "m")
     if unit not in UNITS:
         raise InputError(f"--units {unit!r}: use 'mm' or 'm'")
+    if largest and not 1e-3 <= largest * UNITS[unit] <= 1.0:  # only a stated unit gets here
+        other = "mm" if unit == "m" else "m"
+        logger.warning("calibration file %s: in %s (as stated) the cameras are up to %.4g m "
+                       "apart, which no endoscope rig is; if its lengths are in %s, give "
+                       "--units %s", path, unit, largest * UNITS[unit], other, other)
     cams = []
     for cam in raw:
         pose = cam.to_rig.copy()
