@@ -100,3 +100,31 @@ def test_a_stated_unit_that_makes_the_rig_metres_wide_is_warned_of(tmp_path: Pat
     assert "4.143 m apart" in err and "--units mm" in err
     assert _convert(out, "--frames", "0:1") == 0  # the guess, mm: nothing to warn of
     assert "apart" not in capsys.readouterr().err
+
+
+def _run_error(tmp_path: Path, capsys, name: str, calibration: Path, *args: str) -> str:
+    """Convert the clip's first frame with `calibration`, run it; the run's one-line error."""
+    log = tmp_path / f"{name}.mcap"
+    assert main(["convert", str(SURGT / "video.mp4"), "-o", str(log), "--calibration",
+                 str(calibration), "--frames", "0:1", "-q", *args]) == 0
+    capsys.readouterr()
+    assert main(["run", str(log), "-o", str(tmp_path / name), "--config",
+                 str(log.with_suffix(".toml")), "-q"]) == 2
+    lines = [ln for ln in capsys.readouterr().err.splitlines() if ln.startswith("error:")]
+    assert len(lines) == 1
+    return lines[0]
+
+
+def test_a_wrong_baseline_is_not_answered_with_lower_match_minimums(tmp_path: Path, capsys):
+    # A baseline 10x too long (41 mm) puts the true matches at 10x the depth searched: no
+    # match verifies (0 of 41), and lowering template.min_pair_matches cannot help.
+    text = (SURGT / "calibration.yaml").read_text(encoding="utf-8")
+    assert "-4.14339018e+00" in text
+    wrong = tmp_path / "baseline10.yaml"
+    wrong.write_text(text.replace("-4.14339018e+00", "-4.14339018e+01"), encoding="utf-8")
+    err = _run_error(tmp_path, capsys, "b10", wrong)
+    assert "left-right 0/" in err and "baseline" in err and "--units" in err
+    assert "lower them" not in err
+    # --units m (4.14 m): no camera pair is even predicted to share a view.
+    err = _run_error(tmp_path, capsys, "m", SURGT / "calibration.yaml", "--units", "m")
+    assert "baseline" in err and "lower them" not in err and "overlaps" not in err
