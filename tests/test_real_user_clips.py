@@ -128,3 +128,27 @@ def test_a_wrong_baseline_is_not_answered_with_lower_match_minimums(tmp_path: Pa
     # --units m (4.14 m): no camera pair is even predicted to share a view.
     err = _run_error(tmp_path, capsys, "m", SURGT / "calibration.yaml", "--units", "m")
     assert "baseline" in err and "lower them" not in err and "overlaps" not in err
+
+
+def test_unknown_points_that_were_measured_are_not_called_far_from_data():
+    # d-lfd's 310x244 stereo pairs (docs/dlfd.md): every template point tracked in every frame
+    # (intra-camera inliers), yet 96-100 % unknown, because their σ (1.7 mm) is above
+    # classify.max_sigma_mm (1 mm). The frame's warning must say that, not "too far from any
+    # measurement"; points that nothing observed still are.
+    import numpy as np
+
+    from surgrecon_cli.core.classify.labels import INTRA, STATIC, UNKNOWN, UNOBSERVED
+    from surgrecon_cli.core.classify.quality import FrameFit, frame_quality
+
+    n = 24
+    sigma = np.full(n, 1.7e-3)
+    labels = np.full(n, UNKNOWN, np.uint8)
+    labels[0] = STATIC
+    fit = FrameFit(np.full(n, INTRA, np.uint8), sigma, np.zeros(n), sigma, False, True)
+    (warning,) = frame_quality(3, fit, labels).warnings
+    assert "96% of the points are unknown" in warning
+    assert "classify.max_sigma_mm" in warning and "too far" not in warning
+    unseen = FrameFit(np.full(n, UNOBSERVED, np.uint8), sigma, np.full(n, np.nan), sigma,
+                      False, True)
+    assert any("too far from any measurement" in w
+               for w in frame_quality(3, unseen, labels).warnings)

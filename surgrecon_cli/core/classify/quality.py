@@ -97,8 +97,8 @@ def frame_quality(frame: int, fit: FrameFit, labels: np.ndarray | None = None
             warnings.append(f"frame {frame}: only {observed:.0%} of the template was observed; "
                             "the rest is extrapolated")
         if labels is not None and unknown > MAX_UNKNOWN:
-            warnings.append(f"frame {frame}: {unknown:.0%} of the points are unknown (too far "
-                            "from any measurement)")
+            warnings.append(f"frame {frame}: {unknown:.0%} of the points are unknown "
+                            f"({_unknown_reason(status, labels)})")
         if np.isfinite(ratio) and ratio > MAX_RESIDUAL_RATIO:
             warnings.append(f"frame {frame}: registration residuals are {ratio:.1f}x what the "
                             "measured noise predicts; positions are less accurate than σ says")
@@ -111,6 +111,19 @@ def frame_quality(frame: int, fit: FrameFit, labels: np.ndarray | None = None
         sigma_median_mm=sigma_median, residual_over_sigma=ratio, within_2sigma=within,
         with_target=int(has.sum()), failed=failed,
         converged=converged, warnings=tuple(warnings))
+
+
+def _unknown_reason(status: np.ndarray, labels: np.ndarray) -> str:
+    """Why a frame's unknown points are unknown, in words: mostly measured this frame (intra
+    or inter-camera inliers: their σ exceeds classify.max_sigma_mm, as when the cameras are too
+    far or their baseline too narrow for that precision) or mostly not (far from any data)."""
+    unknown = labels == UNKNOWN
+    measured = unknown & np.isin(status, (INTRA, INTER))
+    if measured.sum() * 2 >= max(int(unknown.sum()), 1):
+        return (f"{measured.sum() / max(int(unknown.sum()), 1):.0%} of them measured in this "
+                "frame, but with an uncertainty σ above classify.max_sigma_mm: the cameras "
+                "cannot place them that precisely")
+    return "too far from any measurement"
 
 
 @dataclass(frozen=True)
