@@ -152,3 +152,33 @@ def test_unknown_points_that_were_measured_are_not_called_far_from_data():
                       False, True)
     assert any("too far from any measurement" in w
                for w in frame_quality(3, unseen, labels).warnings)
+
+
+def test_a_clip_that_starts_blurred_gets_no_passing_verdict(tmp_path: Path):
+    # The first two stereo frames blurred (fogged lens, smoke), then the clip sharp: the
+    # template is built from the blur and tracking it into the sharp frames fails. With most
+    # frames not to trust, the verdict must not say the run fits.
+    import av
+    import cv2
+
+    root = tmp_path / "rec"
+    with av.open(str(SURGT / "video.mp4")) as container:
+        for i, frame in zip(range(6), container.decode(video=0), strict=False):
+            img = frame.to_ndarray(format="bgr24")
+            if i < 2:
+                img = cv2.GaussianBlur(img, (0, 0), 8)
+            for side, view in (("left", img[:, :1280]), ("right", img[:, 1280:])):
+                (root / side).mkdir(parents=True, exist_ok=True)
+                assert cv2.imwrite(str(root / side / f"{i:06d}.jpg"), view)
+    log = tmp_path / "blur.mcap"
+    assert main(["convert", str(root), "-o", str(log), "--calibration",
+                 str(SURGT / "calibration.yaml"), "-q"]) == 0
+    run = tmp_path / "run"
+    assert main(["run", str(log), "-o", str(run), "--config", str(log.with_suffix(".toml")),
+                 "-q"]) == 0
+    quality = json.loads((run / "metrics" / "summary.json").read_text(encoding="utf-8"))[
+        "quality"]
+    flagged = quality["untrustworthy_frames"]
+    assert len(flagged) > 5 / 2, flagged  # what this test is about: most frames flagged
+    assert quality["verdict"]["fits"] is False
+    assert f"{len(flagged)} of 5 frames" in quality["verdict"]["text"]

@@ -71,10 +71,12 @@ def run_verdict(data: RunData) -> Verdict:
     """The verdict from the evaluation's calibration when there is ground truth, else from
     the registration residuals against their σ."""
     assert data.frames is not None
-    share, ratio = pooled_within_2sigma(data.frames.quality)
+    quality = data.frames.quality
+    share, ratio = pooled_within_2sigma(quality)
     labels = (data.evaluation or {}).get("labels") or {}
     return verdict(share, ratio, labels.get("calibration_2sigma"),
-                   labels.get("sigma_scale_95"))
+                   labels.get("sigma_scale_95"), flagged=sum(bool(q.warnings) for q in quality),
+                   frames=len(quality))
 
 
 def noise_figures(ingest_report: dict[str, Any], cameras: tuple[str, ...],

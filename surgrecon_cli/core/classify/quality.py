@@ -150,14 +150,18 @@ def pooled_within_2sigma(quality: list[FrameQuality]) -> tuple[float, float]:
 
 def verdict(residual_within_2sigma: float, residual_ratio: float,
             calibration_2sigma: float | None = None,
-            sigma_scale_95: float | None = None) -> Verdict:
+            sigma_scale_95: float | None = None, flagged: int = 0,
+            frames: int = 0) -> Verdict:
     """The run's verdict on its accuracy.
 
     With ground truth (`calibration_2sigma`: share of labelled points whose true error is
     within their reported 2σ; `sigma_scale_95`: the factor σ would need to cover 95 % of
     them), that measured calibration decides. Without it, the residuals to the targets
     (`residual_within_2sigma`, share within 2σ_target; `residual_ratio`, median residual /
-    σ_target) decide, and the text says they cannot show the targets themselves are right.
+    σ_target) decide, and the text says they cannot show the targets themselves are right;
+    but when more than half of the `frames` registered frames (1..) are `flagged` not to
+    trust (failed, mostly unobserved or unknown, ...), the run does not fit whatever the
+    residuals of the rest say.
     """
     expected = f"{EXPECTED_2SIGMA:.0%} expected"
     if calibration_2sigma is not None and np.isfinite(calibration_2sigma):
@@ -175,6 +179,11 @@ def verdict(residual_within_2sigma: float, residual_ratio: float,
                        "No frame has registration residuals to check against the noise model.")
     share = (f"{residual_within_2sigma:.0%} of registration residuals are within 2σ of their "
              f"targets ({expected})")
+    if frames and 2 * flagged > frames:
+        return Verdict(False, "residuals",
+                       f"{flagged} of {frames} frames are not to be trusted (listed above), so "
+                       f"the run is not: the residuals cannot vouch for it ({share}, median "
+                       f"residual {residual_ratio:.2f}σ).")
     if residual_within_2sigma < GOOD_2SIGMA:
         return Verdict(False, "residuals",
                        f"Residuals are {residual_ratio:.1f}× larger than the noise model "
