@@ -182,3 +182,17 @@ def test_a_clip_that_starts_blurred_gets_no_passing_verdict(tmp_path: Path):
     assert len(flagged) > 5 / 2, flagged  # what this test is about: most frames flagged
     assert quality["verdict"]["fits"] is False
     assert f"{len(flagged)} of 5 frames" in quality["verdict"]["text"]
+
+
+def test_the_summary_of_a_finished_run_shows_no_stage_still_running(tmp_path: Path):
+    # metrics/summary.json is written by the report stage: it listed "report": "running" in
+    # every finished run.
+    log = tmp_path / "two.mcap"
+    assert _convert(log, "--frames", "0:2") == 0
+    run = tmp_path / "run"
+    assert main(["run", str(log), "-o", str(run), "--config", str(log.with_suffix(".toml")),
+                 "-q"]) == 0
+    summary = json.loads((run / "metrics" / "summary.json").read_text(encoding="utf-8"))
+    assert summary["stages"] and set(summary["stages"].values()) == {"done"}
+    run_json = json.loads((run / "run.json").read_text(encoding="utf-8"))
+    assert run_json["stages"]["report"]["status"] == "done"

@@ -167,7 +167,9 @@ def run_summary(data: RunData, noise: dict[str, Any] | None, rows: list[dict[str
         "frames": log.n_frames,
         "cameras": list(log.cameras),
         "template_points": None if data.template is None else len(data.template),
-        "stages": {k: v.get("status") for k, v in run.get("stages", {}).items()},
+        # the stages before the report (this file is the report's: run.json has its status)
+        "stages": {k: v.get("status") for k, v in run.get("stages", {}).items()
+                   if k != "report"},
         "seconds": stage_seconds(run),
     }
     if data.template_summary:
