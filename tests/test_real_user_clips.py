@@ -7,6 +7,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import pytest
+
 from surgrecon_cli.cli.main import main
 
 SURGT = Path(__file__).parent / "data" / "surgt"
@@ -17,14 +19,22 @@ def _convert(out: Path, *args: str) -> int:
                  str(SURGT / "calibration.yaml"), "-q", *args])
 
 
-def test_a_single_stereo_pair_runs_to_a_template_and_a_report(tmp_path: Path):
-    # One frame: a template and its cloud, nothing to register; the run must finish (it
-    # crashed in classify, whose folder only later frames create).
-    log = tmp_path / "one.mcap"
+@pytest.fixture(scope="module")
+def one_frame_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The clip's first stereo pair converted and run at defaults (the finished run folder)."""
+    root = tmp_path_factory.mktemp("one_frame")
+    log = root / "one.mcap"
     assert _convert(log, "--frames", "0:1") == 0
-    run = tmp_path / "run"
+    run = root / "run"
     assert main(["run", str(log), "-o", str(run), "--config", str(log.with_suffix(".toml")),
                  "-q"]) == 0
+    return run
+
+
+def test_a_single_stereo_pair_runs_to_a_template_and_a_report(one_frame_run: Path):
+    # One frame: a template and its cloud, nothing to register; the run must finish (it
+    # crashed in classify, whose folder only later frames create).
+    run = one_frame_run
     summary = json.loads((run / "metrics" / "summary.json").read_text(encoding="utf-8"))
     assert summary["frames"] == 1 and summary["template_points"] > 500
     assert (run / "clouds" / "000000.ply").is_file() and (run / "report.html").is_file()
@@ -184,14 +194,10 @@ def test_a_clip_that_starts_blurred_gets_no_passing_verdict(tmp_path: Path):
     assert f"{len(flagged)} of 5 frames" in quality["verdict"]["text"]
 
 
-def test_the_summary_of_a_finished_run_shows_no_stage_still_running(tmp_path: Path):
+def test_the_summary_of_a_finished_run_shows_no_stage_still_running(one_frame_run: Path):
     # metrics/summary.json is written by the report stage: it listed "report": "running" in
     # every finished run.
-    log = tmp_path / "two.mcap"
-    assert _convert(log, "--frames", "0:2") == 0
-    run = tmp_path / "run"
-    assert main(["run", str(log), "-o", str(run), "--config", str(log.with_suffix(".toml")),
-                 "-q"]) == 0
+    run = one_frame_run
     summary = json.loads((run / "metrics" / "summary.json").read_text(encoding="utf-8"))
     assert summary["stages"] and set(summary["stages"].values()) == {"done"}
     run_json = json.loads((run / "run.json").read_text(encoding="utf-8"))
