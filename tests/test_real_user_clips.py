@@ -202,3 +202,15 @@ def test_the_summary_of_a_finished_run_shows_no_stage_still_running(one_frame_ru
     assert summary["stages"] and set(summary["stages"].values()) == {"done"}
     run_json = json.loads((run / "run.json").read_text(encoding="utf-8"))
     assert run_json["stages"]["report"]["status"] == "done"
+
+
+def test_a_converted_log_run_without_its_config_names_the_config_beside_it(tmp_path: Path,
+                                                                             capsys):
+    # The README's two commands with the second one's --config forgotten: the error names
+    # the config that convert wrote beside the log.
+    log = tmp_path / "surgt.mcap"
+    assert _convert(log, "--frames", "0:1") == 0
+    capsys.readouterr()
+    assert main(["run", str(log), "-o", str(tmp_path / "run"), "-q"]) == 2
+    err = capsys.readouterr().err
+    assert f"--config {log.with_suffix('.toml')}" in err.splitlines()[0]
