@@ -214,3 +214,12 @@ def test_a_converted_log_run_without_its_config_names_the_config_beside_it(tmp_p
     assert main(["run", str(log), "-o", str(tmp_path / "run"), "-q"]) == 2
     err = capsys.readouterr().err
     assert f"--config {log.with_suffix('.toml')}" in err.splitlines()[0]
+
+
+def test_a_run_without_a_robot_draws_no_contact_figure(one_frame_run: Path):
+    # No tool pose: contact, indentation and area are "not measured" (tiles, table, CSV);
+    # the report drew an empty indentation plot beside a deformed area of 0 mm² labelled
+    # "measured" in every frame.
+    html = (one_frame_run / "report.html").read_text(encoding="utf-8")
+    assert "not measured" in html
+    assert "Left: depth of the tissue under the tool tip" not in html
