@@ -223,3 +223,10 @@ def test_a_run_without_a_robot_draws_no_contact_figure(one_frame_run: Path):
     html = (one_frame_run / "report.html").read_text(encoding="utf-8")
     assert "not measured" in html
     assert "Left: depth of the tissue under the tool tip" not in html
+
+
+def test_a_single_frame_number_for_frames_is_answered_with_its_range(tmp_path: Path, capsys):
+    # `--frames 5` (no colon): the error said "with a positive STEP", which was not given.
+    assert _convert(tmp_path / "x.mcap", "--frames", "5") == 2
+    err = capsys.readouterr().err
+    assert "STEP" not in err.replace("START:STOP[:STEP]", "") and "5:6" in err
