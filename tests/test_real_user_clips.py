@@ -230,3 +230,23 @@ def test_a_single_frame_number_for_frames_is_answered_with_its_range(tmp_path: P
     assert _convert(tmp_path / "x.mcap", "--frames", "5") == 2
     err = capsys.readouterr().err
     assert "STEP" not in err.replace("START:STOP[:STEP]", "") and "5:6" in err
+
+
+def test_a_warning_during_a_progress_bar_goes_on_a_line_of_its_own(capsys):
+    # On a terminal, `run` printed ingest's "no robot kinematics" warning onto the end of the
+    # progress bar's line ("... | 00:00surgt.mcap: no robot kinematics ...").
+    import logging
+    import sys
+
+    from tqdm import tqdm
+
+    from surgrecon_cli.cli.common import setup_logging
+
+    setup_logging(quiet=False)
+    with tqdm(total=10, file=sys.stderr, disable=False, desc="run") as bar:
+        bar.update(3)
+        logging.getLogger("surgrecon_cli.stages.ingest").warning("no robot kinematics")
+        bar.update(3)
+    err = capsys.readouterr().err
+    at = err.index("no robot kinematics")
+    assert err[at - 1] in "\r\n" and "run" in err[:at]
