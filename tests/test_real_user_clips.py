@@ -250,3 +250,28 @@ def test_a_warning_during_a_progress_bar_goes_on_a_line_of_its_own(capsys):
     err = capsys.readouterr().err
     at = err.index("no robot kinematics")
     assert err[at - 1] in "\r\n" and "run" in err[:at]
+
+
+def test_a_stereo_pairs_camera_names_do_not_overlap_in_the_camera_figure(monkeypatch):
+    # SurgT's eyes are 4.1 mm apart over a template 100 mm wide: both names were written
+    # from their centres to the right and printed over each other ("leftight").
+    import numpy as np
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    from surgrecon_cli.report import plots
+
+    drawn = []
+    monkeypatch.setattr(plots, "to_png", lambda fig: drawn.append(fig) or b"")
+    rng = np.random.default_rng(0)
+    template = rng.uniform([-0.05, -0.05, 0.05], [0.05, 0.03, 0.09], (500, 3))
+    centres = np.array([[0.0, 0.0, 0.0], [0.00414, 0.0, 0.0]])
+    axes = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]])
+    plots.camera_layout(template, centres, axes, ["left", "right"], [["left", "right"]],
+                        [[("left", "right")]])
+    (fig,) = drawn
+    renderer = FigureCanvasAgg(fig).get_renderer()
+    fig.draw(renderer)
+    boxes = {t.get_text().strip(): t.get_window_extent(renderer) for ax in fig.axes
+             for t in ax.texts if t.get_text().strip() in ("left", "right")}
+    assert set(boxes) == {"left", "right"}
+    assert not boxes["left"].overlaps(boxes["right"])
