@@ -275,3 +275,23 @@ def test_a_stereo_pairs_camera_names_do_not_overlap_in_the_camera_figure(monkeyp
              for t in ax.texts if t.get_text().strip() in ("left", "right")}
     assert set(boxes) == {"left", "right"}
     assert not boxes["left"].overlaps(boxes["right"])
+
+
+def test_cameras_that_do_not_link_are_named_in_the_report(tmp_path: Path):
+    # d-lfd's shipped frames (tests/data/dlfd, MIT): the pairs' calibrations disagree, so
+    # build-template warns that the pairs reconstruct the surface apart; that warning went to
+    # the terminal only, and the report showed the groups without saying why.
+    dlfd = Path(__file__).parent / "data" / "dlfd"
+    cams = [a for c in ("p1_left", "p1_right", "p2_left", "p2_right", "p3_left", "p3_right")
+            for a in ("--camera", f"{c}={dlfd / c}")]
+    log = tmp_path / "dlfd.mcap"
+    assert main(["convert", "-o", str(log), "--calibration", str(dlfd / "calibration.json"),
+                 "--scale-calibration", *cams, "-q"]) == 0
+    run = tmp_path / "run"
+    assert main(["run", str(log), "-o", str(run), "--config", str(log.with_suffix(".toml")),
+                 "-q"]) == 0
+    summary = json.loads((run / "metrics" / "summary.json").read_text(encoding="utf-8"))
+    warnings = summary["template"]["warnings"]
+    assert any("not linked" in w and "reconstruct the surface apart" in w for w in warnings)
+    html = (run / "report.html").read_text(encoding="utf-8")
+    assert "reconstruct the surface apart" in html

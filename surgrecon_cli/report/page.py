@@ -124,6 +124,8 @@ def _cameras(data: RunData, pngs: Figures) -> rh.Section:
             f"verified; {stats.get('rejected_geometry')} rejected by reprojection/angle, "
             f"{stats.get('removed_off_surface')} off the surface, {stats.get('removed_tool')} "
             f"on the tool.", note=True))
+        for line in stats.get("warnings") or []:  # cameras not linked, groups that disagree
+            sec.add(rh.paragraph(f"{line[:1].upper()}{line[1:]}.", note=True))
     if not log.report.get("robot", True):
         sec.add(rh.paragraph(
             "No robot kinematics in this log (topics.tool_pose = \"\"): tool removal is off, "
