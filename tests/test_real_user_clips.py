@@ -112,10 +112,11 @@ def test_a_stated_unit_that_makes_the_rig_metres_wide_is_warned_of(tmp_path: Pat
     assert "apart" not in capsys.readouterr().err
 
 
-def _run_error(tmp_path: Path, capsys, name: str, calibration: Path, *args: str) -> str:
+def _run_error(tmp_path: Path, capsys, name: str, calibration: Path, *args: str,
+               src: Path = SURGT / "video.mp4") -> str:
     """Convert the clip's first frame with `calibration`, run it; the run's one-line error."""
     log = tmp_path / f"{name}.mcap"
-    assert main(["convert", str(SURGT / "video.mp4"), "-o", str(log), "--calibration",
+    assert main(["convert", str(src), "-o", str(log), "--calibration",
                  str(calibration), "--frames", "0:1", "-q", *args]) == 0
     capsys.readouterr()
     assert main(["run", str(log), "-o", str(tmp_path / name), "--config",
@@ -295,3 +296,21 @@ def test_cameras_that_do_not_link_are_named_in_the_report(tmp_path: Path):
     assert any("not linked" in w and "reconstruct the surface apart" in w for w in warnings)
     html = (run / "report.html").read_text(encoding="utf-8")
     assert "reconstruct the surface apart" in html
+
+
+def test_a_clip_starting_on_a_black_frame_is_told_so(tmp_path: Path, capsys):
+    # A recording whose first frame is black (the light source not on yet): frame 0 has no
+    # features; the error must say so, not blame the calibration or the match minimums.
+    import cv2
+    import numpy as np
+
+    root = tmp_path / "rec"
+    for side in ("left", "right"):
+        (root / side).mkdir(parents=True)
+        for i in range(2):
+            assert cv2.imwrite(str(root / side / f"{i:06d}.png"),
+                               np.zeros((1024, 1280, 3), np.uint8))
+    err = _run_error(tmp_path, capsys, "black", SURGT / "calibration.yaml", "--frames", "0:1",
+                     src=root)
+    assert "no features" in err and "left 0" in err and "--frames" in err
+    assert "baseline" not in err and "lower them" not in err

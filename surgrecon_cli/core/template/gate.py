@@ -49,16 +49,24 @@ def pair_minimums(n_features: Sequence[int], floor: int, fraction: float) -> np.
 
 
 FEW_TO_LOWER = 8  # ours: below this many verified matches a lower minimum links nothing real
+FEW_FEATURES = 50  # ours: an image with fewer features than this is blank (SurgT: ~4000)
 
 
 def unlinked_message(counts: dict[tuple[int, int], int], minimums: np.ndarray,
-                     names: Sequence[str], floor: int, fraction: float) -> str:
+                     names: Sequence[str], floor: int, fraction: float,
+                     features: Sequence[int] = ()) -> str:
     """One line: no pair reached its minimum, with each pair's verified/needed matches and
     what to change. Lowering the minimum is suggested only when the best pair came close
-    (FEW_TO_LOWER matches or more); no candidate pair, or next to no verified matches, says
-    that the calibration or poses place the cameras' views apart (a baseline in the wrong
-    unit, a wrong T): no minimum would link real matches then."""
+    (FEW_TO_LOWER matches or more); cameras with fewer than FEW_FEATURES features (`features`,
+    per camera) say the frame-0 images are blank, dark or blurred; no candidate pair, or next
+    to no verified matches, says that the calibration or poses place the cameras' views apart
+    (a baseline in the wrong unit, a wrong T): no minimum would link real matches then."""
     head = "no camera pair has enough verified matches to link at frame 0"
+    few = [f"{names[c]} {n}" for c, n in enumerate(features) if n < FEW_FEATURES]
+    if few and len(few) >= len(features) - 1:  # no two cameras with features to match
+        return (f"{head}: frame 0's images have next to no features (camera features: "
+                f"{', '.join(few)}): blank, dark or blurred; start the log where the views "
+                "are clear (e.g. convert --frames N:)")
     if not counts:
         return (f"{head}: the poses and calibration put no two cameras' views over one "
                 "surface (template.min_view_overlap, template.working_distance_m): check the "
