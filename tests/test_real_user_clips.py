@@ -314,3 +314,19 @@ def test_a_clip_starting_on_a_black_frame_is_told_so(tmp_path: Path, capsys):
                      src=root)
     assert "no features" in err and "left 0" in err and "--frames" in err
     assert "baseline" not in err and "lower them" not in err
+
+
+def test_the_same_images_for_both_eyes_are_refused(tmp_path: Path, capsys):
+    # `--left left --right left` (a typo) or a mono stream copied to both folders: the SurgT
+    # calibration's principal points differ by 91 px, so identical images triangulated to a
+    # flat fake surface 47 mm away and every point "static", without a word.
+    from convert_inputs import opencv_calibration, stereo_folder
+
+    stereo_folder(tmp_path / "rec", frames=2)
+    opencv_calibration(tmp_path / "calib.yaml")
+    out = tmp_path / "same.mcap"
+    assert main(["convert", str(tmp_path / "rec"), "-o", str(out), "--calibration",
+                 str(tmp_path / "calib.yaml"), "--left", "left", "--right", "left", "-q"]) == 2
+    err = capsys.readouterr().err
+    assert "identical" in err and "'left' and 'right'" in err and "000000" in err
+    assert not out.exists() and not out.with_suffix(".toml").exists()

@@ -71,6 +71,22 @@ def _check_principal_point(cam: CameraCalibration, origin: str, size: tuple[int,
         "were resized")
 
 
+def _check_distinct(cameras: Sequence[CameraCalibration], frame: Frame) -> None:
+    """Two cameras with byte-identical images (the same folder or video given twice, a mono
+    stream duplicated): InputError. Real views of two cameras never agree to the byte, and
+    the same image as both eyes reconstructs a flat fake surface at the depth that the
+    principal points' offset implies."""
+    seen: dict[bytes, int] = {}
+    for k, image in enumerate(frame.images):
+        first = seen.setdefault(image.data, k)
+        if first != k:
+            raise InputError(
+                f"images {frame.images[first].origin} and {image.origin} (cameras "
+                f"{cameras[first].name!r} and {cameras[k].name!r}, frame {frame.index}) are "
+                "identical: each camera needs its own images (the same folder or video given "
+                "twice?)")
+
+
 class _Sizes:
     """Each camera's image size: the calibration's, else its first image's; any other size
     is an error naming the image, unless `scale` (the first image of another size than the
@@ -117,6 +133,8 @@ def _frame_messages(rig: Rig, frames: Iterable[Frame], stamps: np.ndarray | None
             raise InputError(f"frame {frame.index} has {len(frame.images)} images, the "
                              f"calibration {len(rig.cameras)} cameras")
         sizes.check(frame)
+        if k == 0:
+            _check_distinct(rig.cameras, frame)
         if stamps is not None:
             t = int(stamps[k])
         elif frame.stamp_ns is not None:
