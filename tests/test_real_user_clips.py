@@ -330,3 +330,19 @@ def test_the_same_images_for_both_eyes_are_refused(tmp_path: Path, capsys):
     err = capsys.readouterr().err
     assert "identical" in err and "'left' and 'right'" in err and "000000" in err
     assert not out.exists() and not out.with_suffix(".toml").exists()
+
+
+def test_macos_metadata_files_in_an_image_folder_are_not_images(tmp_path: Path):
+    # A recording copied from a Mac to an exFAT / network disk gets `._NAME.png` (AppleDouble)
+    # beside every image: not images, and convert refused the folder on the first of them.
+    from convert_inputs import opencv_calibration, read_log, stereo_folder
+
+    files = stereo_folder(tmp_path / "rec", frames=2)
+    for paths in files.values():
+        for path in paths:
+            (path.parent / f"._{path.name}").write_bytes(b"\x00\x05\x16\x07\x00\x02\x00\x00Mac")
+    opencv_calibration(tmp_path / "calib.yaml")
+    out = tmp_path / "rec.mcap"
+    assert main(["convert", str(tmp_path / "rec"), "-o", str(out), "--calibration",
+                 str(tmp_path / "calib.yaml"), "-q"]) == 0
+    assert len(read_log(out)["/camera/left/image/compressed"]) == 2

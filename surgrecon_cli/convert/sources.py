@@ -84,10 +84,13 @@ def _natural_key(path: Path) -> list[Any]:
 
 
 def list_images(folder: Path) -> list[Path]:
-    """The image files of a folder (EuRoC-style `folder/data/` too), in name order."""
+    """The image files of a folder (EuRoC-style `folder/data/` too), in name order; hidden
+    files are not images (macOS writes `._NAME.png` metadata beside every file it copies to
+    a non-Mac disk)."""
     if not folder.is_dir():
         raise InputError(f"image folder {folder} does not exist")
-    files = [p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file()]
+    files = [p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES
+             and not p.name.startswith(".") and p.is_file()]
     if not files and (folder / "data").is_dir():
         return list_images(folder / "data")
     if not files:
