@@ -346,3 +346,12 @@ def test_macos_metadata_files_in_an_image_folder_are_not_images(tmp_path: Path):
     assert main(["convert", str(tmp_path / "rec"), "-o", str(out), "--calibration",
                  str(tmp_path / "calib.yaml"), "-q"]) == 0
     assert len(read_log(out)["/camera/left/image/compressed"]) == 2
+
+
+def test_a_rig_fixed_in_the_world_reads_fixed_not_a_0_hz_tracker(one_frame_run: Path):
+    # convert's rig without --camera-poses is one static transform: the report's camera
+    # table said "tracker Hz 0", as if the tracker had died.
+    html = (one_frame_run / "report.html").read_text(encoding="utf-8")
+    table = html[html.index("tracker Hz"):]
+    table = table[:table.index("</table>")]
+    assert "fixed" in table

@@ -94,6 +94,12 @@ def _overview(data: RunData, metrics: Metrics) -> rh.Section:
         rh.table(("stage", "status", "seconds"), stage_rows))
 
 
+def _tracker_rate(hz: Any) -> Any:
+    """A camera's pose rate for the table: "fixed" for a pose given once (a rig fixed in the
+    world, a static transform), which reads 0 Hz, as if the tracker had stopped."""
+    return "fixed" if hz == 0 else hz
+
+
 def _cameras(data: RunData, pngs: Figures) -> rh.Section:
     """The camera layout over the template, the pair plan, per-camera ingest counts and the
     template's counts."""
@@ -115,7 +121,8 @@ def _cameras(data: RunData, pngs: Figures) -> rh.Section:
                           "image Hz", "tracker Hz"),
                          [(cid, r.get("images"), r.get("frames"), r.get("dropped"), r.get("late"),
                            r.get("pose_gaps"), r.get("usable"), r.get("image_rate_hz"),
-                           r.get("tracker_rate_hz")) for cid, r in cam_report.items()]))
+                           _tracker_rate(r.get("tracker_rate_hz")))
+                          for cid, r in cam_report.items()]))
     stats = (data.template_summary or {}).get("stats", {})
     if stats:
         sec.add(rh.paragraph(
