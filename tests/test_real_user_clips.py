@@ -355,3 +355,39 @@ def test_a_rig_fixed_in_the_world_reads_fixed_not_a_0_hz_tracker(one_frame_run: 
     table = html[html.index("tracker Hz"):]
     table = table[:table.index("</table>")]
     assert "fixed" in table
+
+
+def test_a_kalibr_camchain_reads_as_the_same_rig(tmp_path: Path):
+    # dVRK and other robotics labs calibrate with Kalibr; its camchain.yaml (4-value
+    # `intrinsics`, `T_cn_cnm1`, metres) was refused ("left camera matrix has 4 values").
+    # The SurgT calibration written as Kalibr writes it must give the OpenCV file's rig.
+    import cv2
+    import numpy as np
+
+    from surgrecon_cli.convert.calibration import load_rig
+
+    fs = cv2.FileStorage(str(SURGT / "calibration.yaml"), cv2.FILE_STORAGE_READ)
+    M1, D1, M2, D2, R, T = (fs.getNode(k).mat().astype(float) for k in
+                            ("M1", "D1", "M2", "D2", "R", "T"))
+    fs.release()
+    T_cn_cnm1 = np.eye(4)
+    T_cn_cnm1[:3, :3], T_cn_cnm1[:3, 3] = R, T.ravel() / 1000  # x_right = R x_left + T, m
+
+    def cam(K: np.ndarray, D: np.ndarray) -> str:
+        return (f"  camera_model: pinhole\n"
+                f"  intrinsics: {[float(K[i, j]) for i, j in ((0, 0), (1, 1), (0, 2), (1, 2))]}\n"
+                f"  distortion_model: radtan\n  distortion_coeffs: {D.ravel()[:4].tolist()}\n"
+                f"  resolution: [1280, 1024]\n")
+    rows = "\n".join(f"  - {row.tolist()}" for row in T_cn_cnm1)
+    chain = tmp_path / "camchain.yaml"
+    chain.write_text(f"cam0:\n{cam(M1, D1)}cam1:\n{cam(M2, D2)}  T_cn_cnm1:\n{rows}\n"
+                     "  rostopic: /right/image_raw\n", encoding="utf-8")
+    kalibr, opencv = load_rig([chain]), load_rig([SURGT / "calibration.yaml"])
+    assert kalibr.units == "m" and len(kalibr.cameras) == 2
+    for a, b in zip(kalibr.cameras, opencv.cameras, strict=True):
+        np.testing.assert_allclose(a.K, b.K, rtol=1e-9)
+        np.testing.assert_allclose(a.D[:4], b.D[:4], atol=1e-12)
+        np.testing.assert_allclose(a.to_rig, b.to_rig, atol=1e-9)
+        assert (a.width, a.height) == (1280, 1024)
+    # the right eye 4.14 mm to the left's +x, as the OpenCV file puts it
+    assert abs(np.linalg.norm(kalibr.cameras[1].to_rig[:3, 3]) - 0.00414343) < 1e-6

@@ -47,8 +47,8 @@ def _cameras(ctx: click.Context, param: click.Parameter,
 @click.option("--calibration", "calibration", multiple=True, required=True, type=_FILE,
               help="Calibration file: OpenCV YAML/XML (M1 D1 M2 D2 R T, K1/K2, left/right), "
               "JSON with the same fields, 'fx fy cx cy baseline' of a rectified pair, a "
-              "'cameras' map for more cameras, or one ROS camera_info YAML per camera (repeat "
-              "the option).")
+              "'cameras' map for more cameras, a Kalibr camchain.yaml, or one ROS "
+              "camera_info YAML per camera (repeat the option).")
 @click.option("--left", help="Left image folder's name inside SRC (default: found).")
 @click.option("--right", help="Right image folder's name inside SRC.")
 @click.option("--camera", "cameras", multiple=True, metavar="NAME=PATH", callback=_cameras,
