@@ -71,15 +71,24 @@ def _check_principal_point(cam: CameraCalibration, origin: str, size: tuple[int,
         "were resized")
 
 
+def _blank(data: bytes) -> bool:
+    """Whether encoded image bytes (JPEG / PNG) decode to one flat value (a black frame)."""
+    import cv2
+
+    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    return img is None or int(np.ptp(img)) <= 1
+
+
 def _check_distinct(cameras: Sequence[CameraCalibration], frame: Frame) -> None:
     """Two cameras with byte-identical images (the same folder or video given twice, a mono
     stream duplicated): InputError. Real views of two cameras never agree to the byte, and
     the same image as both eyes reconstructs a flat fake surface at the depth that the
-    principal points' offset implies."""
+    principal points' offset implies. Blank images (both eyes black before the light is
+    on) are alike by nature and pass: build-template names them."""
     seen: dict[bytes, int] = {}
     for k, image in enumerate(frame.images):
         first = seen.setdefault(image.data, k)
-        if first != k:
+        if first != k and not _blank(image.data):
             raise InputError(
                 f"images {frame.images[first].origin} and {image.origin} (cameras "
                 f"{cameras[first].name!r} and {cameras[k].name!r}, frame {frame.index}) are "
