@@ -391,3 +391,16 @@ def test_a_kalibr_camchain_reads_as_the_same_rig(tmp_path: Path):
         assert (a.width, a.height) == (1280, 1024)
     # the right eye 4.14 mm to the left's +x, as the OpenCV file puts it
     assert abs(np.linalg.norm(kalibr.cameras[1].to_rig[:3, 3]) - 0.00414343) < 1e-6
+
+
+def test_running_a_video_or_an_image_folder_says_to_convert_it_first(tmp_path: Path, capsys):
+    # `surgrecon run video.mp4` (before reading about convert) said "not an MCAP file".
+    from convert_inputs import stereo_folder
+
+    stereo_folder(tmp_path / "rec", frames=1)
+    for src in (SURGT / "video.mp4", tmp_path / "rec"):
+        capsys.readouterr()
+        assert main(["run", str(src), "-o", str(tmp_path / "run"), "-q"]) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and f"surgrecon convert {src}" in err
+        assert not (tmp_path / "run").exists()
