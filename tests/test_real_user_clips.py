@@ -404,3 +404,24 @@ def test_running_a_video_or_an_image_folder_says_to_convert_it_first(tmp_path: P
         err = capsys.readouterr().err.strip()
         assert len(err.splitlines()) == 1 and f"surgrecon convert {src}" in err
         assert not (tmp_path / "run").exists()
+
+
+def test_convert_never_writes_over_its_own_inputs(tmp_path: Path, capsys):
+    # `-o calibration.yaml` (or `-o video.mp4`) replaced the user's file with the MCAP log.
+    import shutil
+
+    calibration, video = tmp_path / "calibration.yaml", tmp_path / "video.mp4"
+    shutil.copy(SURGT / "calibration.yaml", calibration)
+    shutil.copy(SURGT / "video.mp4", video)
+    before = calibration.read_bytes(), video.read_bytes()
+    for out in (calibration, video, tmp_path / "calibration.mcap"):  # the last: its .toml
+        if out.suffix == ".mcap":
+            shutil.copy(calibration, out.with_suffix(".toml"))
+            args = ["--calibration", str(out.with_suffix(".toml"))]
+        else:
+            args = ["--calibration", str(calibration)]
+        capsys.readouterr()
+        assert main(["convert", str(video), "-o", str(out), *args, "--frames", "0:1",
+                     "-q"]) == 2
+        assert "would replace" in capsys.readouterr().err
+    assert (calibration.read_bytes(), video.read_bytes()) == before
