@@ -425,3 +425,20 @@ def test_convert_never_writes_over_its_own_inputs(tmp_path: Path, capsys):
                      "-q"]) == 2
         assert "would replace" in capsys.readouterr().err
     assert (calibration.read_bytes(), video.read_bytes()) == before
+
+
+def test_frames_not_to_trust_are_listed_as_runs_of_frames():
+    # A turning endoscope's template leaves the view: every later frame got two sentences
+    # ("frame 4: 31% ... unknown ...; frame 5: 39% ...") in one paragraph, ~70 for 40 frames.
+    from surgrecon_cli.report.page import grouped_warnings
+
+    unknown = "frame {}: {}% of the points are unknown (too far from any measurement)"
+    seen = "frame {}: only {}% of the template was observed; the rest is extrapolated"
+    warnings = [(4, unknown.format(4, 31)), (5, unknown.format(5, 39)),
+                (6, seen.format(6, 47)), (6, unknown.format(6, 49)),
+                (7, seen.format(7, 38)), (7, unknown.format(7, 60)),
+                (9, unknown.format(9, 97))]  # frame 8 not flagged: 9 starts a new run
+    assert grouped_warnings(warnings) == [
+        "frames 4–7: 31–60% of the points are unknown (too far from any measurement)",
+        "frames 6–7: only 38–47% of the template was observed; the rest is extrapolated",
+        "frame 9: 97% of the points are unknown (too far from any measurement)"]
