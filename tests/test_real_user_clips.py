@@ -442,3 +442,19 @@ def test_frames_not_to_trust_are_listed_as_runs_of_frames():
         "frames 4–7: 31–60% of the points are unknown (too far from any measurement)",
         "frames 6–7: only 38–47% of the template was observed; the rest is extrapolated",
         "frame 9: 97% of the points are unknown (too far from any measurement)"]
+
+
+def test_camera_poses_in_millimetres_are_warned_of(tmp_path: Path, capsys):
+    # A tracker's TUM file in mm (the endoscope moving 0.05 mm a frame) read as metres: the
+    # run reported tissue displacements of 250-450 mm without a word.
+    rows = [f"{1 + 0.04 * k:.2f} 0 {0.05 * k:.2f} 0 0 0 0 1" for k in range(10)]
+    (tmp_path / "mm.tum").write_text("\n".join(rows) + "\n", encoding="utf-8")
+    metres = [f"{1 + 0.04 * k:.2f} 0 {0.05e-3 * k:.7f} 0 0 0 0 1" for k in range(10)]
+    (tmp_path / "m.tum").write_text("\n".join(metres) + "\n", encoding="utf-8")
+    assert _convert(tmp_path / "mm.mcap", "--camera-poses", str(tmp_path / "mm.tum"),
+                    "--frames", "0:2") == 0
+    err = capsys.readouterr().err
+    assert "mm.tum" in err and "0.45 m" in err and "millimetres" in err
+    assert _convert(tmp_path / "m.mcap", "--camera-poses", str(tmp_path / "m.tum"),
+                    "--frames", "0:2") == 0
+    assert "millimetres" not in capsys.readouterr().err
