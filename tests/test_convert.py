@@ -226,8 +226,10 @@ def test_each_tool_poses_file_is_a_tool(tmp_path: Path):
 def test_one_folder_per_camera(tmp_path: Path):
     import json
 
-    for name in ("a", "b", "c"):
-        stereo_folder(tmp_path / name, frames=2, ext=".jpg", names=("img",))
+    for k, name in enumerate(("a", "b", "c")):
+        files = stereo_folder(tmp_path / name, frames=2, ext=".jpg", names=("img",))
+        for path in files["img"]:  # each camera its own view (identical images are refused)
+            assert cv2.imwrite(str(path), np.roll(cv2.imread(str(path)), 7 * k, axis=1))
     (tmp_path / "rig.json").write_text(json.dumps({"cameras": {
         "c": {"K": K_LEFT.tolist(), "D": [], "R": np.eye(3).tolist(), "T": [0, 0, 0]},
         "a": {"K": K_RIGHT.tolist(), "D": [], "R": np.eye(3).tolist(), "T": [-5, 0, 0]},

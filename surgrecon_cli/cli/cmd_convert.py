@@ -19,7 +19,11 @@ def _frame_range(ctx: click.Context, param: click.Parameter, value: str | None) 
         parts = [int(p) if p.strip() else None for p in value.split(":")]
     except ValueError:
         raise click.BadParameter("use START:STOP[:STEP], e.g. 0:100 or ::5") from None
-    if len(parts) not in (2, 3) or (len(parts) == 3 and parts[2] is not None and parts[2] <= 0):
+    if len(parts) not in (2, 3):
+        one = f" (frame {parts[0]} alone: {parts[0]}:{parts[0] + 1})" if (
+            len(parts) == 1 and parts[0] is not None and parts[0] >= 0) else ""
+        raise click.BadParameter(f"use START:STOP[:STEP], e.g. 0:100 or ::5{one}")
+    if len(parts) == 3 and parts[2] is not None and parts[2] <= 0:
         raise click.BadParameter("use START:STOP[:STEP] with a positive STEP, e.g. 0:100")
     return slice(*parts)
 
@@ -43,8 +47,8 @@ def _cameras(ctx: click.Context, param: click.Parameter,
 @click.option("--calibration", "calibration", multiple=True, required=True, type=_FILE,
               help="Calibration file: OpenCV YAML/XML (M1 D1 M2 D2 R T, K1/K2, left/right), "
               "JSON with the same fields, 'fx fy cx cy baseline' of a rectified pair, a "
-              "'cameras' map for more cameras, or one ROS camera_info YAML per camera (repeat "
-              "the option).")
+              "'cameras' map for more cameras, a Kalibr camchain.yaml, or one ROS "
+              "camera_info YAML per camera (repeat the option).")
 @click.option("--left", help="Left image folder's name inside SRC (default: found).")
 @click.option("--right", help="Right image folder's name inside SRC.")
 @click.option("--camera", "cameras", multiple=True, metavar="NAME=PATH", callback=_cameras,

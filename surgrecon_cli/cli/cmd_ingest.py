@@ -87,7 +87,7 @@ def format_report(report: dict[str, Any]) -> str:
                 str(r["pose_gaps"]),
                 str(r["usable"]),
                 f"{r['image_rate_hz']:.1f}",
-                f"{r['tracker_rate_hz']:.1f}",
+                f"{r['tracker_rate_hz']:.1f}" if r["tracker_rate_hz"] else "fixed",
             )
         )
     widths = [max(len(row[i]) for row in rows) for i in range(len(head))]

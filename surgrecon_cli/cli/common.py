@@ -42,11 +42,25 @@ def common_options(func: Callable[..., Any]) -> Callable[..., Any]:
     return wrapper
 
 
+class _AboveBars(logging.StreamHandler):
+    """Log lines to stderr through tqdm.write: a line logged while a progress bar is drawn
+    goes above it on a line of its own, not onto the end of the bar."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        from tqdm import tqdm
+
+        try:
+            tqdm.write(self.format(record), file=self.stream)
+        except Exception:  # logging's contract: emit never raises
+            self.handleError(record)
+
+
 def setup_logging(quiet: bool) -> None:
     level = logging.DEBUG if STATE["debug"] else (logging.WARNING if quiet else logging.INFO)
     if not STATE["debug"]:  # Dask reads this when imported (also in its worker processes)
         os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", "warning")
-    logging.basicConfig(level=level, format="%(message)s", force=True)
+    logging.basicConfig(level=level, format="%(message)s", force=True,
+                        handlers=[_AboveBars()])
     for noisy in ("matplotlib", "PIL"):
         logging.getLogger(noisy).setLevel(logging.WARNING)
 

@@ -16,6 +16,10 @@ Layouts understood (key names case-sensitive, as the tools write them):
   placed from the projection matrices (Tx = -fx' B) and rectification rotations.
 - a rectified pair `fx fy cx cy baseline` (no distortion, identity R, the second camera
   `baseline` to the right).
+- Kalibr's `camchain.yaml`: `cam0`, `cam1`, ... each with `intrinsics` [fu fv pu pv]
+  (`camera_model: pinhole`), `distortion_model` radtan / equidistant / none with
+  `distortion_coeffs`, `resolution` [w h] and, from cam1 on, `T_cn_cnm1` (4x4: a point in the
+  camera before is x_n = T x_n-1), in metres.
 
 Lengths (T, baseline, ROS Tx/fx') are in the file's unit: metres or millimetres. Unless told
 (`units` given, or a `units: mm|m` key in the file), the largest camera offset decides:
@@ -25,6 +29,7 @@ metres.
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -36,6 +41,8 @@ from ..core.geometry.distortion import DISTORTION_MODELS
 from ..core.geometry.poses import invert_pose, nearest_rotation, rectified_rig_pose
 from ..errors import GeometryError, InputError
 from .calibration_files import RECTIFIED_KEYS, read_calibration_file
+
+logger = logging.getLogger(__name__)
 
 UNITS = {"m": 1.0, "mm": 1e-3}
 _K_KEYS = ("K", "M", "camera_matrix", "cameraMatrix", "intrinsics", "k")
@@ -82,6 +89,8 @@ def load_rig(paths: Sequence[Path], units: str | None = None,
         raw = _cameras(d, paths[0])
         if units is None and str(d.get("units", "")).strip() in UNITS:
             units = str(d["units"]).strip()
+        if units is None and _is_kalibr(d):
+            units = "m"  # Kalibr writes metres
     else:
         raw = []
         for i, path in enumerate(paths):
@@ -108,6 +117,8 @@ def _cameras(d: Mapping[str, Any], path: Path) -> list[CameraCalibration]:
         size = _size(d, path)
         return [CameraCalibration("left", K, np.zeros(5), "plumb_bob", *size, np.eye(4)),
                 CameraCalibration("right", K.copy(), np.zeros(5), "plumb_bob", *size, right)]
+    if _is_kalibr(d):
+        return _kalibr(d, path)
     blocks = _stereo_blocks(d)
     if blocks is None:
         if _find(d, _K_KEYS) is not None:
@@ -120,6 +131,48 @@ def _cameras(d: Mapping[str, Any], path: Path) -> list[CameraCalibration]:
     left, right, extr = blocks
     return [_single(left, path, "left"),
             replace(_single(right, path, "right"), to_rig=_extrinsic(extr, path, required=True))]
+
+
+def _is_kalibr(d: Mapping[str, Any]) -> bool:
+    """A Kalibr camchain: `cam0` with `intrinsics` and no 3x3 camera matrix."""
+    cam0 = d.get("cam0")
+    return isinstance(cam0, Mapping) and "intrinsics" in cam0 and (
+        "camera_model" in cam0 or np.size(_matrix_values(cam0["intrinsics"])) != 9)
+
+
+def _kalibr(d: Mapping[str, Any], path: Path) -> list[CameraCalibration]:
+    """The cameras of a Kalibr camchain (cam0, cam1, ... in order; see the module docstring),
+    each placed in cam0's frame by chaining the T_cn_cnm1."""
+    cams: list[CameraCalibration] = []
+    to_rig = np.eye(4)
+    for k in range(len(d)):
+        block = d.get(f"cam{k}")
+        if not isinstance(block, Mapping):
+            break
+        name = f"cam{k}"
+        model = str(block.get("camera_model", "pinhole")).strip().lower()
+        if model != "pinhole":
+            raise InputError(f"calibration file {path}: {name} has Kalibr camera_model "
+                             f"{model!r}; only pinhole is read")
+        fu, fv, pu, pv = _shaped(block.get("intrinsics"), (4,), f"{name} intrinsics", path)
+        K = np.array([[fu, 0.0, pu], [0.0, fv, pv], [0.0, 0.0, 1.0]])
+        distortion = str(block.get("distortion_model", "none")).strip().lower()
+        kind = {"radtan": "plumb_bob", "none": "plumb_bob", "equidistant": "equidistant"}.get(
+            distortion)
+        if kind is None:
+            raise InputError(f"calibration file {path}: {name} has Kalibr distortion_model "
+                             f"{distortion!r}; supported: radtan, equidistant, none")
+        coeffs = np.asarray(_matrix_values(block.get("distortion_coeffs", [])), float).ravel()
+        D = _coefficients(coeffs if distortion != "none" else np.zeros(0), kind, name, path)
+        if k:
+            if "T_cn_cnm1" not in block:
+                raise InputError(f"calibration file {path}: {name} has no T_cn_cnm1 (its pose "
+                                 f"from cam{k - 1})")
+            T = _shaped(block["T_cn_cnm1"], (4, 4), f"{name} T_cn_cnm1", path)
+            T[:3, :3] = nearest_rotation(T[:3, :3])
+            to_rig = to_rig @ invert_pose(T)
+        cams.append(CameraCalibration(name, K, D, kind, *_size(block, path), to_rig.copy()))
+    return cams
 
 
 def _stereo_blocks(d: Mapping[str, Any]) -> tuple[Any, Any, Any] | None:
@@ -233,6 +286,11 @@ def _in_metres(raw: list[CameraCalibration], units: str | None, path: Path) -> R
     unit = units or ("mm" if largest > 1.0 else "m")
     if unit not in UNITS:
         raise InputError(f"--units {unit!r}: use 'mm' or 'm'")
+    if largest and not 1e-3 <= largest * UNITS[unit] <= 1.0:  # only a stated unit gets here
+        other = "mm" if unit == "m" else "m"
+        logger.warning("calibration file %s: in %s (as stated) the cameras are up to %.4g m "
+                       "apart, which no endoscope rig is; if its lengths are in %s, give "
+                       "--units %s", path, unit, largest * UNITS[unit], other, other)
     cams = []
     for cam in raw:
         pose = cam.to_rig.copy()

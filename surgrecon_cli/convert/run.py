@@ -109,6 +109,20 @@ def _source(req: ConvertRequest, rig: Rig) -> tuple[Any, tuple[str, ...], str]:
     return video, names, f"stereo video, {video.layout}"
 
 
+def _check_outputs_spare_inputs(req: ConvertRequest) -> None:
+    """InputError when OUT or OUT.toml is one of the inputs (a slip such as `-o
+    calibration.yaml` or `-o video.mp4` replaced that file with the log)."""
+    inputs = [("source", req.src), *(("calibration file", p) for p in req.calibration),
+              ("stamps file", req.stamps), ("camera pose file", req.camera_poses),
+              *(("tool pose file", p) for p in req.tool_poses),
+              *((f"camera {name}'s source", p) for name, p in req.cameras)]
+    for out in (req.out, req.out.with_suffix(".toml")):
+        for what, path in inputs:
+            if path is not None and path.exists() and out.exists() and out.samefile(path):
+                raise InputError(f"-o {req.out}: writing {out} would replace the {what} "
+                                 f"{path}; choose another output name")
+
+
 def keep_freed_memory() -> None:
     """Let this process keep the memory it frees (glibc only; elsewhere nothing happens).
 
@@ -133,6 +147,7 @@ def convert(req: ConvertRequest,
     left under either name then)."""
     if req.image_format not in ("jpeg", "png"):
         raise InputError(f"image format {req.image_format!r}: use jpeg or png")
+    _check_outputs_spare_inputs(req)
     keep_freed_memory()
     rig = load_rig(req.calibration, req.units, [n for n, _ in req.cameras])
     source, names, description = _source(req, rig)

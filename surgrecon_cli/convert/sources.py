@@ -84,10 +84,13 @@ def _natural_key(path: Path) -> list[Any]:
 
 
 def list_images(folder: Path) -> list[Path]:
-    """The image files of a folder (EuRoC-style `folder/data/` too), in name order."""
+    """The image files of a folder (EuRoC-style `folder/data/` too), in name order; hidden
+    files are not images (macOS writes `._NAME.png` metadata beside every file it copies to
+    a non-Mac disk)."""
     if not folder.is_dir():
         raise InputError(f"image folder {folder} does not exist")
-    files = [p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file()]
+    files = [p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES
+             and not p.name.startswith(".") and p.is_file()]
     if not files and (folder / "data").is_dir():
         return list_images(folder / "data")
     if not files:
@@ -266,5 +269,6 @@ def choose_layout(layout: str, size: tuple[int, int], eye: tuple[int, int]) -> s
             return "top-bottom"
         raise InputError(f"the stereo video is {w}x{h} px; neither its halves side by side "
                          f"({w // 2}x{h}) nor top-bottom ({w}x{h // 2}) are the calibrated "
-                         f"{eye[0]}x{eye[1]} px")
+                         f"{eye[0]}x{eye[1]} px: give --stereo-layout (and --scale-calibration "
+                         "if the video is the calibrated images resized)")
     return "side-by-side" if w > h else "top-bottom"

@@ -8,6 +8,7 @@ position in metres. Decimal seconds are read exactly (no float rounding of epoch
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Sequence
 from dataclasses import dataclass
 from decimal import Decimal, InvalidOperation
@@ -18,6 +19,12 @@ import numpy as np
 from ..errors import InputError
 
 _NS_THRESHOLD = 10**12
+# Ours: a TUM file whose positions span more than MAX_SPAN_M along an axis, or lie farther
+# than MAX_REACH_M from its origin, is most likely in millimetres: an endoscope or a tool
+# moves centimetres in a recording, and a tracker sees them within a few metres.
+MAX_SPAN_M = 0.3
+MAX_REACH_M = 10.0
+logger = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -97,6 +104,13 @@ def read_tum(path: Path, what: str) -> PoseTrack:
                          "unit quaternion")
     track = PoseTrack(np.array(stamps, dtype=np.int64), arr[:, :3], arr[:, 3:] / norms[:, None])
     _increasing(track.stamps_ns, path, what)
+    span = float(np.ptp(track.positions, axis=0).max())
+    reach = float(np.linalg.norm(track.positions, axis=1).max())
+    if span > MAX_SPAN_M or reach > MAX_REACH_M:
+        logger.warning("%s %s: its positions span %.4g m and reach %.4g m from the origin, "
+                       "more than an endoscope or tool moves or a tracker sees: TUM positions "
+                       "are metres; if these are millimetres (as trackers often write), divide "
+                       "them by 1000", what, path, span, reach)
     return track
 
 

@@ -54,6 +54,48 @@ def scaled(cam: CameraCalibration, width: int, height: int) -> CameraCalibration
     return replace(cam, K=K, width=width, height=height)
 
 
+def _check_principal_point(cam: CameraCalibration, origin: str, size: tuple[int, int]) -> None:
+    """A calibration that states no image size is taken at the first image's size: refuse it
+    (InputError) when its principal point lies outside the central half of that image, as
+    when the images were resized after calibration (a real lens centre is a few % off the
+    image centre; a half-size image puts the full-size centre near its corner)."""
+    cx, cy = float(cam.K[0, 2]), float(cam.K[1, 2])
+    w, h = size
+    if abs(cx - w / 2) <= w / 4 and abs(cy - h / 2) <= h / 4:
+        return
+    raise InputError(
+        f"image {origin} is {w}x{h} px, but the principal point of camera {cam.name!r}, "
+        f"({cx:.0f}, {cy:.0f}) px, lies outside the middle half of it: the calibration is for "
+        f"other images (about {2 * cx:.0f}x{2 * cy:.0f} px?); add its calibrated width and "
+        "height (imageSize) to the calibration file, with --scale-calibration if the images "
+        "were resized")
+
+
+def _blank(data: bytes) -> bool:
+    """Whether encoded image bytes (JPEG / PNG) decode to one flat value (a black frame)."""
+    import cv2
+
+    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    return img is None or int(np.ptp(img)) <= 1
+
+
+def _check_distinct(cameras: Sequence[CameraCalibration], frame: Frame) -> None:
+    """Two cameras with byte-identical images (the same folder or video given twice, a mono
+    stream duplicated): InputError. Real views of two cameras never agree to the byte, and
+    the same image as both eyes reconstructs a flat fake surface at the depth that the
+    principal points' offset implies. Blank images (both eyes black before the light is
+    on) are alike by nature and pass: build-template names them."""
+    seen: dict[bytes, int] = {}
+    for k, image in enumerate(frame.images):
+        first = seen.setdefault(image.data, k)
+        if first != k and not _blank(image.data):
+            raise InputError(
+                f"images {frame.images[first].origin} and {image.origin} (cameras "
+                f"{cameras[first].name!r} and {cameras[k].name!r}, frame {frame.index}) are "
+                "identical: each camera needs its own images (the same folder or video given "
+                "twice?)")
+
+
 class _Sizes:
     """Each camera's image size: the calibration's, else its first image's; any other size
     is an error naming the image, unless `scale` (the first image of another size than the
@@ -75,6 +117,7 @@ class _Sizes:
         for k, (cam, image) in enumerate(zip(self.cameras, frame.images, strict=True)):
             size = (image.width, image.height)
             if self.sizes[k] is None:
+                _check_principal_point(cam, image.origin, size)
                 self.sizes[k] = size
             elif self.first and self.scale and size != self.sizes[k]:
                 self.cameras[k] = scaled(cam, *size)
@@ -99,6 +142,8 @@ def _frame_messages(rig: Rig, frames: Iterable[Frame], stamps: np.ndarray | None
             raise InputError(f"frame {frame.index} has {len(frame.images)} images, the "
                              f"calibration {len(rig.cameras)} cameras")
         sizes.check(frame)
+        if k == 0:
+            _check_distinct(rig.cameras, frame)
         if stamps is not None:
             t = int(stamps[k])
         elif frame.stamp_ns is not None:

@@ -14,6 +14,7 @@ import numpy as np
 
 from ..config import Config
 from ..core.classify.labels import CLASS_COLOURS, CLASS_NAMES, STATUS_COLOURS, UNKNOWN
+from ..core.measure.indentation import tool_known
 from ..executors import Executor, Task
 from . import plots
 from .gather import CloudView, RunData
@@ -72,8 +73,8 @@ def figure_tasks(data: RunData, metrics: Metrics, views: list[CloudView],
         tasks.append(Task("residual", partial(
             plots.per_frame_boxes, frames.sampled, frames.residual_sampled,
             "data residual", "mm")))
-    if data.deformation is not None:
-        tasks.extend(deformation_tasks(data, config))
+    if data.deformation is not None and tool_known(log.tool_poses).any():
+        tasks.extend(deformation_tasks(data, config))  # none without a tool pose: unmeasured
     seconds = stage_seconds(data.run)
     if seconds:
         per_frame = {}
@@ -92,6 +93,8 @@ def deformation_tasks(data: RunData, config: Config) -> list[Task]:
     assert data.deformation is not None and data.template is not None
     series = data.deformation
     frames = np.arange(series.n_frames)
+    known = tool_known(data.log.tool_poses)  # frames with the tool pose: the others unmeasured
+    area_mm2 = np.where(known, series.area_mm2, np.nan)
     scores = (data.evaluation or {}).get("deformation") or {}
     truth = {key: np.array([np.nan if r[f"true_{key}"] is None else r[f"true_{key}"]
                             for r in scores["per_frame"]]) for key in ("indentation_mm",
@@ -104,7 +107,7 @@ def deformation_tasks(data: RunData, config: Config) -> list[Task]:
     tasks = [Task("deformation-over-time", partial(
         plots.deformation_over_time, frames, series.contact,
         series.depth_under_tip_mm, np.nan_to_num(series.depth_sigma_mm),
-        series.penetration_mm, series.area_mm2, force, label,
+        series.penetration_mm, area_mm2, force, label,
         truth.get("indentation_mm"), truth.get("area_mm2")))]
     deepest = (data.deformation_summary or {}).get("deepest_frame")
     if deepest is not None and data.deepest_field is not None:

@@ -71,10 +71,12 @@ def run_verdict(data: RunData) -> Verdict:
     """The verdict from the evaluation's calibration when there is ground truth, else from
     the registration residuals against their σ."""
     assert data.frames is not None
-    share, ratio = pooled_within_2sigma(data.frames.quality)
+    quality = data.frames.quality
+    share, ratio = pooled_within_2sigma(quality)
     labels = (data.evaluation or {}).get("labels") or {}
     return verdict(share, ratio, labels.get("calibration_2sigma"),
-                   labels.get("sigma_scale_95"))
+                   labels.get("sigma_scale_95"), flagged=sum(bool(q.warnings) for q in quality),
+                   frames=len(quality))
 
 
 def noise_figures(ingest_report: dict[str, Any], cameras: tuple[str, ...],
@@ -165,7 +167,9 @@ def run_summary(data: RunData, noise: dict[str, Any] | None, rows: list[dict[str
         "frames": log.n_frames,
         "cameras": list(log.cameras),
         "template_points": None if data.template is None else len(data.template),
-        "stages": {k: v.get("status") for k, v in run.get("stages", {}).items()},
+        # the stages before the report (this file is the report's: run.json has its status)
+        "stages": {k: v.get("status") for k, v in run.get("stages", {}).items()
+                   if k != "report"},
         "seconds": stage_seconds(run),
     }
     if data.template_summary:

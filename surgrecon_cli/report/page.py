@@ -8,6 +8,7 @@ indentation (issue 17) last in this file.
 
 from __future__ import annotations
 
+import re
 from collections.abc import Mapping
 from datetime import datetime
 from pathlib import Path
@@ -94,6 +95,54 @@ def _overview(data: RunData, metrics: Metrics) -> rh.Section:
         rh.table(("stage", "status", "seconds"), stage_rows))
 
 
+_NUMBER = re.compile(r"\d+(?:\.\d+)?")
+
+
+def grouped_warnings(warnings: list[tuple[int, str]]) -> list[str]:
+    """Per-frame warnings ("frame k: text", in frame order) with each run of consecutive
+    frames that say the same thing (its numbers aside) merged into one: "frames a–b: text",
+    each number that varies over the run given as its range. A long clip whose template
+    leaves the view says so in a few lines instead of two sentences a frame."""
+    runs: list[tuple[list[int], list[str]]] = []  # (frames, texts) per run, in order
+    latest: dict[str, tuple[list[int], list[str]]] = {}  # kind -> its latest run
+    for frame, text in warnings:
+        body = text.split(": ", 1)[1] if text.startswith(f"frame {frame}: ") else text
+        kind = _NUMBER.sub("#", body)
+        run = latest.get(kind)
+        if run is not None and run[0][-1] == frame - 1:
+            run[0].append(frame)
+            run[1].append(body)
+        else:
+            latest[kind] = ([frame], [body])
+            runs.append(latest[kind])
+    out = []
+    for frames, texts in sorted(runs, key=lambda r: r[0][0]):
+        if len(frames) == 1:
+            out.append(f"frame {frames[0]}: {texts[0]}")
+            continue
+        out.append(f"frames {frames[0]}–{frames[-1]}: {_merged(texts)}")
+    return out
+
+
+def _merged(texts: list[str]) -> str:
+    """Texts that differ only in their numbers (as many in each) as one: the first, with
+    each number that varies replaced by its range ("31–97%")."""
+    values = np.array([[float(v) for v in _NUMBER.findall(t)] for t in texts])
+    spans = iter(zip(values.min(0), values.max(0), strict=True))
+
+    def span(match: re.Match[str]) -> str:
+        lo, hi = next(spans)
+        return match.group() if lo == hi else f"{lo:g}–{hi:g}"
+
+    return _NUMBER.sub(span, texts[0])
+
+
+def _tracker_rate(hz: Any) -> Any:
+    """A camera's pose rate for the table: "fixed" for a pose given once (a rig fixed in the
+    world, a static transform), which reads 0 Hz, as if the tracker had stopped."""
+    return "fixed" if hz == 0 else hz
+
+
 def _cameras(data: RunData, pngs: Figures) -> rh.Section:
     """The camera layout over the template, the pair plan, per-camera ingest counts and the
     template's counts."""
@@ -115,7 +164,8 @@ def _cameras(data: RunData, pngs: Figures) -> rh.Section:
                           "image Hz", "tracker Hz"),
                          [(cid, r.get("images"), r.get("frames"), r.get("dropped"), r.get("late"),
                            r.get("pose_gaps"), r.get("usable"), r.get("image_rate_hz"),
-                           r.get("tracker_rate_hz")) for cid, r in cam_report.items()]))
+                           _tracker_rate(r.get("tracker_rate_hz")))
+                          for cid, r in cam_report.items()]))
     stats = (data.template_summary or {}).get("stats", {})
     if stats:
         sec.add(rh.paragraph(
@@ -124,6 +174,8 @@ def _cameras(data: RunData, pngs: Figures) -> rh.Section:
             f"verified; {stats.get('rejected_geometry')} rejected by reprojection/angle, "
             f"{stats.get('removed_off_surface')} off the surface, {stats.get('removed_tool')} "
             f"on the tool.", note=True))
+        for line in stats.get("warnings") or []:  # cameras not linked, groups that disagree
+            sec.add(rh.paragraph(f"{line[:1].upper()}{line[1:]}.", note=True))
     if not log.report.get("robot", True):
         sec.add(rh.paragraph(
             "No robot kinematics in this log (topics.tool_pose = \"\"): tool removal is off, "
@@ -161,10 +213,11 @@ def _quality(data: RunData, frames: FrameFigures, metrics: Metrics,
     ]))
     sec.add(*_place(pngs, "quality",
                     "Left: share of template points observed in the frame, labelled unknown "
-                    "(too far from data) and rejected as outliers. Right: median uncertainty σ "
+                    "(σ above classify.max_sigma_mm: far from data, or measured too loosely) "
+                    "and rejected as outliers. Right: median uncertainty σ "
                     "of the labelled points, and the median registration residual in units of "
                     "the target's σ (about 1 when the fit is as good as the noise allows)."))
-    warnings = [w for q in frames.quality for w in q.warnings]
+    warnings = grouped_warnings([(q.frame, w) for q in frames.quality for w in q.warnings])
     if warnings:
         sec.add(rh.paragraph("Frames not to trust: " + "; ".join(warnings) + "."))
     else:

@@ -178,13 +178,20 @@ def camera_layout(points: np.ndarray, centres: np.ndarray, axes: np.ndarray,
                 if cam in index:
                     c = centres[index[cam]] * 1e3
                     ax.scatter([c[0]], [c[1]], s=60, color=colour, zorder=3, edgecolor="white")
+        finite = np.isfinite(centres).all(axis=1)
+        middle = float(np.mean(centres[finite, 0])) * 1e3 if finite.any() else 0.0
         for i, name in enumerate(names):
             c, d = centres[i] * 1e3, axes[i]
-            if not np.isfinite(c).all():
+            if not finite[i]:
                 continue
             ax.annotate("", xy=(c[0] + 12 * d[0], c[1] + 12 * d[1]), xytext=(c[0], c[1]),
                         arrowprops={"arrowstyle": "->", "color": "#555555", "lw": 0.8})
-            ax.text(c[0], c[1], f"  {name}", fontsize=9, fontweight="bold", va="bottom")
+            # each name on the side away from the cameras' middle: a stereo pair's two
+            # names (centres a few mm apart) do not print over each other
+            side = 1 if c[0] >= middle else -1
+            ax.annotate(name, xy=(c[0], c[1]), xytext=(6 * side, 3), textcoords="offset points",
+                        fontsize=9, fontweight="bold", va="bottom",
+                        ha="left" if side > 0 else "right")
         ax.set_aspect("equal", adjustable="datalim")
         ax.set_xlabel("x (mm)")
         ax.set_ylabel("y (mm)")

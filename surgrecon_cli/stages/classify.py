@@ -261,6 +261,7 @@ def write_labels_streaming(layout: RunLayout, n_frames: int, n: int,
     backward pass (whether each label persists), then its forward pass writing every
     array's rows. Returns the class counts of frames 1.. and how many labels the
     hysteresis changed."""
+    layout.classify_dir.mkdir(parents=True, exist_ok=True)  # a 1-frame run classified none
     scratch = {name: layout.classify_dir / f".labels.{name}.tmp"
                for name in ("persists", *_LABEL_DTYPES)}
     rows = {name: RowFile(scratch[name], (n_frames, n), dtype, create=True)

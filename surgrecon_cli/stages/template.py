@@ -91,8 +91,10 @@ def run_build_template(
             "view_angle_deg": result.prediction.angle_deg.round(1).tolist(),
             "baseline_ratio": result.prediction.baseline_ratio.round(3).tolist(),
         }
-        write_template_summary(layout, {"stats": result.stats, "pairs": plan})
-        info.update(points=n, groups=plan["groups"], sequence=plan["sequence"], stats=result.stats,
+        # the link warnings, for the report (they were printed once, at this stage only)
+        stats = {**result.stats, "warnings": list(result.warnings)}
+        write_template_summary(layout, {"stats": stats, "pairs": plan})
+        info.update(points=n, groups=plan["groups"], sequence=plan["sequence"], stats=stats,
                     pixel_noise_px=result.pixel_noise_px,
                     tracker_bodies=log.report.get("tracker_bodies", []),
                     sigma_median_mm=float(np.median(sigma) * 1e3) if n else None)

@@ -97,8 +97,8 @@ def frame_quality(frame: int, fit: FrameFit, labels: np.ndarray | None = None
             warnings.append(f"frame {frame}: only {observed:.0%} of the template was observed; "
                             "the rest is extrapolated")
         if labels is not None and unknown > MAX_UNKNOWN:
-            warnings.append(f"frame {frame}: {unknown:.0%} of the points are unknown (too far "
-                            "from any measurement)")
+            warnings.append(f"frame {frame}: {unknown:.0%} of the points are unknown "
+                            f"({_unknown_reason(status, labels)})")
         if np.isfinite(ratio) and ratio > MAX_RESIDUAL_RATIO:
             warnings.append(f"frame {frame}: registration residuals are {ratio:.1f}x what the "
                             "measured noise predicts; positions are less accurate than σ says")
@@ -111,6 +111,19 @@ def frame_quality(frame: int, fit: FrameFit, labels: np.ndarray | None = None
         sigma_median_mm=sigma_median, residual_over_sigma=ratio, within_2sigma=within,
         with_target=int(has.sum()), failed=failed,
         converged=converged, warnings=tuple(warnings))
+
+
+def _unknown_reason(status: np.ndarray, labels: np.ndarray) -> str:
+    """Why a frame's unknown points are unknown, in words: mostly measured this frame (intra
+    or inter-camera inliers: their σ exceeds classify.max_sigma_mm, as when the cameras are too
+    far or their baseline too narrow for that precision) or mostly not (far from any data)."""
+    unknown = labels == UNKNOWN
+    measured = unknown & np.isin(status, (INTRA, INTER))
+    if measured.sum() * 2 >= max(int(unknown.sum()), 1):
+        return (f"{measured.sum() / max(int(unknown.sum()), 1):.0%} of them measured in this "
+                "frame, but with an uncertainty σ above classify.max_sigma_mm: the cameras "
+                "cannot place them that precisely")
+    return "too far from any measurement"
 
 
 @dataclass(frozen=True)
@@ -137,14 +150,18 @@ def pooled_within_2sigma(quality: list[FrameQuality]) -> tuple[float, float]:
 
 def verdict(residual_within_2sigma: float, residual_ratio: float,
             calibration_2sigma: float | None = None,
-            sigma_scale_95: float | None = None) -> Verdict:
+            sigma_scale_95: float | None = None, flagged: int = 0,
+            frames: int = 0) -> Verdict:
     """The run's verdict on its accuracy.
 
     With ground truth (`calibration_2sigma`: share of labelled points whose true error is
     within their reported 2σ; `sigma_scale_95`: the factor σ would need to cover 95 % of
     them), that measured calibration decides. Without it, the residuals to the targets
     (`residual_within_2sigma`, share within 2σ_target; `residual_ratio`, median residual /
-    σ_target) decide, and the text says they cannot show the targets themselves are right.
+    σ_target) decide, and the text says they cannot show the targets themselves are right;
+    but when more than half of the `frames` registered frames (1..) are `flagged` not to
+    trust (failed, mostly unobserved or unknown, ...), the run does not fit whatever the
+    residuals of the rest say.
     """
     expected = f"{EXPECTED_2SIGMA:.0%} expected"
     if calibration_2sigma is not None and np.isfinite(calibration_2sigma):
@@ -162,6 +179,11 @@ def verdict(residual_within_2sigma: float, residual_ratio: float,
                        "No frame has registration residuals to check against the noise model.")
     share = (f"{residual_within_2sigma:.0%} of registration residuals are within 2σ of their "
              f"targets ({expected})")
+    if frames and 2 * flagged > frames:
+        return Verdict(False, "residuals",
+                       f"{flagged} of {frames} frames are not to be trusted (listed above), so "
+                       f"the run is not: the residuals cannot vouch for it ({share}, median "
+                       f"residual {residual_ratio:.2f}σ).")
     if residual_within_2sigma < GOOD_2SIGMA:
         return Verdict(False, "residuals",
                        f"Residuals are {residual_ratio:.1f}× larger than the noise model "

@@ -184,7 +184,8 @@ def build_template(
     track_ids, n_tracks = build_tracks([len(f) for f in features], matched.merges)
     if n_tracks == 0:
         raise GeometryError(unlinked_message(matched.counts, minimums, labels,
-                                             cfg.min_pair_matches, cfg.min_pair_match_fraction))
+                                             cfg.min_pair_matches, cfg.min_pair_match_fraction,
+                                             [len(f) for f in features]))
     obs = track_observations(features, track_ids).observations
     unrefined = 0
     if cfg.refine_matches:

@@ -48,19 +48,43 @@ def pair_minimums(n_features: Sequence[int], floor: int, fraction: float) -> np.
     return np.maximum(floor, np.ceil(fraction * poorer)).astype(int)
 
 
+FEW_TO_LOWER = 8  # ours: below this many verified matches a lower minimum links nothing real
+FEW_FEATURES = 50  # ours: an image with fewer features than this is blank (SurgT: ~4000)
+
+
 def unlinked_message(counts: dict[tuple[int, int], int], minimums: np.ndarray,
-                     names: Sequence[str], floor: int, fraction: float) -> str:
+                     names: Sequence[str], floor: int, fraction: float,
+                     features: Sequence[int] = ()) -> str:
     """One line: no pair reached its minimum, with each pair's verified/needed matches and
-    the keys to change."""
+    what to change. Lowering the minimum is suggested only when the best pair came close
+    (FEW_TO_LOWER matches or more); cameras with fewer than FEW_FEATURES features (`features`,
+    per camera) say the frame-0 images are blank, dark or blurred; no candidate pair, or next
+    to no verified matches, says that the calibration or poses place the cameras' views apart
+    (a baseline in the wrong unit, a wrong T): no minimum would link real matches then."""
+    head = "no camera pair has enough verified matches to link at frame 0"
+    few = [f"{names[c]} {n}" for c, n in enumerate(features) if n < FEW_FEATURES]
+    if few and len(few) >= len(features) - 1:  # no two cameras with features to match
+        return (f"{head}: frame 0's images have next to no features (camera features: "
+                f"{', '.join(few)}): blank, dark or blurred; start the log where the views "
+                "are clear (e.g. convert --frames N:)")
+    if not counts:
+        return (f"{head}: the poses and calibration put no two cameras' views over one "
+                "surface (template.min_view_overlap, template.working_distance_m): check the "
+                "calibration's baseline (T, and its unit: convert --units) and the poses")
     listed = ", ".join(f"{names[i]}-{names[j]} {n}/{minimums[i, j]}"
                        for (i, j), n in sorted(counts.items(), key=lambda kv: -kv[1]))
-    suggestion = max(min(counts.values(), default=0), 8)
-    return (f"no camera pair has enough verified matches to link at frame 0 (pair "
-            f"verified/needed: {listed or 'no pair overlaps in view'}); the minimum is "
+    best = max(counts.values())
+    if best < FEW_TO_LOWER:
+        return (f"{head} (pair verified/needed: {listed}): so few means the calibration or "
+                "poses put the true matches off their epipolar lines or outside the depths "
+                "searched (template.depth_range x template.working_distance_m): check the "
+                "calibration's baseline (T, and its unit: convert --units), the eyes' order "
+                "and the poses")
+    return (f"{head} (pair verified/needed: {listed}); the minimum is "
             f"max(template.min_pair_matches = {floor}, template.min_pair_match_fraction = "
             f"{fraction} x the poorer image's features): lower them (e.g. "
-            f"template.min_pair_matches = {suggestion}) if these pairs do share a view, or "
-            "check the calibration and poses")
+            f"template.min_pair_matches = {max(min(counts.values()), FEW_TO_LOWER)}) if these "
+            "pairs do share a view, or check the calibration and poses")
 
 
 def link_warnings(groups: list[list[int]], counts: dict[tuple[int, int], int],

@@ -22,6 +22,12 @@ from .lfs import refuse_lfs_pointer
 METADATA = "metadata.yaml"
 MAX_METADATA_BYTES = 1 << 20  # a rosbag2 metadata.yaml is a few kB
 STORAGE_SUFFIX = {"mcap": ".mcap", "sqlite3": ".db3"}
+# Recordings that `surgrecon convert` turns into a log (its sources' suffixes): named when a
+# user passes one as a log.
+MEDIA_SUFFIXES = (".mp4", ".avi", ".mkv", ".mov", ".m4v", ".webm", ".mpg", ".mpeg", ".h264",
+                  ".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
+_CONVERT_HINT = ("convert it first: surgrecon convert {path} -o OUT.mcap --calibration FILE, "
+                 "then surgrecon run OUT.mcap -o RUN --config OUT.toml")
 """rosbag2 storage identifier -> the suffix of its files."""
 
 
@@ -123,6 +129,9 @@ def resolve_log(path: Path | str) -> LogInput:
 
 def _resolve(path: Path) -> LogInput:
     if path.is_file():
+        if path.suffix.lower() in MEDIA_SUFFIXES:
+            raise InputError(f"{path}: a video or image, not a log; "
+                             + _CONVERT_HINT.format(path=path))
         return LogInput(path, (path,))
     if not path.is_dir():
         raise InputError(f"{path}: no such file or folder")
@@ -131,6 +140,18 @@ def _resolve(path: Path) -> LogInput:
     files = tuple(sorted((f for f in path.glob("*.mcap") if f.is_file()),
                          key=lambda f: _natural(f.name)))
     if not files:
+        if _holds_images(path):
+            raise InputError(f"{path}: a folder of images, not a log; "
+                             + _CONVERT_HINT.format(path=path))
         raise InputError(f"{path}: a folder without {METADATA} and without .mcap files; "
                          "name an .mcap file or a rosbag2 bag folder")
     return LogInput(path, files)
+
+
+def _holds_images(folder: Path) -> bool:
+    """Whether `folder` or one of its folders (a stereo recording's left/, right/) holds
+    images or videos."""
+    for level in (folder, *(p for p in folder.iterdir() if p.is_dir())):
+        if any(f.suffix.lower() in MEDIA_SUFFIXES for f in level.iterdir() if f.is_file()):
+            return True
+    return False

@@ -143,9 +143,12 @@ class LogReader:
         listed = [f"{t}  {s}" for t, s in sorted(channels.items())]
         if len(listed) > _MAX_LISTED:
             listed = [*listed[:_MAX_LISTED], f"... ({len(listed) - _MAX_LISTED} more)"]
+        beside = Path(self.path).with_suffix(".toml")  # what `surgrecon convert` writes
+        given = (f"--config {beside} (written beside the log, e.g. by `surgrecon convert`), or "
+                 if beside.is_file() else "")
         return TopicError(
-            f"{self.path}: no topic for {wanted}; set [topics] in a --config file "
-            f"(`surgrecon info {self.path} --write-config FILE` writes one; a robot role the "
+            f"{self.path}: no topic for {wanted}; set [topics] in a --config file: {given}"
+            f"`surgrecon info {self.path} --write-config FILE` writes one (a robot role the "
             "log does not record, tool_pose or joint_states, is set to \"\"); topics in the "
             f"log{':' if listed else ': none'}", details=tuple(listed))
 
