@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from surgrecon_cli.core.noise.frame_noise import LocalFits
-from surgrecon_cli.core.target.template_lock import lock_to_template
+from surgrecon_cli.core.target.template_lock import lock_groups, lock_to_template, shared_drift
 from surgrecon_cli.core.target.tracking import tracking_view
 
 SIZE = (480, 640)  # H, W
@@ -61,7 +61,9 @@ def test_drifted_tracks_come_back_to_their_points(scene):
     direction = rng.normal(size=truth.shape)
     direction /= np.linalg.norm(direction, axis=1, keepdims=True)
     drift = direction * rng.uniform(0.3, 1.2, (len(truth), 1))
-    locked = lock_to_template(view0, view1, start, truth + drift, 21)
+    correction = lock_to_template(view0, view1, start, truth + drift, 21)
+    assert np.isfinite(correction).all(1).mean() > 0.95
+    locked = truth + drift + np.nan_to_num(correction)
     before = np.linalg.norm(drift, axis=1)
     after = np.linalg.norm(locked - truth, axis=1)
     assert np.median(after) < 0.1
@@ -69,17 +71,16 @@ def test_drifted_tracks_come_back_to_their_points(scene):
 
 
 def test_true_tracks_stay_and_lost_ones_are_left_alone(scene):
-    """Tracks at their true positions move by < 0.1 px (median); NaN tracks stay NaN and
-    points without a frame-0 pixel are not touched."""
+    """Tracks at their true positions move by < 0.1 px (median); NaN tracks and points
+    without a frame-0 pixel get no correction (NaN)."""
     view0, view1, start, truth = scene
     tracks = truth.copy()
     tracks[:10] = np.nan
     anchors = start.copy()
     anchors[10:20] = np.nan
-    locked = lock_to_template(view0, view1, anchors, tracks, 21)
-    assert np.isnan(locked[:10]).all()
-    np.testing.assert_array_equal(locked[10:20], tracks[10:20])
-    assert np.median(np.linalg.norm(locked[20:] - truth[20:], axis=1)) < 0.1
+    correction = lock_to_template(view0, view1, anchors, tracks, 21)
+    assert np.isnan(correction[:20]).all()
+    assert np.nanmedian(np.linalg.norm(correction[20:], axis=1)) < 0.1
 
 
 def test_local_maps_are_the_warps_derivative(scene):
@@ -91,3 +92,18 @@ def test_local_maps_are_the_warps_derivative(scene):
     numeric = np.stack([(apply(h, start + eps * e) - apply(h, start - eps * e)) / (2 * eps)
                         for e in np.eye(2)], -1)
     assert np.median(np.abs(jac - numeric).max((1, 2))) < 0.01
+
+
+def test_a_stereo_pair_shares_its_correction_and_keeps_its_disparity():
+    """Cameras 4 mm apart at 60 mm share one correction per point (the mean of their
+    views'; a view without one takes its partner's), so the pair's disparity is kept; a
+    camera 40 mm away keeps its own."""
+    centres = np.array([[0.0, 0, 0], [0.004, 0, 0], [0.04, 0, 0]])
+    points = np.random.default_rng(0).normal([0.002, 0, 0.06], 0.005, (50, 3))
+    groups = lock_groups(centres, points)
+    assert sorted(map(sorted, map(list, groups))) == [[0, 1], [2]]
+    drift = np.array([[[0.3, 0.1], [0.1, 0.3], [1.0, 0.0]],
+                      [[0.2, 0.2], [np.nan, np.nan], [np.nan, np.nan]]])
+    shared = shared_drift(drift, groups)
+    np.testing.assert_allclose(shared[0], [[0.2, 0.2], [0.2, 0.2], [1.0, 0.0]])
+    np.testing.assert_allclose(shared[1], [[0.2, 0.2], [0.2, 0.2], [0.0, 0.0]])

@@ -28,8 +28,10 @@ Per camera:
 3. lock: every found point with a frame-0 pixel in that camera is moved to where its
    frame-0 patch, warped by the local image map of its neighbouring tracks, matches best
    (core/target/template_lock.py): the drift the chain and the base's tracks carried is
-   taken out. The chained pixels held for the next frame (`rig.chains`) stay as tracked,
-   so that a frame tracked again through its previous frame finds the same ones.
+   taken out; cameras of one narrow stereo head share each point's correction (the mean of
+   their views', `shared_drift`), which keeps the pair's disparity. The chained pixels held
+   for the next frame (`rig.chains`) stay as tracked, so that a frame tracked again through
+   its previous frame finds the same ones.
 
 A frame whose previous frame is not its base (re-basing every N_T >= 2 frames) is chained
 through the previous frame's images (base -> previous -> frame, `_via`: the previous
@@ -58,7 +60,7 @@ from ..geometry.tool import tool_pixel_mask
 from ..noise.model import localisation_variance_px2
 from .frame_inputs import FrameInput, Rig, Sighting
 from .reacquire import descriptor_motion
-from .template_lock import lock_to_template
+from .template_lock import lock_groups, lock_to_template, shared_drift
 from .tracking import (
     NEIGHBOUR_RADIUS_PX,
     NEIGHBOUR_ROUNDS,
@@ -341,6 +343,7 @@ def find_points(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig,
     localisation = np.full((n, n_cams), np.inf)
     chained = np.full((n, n_cams, 2), np.nan)  # by the chain alone (for rig.chains)
     predicted = straight = None  # the scene's motion the chain's / the direct tracks show
+    drift = np.full((n, n_cams, 2), np.nan)  # the lock's corrections (NaN: none)
     for c in range(n_cams):
         cur, prev = frame.views[c], base.views[c]
         if cur is None or prev is None:
@@ -354,19 +357,21 @@ def find_points(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig,
         if predicted is None:  # the first camera whose tracks show it
             predicted = _scene(latest, px, ok, models[c], cur_poses[c])
         anchor = None if anchor_views is None else anchor_views[c]
-        locked = px
         if anchor is not None and anchor_pixels is not None:
             px, ok = _anchor(anchor, cur, anchor_pixels[:, c], px, models[c], cfg)
-            locked = lock_to_template(anchor, cur, anchor_pixels[:, c],
-                                      np.where(ok[:, None], px, np.nan), cfg.klt_window_px)
+            drift[:, c] = lock_to_template(anchor, cur, anchor_pixels[:, c],
+                                           np.where(ok[:, None], px, np.nan),
+                                           cfg.klt_window_px)
         rows = np.flatnonzero(ok)
-        rows = rows[_unmasked(locked[rows], frame, rig, c)]
-        pixels[rows, c] = locked[rows]
+        rows = rows[_unmasked(px[rows], frame, rig, c)]
+        pixels[rows, c] = px[rows]
         found[rows, c] = True
         localisation[rows, c] = localisation_variance_px2(
-            cur.grey_f32, locked[rows], cfg.klt_window_px, cur.noise_sigma)
+            cur.grey_f32, px[rows], cfg.klt_window_px, cur.noise_sigma)
         mine = rows[chain_ok[rows]]
         chained[mine, c] = px[mine]
     if frame.previous is None and rig.chains is not None:
         rig.chains.put(rig.chains.key(latest, base, frame.index), chained)
+    centres = np.where(np.isfinite(cur_poses[:, :3, 3]), cur_poses[:, :3, 3], np.nan)
+    pixels += np.where(found[..., None], shared_drift(drift, lock_groups(centres, latest)), 0.0)
     return pixels, found, localisation
