@@ -188,11 +188,12 @@ def lock_groups(centres: np.ndarray, points: np.ndarray) -> list[np.ndarray]:
 def shared_drift(drift: np.ndarray, groups: list[np.ndarray]) -> np.ndarray:
     """The corrections (N, C, 2) px to apply: within each group of cameras (`lock_groups`)
     every view of a point gets the mean of its views' corrections drift (N, C, 2)
-    (`lock_to_template`; NaN: none). A narrow stereo pair's KLT tracks drift alike in both views, so their disparity
-    (its depth) is better than either track; locked one by one, each view gets its own
-    alignment error (on the real SurgT pair at 360x288 a 0.03 px each, ~0.1 mm of depth),
-    so the pair's views share one correction, which takes out the common drift and keeps
-    the disparity. Views of a point without any correction in their group get 0."""
+    (`lock_to_template`; NaN: none). A narrow stereo pair's KLT tracks drift alike in both
+    views, so their disparity (its depth) is better than either track; locked one by one,
+    each view gets its own alignment error (on the real SurgT pair at 360x288 ~0.03 px
+    each, ~0.1 mm of depth), so the pair's views share one correction, which takes out the
+    common drift and keeps the disparity. Views of a point without any correction in their
+    group get 0."""
     out = np.zeros(drift.shape)
     for group in groups:
         part = drift[:, group]
