@@ -9,7 +9,7 @@ import shutil
 import numpy as np
 
 from surgrecon_cli.config import Config
-from surgrecon_cli.core.classify.labels import UNKNOWN
+from surgrecon_cli.core.classify.labels import UNKNOWN, UNOBSERVED
 from surgrecon_cli.io.run.folder import RunFolder
 from surgrecon_cli.io.run.layout import RunLayout
 from surgrecon_cli.stages.classify import run_classify
@@ -39,9 +39,12 @@ def test_failed_frame_is_isolated_and_named(copy_run, caplog):
     entry = RunFolder(copy_run).stage("register")
     assert entry["status"] == "done"
     assert set(entry["frames_failed"]) == {"2"}
-    assert "tracked" in entry["frames_failed"]["2"]
+    message = entry["frames_failed"]["2"]
+    assert "tracked" in message and "unobserved" in message and "{" not in message
     with np.load(RunLayout(copy_run).registration(2)) as z:
         assert bool(z["failed"]) and np.isnan(z["registered"]).all()
+        # nothing was seen: unobserved, not outliers
+        assert (z["status"] == UNOBSERVED).all()
     # Frame 3's base (N_T = 2) is the failed frame 2: it is registered from frame 0 instead.
     with np.load(RunLayout(copy_run).registration(3)) as z:
         assert not bool(z["failed"]) and np.isfinite(z["registered"]).all()

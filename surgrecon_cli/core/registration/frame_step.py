@@ -27,7 +27,7 @@ from scipy.spatial import cKDTree
 
 from ...config import Config
 from ...errors import GeometryError
-from ..classify.labels import INTER, INTRA, OUTLIER, UNOBSERVED
+from ..classify.labels import INTER, INTRA, UNOBSERVED
 from ..geometry.cameras import CameraModel
 from ..geometry.poses import compose_affines
 from ..geometry.tool import push_out_of_tool
@@ -93,10 +93,11 @@ class FrameResult:
 
 def unregistered(n_points: int, n_cams: int) -> FrameResult:
     """The result of a frame that could not be registered: no position (NaN), no target,
-    every point an outlier with unbounded uncertainty (so classified unknown)."""
+    every point unobserved (nothing was seen of it: a black or blurred frame is not 100 %
+    outliers) with unbounded uncertainty (so classified unknown)."""
     nan3 = np.full((n_points, 3), np.nan)
     target = TargetCloud(
-        positions=nan3, status=np.full(n_points, OUTLIER, np.uint8),
+        positions=nan3, status=np.full(n_points, UNOBSERVED, np.uint8),
         views=np.zeros(n_points, np.int64), pixels=np.full((n_points, n_cams, 2), np.nan),
         covariance=np.full((n_points, 3, 3), np.nan), pose_covariance=np.zeros((n_points, 3, 3)),
         sigma=np.full(n_points, np.nan),
@@ -292,8 +293,9 @@ class FrameRegistrar:
             xyz, rgb = np.concatenate([xyz, new_xyz]), np.concatenate([rgb, new_rgb])
             ids = np.concatenate([ids, np.full(n_new, -1)])
         if len(xyz) < 3:
+            counts = ", ".join(f"{name} {n}" for name, n in target.counts().items())
             raise GeometryError(f"{len(ids)} template point(s) tracked into this frame "
-                                f"({target.counts()}); need >= 3")
+                                f"({counts}); need >= 3")
         return DataTerm(xyz, rgb, ids, data_weights(target, has_new=n_new > 0))
 
     def _new_points(self, images: list[np.ndarray | None], frame: FrameInput,
