@@ -19,6 +19,12 @@ def _convert(out: Path, *args: str) -> int:
                  str(SURGT / "calibration.yaml"), "-q", *args])
 
 
+def _run(log: Path, run: Path) -> int:
+    """`surgrecon run LOG -o RUN` with the config convert wrote beside the log; its exit."""
+    return main(["run", str(log), "-o", str(run), "--config", str(log.with_suffix(".toml")),
+                 "-q"])
+
+
 @pytest.fixture(scope="module")
 def one_frame_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """The clip's first stereo pair converted and run at defaults (the finished run folder)."""
@@ -26,8 +32,7 @@ def one_frame_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     log = root / "one.mcap"
     assert _convert(log, "--frames", "0:1") == 0
     run = root / "run"
-    assert main(["run", str(log), "-o", str(run), "--config", str(log.with_suffix(".toml")),
-                 "-q"]) == 0
+    assert _run(log, run) == 0
     return run
 
 
@@ -119,8 +124,7 @@ def _run_error(tmp_path: Path, capsys, name: str, calibration: Path, *args: str,
     assert main(["convert", str(src), "-o", str(log), "--calibration",
                  str(calibration), "--frames", "0:1", "-q", *args]) == 0
     capsys.readouterr()
-    assert main(["run", str(log), "-o", str(tmp_path / name), "--config",
-                 str(log.with_suffix(".toml")), "-q"]) == 2
+    assert _run(log, tmp_path / name) == 2
     lines = [ln for ln in capsys.readouterr().err.splitlines() if ln.startswith("error:")]
     assert len(lines) == 1
     return lines[0]
@@ -185,8 +189,7 @@ def test_a_clip_that_starts_blurred_gets_no_passing_verdict(tmp_path: Path):
     assert main(["convert", str(root), "-o", str(log), "--calibration",
                  str(SURGT / "calibration.yaml"), "-q"]) == 0
     run = tmp_path / "run"
-    assert main(["run", str(log), "-o", str(run), "--config", str(log.with_suffix(".toml")),
-                 "-q"]) == 0
+    assert _run(log, run) == 0
     quality = json.loads((run / "metrics" / "summary.json").read_text(encoding="utf-8"))[
         "quality"]
     flagged = quality["untrustworthy_frames"]
@@ -289,8 +292,7 @@ def test_cameras_that_do_not_link_are_named_in_the_report(tmp_path: Path):
     assert main(["convert", "-o", str(log), "--calibration", str(dlfd / "calibration.json"),
                  "--scale-calibration", *cams, "-q"]) == 0
     run = tmp_path / "run"
-    assert main(["run", str(log), "-o", str(run), "--config", str(log.with_suffix(".toml")),
-                 "-q"]) == 0
+    assert _run(log, run) == 0
     summary = json.loads((run / "metrics" / "summary.json").read_text(encoding="utf-8"))
     warnings = summary["template"]["warnings"]
     assert any("not linked" in w and "reconstruct the surface apart" in w for w in warnings)
