@@ -11,8 +11,11 @@ from __future__ import annotations
 
 import numpy as np
 from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
 
 from ..geometry.poses import fit_rigid
+
+INFORMATION_STEPS = 3  # Gauss-Newton steps of the information-weighted rigid fit
 
 STATIC, SHIFTING, DEFORMING, UNKNOWN = 0, 1, 2, 255
 CLASS_NAMES = {STATIC: "static", SHIFTING: "shifting", DEFORMING: "deforming"}
@@ -43,12 +46,18 @@ def radius_neighbourhoods(points: np.ndarray, radius: float) -> tuple[np.ndarray
 
 def rigid_fit_residuals(
     reference: np.ndarray, moved: np.ndarray, index: np.ndarray, mask: np.ndarray,
-    weights: np.ndarray | None = None,
+    weights: np.ndarray | None = None, information: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Residuals (N, K, 3) m (moved minus fitted; 0 for members left out) of the best
     (weighted) rigid fit of each neighbourhood (index (N, K), mask (N, K)) from reference to
     moved positions, and the members used (N, K) bool: those with a finite moved position
-    (and a positive finite weight, weights (P,) per point, if given)."""
+    (and a positive finite weight, weights (P,) per point, if given). With `information`
+    (P, 3, 3) per point (inverse covariances), the fit weighted by `weights` is refined to
+    the one weighted by each member's full information (`_information_step`): a narrow
+    stereo baseline measures depth ~20x worse than across, and scalar weights let one
+    member's depth error tilt the fit, which then leaves residuals across the lines of
+    sight of the others (a still real SurgT scene at 360x288: 116 of ~4,200 labelled
+    point-frames called deforming with scalar weights, 1 with the information)."""
     src = reference[index]
     dst = moved[index]
     keep = mask & np.isfinite(dst).all(-1)
@@ -61,7 +70,46 @@ def rigid_fit_residuals(
     dst = np.where(keep[..., None], dst, 0.0)
     R, t = fit_rigid(src, dst, w)
     pred = np.einsum("nij,nkj->nki", R, src) + t[:, None, :]
-    return np.where(keep[..., None], dst - pred, 0.0), keep
+    residual = np.where(keep[..., None], dst - pred, 0.0)
+    if information is not None:
+        info = np.where(keep[..., None, None], np.asarray(information, float)[index], 0.0)
+        residual = _information_step(pred, residual, info, keep)
+    return residual, keep
+
+
+def _information_step(pred: np.ndarray, residual: np.ndarray, info: np.ndarray,
+                      keep: np.ndarray) -> np.ndarray:
+    """Residuals (N, K, 3) of each neighbourhood's rigid fit weighted by the members'
+    information info (N, K, 3, 3) (0 for members left out), from the fitted positions pred
+    (N, K, 3) and residuals of a fit with scalar weights: INFORMATION_STEPS Gauss-Newton
+    steps, each turning the fitted positions by ω about their mean and shifting them by δ
+    (the normal equations in (ω, δ) are linear; the turn is applied exactly, as a depth
+    error of 1 mm across a 5 mm neighbourhood can tilt the scalar fit by ~10°)."""
+    target = pred + residual
+    usable = (keep.sum(1) >= 3)[:, None, None]
+    for _ in range(INFORMATION_STEPS):
+        count = np.maximum(keep.sum(1), 1)[:, None]
+        centre = (np.where(keep[..., None], pred, 0.0).sum(1) / count)[:, None, :]
+        q = pred - centre
+        jac = np.concatenate([-_skew(q), np.broadcast_to(np.eye(3), (*q.shape, 3))], -1)
+        weighted = np.einsum("nkab,nkbj->nkaj", info, jac)  # (N, K, 3, 6)
+        normal = np.einsum("nkai,nkaj->nij", jac, weighted)
+        rhs = np.einsum("nkaj,nka->nj", weighted, target - pred)
+        scale = np.trace(normal, axis1=1, axis2=2)[:, None, None]
+        step = np.linalg.solve(normal + (1e-12 * scale + 1e-30) * np.eye(6),
+                               rhs[..., None])[..., 0]
+        turn = Rotation.from_rotvec(np.where(usable[:, 0], step[:, :3], 0.0)).as_matrix()
+        pred = centre + np.einsum("nij,nkj->nki", turn, q) + np.where(
+            usable[:, 0], step[:, 3:], 0.0)[:, None, :]
+    return np.where(keep[..., None], target - pred, 0.0)
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    """Cross-product matrices [v]x (..., 3, 3) of vectors v (..., 3)."""
+    zero = np.zeros(v.shape[:-1])
+    return np.stack([np.stack([zero, -v[..., 2], v[..., 1]], -1),
+                     np.stack([v[..., 2], zero, -v[..., 0]], -1),
+                     np.stack([-v[..., 1], v[..., 0], zero], -1)], -2)
 
 
 def rigid_fit_rms(

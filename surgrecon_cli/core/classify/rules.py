@@ -288,15 +288,17 @@ def departure_statistic(template: np.ndarray, positions: np.ndarray, covariance:
     rigid motion, frame-0 template (N, 3) m to positions (N, 3) m with covariances
     (N, 3, 3) m²: S (M,) = Σ_j r_jᵀ Σ_j⁻¹ r_j and its degrees of freedom 3n − 6 (M,) (n
     usable members; S is chi-square with them under one rigid motion and the stated noise).
-    The fit is weighted by each member's mean precision tr(Σ⁻¹)/3; S uses the full
-    covariance, so a direction the rig measures well counts fully even where depth is poor.
+    The fit is weighted by each member's full precision Σ⁻¹ (`rigid_fit_residuals` with
+    `information`), and S uses it too, so a direction the rig measures well counts fully
+    even where depth is poor, and one member's depth error does not tilt the fit.
     Neighbourhoods with fewer than 3 usable members get dof <= 0."""
     if len(rows) == 0:
         return np.zeros(0), np.zeros(0)
     index, mask = nb.members(rows)
     info = _precisions(covariance, 0.0)
     weight = np.trace(info, axis1=1, axis2=2) / 3.0
-    residual, keep = rigid_fit_residuals(template, positions, index, mask, weights=weight)
+    residual, keep = rigid_fit_residuals(template, positions, index, mask, weights=weight,
+                                         information=info)
     stat = np.einsum("mki,mkij,mkj->m", residual, info[index], residual)
     return stat, 3.0 * keep.sum(1) - 6.0
 
@@ -308,7 +310,7 @@ def resolved_rms_mm(template: np.ndarray, positions: np.ndarray, covariance: np.
     how well it is measured: with W_j = (Σ_j + d²/3 I)⁻¹ (Σ_j (N, 3, 3) m² the member's noise
     covariance, d = `deform_mm` spread over three axes: a direction of noise σ counts by
     (d²/3) / (σ² + d²/3), alike where it is measured better than d/√3), RMS² = 3 Σ_j r_jᵀ
-    W_j r_j / Σ_j tr W_j over the members' residuals r_j of the fit weighted by tr(W_j)/3.
+    W_j r_j / Σ_j tr W_j over the members' residuals r_j of the fit weighted by W_j.
     Without noise, or with the same isotropic noise for every member, it is the plain
     rigid-fit RMS; on a narrow stereo baseline a residual along a line of sight known to
     ±0.8 mm counts ~1/30 of one across it (±0.06 mm), and pure noise along it, however
@@ -321,7 +323,8 @@ def resolved_rms_mm(template: np.ndarray, positions: np.ndarray, covariance: np.
     index, mask = nb.members(rows)
     info = _precisions(covariance, (deform_mm * 1e-3) ** 2 / 3.0)
     total = np.trace(info, axis1=1, axis2=2)
-    residual, keep = rigid_fit_residuals(template, positions, index, mask, weights=total / 3.0)
+    residual, keep = rigid_fit_residuals(template, positions, index, mask, weights=total / 3.0,
+                                         information=info)
     energy = np.einsum("mki,mkij,mkj->m", residual, info[index], residual)
     norm = (total[index] * keep).sum(1)
     with np.errstate(invalid="ignore", divide="ignore"):
