@@ -87,8 +87,8 @@ def _information_step(pred: np.ndarray, residual: np.ndarray, info: np.ndarray,
     error of 1 mm across a 5 mm neighbourhood can tilt the scalar fit by ~10°)."""
     target = pred + residual
     usable = (keep.sum(1) >= 3)[:, None, None]
+    count = np.maximum(keep.sum(1), 1)[:, None]
     for _ in range(INFORMATION_STEPS):
-        count = np.maximum(keep.sum(1), 1)[:, None]
         centre = (np.where(keep[..., None], pred, 0.0).sum(1) / count)[:, None, :]
         q = pred - centre
         jac = np.concatenate([-_skew(q), np.broadcast_to(np.eye(3), (*q.shape, 3))], -1)

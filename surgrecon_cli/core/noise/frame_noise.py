@@ -143,7 +143,7 @@ class LocalFits:
     set up once for any weighting of the neighbours: idx (K, M) the K nearest other tracks
     of each of the M tracks (by reference pixel), design (K, M, 6) their monomials
     1, u, v, u², uv, v² of the offsets (u, v) about the track divided by scale (M,) px (so
-    at most 1), motion (M, 2) px each track's motion."""
+    at most 1; (K, M, 3) for affine fits), motion (M, 2) px each track's motion."""
 
     idx: np.ndarray
     design: np.ndarray

@@ -22,7 +22,7 @@ import cv2
 import numpy as np
 
 from ..noise.frame_noise import LocalFits
-from .tracking import TrackingView
+from .tracking import TrackingView, correlation
 
 LOCK_NEIGHBOURS = 12  # ours: tracks whose affine fit gives a track's local map (patch warp)
 LOCK_ITERATIONS = 8  # ours: Gauss-Newton steps at most (a drifted track converges in 3-5)
@@ -35,11 +35,11 @@ LOCK_STRIDE = 2  # ours: every 2nd pixel of the window is compared (a quarter of
 REMAP_ROWS = 16_384  # cv2.remap takes maps of fewer than 32,767 rows: sampled in chunks
 
 
-def patch_offsets(window_px: int, stride: int = 1, pad: int = 0) -> np.ndarray:
+def patch_offsets(window_px: int, stride: int = 1) -> np.ndarray:
     """Offsets (P, 2) px about its centre of every stride-th pixel of a window_px x window_px
-    patch, the grid widened by `pad` samples on each side."""
+    patch."""
     half = window_px // 2 // stride
-    steps = stride * np.arange(-half - pad, half + pad + 1, dtype=np.float32)
+    steps = stride * np.arange(-half, half + 1, dtype=np.float32)
     u, v = np.meshgrid(steps, steps)
     return np.column_stack([u.ravel(), v.ravel()])
 
@@ -55,14 +55,6 @@ def sample_patches(image: np.ndarray, points: np.ndarray) -> np.ndarray:
                                                   cv2.INTER_LINEAR,
                                                   borderMode=cv2.BORDER_REPLICATE)
     return out
-
-
-def _ncc(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Normalised cross-correlation (M,) of patches a, b (M, P)."""
-    a = a - a.mean(1, keepdims=True)
-    b = b - b.mean(1, keepdims=True)
-    norm = np.sqrt((a * a).sum(1) * (b * b).sum(1))
-    return np.where(norm > 0, (a * b).sum(1) / np.maximum(norm, 1e-12), -1.0)
 
 
 def _inside(pixels: np.ndarray, shape: tuple[int, ...], margin: float | np.ndarray
@@ -115,7 +107,7 @@ def align_patches(template: tuple[np.ndarray, np.ndarray, np.ndarray], image: np
             break
         values = sample_patches(image, (pixels[active] + shift[active])[:, None, :]
                                 + offsets[None])
-        last_ncc[active] = _ncc(values, patch[active])
+        last_ncc[active] = correlation(values, patch[active])
         if iteration == 0:
             start_ncc = last_ncc.copy()
         fit = -np.matmul(solver[active], np.matmul(design[active], values[..., None]))[..., 0]
@@ -137,7 +129,7 @@ def lock_to_template(anchor: TrackingView, view: TrackingView, anchor_pixels: np
     not seen there), `view` the current image. NaN for tracks with too few neighbours
     (LOCK_NEIGHBOURS), no frame-0 pixel, a window leaving either image, or a correction
     not kept."""
-    out = np.array(pixels, float, copy=True)
+    out = np.asarray(pixels, float)
     correction = np.full(out.shape, np.nan)
     rows = np.flatnonzero(np.isfinite(out).all(1) & np.isfinite(anchor_pixels).all(1))
     if len(rows) <= LOCK_NEIGHBOURS:

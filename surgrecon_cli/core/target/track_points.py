@@ -372,6 +372,7 @@ def find_points(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig,
         chained[mine, c] = px[mine]
     if frame.previous is None and rig.chains is not None:
         rig.chains.put(rig.chains.key(latest, base, frame.index), chained)
-    centres = np.where(np.isfinite(cur_poses[:, :3, 3]), cur_poses[:, :3, 3], np.nan)
-    pixels += np.where(found[..., None], shared_drift(drift, lock_groups(centres, latest)), 0.0)
+    if np.isfinite(drift).any():  # not when tracking without anchors (`_via`)
+        shared = shared_drift(drift, lock_groups(cur_poses[:, :3, 3], latest))
+        pixels += np.where(found[..., None], shared, 0.0)
     return pixels, found, localisation

@@ -342,10 +342,18 @@ def patch_ncc(image_a: np.ndarray, pixels_a: np.ndarray, image_b: np.ndarray,
         out = cv2.remap(np.asarray(image, np.float32), map_x.reshape(-1, size * size),
                         map_y.reshape(-1, size * size), cv2.INTER_LINEAR,
                         borderMode=cv2.BORDER_REPLICATE)
-        p = out.astype(np.float64)
-        return p - p.mean(1, keepdims=True)
+        return out
 
-    a, b = patches(image_a, pixels_a), patches(image_b, pixels_b)
+    return correlation(patches(image_a, pixels_a), patches(image_b, pixels_b))
+
+
+def correlation(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Normalised cross-correlation (M,) of patches a, b (M, P) (their samples in one
+    order); -1 where a patch is flat."""
+    a = a.astype(np.float64)
+    b = b.astype(np.float64)
+    a -= a.mean(1, keepdims=True)
+    b -= b.mean(1, keepdims=True)
     denom = np.sqrt((a * a).sum(1) * (b * b).sum(1))
     return np.where(denom > 1e-9, (a * b).sum(1) / np.maximum(denom, 1e-9), -1.0)
 
