@@ -13,10 +13,11 @@ from typing import Any
 from mcap.writer import CompressionType
 
 from ..errors import InputError
+from ..io.logs.log_input import VIDEO_SUFFIXES
 from ..io.run.atomic import write_text
 from ..sim.log_writer import write_log
 from .calibration import Rig, load_rig
-from .sources import VIDEO_SUFFIXES, FolderSource, VideoSource, choose_layout, stereo_folders
+from .sources import FolderSource, VideoSource, choose_layout, stereo_folders
 from .stamps import frame_stamps, read_tum
 from .write import config_text, messages
 

@@ -25,9 +25,8 @@ import numpy as np
 
 from ..errors import InputError
 from ..io.logs.images import header_size, structure_problem
+from ..io.logs.log_input import IMAGE_SUFFIXES
 
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
-VIDEO_SUFFIXES = (".mp4", ".avi", ".mkv", ".mov", ".m4v", ".webm", ".mpg", ".mpeg", ".h264")
 # Hamlyn's rectified sequences: image01 (left) / image02; KITTI's: image_02 / image_03.
 STEREO_FOLDERS = (("left", "right"), ("Left", "Right"), ("left_image", "right_image"),
                   ("image_0", "image_1"), ("image01", "image02"), ("image_02", "image_03"),

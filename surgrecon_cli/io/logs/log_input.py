@@ -22,13 +22,14 @@ from .lfs import refuse_lfs_pointer
 METADATA = "metadata.yaml"
 MAX_METADATA_BYTES = 1 << 20  # a rosbag2 metadata.yaml is a few kB
 STORAGE_SUFFIX = {"mcap": ".mcap", "sqlite3": ".db3"}
-# Recordings that `surgrecon convert` turns into a log (its sources' suffixes): named when a
-# user passes one as a log.
-MEDIA_SUFFIXES = (".mp4", ".avi", ".mkv", ".mov", ".m4v", ".webm", ".mpg", ".mpeg", ".h264",
-                  ".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
+"""rosbag2 storage identifier -> the suffix of its files."""
+# The recordings `surgrecon convert` reads (convert/sources.py), named when a user passes
+# one as a log.
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
+VIDEO_SUFFIXES = (".mp4", ".avi", ".mkv", ".mov", ".m4v", ".webm", ".mpg", ".mpeg", ".h264")
+MEDIA_SUFFIXES = VIDEO_SUFFIXES + IMAGE_SUFFIXES
 _CONVERT_HINT = ("convert it first: surgrecon convert {path} -o OUT.mcap --calibration FILE, "
                  "then surgrecon run OUT.mcap -o RUN --config OUT.toml")
-"""rosbag2 storage identifier -> the suffix of its files."""
 
 
 @dataclass(frozen=True)
