@@ -38,6 +38,7 @@ from surgrecon_cli.core.classify.labels import true_labels
 
 GRID_PX = 4  # px between the flow's samples (the flow is smooth)
 MESH_PX = 16  # px between the truth mesh's vertices (rectified left image)
+RIPPLE_MM = 8.0  # mm between the ripple's bumps
 SHIFT = np.array([0.6, 0.0, -0.4])  # rigid part per mm of amplitude (x across, -z towards)
 
 
@@ -116,13 +117,20 @@ class Breathing:
     """The known motion (module docstring) of a surface whose points are `reference` (M, 3)
     mm: amplitude A mm, period P frames."""
 
-    def __init__(self, reference: np.ndarray, amplitude_mm: float, period: float) -> None:
+    def __init__(self, reference: np.ndarray, amplitude_mm: float, period: float,
+                 ripple: float = 0.0) -> None:
         ok = reference[np.isfinite(reference).all(1)]
         self.centre = np.median(ok, axis=0)
         extent = np.percentile(ok[:, 0], 95) - np.percentile(ok[:, 0], 5)
         self.broad, self.local = 0.2 * extent, 3.0
         self.pulses = self.centre[:2] + np.array([[0.25, 0.1], [-0.2, -0.15]]) * extent
         self.amplitude, self.period = amplitude_mm, period
+        lo, hi = ok[:, :2].min(0), ok[:, :2].max(0)
+        gx, gy = np.meshgrid(*(np.arange(a, b + RIPPLE_MM, RIPPLE_MM)
+                               for a, b in zip(lo, hi, strict=True)))
+        self.bumps = np.column_stack([gx.ravel(), gy.ravel()])
+        sign = (-1.0) ** (np.arange(gx.shape[1])[None, :] + np.arange(gx.shape[0])[:, None])
+        self.bump_heights = ripple * sign.ravel()
 
     def phase(self, t: int) -> float:
         return 0.5 * (1.0 - np.cos(2.0 * np.pi * t / self.period))
@@ -134,12 +142,14 @@ class Breathing:
         broad = np.exp(-((lateral - self.centre[:2]) ** 2).sum(1) / (2 * self.broad**2))
         local = np.exp(-((lateral[:, None] - self.pulses) ** 2).sum(2)
                        / (2 * self.local**2)).sum(1)
-        towards = -(broad + 0.5 * local)[:, None] * np.array([0.0, 0.0, 1.0])
+        bumps = (np.exp(-((lateral[:, None] - self.bumps) ** 2).sum(2) / (2 * self.local**2))
+                 @ self.bump_heights) if np.any(self.bump_heights) else 0.0
+        towards = -(broad + 0.5 * local + bumps)[:, None] * np.array([0.0, 0.0, 1.0])
         return a * (SHIFT + towards)
 
 
 def breathing_frames(left: np.ndarray, right: np.ndarray, calib: dict[str, np.ndarray],
-                     amplitude_mm: float, length: int, period: float
+                     amplitude_mm: float, length: int, period: float, ripple: float = 0.0
                      ) -> tuple[list[tuple[np.ndarray, np.ndarray]], dict[str, np.ndarray]]:
     """`length` stereo frames (BGR left, right) of the pair breathing, and the ground truth
     (faces, vertices (T, V, 3) m, labels (T, V)) without its stamps."""
@@ -149,7 +159,7 @@ def breathing_frames(left: np.ndarray, right: np.ndarray, calib: dict[str, np.nd
     grid = np.column_stack([gx.ravel(), gy.ravel()]) * GRID_PX + (GRID_PX - 1) / 2.0
     points = [surface.points(eye, grid) for eye in (0, 1)]
     vertices, faces = surface.mesh()
-    motion = Breathing(vertices, amplitude_mm, period)
+    motion = Breathing(vertices, amplitude_mm, period, ripple)
     frames = []
     for t in range(length):
         frames.append(tuple(

@@ -18,6 +18,8 @@ A SPEC is comma-separated `key=value` (any order, all optional):
     breathe=2   the first selected frame's tissue breathes with this amplitude (mm), its
                 motion known (benchmarks/surgt_breathing.py); writes clip.gt.npz
     period=39   frames of one breath (default: the clip's length)
+    ripple=0.1  bumps of this share of the amplitude over the whole tissue as it breathes
+                (surgt_breathing.py): deforming nearly everywhere at the breath's peak
     gain=0.2    both eyes' brightness scaled by 1 + gain · (0, 1/3, 2/3, 1, 2/3, ...) of the
                 pitch's triangle wave: an endoscope's auto-exposure following its light
     shade=0.3   a brightness ramp across each image whose slope follows the same wave
@@ -42,7 +44,7 @@ CLIP_FPS = 5  # frames a second the clips are converted at
 
 def parse_spec(spec: str) -> dict[str, float]:
     out = {"step": 1.0, "scale": 1.0, "reverse": 0.0, "jpeg": 0.0, "frames": 10.0,
-           "length": 0.0, "pitch": 0.0, "breathe": 0.0, "period": 0.0,
+           "length": 0.0, "pitch": 0.0, "breathe": 0.0, "period": 0.0, "ripple": 0.0,
            "gain": 0.0, "shade": 0.0}
     for item in filter(None, spec.split(",")):
         key, _, value = item.partition("=")
@@ -93,7 +95,8 @@ def breathing_clip(frame: np.ndarray, opts: dict[str, float], out_dir: Path
     out_dir/clip.gt.npz (stamps at CLIP_FPS, as the clip is converted)."""
     length = int(opts["length"] or 39)
     pairs, truth = breathing_frames(frame[:, :1280], frame[:, 1280:], calibration(),
-                                    opts["breathe"], length, opts["period"] or length)
+                                    opts["breathe"], length, opts["period"] or length,
+                                    opts["ripple"])
     truth["stamps_ns"] = np.round(np.arange(length) * 1e9 / CLIP_FPS).astype(np.int64)
     np.savez_compressed(out_dir / "clip.gt.npz", **truth)
     return [np.hstack(pair) for pair in pairs]
