@@ -134,3 +134,26 @@ def test_cli_prints_a_readable_summary(copy_run, capsys):
     assert "template:" in out and "registration error" in out and "macro-F1" in out
     assert "confusion (rows: truth, columns: predicted)" in out
     assert out.strip().endswith(str(RunLayout(copy_run).evaluation_json))
+
+
+def test_a_part_of_the_log_is_scored_against_its_frames_of_the_truth(pipeline_log, tmp_path):
+    """A run of every 2nd frame (ingest.every) is scored against the truth's frames 0, 2, 4
+    (matched by stamp), as well as the whole run is; a truth whose stamps match no frame
+    of the run is a clear error."""
+    from surgrecon_cli.config import load_config
+    from surgrecon_cli.pipeline import run_pipeline
+
+    run = tmp_path / "every2"
+    config = load_config(None, ["ingest.every=2"])
+    run_pipeline(pipeline_log, run, config)
+    log = load_ingested(RunLayout(run).ingest_dir)
+    gt = load_ground_truth(gt_path_beside(pipeline_log))
+    assert np.abs(log.stamps_ns - gt.stamps_ns[::2]).max() < 1_000_000  # 1 ms
+    result = _strict_json(run / "metrics/evaluation.json")
+    assert result["frames"] == 3 and result["stamp_difference_max_ms"] < 1.0
+    assert result["registration"]["overall"]["median_mm"] < 0.5
+    moved = tmp_path / "moved.gt.npz"
+    write_npz(moved, faces=gt.faces, vertices=gt.vertices, labels=gt.labels,
+              stamps_ns=gt.stamps_ns + 40_000_000)
+    with pytest.raises(InputError, match="no ground-truth frame within 15 ms of the run's frame 0"):
+        run_evaluate(run, config, moved)

@@ -137,3 +137,18 @@ def test_report_stage_table_and_file_links(pipeline_run):
     assert {"template.ply", "clouds", "metrics/summary.json", "run.json"} <= set(links)
     assert all(not link.startswith("/") and ":" not in link for link in links)
     assert all((run_dir / link).exists() for link in links)
+
+
+def test_ingest_warnings_reach_the_report(tmp_path: Path):
+    """What ingest warned about on the terminal is kept in its report and listed among the
+    run's caveats (the report's box and summary.json), not lost with the terminal."""
+    log = synth_log.write(tmp_path / "log.mcap", SynthSpec(frames=3))
+    run = tmp_path / "run"
+    assert main(["ingest", str(log), "-o", str(run), "-q", "--set", 'topics.tool_pose=""']) == 0
+    report = load_ingested(run / "ingest").report
+    assert any("no robot kinematics" in w for w in report["warnings"])
+    caveats = run_caveats(RunFolder(run).read(), report)
+    assert any(c.startswith("Ingest warned: ") and "tool removal is off" in c for c in caveats)
+    many = {"warnings": [f"camera a: a message is lost before frame {k}" for k in range(25)]}
+    listed = run_caveats({}, many)
+    assert len(listed) == 11 and listed[-1].startswith("Ingest warned 15 more times")

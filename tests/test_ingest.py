@@ -19,6 +19,7 @@ from surgrecon_cli.core.geometry.poses import make_pose
 from surgrecon_cli.io.logs.records import ImageRecord, PoseRecord
 from surgrecon_cli.io.run.folder import RunFolder, file_sha256
 from surgrecon_cli.io.run.ingest_store import load_ingested
+from surgrecon_cli.report.caveats import run_caveats
 from surgrecon_cli.sim.log_writer import ENCODINGS
 
 
@@ -477,3 +478,32 @@ def test_log_time_source(tmp_path: Path):
     np.testing.assert_array_equal(a.image_stamps_ns, b.image_stamps_ns)
     np.testing.assert_array_equal(b.image_stamps_ns[0], SynthSpec().frame_time(0) + MS +
                                   np.arange(3) * 3 * MS)
+
+
+def test_a_part_of_a_long_log_is_ingested(tmp_path: Path, capsys):
+    """ingest.start_s / duration_s / every keep a window of the recording at a lower rate;
+    a window past the end is a clear error that names the keys and the log's span."""
+    spec = SynthSpec(frames=12)
+    log = synth_log.write(tmp_path / "log.mcap", spec)
+    assert run_ingest(log, tmp_path / "whole") == 0
+    whole = load_ingested(tmp_path / "whole/ingest")
+    run = tmp_path / "part"
+    start = (whole.stamps_ns[3] - whole.stamps_ns[0]) / 1e9
+    assert run_ingest(log, run, "--set", f"ingest.start_s={start}", "--set",
+                      "ingest.every=2") == 0
+    part = load_ingested(run / "ingest")
+    np.testing.assert_array_equal(part.stamps_ns, whole.stamps_ns[3::2])
+    np.testing.assert_array_equal(part.image_stamps_ns, whole.image_stamps_ns[3::2])
+    np.testing.assert_allclose(part.poses, whole.poses[3::2])
+    for k, t in enumerate(range(3, 12, 2)):
+        np.testing.assert_array_equal(part.load_image(k, 0), whole.load_image(t, 0))
+    assert part.report["frames_in_log"] == 12 and part.report["part"]["every"] == 2
+    (said,) = [c for c in run_caveats({}, part.report) if c.startswith("A part of the log")]
+    assert said.startswith(f"A part of the log: 5 of its 12 frames (from {start:g} s after")
+    assert len(part.image_paths) == len(part.stamps_ns)
+    assert all((run / "ingest" / p).is_file() for row in part.image_paths for p in row if p)
+    capsys.readouterr()
+    assert main(["ingest", str(log), "-o", str(tmp_path / "none"), "-q", "--set",
+                 "ingest.start_s=100"]) != 0
+    err = capsys.readouterr().err
+    assert "no frame from 100 s" in err and "ingest.start_s" in err and "12 frames span" in err

@@ -12,6 +12,7 @@ from surgrecon_cli.core.sync.streams import (
     interpolate_values,
     poses_at,
     rate_hz,
+    select_frames,
     validate_pose_stream,
 )
 from surgrecon_cli.errors import InputError
@@ -135,3 +136,13 @@ def test_base_to_world_pose_and_rate():
         base_to_world_pose([0, 0, 0, 0, 0, 0, 2])
     assert rate_hz(np.arange(11) * 100 * MS) == pytest.approx(10.0)
     assert rate_hz(np.array([5])) == 0.0
+
+
+def test_a_part_of_the_frames_is_selected_by_time_and_step():
+    """start_s / duration_s from the first frame (the window half-open), every N-th of
+    those: 10 Hz frames over 5 s, 1.0-3.0 s every 3rd -> frames 10, 13, ..., 28."""
+    stamps = 1_000_000_000 + np.arange(50) * 100_000_000
+    np.testing.assert_array_equal(select_frames(stamps, 1.0, 2.0, 3), np.arange(10, 30, 3))
+    np.testing.assert_array_equal(select_frames(stamps, 0.0, 0.0, 1), np.arange(50))
+    np.testing.assert_array_equal(select_frames(stamps, 4.55, 0.0, 2), [46, 48])
+    assert len(select_frames(stamps, 5.0, 1.0, 1)) == 0

@@ -84,6 +84,13 @@ class IngestConfig:
         bounds=(0, 6e4)
     )
     time_source: str = _doc("header", "'header' (message stamp, else log_time) or 'log_time'")
+    start_s: float = _doc(
+        0.0, "keep the frames from this many seconds after the log's first frame (a part of a "
+        "long recording)", bounds=(0, 1e7))
+    duration_s: float = _doc(0.0, "keep this many seconds of frames from start_s (0: to the end)",
+        bounds=(0, 1e7))
+    every: int = _doc(1, "keep every N-th frame of those (a 30 Hz log at 10 Hz: 3)",
+        bounds=(1, 1_000_000))
 
     def __post_init__(self) -> None:
         _require(self.sync_tolerance_ms > 0, "ingest.sync_tolerance_ms", "must be > 0")

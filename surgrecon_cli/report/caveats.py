@@ -7,7 +7,11 @@ Sources (recorded by the stages in run.json):
 - ingest `salvaged`: the log was damaged after its data (index, summary): read by streaming;
 - ingest `replaced`: `--force` replaced the run of another log, or wrote into a folder that
   was not a run folder;
-- register `frames_failed`: frames that could not be registered (their points unknown).
+- register `frames_failed`: frames that could not be registered (their points unknown);
+- the ingest report's `part`: only a part of the log was ingested (ingest.start_s,
+  duration_s, every);
+- the ingest report's `warnings`: what ingest warned about on the terminal (a missing robot,
+  lost messages, unit or calibration doubts).
 """
 
 from __future__ import annotations
@@ -35,8 +39,21 @@ def run_caveats(run: dict[str, Any], ingest_report: dict[str, Any]) -> list[str]
         out.append(f"Damaged log salvaged: {ingest['salvaged']}; every message was still read "
                    "(by streaming, without the log's index), so the results are complete, "
                    "but the file should be re-copied or repaired.")
+    part = ingest_report.get("part")
+    if part:
+        window = (f"{part['duration_s']:g} s" if part["duration_s"] else "to the end")
+        out.append(f"A part of the log: {ingest_report.get('frames')} of its "
+                   f"{ingest_report.get('frames_in_log')} frames (from {part['start_s']:g} s "
+                   f"after its first, {window}, every {part['every']}; ingest.start_s, "
+                   "duration_s, every).")
     if ingest.get("replaced"):
         out.append(f"--force: {ingest['replaced']}.")
+    warned = ingest_report.get("warnings") or []
+    for text in warned[:_LISTED]:
+        out.append(f"Ingest warned: {text.rstrip('.')}.")
+    if len(warned) > _LISTED:
+        out.append(f"Ingest warned {len(warned) - _LISTED} more times (each shown on the "
+                   "terminal during ingest).")
     failed = register.get("frames_failed") or {}
     if failed:
         keys = sorted(failed, key=int)

@@ -60,10 +60,13 @@ def run_evaluate(run_dir: Path, config: Config, gt_path: Path,
         gt = load_ground_truth(gt_path)
         log = load_ingested(layout.ingest_dir)
         if gt.n_frames != log.n_frames:
-            raise InputError(
-                f"{gt.path} has {gt.n_frames} frames but {run_dir} ingested {log.n_frames}; "
-                "ground-truth frame k must be the k-th ingested frame (wrong file, or a "
-                "truncated log?)")
+            if log.n_frames > gt.n_frames:
+                raise InputError(
+                    f"{gt.path} has {gt.n_frames} frames but {run_dir} ingested "
+                    f"{log.n_frames}; ground-truth frame k must be the k-th ingested frame "
+                    "(wrong file?)")
+            # a part of the log (ingest.start_s / duration_s / every, or a truncated log)
+            gt = gt.at_stamps(log.stamps_ns, round(config.ingest.sync_tolerance_ms * 1e6))
         template = read_template(layout).points
         mapping = map_to_surface(template, gt.vertices[0], gt.faces)
         tool_mask = on_tool(template, log.tool_poses[0], config.tool)

@@ -12,7 +12,7 @@ import os
 import shutil
 import time
 import uuid
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -30,6 +30,7 @@ from ..core.sync.streams import (
     interpolate_values,
     poses_at,
     rate_hz,
+    select_frames,
 )
 from ..errors import InputError, RunFolderError, SurgReconError, quoted
 from ..io.logs.log_input import resolve_log
@@ -87,12 +88,14 @@ def ingest(
     staging = layout.ingest_staging(uuid.uuid4().hex[:12])
     staging.mkdir()  # (mkdtemp would make it 0700; this respects the umask)
     try:
-        collector = StreamCollector(staging, config.topics.rectified)
-        for item in reader:
-            collector.add(item)
-        collector.finish()
-        reader.check_roles()
-        log, report = _assemble(collector, reader, config, staging, allow_truncated)
+        with _warnings_kept() as warned:
+            collector = StreamCollector(staging, config.topics.rectified)
+            for item in reader:
+                collector.add(item)
+            collector.finish()
+            reader.check_roles()
+            log, report = _assemble(collector, reader, config, staging, allow_truncated)
+        report["warnings"] = warned
         save_ingested(log)
         _swap_in(staging, layout.ingest_dir)
     except BaseException as exc:
@@ -132,6 +135,25 @@ def pipeline_step(ctx: StageContext, progress: Callable[[float], None]) -> None:
     ingest(ctx.log, ctx.run_dir, ctx.config, allow_truncated=ctx.allow_truncated,
            force=ctx.force_ingest, on_bytes=on_bytes)
     ctx.force_ingest = False
+
+
+@contextlib.contextmanager
+def _warnings_kept() -> Iterator[list[str]]:
+    """The warnings the package logs inside the block, kept (in order) for the ingest
+    report, so that the run's report and summary.json list what the terminal showed."""
+    kept: list[str] = []
+
+    class Keep(logging.Handler):
+        def emit(self, record: logging.LogRecord) -> None:
+            kept.append(record.getMessage())
+
+    handler = Keep(logging.WARNING)
+    package = logging.getLogger(__name__.split(".")[0])
+    package.addHandler(handler)
+    try:
+        yield kept
+    finally:
+        package.removeHandler(handler)
 
 
 def _prepare_run_folder(run_dir: Path, log_path: Path, config: Config,
@@ -230,10 +252,17 @@ def _assemble(collector: StreamCollector, reader: LogReader, config: Config, sta
         raise InputError(f"{reader.path}: no complete frame before the damage "
                          f"({reader.damage})")
     trimmed = T - keep
-    T = keep
-    frame_stamps = frames.stamps_ns[:T]
-    image_index, image_stamps = frames.image_index[:T], image_stamps[:T]
-    poses, usable = poses[:T], usable[:T]
+    part = config.ingest
+    chosen = select_frames(frames.stamps_ns[:keep], part.start_s, part.duration_s, part.every)
+    if not len(chosen):
+        span = (frames.stamps_ns[keep - 1] - frames.stamps_ns[0]) / 1e9
+        raise InputError(f"{reader.path}: no frame from {part.start_s:g} s for "
+                         f"{part.duration_s:g} s (ingest.start_s, ingest.duration_s); its "
+                         f"{keep} frames span {span:.3f} s from its first")
+    T = len(chosen)
+    frame_stamps = frames.stamps_ns[chosen]
+    image_index, image_stamps = frames.image_index[chosen], image_stamps[chosen]
+    poses, usable = poses[chosen], usable[chosen]
 
     robot = bool(config.topics.tool_pose)
     tool_poses, tool_valid = poses_at(tool, frame_stamps, gap_ns)
@@ -246,6 +275,10 @@ def _assemble(collector: StreamCollector, reader: LogReader, config: Config, sta
     jitter = [pose_jitter(s.stamps_ns, s.positions, s.quats) for s in pose_streams]
     report = _report(ids, cams, stamps, pose_streams, jitter, frames, image_index, usable,
                      trimmed)
+    report["frames_in_log"] = keep
+    if keep > T:
+        report["part"] = {"start_s": part.start_s, "duration_s": part.duration_s,
+                          "every": part.every}
     for cid, cam in zip(ids, cams, strict=True):
         report["cameras"][cid].update(video_report(cam, frame_stamps, tolerance_ns),
                                       pixel_max=cam.pixel_max,

@@ -112,6 +112,18 @@ class PoseStream:
         return int(self.stamps_ns.shape[0])
 
 
+def select_frames(stamps_ns: np.ndarray, start_s: float, duration_s: float, every: int
+                  ) -> np.ndarray:
+    """The frames (K,) of frame stamps (T,) ns to keep: from `start_s` s after the first
+    frame for `duration_s` s (0: to the end; the window is half-open), every `every`-th of
+    them, the first kept. Empty when none falls in the window."""
+    since = (np.asarray(stamps_ns, np.int64) - int(stamps_ns[0])) / 1e9
+    inside = since >= start_s - 1e-9
+    if duration_s > 0:
+        inside &= since < start_s + duration_s - 1e-9
+    return np.flatnonzero(inside)[::max(int(every), 1)]
+
+
 def validate_pose_stream(
     name: str, stamps_ns: np.ndarray, positions: np.ndarray, quats: np.ndarray
 ) -> PoseStream:

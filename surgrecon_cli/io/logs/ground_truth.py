@@ -7,7 +7,7 @@ depth along the tool axis."""
 from __future__ import annotations
 
 import zipfile
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -38,6 +38,30 @@ class GroundTruth:
     @property
     def n_frames(self) -> int:
         return int(self.vertices.shape[0])
+
+    def at_stamps(self, stamps_ns: np.ndarray, tolerance_ns: int) -> GroundTruth:
+        """The truth at the frames of stamps (K,) ns (a part of the log ingested:
+        ingest.start_s / duration_s / every): its frame nearest each stamp, which must lie
+        within tolerance_ns; InputError naming the file and the first frame without one."""
+        stamps = np.asarray(stamps_ns, np.int64)
+        order = np.argsort(self.stamps_ns, kind="stable")
+        known = self.stamps_ns[order]
+        right = np.clip(np.searchsorted(known, stamps), 0, len(known) - 1)
+        left = np.clip(right - 1, 0, len(known) - 1)
+        pick = np.where(np.abs(known[left] - stamps) <= np.abs(known[right] - stamps),
+                        left, right)
+        off = np.abs(known[pick] - stamps)
+        if (off > tolerance_ns).any():
+            k = int(np.argmax(off > tolerance_ns))
+            raise InputError(f"{self.path}: no ground-truth frame within {tolerance_ns / 1e6:g} "
+                             f"ms of the run's frame {k} ({off[k] / 1e6:.1f} ms away): the truth "
+                             "of another log?")
+        rows = order[pick]
+        return replace(self, vertices=self.vertices[rows], labels=self.labels[rows],
+                       stamps_ns=self.stamps_ns[rows],
+                       tool_poses=None if self.tool_poses is None else self.tool_poses[rows],
+                       indentation_m=None if self.indentation_m is None
+                       else self.indentation_m[rows])
 
 
 def gt_path_beside(log_path: Path) -> Path:
