@@ -196,6 +196,17 @@ def test_a_clip_that_starts_blurred_gets_no_passing_verdict(tmp_path: Path):
     assert len(flagged) > 5 / 2, flagged  # what this test is about: most frames flagged
     assert quality["verdict"]["fits"] is False
     assert f"{len(flagged)} of 5 frames" in quality["verdict"]["text"]
+    # and the template stage says why, and where to start instead: frame 2, the first sharp
+    stats = json.loads((run / "template" / "summary.json").read_text(encoding="utf-8"))["stats"]
+    (warned,) = [w for w in stats["warnings"] if "blurred" in w]
+    assert "camera(s) left, right" in warned and "start at frame 2" in warned
+    advice = warned.split("--set ")[-1]
+    started = tmp_path / "sharp"
+    assert main(["run", str(log), "-o", str(started), "-q", "--config",
+                 str(log.with_suffix(".toml")), "--set", advice]) == 0
+    after = json.loads((started / "template" / "summary.json").read_text(encoding="utf-8"))
+    assert not after["stats"]["warnings"]
+    assert after["stats"]["points"] > 3 * stats["points"]
 
 
 def test_the_summary_of_a_finished_run_shows_no_stage_still_running(one_frame_run: Path):

@@ -26,6 +26,7 @@ from ..core.template.build import (
     TemplateResult,
     build_template,
 )
+from ..core.template.sharpness import BLUR_RATIO, blurred_cameras, sharpness
 from ..errors import InputError
 from ..executors import Executor, mapper
 from ..executors.heap import kept_heap
@@ -37,12 +38,13 @@ from ..io.run.artefacts import (
     write_template,
     write_template_summary,
 )
-from ..io.run.ingest_store import load_ingested
+from ..io.run.ingest_store import IngestedLog, load_ingested
 from ..io.run.layout import RunLayout
 from .common import stage_run, tools_as_seen
 from .registry import StageContext
 
 STAGE = "build-template"
+BLUR_FRAMES = 5  # ours: later frames frame 0's sharpness is compared with
 logger = logging.getLogger(__name__)
 
 
@@ -72,7 +74,8 @@ def run_build_template(
                     tracker=config.target,
                 ),
             )
-        for line in result.warnings:
+        blur = _blurred_start(log)
+        for line in (*result.warnings, *blur):
             logger.warning("%s", line)
         n = len(result.points)
         obs = result.observations
@@ -92,13 +95,40 @@ def run_build_template(
             "baseline_ratio": result.prediction.baseline_ratio.round(3).tolist(),
         }
         # the link warnings, for the report (they were printed once, at this stage only)
-        stats = {**result.stats, "warnings": list(result.warnings)}
+        stats = {**result.stats, "warnings": [*result.warnings, *blur]}
         write_template_summary(layout, {"stats": stats, "pairs": plan})
         info.update(points=n, groups=plan["groups"], sequence=plan["sequence"], stats=stats,
                     pixel_noise_px=result.pixel_noise_px,
                     tracker_bodies=log.report.get("tracker_bodies", []),
                     sigma_median_mm=float(np.median(sigma) * 1e3) if n else None)
     return result
+
+
+def _blurred_start(log: IngestedLog) -> list[str]:
+    """A warning when frame 0 (the template's) is blurred in some cameras against their next
+    BLUR_FRAMES images (core/template/sharpness), naming the first frame sharp in all of
+    them to start at."""
+    later = range(1, min(log.n_frames, 1 + BLUR_FRAMES))
+    measure = np.full((1 + len(later), len(log.cameras)), np.nan)
+    for row, frame in enumerate((0, *later)):
+        for c in np.flatnonzero(log.usable[frame]):
+            measure[row, c] = sharpness(log.load_image(frame, int(c)))
+    blurred = blurred_cameras(measure[0], measure[1:])
+    if not len(blurred):
+        return []
+    typical = np.nanmedian(measure[1:, blurred], axis=0)
+    sharp = (measure[1:, blurred] >= BLUR_RATIO * typical).all(1)
+    names = ", ".join(log.cameras[c] for c in blurred)
+    values = " / ".join(f"{v:.3g}" for v in measure[0, blurred])
+    against = " / ".join(f"{v:.3g}" for v in typical)
+    advice = "start at a sharp frame with --set ingest.start_s=SECONDS"
+    if sharp.any():
+        first = 1 + int(np.argmax(sharp))
+        since = (log.stamps_ns[first] - log.stamps_ns[0]) / 1e9
+        advice = f"start at frame {first}, the first sharp one: --set ingest.start_s={since:.3f}"
+    return [f"frame 0, the template's, is blurred in camera(s) {names} (sharpness {values} "
+            f"against {against} in the next frames): the template will be sparse and "
+            f"imprecise; {advice}"]
 
 
 def pipeline_step(ctx: StageContext, progress: Callable[[float], None]) -> None:
