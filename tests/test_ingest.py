@@ -498,6 +498,7 @@ def test_a_part_of_a_long_log_is_ingested(tmp_path: Path, capsys):
     for k, t in enumerate(range(3, 12, 2)):
         np.testing.assert_array_equal(part.load_image(k, 0), whole.load_image(t, 0))
     assert part.report["frames_in_log"] == 12 and part.report["part"]["every"] == 2
+    assert part.report["start_s"] == pytest.approx(start)  # where its frame 0 lies
     (said,) = [c for c in run_caveats({}, part.report) if c.startswith("A part of the log")]
     assert said.startswith(f"A part of the log: 5 of its 12 frames (from {start:g} s after")
     assert len(part.image_paths) == len(part.stamps_ns)

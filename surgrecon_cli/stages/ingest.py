@@ -276,6 +276,7 @@ def _assemble(collector: StreamCollector, reader: LogReader, config: Config, sta
     report = _report(ids, cams, stamps, pose_streams, jitter, frames, image_index, usable,
                      trimmed)
     report["frames_in_log"] = keep
+    report["start_s"] = float((frame_stamps[0] - frames.stamps_ns[0]) / 1e9)  # frame 0's
     if keep > T:
         report["part"] = {"start_s": part.start_s, "duration_s": part.duration_s,
                           "every": part.every}

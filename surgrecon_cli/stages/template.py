@@ -107,7 +107,8 @@ def run_build_template(
 def _blurred_start(log: IngestedLog) -> list[str]:
     """A warning when frame 0 (the template's) is blurred in some cameras against their next
     BLUR_FRAMES images (core/template/sharpness), naming the first frame sharp in all of
-    them to start at."""
+    them to start at (the ingest.start_s that starts there: seconds after the log's first
+    frame, where this run's frame 0 is `start_s` of the ingest report)."""
     later = range(1, min(log.n_frames, 1 + BLUR_FRAMES))
     measure = np.full((1 + len(later), len(log.cameras)), np.nan)
     for row, frame in enumerate((0, *later)):
@@ -124,7 +125,8 @@ def _blurred_start(log: IngestedLog) -> list[str]:
     advice = "start at a sharp frame with --set ingest.start_s=SECONDS"
     if sharp.any():
         first = 1 + int(np.argmax(sharp))
-        since = (log.stamps_ns[first] - log.stamps_ns[0]) / 1e9
+        since = log.report.get("start_s", 0.0) + (log.stamps_ns[first] - log.stamps_ns[0]) / 1e9
+        since = np.floor(since * 1e3) / 1e3  # printed to the ms below it: that frame is kept
         advice = f"start at frame {first}, the first sharp one: --set ingest.start_s={since:.3f}"
     return [f"frame 0, the template's, is blurred in camera(s) {names} (sharpness {values} "
             f"against {against} in the next frames): the template will be sparse and "
