@@ -42,8 +42,8 @@ def ingest_cmd(
     Example:
       surgrecon ingest sample_data/sample.mcap -o runs/sample
       surgrecon ingest my_raven.mcap -o runs/raven --config raven.toml --allow-truncated
-      surgrecon ingest long.mcap -o runs/part --set ingest.start_s=120 \\
-          --set ingest.duration_s=30 --set ingest.every=3
+      surgrecon ingest long.mcap -o runs/part --set ingest.duration_s=30 \\
+          --set ingest.every=3
     """
     from ..io.logs.log_input import resolve_log
     from ..io.run.layout import RunLayout

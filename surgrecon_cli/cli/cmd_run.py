@@ -65,8 +65,8 @@ def run_cmd(logs: tuple[Path, ...], run_dir: Path, gt_path: Path | None, allow_t
           --set classify.significance=0.001
       surgrecon run logs/*.mcap -o runs/ --executor processes --workers 2
       surgrecon run logs/*.mcap -o runs/ --scheduler tcp://10.0.0.5:8786
-      surgrecon run long.mcap -o runs/part --set ingest.start_s=120 \\
-          --set ingest.duration_s=30 --set ingest.every=3
+      surgrecon run long.mcap -o runs/part --set ingest.duration_s=30 \\
+          --set ingest.every=3
     """
     from ..io.run.lock import run_folder_lock
     from ..pipeline import open_executor, tagged
