@@ -102,12 +102,13 @@ def _run_one(log: Path, run_dir: Path, gt_path: Path | None, allow_truncated: bo
         result = run_pipeline(log, run_dir, config, ground_truth=gt_path,
                               allow_truncated=allow_truncated, on_progress=on_progress,
                               executor=executor, force=force, seed_from=seed_from)
-    for stage, action in result.actions.items():
-        seconds = result.seconds.get(stage)
-        timing = f" in {seconds:.1f} s" if seconds is not None else ""
-        click.echo(f"{stage:<15} {action}{timing}")
-    if result.evaluation is not None and not quiet:
-        click.echo(format_evaluation(result.evaluation))
+    if not quiet:
+        for stage, action in result.actions.items():
+            seconds = result.seconds.get(stage)
+            timing = f" in {seconds:.1f} s" if seconds is not None else ""
+            click.echo(f"{stage:<15} {action}{timing}")
+        if result.evaluation is not None:
+            click.echo(format_evaluation(result.evaluation))
     click.echo(f"report: {result.report}")
 
 

@@ -14,6 +14,8 @@ import click
 STATE = {"debug": False}
 
 
+QUIET_HELP = "No progress bars or stage lines: warnings, errors and where the result is."
+
 def _set_debug(ctx: click.Context, param: click.Parameter, value: bool) -> bool:
     if value:
         STATE["debug"] = True
@@ -29,7 +31,7 @@ def common_options(func: Callable[..., Any]) -> Callable[..., Any]:
                   help="Override one config key (repeatable), e.g. --set registration.alpha=0.1.")
     @click.option("--debug", is_flag=True, expose_value=False, is_eager=True, callback=_set_debug,
                   help="Show tracebacks and debug logging.")
-    @click.option("--quiet", "-q", is_flag=True, help="No progress bars, warnings only.")
+    @click.option("--quiet", "-q", is_flag=True, help=QUIET_HELP)
     @functools.wraps(func)
     def wrapper(*args: Any, config_path: Path | None, overrides: tuple[str, ...], quiet: bool,
                 **kwargs: Any) -> Any:
@@ -123,7 +125,7 @@ def quiet_options(func: Callable[..., Any]) -> Callable[..., Any]:
 
     @click.option("--debug", is_flag=True, expose_value=False, is_eager=True, callback=_set_debug,
                   help="Show tracebacks and debug logging.")
-    @click.option("--quiet", "-q", is_flag=True, help="No progress bars, warnings only.")
+    @click.option("--quiet", "-q", is_flag=True, help=QUIET_HELP)
     @functools.wraps(func)
     def wrapper(*args: Any, quiet: bool, **kwargs: Any) -> Any:
         setup_logging(quiet)
