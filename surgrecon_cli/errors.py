@@ -31,6 +31,11 @@ def quoted(value: Any, limit: int = NAME_LIMIT) -> str:
     return repr(cut(text, limit)) if isinstance(value, str) else cut(text, limit)
 
 
+def counted(count: int, noun: str) -> str:
+    """`count` and the noun, singular for one: counted(1, "frame") -> "1 frame"."""
+    return f"{count} {noun}" + ("" if count == 1 else "s")
+
+
 class SurgReconError(Exception):
     """Base of every error surgrecon raises on purpose (bad input, bad config, ...).
     `details`: items a person reads as a list (e.g. the topics of a log), printed one per

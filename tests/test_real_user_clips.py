@@ -471,3 +471,12 @@ def test_camera_poses_in_millimetres_are_warned_of(tmp_path: Path, capsys):
     assert _convert(tmp_path / "m.mcap", "--camera-poses", str(tmp_path / "m.tum"),
                     "--frames", "0:2") == 0
     assert "millimetres" not in capsys.readouterr().err
+
+
+def test_one_frame_is_said_in_the_singular(one_frame_run: Path):
+    from surgrecon_cli.errors import counted
+
+    assert (counted(1, "frame"), counted(2, "camera"), counted(0, "point")) == (
+        "1 frame", "2 cameras", "0 points")
+    page = (one_frame_run / "report.html").read_text(encoding="utf-8")
+    assert "1 frame · 2 cameras" in page

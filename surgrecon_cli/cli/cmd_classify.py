@@ -7,6 +7,7 @@ from typing import Any
 
 import click
 
+from ..errors import counted
 from .common import common_options, executor_options, locks_run_folder, progress
 
 
@@ -43,6 +44,7 @@ def classify_cmd(run_dir: Path, config: Any, quiet: bool) -> None:
     counts = info["counts_frames_1_on"]
     total = max(sum(counts.values()), 1)
     shares = ", ".join(f"{name} {n / total:.1%}" for name, n in counts.items())
-    click.echo(f"{info['points']} points x {info['frames']} frames; frames 1..: {shares}")
+    click.echo(f"{counted(info['points'], 'point')} x {counted(info['frames'], 'frame')}; "
+               f"frames 1..: {shares}")
     layout = RunLayout(run_dir)
     click.echo(f"labels -> {layout.labels}; labelled clouds -> {layout.clouds_dir}")

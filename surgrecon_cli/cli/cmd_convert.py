@@ -7,6 +7,7 @@ from pathlib import Path
 
 import click
 
+from ..errors import counted
 from .common import progress, quiet_options
 
 _FILE = click.Path(dir_okay=False, path_type=Path)  # missing: one line from convert
@@ -113,7 +114,8 @@ def convert_cmd(src: Path | None, out: Path, calibration: tuple[Path, ...], left
                              image_format=image_format, frames=frames,
                              scale_calibration=scale_calibration)
     result = convert(request, progress(quiet))
-    click.echo(f"{result.log}: {result.frames} frames of cameras {', '.join(result.cameras)} "
-               f"({result.source}; calibration lengths in {result.units})")
+    click.echo(f"{result.log}: {counted(result.frames, 'frame')} of cameras "
+               f"{', '.join(result.cameras)} ({result.source}; calibration lengths in "
+               f"{result.units})")
     click.echo(f"{result.config}: run it with  surgrecon run {result.log} -o RUN "
                f"--config {result.config}")

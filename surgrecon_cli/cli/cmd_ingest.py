@@ -7,6 +7,7 @@ from typing import Any
 
 import click
 
+from ..errors import counted
 from .common import common_options, locks_run_folder, progress
 
 
@@ -57,7 +58,8 @@ def ingest_cmd(
     if not quiet:
         click.echo(format_report(result.report))
         click.echo(
-            f"{result.n_frames} frames from {len(result.cameras)} cameras -> "
+            f"{counted(result.n_frames, 'frame')} from {counted(len(result.cameras), 'camera')}"
+            " -> "
             f"{RunLayout(run_dir).ingest_dir}"
         )
 

@@ -7,6 +7,7 @@ from typing import Any
 
 import click
 
+from ..errors import counted
 from .common import common_options, executor_options, locks_run_folder, progress
 
 
@@ -40,6 +41,6 @@ def register_cmd(run_dir: Path, config: Any, quiet: bool) -> None:
         processed = run_register(run_dir, config, on_frame=lambda _f, _n: bar.update(1),
                                  executor=executor)
     click.echo(
-        f"registered {len(processed)} frame(s) ({n_frames - 1 - len(processed)} already "
+        f"registered {counted(len(processed), 'frame')} ({n_frames - 1 - len(processed)} already "
         f"done) -> {layout.registration_dir} (labelled clouds: `surgrecon classify`)"
     )

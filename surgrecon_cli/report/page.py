@@ -27,6 +27,7 @@ from ..core.classify.quality import (
     verdict,
 )
 from ..core.measure.indentation import NOT_MEASURED, tool_known
+from ..errors import counted
 from ..io.run.layout import DESCRIBED_FILES, RunLayout
 from . import html as rh
 from .figures import cloud_key
@@ -52,7 +53,8 @@ def compose(layout: RunLayout, data: RunData, metrics: Metrics, views: list[Clou
         (rh.Link(layout.relative(path), layout.relative(path)), what) for path, what in
         ((getattr(layout, name), what) for name, what in DESCRIBED_FILES) if path.exists()])))
     subtitle = (f"{Path(str(data.run.get('input', {}).get('path', ''))).name} · "
-                f"{log.n_frames} frames · {len(log.cameras)} cameras · {layout.root.name}")
+                f"{counted(log.n_frames, 'frame')} · {counted(len(log.cameras), 'camera')} · "
+                f"{layout.root.name}")
     return rh.render("surgrecon run report", subtitle, [s for s in sections if s.blocks],
                      footer=f"surgrecon {__version__} · generated "
                             f"{created.strftime('%Y-%m-%d %H:%M UTC')} · Su, Huang & "
