@@ -26,7 +26,12 @@ from ..core.template.build import (
     TemplateResult,
     build_template,
 )
-from ..core.template.sharpness import BLUR_RATIO, blurred_cameras, sharpness
+from ..core.template.sharpness import (
+    BLUR_RATIO,
+    SHARPNESS_WIDTH_PX,
+    blurred_cameras,
+    sharpness,
+)
 from ..errors import InputError
 from ..executors import Executor, mapper
 from ..executors.heap import kept_heap
@@ -111,9 +116,11 @@ def _blurred_start(log: IngestedLog) -> list[str]:
     frame, where this run's frame 0 is `start_s` of the ingest report)."""
     later = range(1, min(log.n_frames, 1 + BLUR_FRAMES))
     measure = np.full((1 + len(later), len(log.cameras)), np.nan)
-    for row, frame in enumerate((0, *later)):
-        for c in np.flatnonzero(log.usable[frame]):
-            measure[row, c] = sharpness(log.load_image(frame, int(c)))
+    for c, model in enumerate(log.models):  # decoded at the halving nearest the measure's
+        reduced = int(min(8, 2 ** np.floor(np.log2(max(model.width / SHARPNESS_WIDTH_PX, 1)))))
+        for row, frame in enumerate((0, *later)):
+            if log.usable[frame, c]:
+                measure[row, c] = sharpness(log.load_image(frame, c, reduced))
     blurred = blurred_cameras(measure[0], measure[1:])
     if not len(blurred):
         return []

@@ -37,6 +37,8 @@ DECODE_FLAGS = cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION | cv2.IMREAD_ANY
 """How every image is decoded: 3-channel BGR, pixels as stored (8 or 16 bit: `to_8bit`). An
 EXIF orientation tag is ignored, as ROS (cv_bridge) does: the calibration and the size in
 CameraInfo describe the stored pixels, and a rotated image would match neither."""
+REDUCED_FLAGS = {2: cv2.IMREAD_REDUCED_COLOR_2, 4: cv2.IMREAD_REDUCED_COLOR_4,
+                 8: cv2.IMREAD_REDUCED_COLOR_8}  # with DECODE_FLAGS: decoded at 1/2, 1/4, 1/8
 _JPEG_MAGIC = b"\xff\xd8\xff"
 _PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 _CORRUPT = ("Corrupt JPEG data", "Premature end of JPEG file")  # libjpeg: data was damaged

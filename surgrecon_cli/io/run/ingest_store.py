@@ -20,7 +20,7 @@ import numpy as np
 from ...core.geometry.cameras import CameraModel
 from ...core.sync.streams import PoseStream
 from ...errors import InputError, RunFolderError
-from ..logs.images import DECODE_FLAGS, to_8bit
+from ..logs.images import DECODE_FLAGS, REDUCED_FLAGS, to_8bit
 from .atomic import file_identity, write_json, write_npz
 from .layout import RunLayout
 
@@ -73,15 +73,16 @@ class IngestedLog:
         """Camera-to-world poses (C, 4, 4) at a frame, NaN where the camera is unusable."""
         return np.where(self.usable[frame][:, None, None], self.poses[frame], np.nan)
 
-    def load_image(self, frame: int, camera_index: int) -> np.ndarray:
+    def load_image(self, frame: int, camera_index: int, reduced: int = 1) -> np.ndarray:
         """Image (H, W, 3) uint8 RGB of one camera at one frame (16-bit images scaled from
-        the camera's range: io.logs.images.to_8bit of its `pixel_max`)."""
+        the camera's range: io.logs.images.to_8bit of its `pixel_max`); `reduced` 2, 4 or
+        8: decoded at that fraction of its size (a JPEG's cheaper decode; a preview)."""
         rel = self.image_paths[frame][camera_index]
         if not rel:
             raise RunFolderError(f"frame {frame}: camera {self.cameras[camera_index]} has no image")
         path = os.path.join(self.root, rel)  # not a Path: see RunLayout.registration_file
         data = np.fromfile(path, dtype=np.uint8)
-        bgr = cv2.imdecode(data, DECODE_FLAGS)
+        bgr = cv2.imdecode(data, DECODE_FLAGS | REDUCED_FLAGS.get(reduced, 0))
         if bgr is None:
             raise InputError(f"{path}: stored image does not decode; re-run ingest")
         peak = self.report.get("cameras", {}).get(self.cameras[camera_index], {}).get(
