@@ -12,7 +12,7 @@ import numpy as np
 
 from ..core.geometry.cameras import CameraModel
 from ..core.geometry.intrinsics import folds_before_corners, implausible_intrinsics
-from ..core.sync.streams import PoseStream, fmt_stamp, validate_pose_stream
+from ..core.sync.streams import PoseStream, fmt_stamp, nearest_stamps, validate_pose_stream
 from ..core.sync.tf_samples import frame_id_problem
 from ..errors import GeometryError, InputError, quoted
 from ..io.logs.images import StoredImage, prepare_image
@@ -285,12 +285,8 @@ def _frames_near(stamps_ns: np.ndarray, frame_stamps_ns: np.ndarray,
     those within `tolerance_ns` of one."""
     if not len(frame_stamps_ns) or not len(stamps_ns):
         return []
-    hi = np.clip(np.searchsorted(frame_stamps_ns, stamps_ns), 0, len(frame_stamps_ns) - 1)
-    lo = np.clip(hi - 1, 0, None)
-    near = np.where(np.abs(frame_stamps_ns[hi] - stamps_ns)
-                    < np.abs(frame_stamps_ns[lo] - stamps_ns), hi, lo)
-    close = np.abs(frame_stamps_ns[near] - stamps_ns) <= tolerance_ns
-    return sorted({int(k) for k in near[close]})
+    near, off = nearest_stamps(frame_stamps_ns, stamps_ns)
+    return sorted({int(k) for k in near[off <= tolerance_ns]})
 
 
 def _ranges(values: list[int]) -> str:

@@ -112,6 +112,16 @@ class PoseStream:
         return int(self.stamps_ns.shape[0])
 
 
+def nearest_stamps(stamps_ns: np.ndarray, query_ns: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """For each query stamp (N,) ns, the index (N,) of the nearest of stamps (T,) ns
+    (increasing, T >= 1; the earlier on a tie) and its distance (N,) ns from it."""
+    hi = np.clip(np.searchsorted(stamps_ns, query_ns), 0, len(stamps_ns) - 1)
+    lo = np.clip(hi - 1, 0, None)
+    near = np.where(np.abs(stamps_ns[hi] - query_ns) < np.abs(stamps_ns[lo] - query_ns), hi, lo)
+    return near, np.abs(stamps_ns[near] - query_ns)
+
+
 def select_frames(stamps_ns: np.ndarray, start_s: float, duration_s: float, every: int
                   ) -> np.ndarray:
     """The frames (K,) of frame stamps (T,) ns to keep: from `start_s` s after the first

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ...core.sync.streams import nearest_stamps
 from ...errors import InputError
 from ..run.folder import file_sha256
 from .lfs import refuse_lfs_pointer
@@ -43,14 +44,8 @@ class GroundTruth:
         """The truth at the frames of stamps (K,) ns (a part of the log ingested:
         ingest.start_s / duration_s / every): its frame nearest each stamp, which must lie
         within tolerance_ns; InputError naming the file and the first frame without one."""
-        stamps = np.asarray(stamps_ns, np.int64)
         order = np.argsort(self.stamps_ns, kind="stable")
-        known = self.stamps_ns[order]
-        right = np.clip(np.searchsorted(known, stamps), 0, len(known) - 1)
-        left = np.clip(right - 1, 0, len(known) - 1)
-        pick = np.where(np.abs(known[left] - stamps) <= np.abs(known[right] - stamps),
-                        left, right)
-        off = np.abs(known[pick] - stamps)
+        pick, off = nearest_stamps(self.stamps_ns[order], np.asarray(stamps_ns, np.int64))
         if (off > tolerance_ns).any():
             k = int(np.argmax(off > tolerance_ns))
             raise InputError(f"{self.path}: no ground-truth frame within {tolerance_ns / 1e6:g} "
