@@ -5,7 +5,12 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from surgrecon_cli.core.template.sharpness import blurred_cameras, sharpness
+from surgrecon_cli.core.template.sharpness import (
+    blurred_cameras,
+    decode_reduction,
+    first_sharp,
+    sharpness,
+)
 
 
 def test_blur_lowers_sharpness_whatever_the_size_and_exposure():
@@ -26,3 +31,13 @@ def test_blurred_cameras_are_judged_against_their_own_later_frames():
     # camera 0 blurred; 1 sharp; 2 has one later image (not judged); 3's later frames are
     # duller than its first (a different scene, not blur in frame 0)
     np.testing.assert_array_equal(blurred_cameras(first, later), [0])
+    assert first_sharp(later, np.array([0])) == 0
+    blurred_start = np.array([[0.01, 0.02], [0.01, 0.5], [0.5, 0.5], [0.6, 0.5], [0.5, 0.5]])
+    assert first_sharp(blurred_start, np.array([0, 1])) == 2  # both sharp again
+    taking_turns = np.array([[1.0, 0.1], [0.1, 1.0], [1.0, 0.1], [0.1, 1.0]])
+    assert first_sharp(taking_turns, np.array([0, 1])) is None  # never both at once
+
+
+def test_images_are_decoded_no_smaller_than_the_measure_needs():
+    assert [decode_reduction(w) for w in (160, 320, 640, 1279, 1280, 1920, 3840)] == [
+        1, 1, 2, 2, 4, 4, 8]

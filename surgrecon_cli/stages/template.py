@@ -27,10 +27,11 @@ from ..core.template.build import (
     build_template,
 )
 from ..core.template.sharpness import (
-    BLUR_RATIO,
-    SHARPNESS_WIDTH_PX,
     blurred_cameras,
+    decode_reduction,
+    first_sharp,
     sharpness,
+    typical_sharpness,
 )
 from ..errors import InputError
 from ..executors import Executor, mapper
@@ -116,22 +117,21 @@ def _blurred_start(log: IngestedLog) -> list[str]:
     frame, where this run's frame 0 is `start_s` of the ingest report)."""
     later = range(1, min(log.n_frames, 1 + BLUR_FRAMES))
     measure = np.full((1 + len(later), len(log.cameras)), np.nan)
-    for c, model in enumerate(log.models):  # decoded at the halving nearest the measure's
-        reduced = int(min(8, 2 ** np.floor(np.log2(max(model.width / SHARPNESS_WIDTH_PX, 1)))))
+    for c, model in enumerate(log.models):
+        reduced = decode_reduction(model.width)
         for row, frame in enumerate((0, *later)):
             if log.usable[frame, c]:
                 measure[row, c] = sharpness(log.load_image(frame, c, reduced))
     blurred = blurred_cameras(measure[0], measure[1:])
     if not len(blurred):
         return []
-    typical = np.nanmedian(measure[1:, blurred], axis=0)
-    sharp = (measure[1:, blurred] >= BLUR_RATIO * typical).all(1)
     names = ", ".join(log.cameras[c] for c in blurred)
     values = " / ".join(f"{v:.3g}" for v in measure[0, blurred])
-    against = " / ".join(f"{v:.3g}" for v in typical)
+    against = " / ".join(f"{v:.3g}" for v in typical_sharpness(measure[1:])[blurred])
     advice = "start at a sharp frame with --set ingest.start_s=SECONDS"
-    if sharp.any():
-        first = 1 + int(np.argmax(sharp))
+    sharp = first_sharp(measure[1:], blurred)
+    if sharp is not None:
+        first = 1 + sharp
         since = log.report.get("start_s", 0.0) + (log.stamps_ns[first] - log.stamps_ns[0]) / 1e9
         since = np.floor(since * 1e3) / 1e3  # printed to the ms below it: that frame is kept
         advice = f"start at frame {first}, the first sharp one: --set ingest.start_s={since:.3f}"

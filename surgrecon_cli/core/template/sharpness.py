@@ -30,11 +30,33 @@ def sharpness(image: np.ndarray) -> float:
     return float(cv2.Laplacian(small, cv2.CV_32F).var() / spread)
 
 
-def blurred_cameras(first: np.ndarray, later: np.ndarray) -> np.ndarray:
-    """Cameras (indices) whose frame-0 sharpness first (C,) is below BLUR_RATIO of the
-    median of the later frames' later (K, C) (NaN: no image; a camera with fewer than 2
-    later images is not judged)."""
+def decode_reduction(width_px: int) -> int:
+    """The largest of 1, 2, 4, 8 that keeps an image of width_px at least SHARPNESS_WIDTH_PX
+    wide: it can be decoded that much smaller (a JPEG's cheaper decode) for `sharpness`."""
+    return int(min(8, 2 ** np.floor(np.log2(max(width_px / SHARPNESS_WIDTH_PX, 1.0)))))
+
+
+def typical_sharpness(later: np.ndarray) -> np.ndarray:
+    """Each camera's median sharpness (C,) over later frames' later (K, C) (NaN: no image);
+    NaN for a camera with fewer than 2 later images (not judged)."""
     have = np.isfinite(later).sum(0) >= 2
     with np.errstate(invalid="ignore"):
-        typical = np.where(have, np.nanmedian(np.where(have, later, 0.0), axis=0), np.nan)
-        return np.flatnonzero(have & np.isfinite(first) & (first < BLUR_RATIO * typical))
+        return np.where(have, np.nanmedian(np.where(have, later, 0.0), axis=0), np.nan)
+
+
+def blurred_cameras(first: np.ndarray, later: np.ndarray) -> np.ndarray:
+    """Cameras (indices) whose frame-0 sharpness first (C,) is below BLUR_RATIO of their
+    `typical_sharpness` over the later frames' later (K, C)."""
+    typical = typical_sharpness(later)
+    with np.errstate(invalid="ignore"):
+        return np.flatnonzero(np.isfinite(typical) & np.isfinite(first)
+                              & (first < BLUR_RATIO * typical))
+
+
+def first_sharp(later: np.ndarray, cameras: np.ndarray) -> int | None:
+    """The first of the later frames' later (K, C) at which every one of `cameras` is
+    sharp again (not below BLUR_RATIO of its `typical_sharpness`), or None."""
+    typical = typical_sharpness(later)[cameras]
+    with np.errstate(invalid="ignore"):
+        sharp = (later[:, cameras] >= BLUR_RATIO * typical).all(1)
+    return int(np.argmax(sharp)) if sharp.any() else None
