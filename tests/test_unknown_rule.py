@@ -1,14 +1,15 @@
 """The unknown rule tests the uncertainty of the displacement the labels are decided from
 (issue 24): a template point's frame-0 error that tracking carries into its later
-measurements cancels, a point far from any data stays unknown. Expected figures come from
-the simulated errors themselves."""
+measurements cancels, a point far from any data stays unknown, and a point known loosely
+but moved far beyond that looseness is moving. Expected figures come from the simulated
+errors themselves."""
 
 from __future__ import annotations
 
 import numpy as np
 
 from surgrecon_cli.config import ClassifyConfig
-from surgrecon_cli.core.classify.labels import SHIFTING, UNKNOWN
+from surgrecon_cli.core.classify.labels import DEFORMING, SHIFTING, STATIC, UNKNOWN
 from surgrecon_cli.core.classify.rules import (
     Evidence,
     RegisteredFrame,
@@ -32,9 +33,15 @@ def _carried(rng: np.random.Generator, template: np.ndarray, motion: np.ndarray)
     return truth, template + e0, measured, cov_t
 
 
-def _evidence(measured: np.ndarray, cov_t: np.ndarray, sigma: np.ndarray) -> Evidence:
+def _evidence(measured: np.ndarray, cov_t: np.ndarray, sigma: np.ndarray,
+              has_target: np.ndarray | None = None) -> Evidence:
+    """As stages/classify.frame_evidence: the target's covariance plus the template's where
+    there is a target (default: everywhere), else isotropic from the registered σ."""
     t_var = np.trace(cov_t, axis1=1, axis2=2)
-    cov = cov_t * 2 + np.eye(3) * LOCAL_M**2  # as stages/classify: target's plus template's
+    cov = cov_t * 2 + np.eye(3) * LOCAL_M**2
+    if has_target is not None:
+        iso = (sigma**2 + t_var) / 3.0
+        cov[~has_target] = iso[~has_target, None, None] * np.eye(3)
     return Evidence(sigma=sigma, template_sigma=np.sqrt(t_var), measured=measured,
                     measured_sigma=sigma, displacement_cov=cov, departure_cov=cov,
                     template_shared_var=t_var)
@@ -71,8 +78,41 @@ def test_measured_points_are_labelled_and_far_ones_unknown():
     nb = template_neighbourhoods(p0, cfg.neighbourhood_mm, cfg.min_neighbours,
                                  cfg.max_neighbours)
     labels = classify_frame(p0, RegisteredFrame(measured), nb, cfg,
-                            evidence=_evidence(measured, cov_t, sigma)).labels
+                            evidence=_evidence(measured, cov_t, sigma, ~far)).labels
+    # their 2 mm of extrapolated motion is within their σ (1.9-4.1 mm): unknown
     assert (labels[far] == UNKNOWN).all()
     # the measured points moved 2 mm rigidly: shifting, whatever their absolute depth error
     assert (labels[~far] == SHIFTING).mean() > 0.95
     assert n > far.sum() > 0
+
+
+def test_loosely_measured_points_that_clearly_moved_are_moving():
+    # A narrow stereo baseline far from the tissue: depth known to 2.5 mm, the directions
+    # across the lines of sight to 0.1 mm, so the displacement's σ (2.5 mm) is above
+    # classify.max_sigma_mm. The half of the tissue that slid 3 mm sideways has moved
+    # beyond any doubt and is moving (shifting, or deforming at the fold); the still half's
+    # displacement is within its noise and, known this loosely, not called static.
+    rng = np.random.default_rng(13)
+    g = np.arange(-10, 10) * 1e-3
+    xx, yy = np.meshgrid(g, g)
+    template = np.column_stack([xx.ravel(), yy.ravel(), np.full(xx.size, 0.06)])
+    n = len(template)
+    cov = np.broadcast_to(np.diag(np.array([0.1e-3, 0.1e-3, 2.5e-3]) ** 2), (n, 3, 3)).copy()
+    slid = template[:, 0] < 0
+    noise = rng.standard_normal((n, 3)) * np.array([0.1e-3, 0.1e-3, 2.5e-3])
+    registered = template + noise + np.where(slid[:, None], [0.003, 0.0, 0.0], 0.0)
+    sigma = np.full(n, 2.5e-3)
+    evidence = Evidence(sigma=sigma, template_sigma=np.zeros(n), measured=registered,
+                        measured_sigma=sigma, displacement_cov=cov, departure_cov=cov)
+    cfg = ClassifyConfig()
+    assert (evidence.displacement_sigma() * 1e3 > cfg.max_sigma_mm).all()
+    nb = template_neighbourhoods(template, cfg.neighbourhood_mm, cfg.min_neighbours,
+                                 cfg.max_neighbours)
+    labels = classify_frame(template, RegisteredFrame(registered), nb, cfg,
+                            evidence=evidence).labels
+    assert np.isin(labels[slid], (SHIFTING, DEFORMING)).all()
+    # beyond a neighbourhood's radius from the fold, the slid half moved as one piece
+    inner = template[:, 0] < -(cfg.neighbourhood_mm + 0.5) * 1e-3
+    assert (labels[inner] == SHIFTING).mean() > 0.95
+    assert (labels[~slid] == UNKNOWN).mean() > 0.95
+    assert not (labels == STATIC).any()

@@ -300,7 +300,8 @@ class ClassifyConfig:
     max_sigma_mm: float = _doc(
         1.0, "a point whose displacement from frame 0 is less certain than this (RMS, mm; "
         "the template's own error, which tracking carries into later measurements, cancels) "
-        "is unknown (default: the clinical 1 mm accuracy requirement)", bounds=(0, 1000)
+        "is unknown, unless it moved beyond that uncertainty (default: the clinical 1 mm "
+        "accuracy requirement)", bounds=(0, 1000)
     )
     status_band_mm: float = _doc(
         0.0, "within this of static_mm the reprojection check decides: intra-camera inlier "

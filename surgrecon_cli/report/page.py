@@ -215,7 +215,8 @@ def _quality(data: RunData, frames: FrameFigures, metrics: Metrics,
     ]))
     sec.add(*_place(pngs, "quality",
                     "Left: share of template points observed in the frame, labelled unknown "
-                    "(σ above classify.max_sigma_mm: far from data, or measured too loosely) "
+                    "(σ above classify.max_sigma_mm and no motion beyond it: far from data, or "
+                    "measured too loosely) "
                     "and rejected as outliers. Right: median uncertainty σ "
                     "of the labelled points, and the median registration residual in units of "
                     "the target's σ (about 1 when the fit is as good as the noise allows)."))
