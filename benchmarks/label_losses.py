@@ -13,11 +13,11 @@ followed through the frames):
   point-frame, recomputed from the run's registration with stages/classify's evidence
   (`agree` is the share where that recomputation gives the stored label; points that
   core/classify/quality.unsupported_points makes unknown differ): `unknown` (displacement σ
-  above classify.max_sigma_mm), `< static` (measured displacement below classify.static_mm),
-  `motion n.s.` (displacement within its noise), `rms < deform` (the registered
-  neighbourhood's rigid-fit RMS below classify.deform_mm), `departure n.s.` (the RMS
-  reaches it, but the neighbourhood's departure from one rigid motion is within the
-  frame's calibrated noise), `deforming`;
+  above classify.max_sigma_mm and the displacement within it), `< static` (measured
+  displacement below classify.static_mm), `motion n.s.` (displacement within its noise),
+  `rms < deform` (the registered neighbourhood's rigid-fit RMS below classify.deform_mm),
+  `departure n.s.` (the RMS reaches it, but the neighbourhood's departure from one rigid
+  motion is within the frame's calibrated noise), `deforming`;
   with each step's median true displacement, the median error of the measured position
   against the true one (mm) and the median measured displacement;
 - three bounds, macro-F1 and deforming precision / recall, frames 1 on:
@@ -66,11 +66,11 @@ def decisions(template: np.ndarray, registered: np.ndarray, status: np.ndarray,
     n = len(template)
     labels = rules.classify_frame(template, rules.RegisteredFrame(registered, None, status), nb,
                                   cfg, evidence=evidence)
-    known = np.isfinite(registered).all(1)
-    known &= evidence.displacement_sigma() * 1e3 <= cfg.max_sigma_mm
     moved = labels.displacement_mm >= cfg.static_mm
     significant = rules.significant_motion(registered - template, evidence.displacement_cov,
                                            cfg.significance)
+    known = np.isfinite(registered).all(1)
+    known &= significant | (evidence.displacement_sigma() * 1e3 <= cfg.max_sigma_mm)
     step = np.full(n, STEPS.index("deforming"))
     dynamic = known & moved & significant
     rms = np.where(dynamic, labels.deformation_mm, np.nan)
