@@ -31,7 +31,11 @@ Per camera:
    taken out; cameras of one narrow stereo head share each point's correction (the mean of
    their views', `shared_drift`), which keeps the pair's disparity. The chained pixels held
    for the next frame (`rig.chains`) stay as tracked, so that a frame tracked again through
-   its previous frame finds the same ones.
+   its previous frame finds the same ones;
+4. stereo: the two views of a point in a narrow stereo pair (a `lock_groups` group of two
+   cameras) are moved apart so that their disparity is the one the pair's images of this
+   instant show (core/target/stereo_check.py): a view that slipped along its epipolar line
+   no longer makes millimetres of false depth.
 
 A frame whose previous frame is not its base (re-basing every N_T >= 2 frames) is chained
 through the previous frame's images (base -> previous -> frame, `_via`: the previous
@@ -60,6 +64,7 @@ from ..geometry.tool import tool_pixel_mask
 from ..noise.model import localisation_variance_px2
 from .frame_inputs import FrameInput, Rig, Sighting
 from .reacquire import descriptor_motion
+from .stereo_check import disparity_errors
 from .template_lock import lock_groups, lock_to_template, shared_drift
 from .tracking import (
     NEIGHBOUR_RADIUS_PX,
@@ -373,6 +378,27 @@ def find_points(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig,
     if frame.previous is None and rig.chains is not None:
         rig.chains.put(rig.chains.key(latest, base, frame.index), chained)
     if np.isfinite(drift).any():  # not when tracking without anchors (`_via`)
-        shared = shared_drift(drift, lock_groups(cur_poses[:, :3, 3], latest))
-        pixels += np.where(found[..., None], shared, 0.0)
+        groups = lock_groups(cur_poses[:, :3, 3], latest)
+        pixels += np.where(found[..., None], shared_drift(drift, groups), 0.0)
+        for pair in (g for g in groups if len(g) == 2):
+            _stereo_disparity(pixels, found, pair, frame, anchor_views, anchor_pixels, cfg)
     return pixels, found, localisation
+
+
+def _stereo_disparity(pixels: np.ndarray, found: np.ndarray, pair: np.ndarray,
+                      frame: FrameInput, anchor_views: list[TrackingView | None] | None,
+                      anchor_pixels: np.ndarray | None, cfg: TargetConfig) -> None:
+    """Step 4, in place on pixels (N, C, 2): the two views of each point of a narrow stereo
+    pair (cameras `pair`) are moved apart by half the error of their disparity each
+    (core/target/stereo_check.py), their mean kept."""
+    a, b = pair
+    if anchor_views is None or anchor_pixels is None:
+        return
+    views, anchors = (frame.views[a], frame.views[b]), (anchor_views[a], anchor_views[b])
+    if None in views or None in anchors:
+        return
+    current = np.where(found[:, pair, None], pixels[:, pair], np.nan)
+    error = disparity_errors(anchors, views, anchor_pixels[:, pair], current, cfg)
+    fix = np.isfinite(error).all(1)
+    pixels[fix, a] -= error[fix] / 2
+    pixels[fix, b] += error[fix] / 2
