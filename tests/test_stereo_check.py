@@ -10,7 +10,7 @@ import numpy as np
 from test_template_lock import SIZE, texture
 
 from surgrecon_cli.config import TargetConfig
-from surgrecon_cli.core.target.stereo_check import disparity_errors
+from surgrecon_cli.core.target.stereo_check import disparity_errors, stereo_match
 from surgrecon_cli.core.target.tracking import tracking_view
 
 MOTION_PX = np.array([3.3, -2.1])  # the scene's image motion from frame 0 (both eyes)
@@ -53,7 +53,11 @@ def test_slips_along_the_epipolar_line_are_measured_and_true_tracks_left():
                     len(left0)), 0.0)
     pixels[:, 1, 0] += slip
     pixels[-5:] = np.nan  # not found now: no error
-    errors = disparity_errors(anchor, now, anchor_pixels, pixels, TargetConfig())
+    cfg = TargetConfig()
+    anchor_match = stereo_match(anchor, anchor_pixels, cfg)
+    # at frame 0 the match finds the true right pixels
+    assert np.nanmedian(np.linalg.norm(anchor_match - anchor_pixels[:, 1], axis=1)) < 0.05
+    errors = disparity_errors(now, pixels, anchor_pixels, anchor_match, cfg)
     assert np.isnan(errors[-5:]).all()
     ok = np.isfinite(errors).all(1)
     assert ok[:-5].mean() > 0.9

@@ -33,7 +33,7 @@ from ..geometry.poses import compose_affines
 from ..geometry.tool import push_out_of_tool
 from ..noise.model import NoiseModel, covariance_sigma
 from ..target.cloud import TargetCloud, build_target, new_target_points
-from ..target.frame_inputs import ChainMemo, FrameInput, Rig, Sighting, TemplateData
+from ..target.frame_inputs import ChainMemo, FrameInput, PairMemo, Rig, Sighting, TemplateData
 from ..target.tracking import TrackingView
 from ..template.build import TemplateFrame, build_template
 from . import RegistrationResult, register
@@ -251,7 +251,8 @@ class FrameRegistrar:
     def __init__(self, template: TemplateData, models: list[CameraModel], noise: NoiseModel,
                  config: Config, anchor: list[TrackingView | None] | None = None) -> None:
         self.template = template
-        self.rig = Rig(list(models), noise, config.target, config.tool_configs(), ChainMemo())
+        self.rig = Rig(list(models), noise, config.target, config.tool_configs(), ChainMemo(),
+                       PairMemo())
         self.config = config
         self.anchor = anchor
         self.template_sigma = covariance_sigma(template.covariance)

@@ -7,6 +7,7 @@ from __future__ import annotations
 import hashlib
 import threading
 from collections import OrderedDict
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -67,17 +68,41 @@ class ChainMemo:
                 self._items.popitem(last=False)
 
 
+class PairMemo:
+    """Per pair of cameras (a, b), an array computed once for the run (the template's
+    stereo matches, core/target/track_points._stereo_disparity), in this process;
+    thread-safe."""
+
+    def __init__(self) -> None:
+        self._items: dict[tuple[int, int], np.ndarray] = {}
+        self._lock = threading.Lock()
+
+    def get(self, pair: tuple[int, int], compute: Callable[[], np.ndarray]) -> np.ndarray:
+        """The array held for `pair`, computed by `compute` (and held, read-only) the first
+        time."""
+        with self._lock:
+            held = self._items.get(pair)
+        if held is None:
+            held = compute()
+            held.flags.writeable = False
+            with self._lock:
+                held = self._items.setdefault(pair, held)
+        return held
+
+
 @dataclass(frozen=True)
 class Rig:
     """The run's cameras (C models), its measured noise model, the target cloud's config,
     every tool's geometry (`Config.tool_configs()`) and, for a run's frame step, the memo
-    of its frames' chained tracks (`ChainMemo`; None: nothing held)."""
+    of its frames' chained tracks (`ChainMemo`; None: nothing held) and of the template's
+    stereo matches (`PairMemo`; None: matched again every frame)."""
 
     models: list[CameraModel]
     noise: NoiseModel
     cfg: TargetConfig
     tools: ToolConfigs
     chains: ChainMemo | None = None
+    pair_matches: PairMemo | None = None
 
 
 @dataclass(frozen=True)

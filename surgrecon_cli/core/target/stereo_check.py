@@ -31,23 +31,32 @@ from .tracking import TrackingView, klt_track
 STEREO_LEVELS = 1  # ours: pyramid levels above the image for the match (a slip is < 2 px)
 
 
-def disparity_errors(anchor: tuple[TrackingView, TrackingView],
-                     view: tuple[TrackingView, TrackingView], anchor_pixels: np.ndarray,
-                     pixels: np.ndarray, cfg: TargetConfig) -> np.ndarray:
+def stereo_match(view: tuple[TrackingView, TrackingView], pixels: np.ndarray,
+                 cfg: TargetConfig) -> np.ndarray:
+    """Where each point's patch around its first-view pixel matches in the second view
+    (M, 2) px (KLT from pixels (M, 2, 2) px, first view's to the second view's as the
+    start; NaN where a pixel is missing or the match fails KLT's forward-backward, patch or
+    highlight checks)."""
+    matched = np.full((len(pixels), 2), np.nan)
+    rows = np.flatnonzero(np.isfinite(pixels).all((1, 2)))
+    if len(rows):
+        found, ok = klt_track(view[0], view[1], pixels[rows, 0], pixels[rows, 1], cfg,
+                              STEREO_LEVELS)
+        matched[rows[ok]] = found[ok]
+    return matched
+
+
+def disparity_errors(view: tuple[TrackingView, TrackingView], pixels: np.ndarray,
+                     anchor_pixels: np.ndarray, anchor_match: np.ndarray,
+                     cfg: TargetConfig) -> np.ndarray:
     """The errors (M, 2) px of one stereo pair's tracked disparities (module docstring):
-    anchor / view the pair's template and current images (first camera, second camera),
-    anchor_pixels and pixels (M, 2, 2) px the points' frame-0 and current pixels in the two
-    cameras (NaN = not found). Per point: where the first view's patch matches in the
-    second view, less its tracked pixel there, less the same at frame 0. NaN where either
-    match failed (KLT's forward-backward, patch and highlight checks)."""
-    errors = np.full((len(pixels), 2), np.nan)
-    rows = np.flatnonzero(np.isfinite(pixels).all((1, 2)) & np.isfinite(anchor_pixels).all((1, 2)))
-    if not len(rows):
-        return errors
-    now, ok_now = klt_track(view[0], view[1], pixels[rows, 0], pixels[rows, 1], cfg,
-                            STEREO_LEVELS)
-    then, ok_then = klt_track(anchor[0], anchor[1], anchor_pixels[rows, 0],
-                              anchor_pixels[rows, 1], cfg, STEREO_LEVELS)
-    ok = ok_now & ok_then
-    errors[rows[ok]] = ((now - pixels[rows, 1]) - (then - anchor_pixels[rows, 1]))[ok]
-    return errors
+    view the pair's current images (first camera, second camera), pixels and anchor_pixels
+    (M, 2, 2) px the points' current and frame-0 pixels in the two cameras (NaN = not
+    found), anchor_match (M, 2) px the frame-0 `stereo_match` of the template's images.
+    Per point: where the first view's patch matches in the second view, less its tracked
+    pixel there, less the same at frame 0; NaN where either match is missing."""
+    out = np.full((len(pixels), 2), np.nan)
+    rows = np.flatnonzero(np.isfinite(anchor_match).all(1))
+    now = stereo_match(view, pixels[rows], cfg)
+    out[rows] = (now - pixels[rows, 1]) - (anchor_match[rows] - anchor_pixels[rows, 1])
+    return out

@@ -52,6 +52,7 @@ by the chained tracks around them.
 from __future__ import annotations
 
 from dataclasses import replace
+from functools import partial
 
 import cv2
 import numpy as np
@@ -64,7 +65,7 @@ from ..geometry.tool import tool_pixel_mask
 from ..noise.model import localisation_variance_px2
 from .frame_inputs import FrameInput, Rig, Sighting
 from .reacquire import descriptor_motion
-from .stereo_check import disparity_errors
+from .stereo_check import disparity_errors, stereo_match
 from .template_lock import lock_groups, lock_to_template, shared_drift
 from .tracking import (
     NEIGHBOUR_RADIUS_PX,
@@ -381,24 +382,31 @@ def find_points(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig,
         groups = lock_groups(cur_poses[:, :3, 3], latest)
         pixels += np.where(found[..., None], shared_drift(drift, groups), 0.0)
         for pair in (g for g in groups if len(g) == 2):
-            _stereo_disparity(pixels, found, pair, frame, anchor_views, anchor_pixels, cfg)
+            _stereo_disparity(pixels, found, pair, frame, rig, anchor_views, anchor_pixels)
     return pixels, found, localisation
 
 
 def _stereo_disparity(pixels: np.ndarray, found: np.ndarray, pair: np.ndarray,
-                      frame: FrameInput, anchor_views: list[TrackingView | None] | None,
-                      anchor_pixels: np.ndarray | None, cfg: TargetConfig) -> None:
+                      frame: FrameInput, rig: Rig,
+                      anchor_views: list[TrackingView | None] | None,
+                      anchor_pixels: np.ndarray | None) -> None:
     """Step 4, in place on pixels (N, C, 2): the two views of each point of a narrow stereo
     pair (cameras `pair`) are moved apart by half the error of their disparity each
-    (core/target/stereo_check.py), their mean kept."""
-    a, b = pair
-    if anchor_views is None or anchor_pixels is None:
+    (core/target/stereo_check.py), their mean kept. The template's own match is made once
+    per run (`rig.pair_matches`)."""
+    a, b = int(pair[0]), int(pair[1])
+    view_a, view_b = frame.views[a], frame.views[b]
+    if anchor_views is None or anchor_pixels is None or view_a is None or view_b is None:
         return
-    views, anchors = (frame.views[a], frame.views[b]), (anchor_views[a], anchor_views[b])
-    if None in views or None in anchors:
+    anchor_a, anchor_b = anchor_views[a], anchor_views[b]
+    if anchor_a is None or anchor_b is None:
         return
-    current = np.where(found[:, pair, None], pixels[:, pair], np.nan)
-    error = disparity_errors(anchors, views, anchor_pixels[:, pair], current, cfg)
+    at_anchor = anchor_pixels[:, [a, b]]
+    template_match = partial(stereo_match, (anchor_a, anchor_b), at_anchor, rig.cfg)
+    anchor_match = (template_match() if rig.pair_matches is None
+                    else rig.pair_matches.get((a, b), template_match))
+    current = np.where(found[:, [a, b], None], pixels[:, [a, b]], np.nan)
+    error = disparity_errors((view_a, view_b), current, at_anchor, anchor_match, rig.cfg)
     fix = np.isfinite(error).all(1)
     pixels[fix, a] -= error[fix] / 2
     pixels[fix, b] += error[fix] / 2
