@@ -382,18 +382,19 @@ def find_points(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig,
         groups = lock_groups(cur_poses[:, :3, 3], latest)
         pixels += np.where(found[..., None], shared_drift(drift, groups), 0.0)
         for pair in (g for g in groups if len(g) == 2):
-            _stereo_disparity(pixels, found, pair, frame, rig, anchor_views, anchor_pixels)
+            _stereo_disparity(pixels, found, pair, frame, rig, (anchor_views, anchor_pixels))
     return pixels, found, localisation
 
 
 def _stereo_disparity(pixels: np.ndarray, found: np.ndarray, pair: np.ndarray,
                       frame: FrameInput, rig: Rig,
-                      anchor_views: list[TrackingView | None] | None,
-                      anchor_pixels: np.ndarray | None) -> None:
+                      anchors: tuple[list[TrackingView | None] | None, np.ndarray | None]
+                      ) -> None:
     """Step 4, in place on pixels (N, C, 2): the two views of each point of a narrow stereo
     pair (cameras `pair`) are moved apart by half the error of their disparity each
     (core/target/stereo_check.py), their mean kept. The template's own match is made once
-    per run (`rig.pair_matches`)."""
+    per run (`rig.pair_matches`). anchors: the template's views and pixels (N, C, 2)."""
+    anchor_views, anchor_pixels = anchors
     a, b = int(pair[0]), int(pair[1])
     view_a, view_b = frame.views[a], frame.views[b]
     if anchor_views is None or anchor_pixels is None or view_a is None or view_b is None:
