@@ -44,16 +44,15 @@ def patch_offsets(window_px: int, stride: int = 1) -> np.ndarray:
     return np.column_stack([u.ravel(), v.ravel()])
 
 
-def sample_patches(image: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Bilinear samples (M, P) float32 of image (H, W) float32 at points (M, P, 2) px, or
-    (M, P, K) of an image (H, W, K)."""
-    out = np.empty(points.shape[:2] + image.shape[2:], np.float32)
-    maps = points.astype(np.float32, copy=False)
-    for start in range(0, len(maps), REMAP_ROWS):
-        chunk = maps[start:start + REMAP_ROWS]
-        out[start:start + REMAP_ROWS] = cv2.remap(image, chunk[..., 0], chunk[..., 1],
-                                                  cv2.INTER_LINEAR,
-                                                  borderMode=cv2.BORDER_REPLICATE)
+def sample_patches(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Bilinear samples (M, P) float32 of image (H, W) float32 at pixels (x, y) (each
+    (M, P) px), or (M, P, K) of an image (H, W, K)."""
+    out = np.empty(x.shape + image.shape[2:], np.float32)
+    map_x, map_y = x.astype(np.float32, copy=False), y.astype(np.float32, copy=False)
+    for start in range(0, len(map_x), REMAP_ROWS):
+        end = start + REMAP_ROWS
+        out[start:end] = cv2.remap(image, map_x[start:end], map_y[start:end],
+                                   cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     return out
 
 
@@ -74,7 +73,8 @@ def template_patches(anchor: TrackingView, centres: np.ndarray, maps: np.ndarray
     gradient in that view's pixels, A⁻ᵀ ∇I₀ (`TrackingView.gradients`)."""
     inv = np.linalg.inv(maps).astype(np.float32)
     back = np.matmul(offsets[None], inv.transpose(0, 2, 1))
-    samples = sample_patches(anchor.gradients, centres.astype(np.float32)[:, None, :] + back)
+    at = centres.astype(np.float32)
+    samples = sample_patches(anchor.gradients, at[:, :1] + back[..., 0], at[:, 1:] + back[..., 1])
     patch, gx, gy = samples[..., 0], samples[..., 1], samples[..., 2]
     dx = inv[:, 0, 0, None] * gx + inv[:, 1, 0, None] * gy
     dy = inv[:, 0, 1, None] * gx + inv[:, 1, 1, None] * gy
@@ -105,8 +105,8 @@ def align_patches(template: tuple[np.ndarray, np.ndarray, np.ndarray], image: np
     for iteration in range(LOCK_ITERATIONS):
         if not len(active):
             break
-        values = sample_patches(image, (pixels[active] + shift[active])[:, None, :]
-                                + offsets[None])
+        at = pixels[active] + shift[active]
+        values = sample_patches(image, at[:, :1] + offsets[:, 0], at[:, 1:] + offsets[:, 1])
         last_ncc[active] = correlation(values, patch[active])
         if iteration == 0:
             start_ncc = last_ncc.copy()
