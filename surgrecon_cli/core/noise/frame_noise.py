@@ -140,13 +140,17 @@ def retriangulate(found: np.ndarray, pixels: np.ndarray, models: list[CameraMode
 @dataclass(frozen=True)
 class LocalFits:
     """The leave-one-out quadratic fits of one camera's tracks (`local_motion_residuals`),
-    set up once for any weighting of the neighbours: idx (K, M) the K nearest other tracks
-    of each of the M tracks (by reference pixel), design (K, M, 6) their monomials
+    set up once for any weighting of the neighbours: idx (M, K) the K nearest other tracks
+    of each of the M tracks (by reference pixel), design (M, 6, K) their monomials
     1, u, v, u², uv, v² of the offsets (u, v) about the track divided by scale (M,) px (so
-    at most 1; (K, M, 3) for affine fits), motion (M, 2) px each track's motion."""
+    at most 1; (M, 3, K) for affine fits), columns (M, K, 8) the same monomials beside the
+    neighbours' motions (the right-hand factor of one batched product that gives each fit's
+    normal equations and right-hand side; (M, K, 5) for affine fits), motion (M, 2) px each
+    track's motion."""
 
     idx: np.ndarray
     design: np.ndarray
+    columns: np.ndarray
     motion: np.ndarray
     scale: np.ndarray
 
@@ -158,12 +162,14 @@ class LocalFits:
         ref = np.asarray(reference, float).reshape(-1, 2)
         motion = np.asarray(current, float).reshape(-1, 2) - ref
         _, idx = cKDTree(ref).query(ref, k=neighbours + 1)
-        idx = np.ascontiguousarray(idx[:, 1:].T)  # the nearest is the track itself: left out
-        u, v = ref[idx, 0] - ref[:, 0], ref[idx, 1] - ref[:, 1]  # (K, M) about the track
-        scale = np.maximum(np.maximum(np.abs(u).max(0), np.abs(v).max(0)), 1e-9)
-        u, v = u / scale, v / scale
+        idx = np.ascontiguousarray(idx[:, 1:])  # the nearest is the track itself: left out
+        u, v = ref[idx, 0] - ref[:, :1], ref[idx, 1] - ref[:, 1:]  # (M, K) about the track
+        scale = np.maximum(np.maximum(np.abs(u).max(1), np.abs(v).max(1)), 1e-9)
+        u, v = u / scale[:, None], v / scale[:, None]
         monomials = [np.ones_like(u), u, v] + ([u * u, u * v, v * v] if quadratic else [])
-        return cls(idx, np.stack(monomials, -1), motion, scale)
+        design = np.stack(monomials, 1)
+        columns = np.concatenate([design.transpose(0, 2, 1), motion[idx]], 2)
+        return cls(idx, design, columns, motion, scale)
 
     def _solve(self, weight: np.ndarray | None, rows: np.ndarray | None
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -172,20 +178,20 @@ class LocalFits:
         (R, 6) and whether each fit is determined (R,) bool (at least MIN_FIT_PER_TERM
         weighted neighbours per monomial and a leverage under MAX_LEVERAGE); 3 in place of
         6 for affine fits."""
-        idx, design = (self.idx, self.design) if rows is None else (
-            self.idx[:, rows], self.design[:, rows])
-        w = np.ones(idx.shape) if weight is None else np.asarray(weight, float)[idx]  # (K, R)
-        weighted = design * w[..., None]
-        normal = np.matmul(np.ascontiguousarray(weighted.transpose(1, 2, 0)),
-                           np.ascontiguousarray(design.transpose(1, 0, 2)))
-        terms = design.shape[-1]
+        idx, design, columns = (self.idx, self.design, self.columns) if rows is None else (
+            self.idx[rows], self.design[rows], self.columns[rows])
+        w = np.ones(idx.shape) if weight is None else np.asarray(weight, float)[idx]  # (R, K)
+        weighted = design if weight is None else design * w[:, None, :]
+        product = np.matmul(weighted, columns)  # (R, terms, terms + 2): XᵀWX beside XᵀWy
+        terms = design.shape[1]
+        normal = product[:, :, :terms]
         normal += (RIDGE * np.trace(normal, axis1=1, axis2=2) + RIDGE)[:, None, None] * np.eye(
             terms)
         rhs = np.concatenate([np.eye(terms)[None, :, :1].repeat(len(normal), 0),
-                              np.einsum("kri,krd->rid", weighted, self.motion[idx])], 2)
+                              product[:, :, terms:]], 2)
         solved = np.linalg.solve(normal, rhs)  # (R, terms, 3)
         first = solved[:, :, 0]
-        ok = ((w.sum(0) >= MIN_FIT_PER_TERM * terms) & np.isfinite(first[:, 0])
+        ok = ((w.sum(1) >= MIN_FIT_PER_TERM * terms) & np.isfinite(first[:, 0])
               & (first[:, 0] < MAX_LEVERAGE))
         return solved[:, :, 1:], first, ok
 
@@ -265,7 +271,7 @@ def local_motion_noise_px(reference: np.ndarray, current: np.ndarray, found: np.
     sigma = float("nan")
     for _ in range(3):
         for k, (fit, w, u) in enumerate(zip(fits, weights, used, strict=True)):
-            changed = np.flatnonzero((w[fit.idx] != u[fit.idx]).any(0))
+            changed = np.flatnonzero((w[fit.idx] != u[fit.idx]).any(1))
             if len(changed):
                 residuals[k][changed] = fit.residuals(w, changed)
         used = weights
