@@ -64,6 +64,14 @@ class MultiView:
         keep = np.isin(self.idx, rows)
         return self.obs.renumbered(keep), self.tri.of_points(keep, self.obs.point)
 
+    def views_of(self, rows: np.ndarray, use: np.ndarray) -> Observations:
+        """Observations of the points `rows` (ascending, a subset of idx) in the cameras
+        use (R, C) bool (a subset of each one's found views), numbered 0..R-1: what
+        `tracked_observations` of those views gives, without undistorting their pixels
+        again (each pixel is undistorted alone)."""
+        sub = self.obs.renumbered(np.isin(self.idx, rows))
+        return sub.subset(use[sub.point, sub.camera])
+
 
 def triangulate_found(found: np.ndarray, pixels: np.ndarray, models: list[CameraModel],
                       poses: np.ndarray) -> MultiView:

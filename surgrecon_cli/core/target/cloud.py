@@ -35,7 +35,6 @@ from ..geometry.triangulate import triangulate
 from ..noise.frame_noise import (
     MultiView,
     local_motion_noise_px,
-    tracked_observations,
     tracking_excess_px2,
     triangulate_found,
 )
@@ -174,12 +173,12 @@ def reprojection_check(template: TemplateData, tracks: Tracks, rig: Rig, poses: 
         idx, use = candidates[keep], use[keep]
         if len(idx) == 0:
             break
+        if multi is None:
+            multi = triangulate_found(found, pixels, models, poses)
         if attempt == 0:  # every view of each point: the frame's triangulation of them
-            if multi is None:
-                multi = triangulate_found(found, pixels, models, poses)
             obs, tri = multi.of_rows(idx)
         else:
-            obs = tracked_observations(use, pixels[idx], models)
+            obs = multi.views_of(idx, use)
             tri = triangulate(obs, poses, models, len(idx))
         rows, cams = obs.point, obs.camera
         at = np.nan_to_num(tri.points[rows])
