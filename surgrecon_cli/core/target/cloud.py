@@ -255,7 +255,8 @@ def build_target(template: TemplateData, rig: Rig, latest: np.ndarray, base: Sig
     excess, _ = tracking_excess_px2(multi, tracks.localisation, rig.models, rig.noise)
     # Two views see only the error that differs between them; each camera's tracks against
     # their neighbours' motion measure all of it (core/noise/frame_noise.py).
-    tracking, shared = local_motion_noise_px(template.pixels, tracks.pixels, found)
+    tracking, shared = local_motion_noise_px(template.pixels, tracks.pixels, found,
+                                             candidates=template.neighbours)
     if found.any() and np.isfinite(tracking):
         excess = max(excess, tracking**2 - float(np.median(tracks.localisation[found])))
     tracks.localisation[found] += excess
