@@ -21,7 +21,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from ..noise.frame_noise import LocalFits
+from ..noise.frame_noise import LocalFits, PixelNeighbours
 from .tracking import TrackingView, correlation
 
 LOCK_NEIGHBOURS = 12  # ours: tracks whose affine fit gives a track's local map (patch warp)
@@ -122,20 +122,24 @@ def align_patches(template: tuple[np.ndarray, np.ndarray, np.ndarray], image: np
 
 
 def lock_to_template(anchor: TrackingView, view: TrackingView, anchor_pixels: np.ndarray,
-                     pixels: np.ndarray, window_px: int) -> np.ndarray:
+                     pixels: np.ndarray, window_px: int,
+                     candidates: PixelNeighbours | None = None) -> np.ndarray:
     """The corrections (M, 2) px that take the drift out of one camera's tracked pixels
     (M, 2) (NaN = not found) against the template's image of that camera (module
     docstring): anchor_pixels (M, 2) px where the points were at frame 0 in `anchor` (NaN =
     not seen there), `view` the current image. NaN for tracks with too few neighbours
     (LOCK_NEIGHBOURS), no frame-0 pixel, a window leaving either image, or a correction
-    not kept."""
+    not kept. candidates: `PixelNeighbours.of(anchor_pixels)` (None: the local maps'
+    neighbours are queried)."""
     out = np.asarray(pixels, float)
     correction = np.full(out.shape, np.nan)
     rows = np.flatnonzero(np.isfinite(out).all(1) & np.isfinite(anchor_pixels).all(1))
     if len(rows) <= LOCK_NEIGHBOURS:
         return correction
-    jac = LocalFits.of(anchor_pixels[rows], out[rows], LOCK_NEIGHBOURS, quadratic=False
-                       ).jacobians()
+    nearest = None if candidates is None else candidates.among(rows, anchor_pixels,
+                                                               LOCK_NEIGHBOURS)
+    jac = LocalFits.of(anchor_pixels[rows], out[rows], LOCK_NEIGHBOURS, quadratic=False,
+                       nearest=nearest).jacobians()
     det = np.where(np.isfinite(jac).all((1, 2)), np.linalg.det(np.nan_to_num(jac)), 0.0)
     offsets = patch_offsets(window_px, LOCK_STRIDE)
     reach = float(np.abs(offsets).max())
