@@ -47,13 +47,13 @@ def patch_offsets(window_px: int, stride: int = 1) -> np.ndarray:
 def sample_patches(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     """Bilinear samples (M, P) float32 of image (H, W) float32 at pixels (x, y) (each
     (M, P) px), or (M, P, K) of an image (H, W, K)."""
-    out = np.empty(x.shape + image.shape[2:], np.float32)
+    if not len(x):
+        return np.empty(x.shape + image.shape[2:], np.float32)
     map_x, map_y = x.astype(np.float32, copy=False), y.astype(np.float32, copy=False)
-    for start in range(0, len(map_x), REMAP_ROWS):
-        end = start + REMAP_ROWS
-        out[start:end] = cv2.remap(image, map_x[start:end], map_y[start:end],
-                                   cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    return out
+    parts = [cv2.remap(image, map_x[start:start + REMAP_ROWS], map_y[start:start + REMAP_ROWS],
+                       cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+             for start in range(0, len(map_x), REMAP_ROWS)]
+    return parts[0] if len(parts) == 1 else np.concatenate(parts)
 
 
 def _inside(pixels: np.ndarray, shape: tuple[int, ...], margin: float | np.ndarray
