@@ -280,15 +280,14 @@ class TrackPrior:
 
 
 def track_adaptive(prev: TrackingView, cur: TrackingView, start: np.ndarray,
-                   prior: TrackPrior, cfg: TargetConfig, retry: bool = True
+                   prior: TrackPrior, cfg: TargetConfig
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """`klt_track` from `start` (M, 2) px with `prior`'s guesses (`track_first`), the
-    failed tracks tracked again from their neighbours' flow if `retry`
-    (`retrack_from_neighbours`). Returns tracked (M, 2), ok (M,) and each track's distance
-    from its (corrected) guess (M,) px (NaN where not ok)."""
+    failed tracks tracked again from their neighbours' flow (`retrack_from_neighbours`).
+    Returns tracked (M, 2), ok (M,) and each track's distance from its (corrected) guess
+    (M,) px (NaN where not ok)."""
     tracked, ok, guess = track_first(prev, cur, start, prior, cfg)
-    if retry:
-        tracked, ok = retrack_from_neighbours(prev, cur, start, guess, (tracked, ok), cfg)
+    tracked, ok = retrack_from_neighbours(prev, cur, start, guess, (tracked, ok), cfg)
     moved = np.linalg.norm(tracked - guess, axis=1)
     return tracked, ok, np.where(ok, moved, np.nan)
 
