@@ -102,9 +102,9 @@ def test_retries_for_wanted_tracks_alone_give_those_tracks():
     first = klt_track(prev, cur, start, guess, cfg, 0)
     moved = start[:, 0] < 80.0  # found (at the truth) left of x = 80, lost right of it
     found = (np.where(moved[:, None], start + np.array([14.0, 0.0]), first[0]), first[1] & moved)
-    every = retrack_from_neighbours(prev, cur, start, guess, found, cfg)
+    every = retrack_from_neighbours((prev, cur), start, guess, found, cfg)
     wanted = np.linalg.norm(start - [90.0, 100.0], axis=1) < 8.0
-    alone = retrack_from_neighbours(prev, cur, start, guess, found, cfg, wanted)
+    alone = retrack_from_neighbours((prev, cur), start, guess, found, cfg, wanted)
     assert (~found[1] & wanted).any() and every[1][wanted].any()
     np.testing.assert_array_equal(alone[1][wanted], every[1][wanted])
     np.testing.assert_array_equal(alone[0][wanted], every[0][wanted])

@@ -246,8 +246,7 @@ def build_target(template: TemplateData, rig: Rig, latest: np.ndarray, base: Sig
     (core/track_points.find_points; None: tracks from the base only).
     """
     n = len(template.points)
-    tracks = Tracks(*find_points(latest, base, frame, rig, anchor, template.pixels,
-                                 template.neighbours))
+    tracks = Tracks(*find_points(latest, base, frame, rig, anchor, template))
     found, poses = tracks.found, frame.poses
     # The bound is a floor: what the frame's re-triangulated residuals show beyond the
     # model is localisation error too (core/noise/frame_noise.py). One triangulation of the

@@ -57,9 +57,8 @@ from ...config import TargetConfig
 from ..geometry.cameras import CameraModel, in_image, project, undistort_pixels
 from ..geometry.poses import invert_pose
 from ..geometry.tool import tool_pixel_mask
-from ..noise.frame_noise import PixelNeighbours
 from ..noise.model import localisation_variance_px2
-from .frame_inputs import FrameInput, Rig, Sighting
+from .frame_inputs import FrameInput, Rig, Sighting, TemplateData
 from .reacquire import descriptor_motion
 from .template_lock import lock_groups, lock_to_template, shared_drift
 from .tracking import (
@@ -282,7 +281,7 @@ def _direct(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig, c: 
         else:
             again, again_ok, guess = track_first(prev, cur, near_start, near_prior, rig.cfg)
         wanted = failed[near_idx]
-        again, again_ok = retrack_from_neighbours(prev, cur, near_start, guess,
+        again, again_ok = retrack_from_neighbours((prev, cur), near_start, guess,
                                                   (again, again_ok), rig.cfg, wanted)
         back = wanted & again_ok
         pixels[near_idx[back]] = again[back]
@@ -338,8 +337,7 @@ def _scene(latest: np.ndarray, pixels: np.ndarray, found: np.ndarray, model: Cam
 
 def find_points(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig,
                 anchor_views: list[TrackingView | None] | None = None,
-                anchor_pixels: np.ndarray | None = None,
-                anchor_neighbours: list[PixelNeighbours] | None = None):
+                template: TemplateData | None = None):
     """Pixels (N, C, 2) where the template points are found in `frame`'s images (NaN = not
     found), found (N, C) bool and each found pixel's localisation variance (N, C) px² (inf
     where not found).
@@ -348,9 +346,10 @@ def find_points(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig,
     where each point was found in its images (NaN: not found); rig: the cameras, the target
     config, the tools (masked out) and the memo of chained tracks (`rig.chains`: a frame
     tracked straight from its base leaves its chained pixels there for the next frame's
-    `_via`); anchor_views / anchor_pixels (N, C, 2): the template's images and pixels
-    (None: no anchoring); anchor_neighbours: per camera `PixelNeighbours.of` the template's
-    pixels (the lock's local maps; None: queried). When the base is the template's frame,
+    `_via`); anchor_views: the template's images, template: where its points are in them
+    (`TemplateData.pixels` (N, C, 2)) and their nearest others there (`TemplateData.
+    neighbours`, the lock's local maps) (either None: no anchoring). When the base is the
+    template's frame,
     the anchor step is a second try from the same images, from the image motion fitted to
     the tracks that were found or, with too few (measured: SurgT at 320x256 turned 7° since
     the template, 5 % of the points found), to ORB matches."""
@@ -379,11 +378,11 @@ def find_points(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig,
         if predicted is None:  # the first camera whose tracks show it
             predicted = _scene(latest, px, ok, models[c], cur_poses[c])
         anchor = None if anchor_views is None else anchor_views[c]
-        if anchor is not None and anchor_pixels is not None:
-            px, ok = _anchor(anchor, cur, anchor_pixels[:, c], px, models[c], cfg)
-            drift[:, c] = lock_to_template(
-                anchor, cur, anchor_pixels[:, c], np.where(ok[:, None], px, np.nan),
-                cfg.klt_window_px, None if anchor_neighbours is None else anchor_neighbours[c])
+        if anchor is not None and template is not None:
+            px, ok = _anchor(anchor, cur, template.pixels[:, c], px, models[c], cfg)
+            drift[:, c] = lock_to_template(anchor, cur, template.pixels[:, c],
+                                           np.where(ok[:, None], px, np.nan),
+                                           cfg.klt_window_px, template.neighbours[c])
         rows = np.flatnonzero(ok)
         rows = rows[_unmasked(px[rows], frame, rig, c)]
         pixels[rows, c] = px[rows]

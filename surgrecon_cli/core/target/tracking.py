@@ -287,7 +287,7 @@ def track_adaptive(prev: TrackingView, cur: TrackingView, start: np.ndarray,
     Returns tracked (M, 2), ok (M,) and each track's distance from its (corrected) guess
     (M,) px (NaN where not ok)."""
     tracked, ok, guess = track_first(prev, cur, start, prior, cfg)
-    tracked, ok = retrack_from_neighbours(prev, cur, start, guess, (tracked, ok), cfg)
+    tracked, ok = retrack_from_neighbours((prev, cur), start, guess, (tracked, ok), cfg)
     moved = np.linalg.norm(tracked - guess, axis=1)
     return tracked, ok, np.where(ok, moved, np.nan)
 
@@ -396,20 +396,21 @@ def _nanmedian_axis1(values: np.ndarray) -> np.ndarray:
     return np.where(count[:, 0] > 0, 0.5 * (low + high), np.nan)
 
 
-def retrack_from_neighbours(prev: TrackingView, cur: TrackingView, start: np.ndarray,
+def retrack_from_neighbours(views: tuple[TrackingView, TrackingView], start: np.ndarray,
                             guess: np.ndarray, found: tuple[np.ndarray, np.ndarray],
                             cfg: TargetConfig, wanted: np.ndarray | None = None
                             ) -> tuple[np.ndarray, np.ndarray]:
-    """The first pass's `found` = (tracks (M, 2), ok (M,)), with the failed ones tracked
-    again (full pyramid, same checks) from their guess (M, 2) moved by the
-    `neighbour_flow` of the found tracks' departures from their guesses, around their start
-    pixels (M, 2); NEIGHBOUR_ROUNDS rounds, so a patch of tissue that moved far from the
+    """The first pass's `found` = (tracks (M, 2), ok (M,)) from views = (prev, cur), with
+    the failed ones tracked again (full pyramid, same checks) from their guess (M, 2) moved
+    by the `neighbour_flow` of the found tracks' departures from their guesses, around
+    their start pixels (M, 2); NEIGHBOUR_ROUNDS rounds, so a patch of tissue that moved far from the
     prediction is reached from its rim inwards. A later round tracks again only the points
     whose predicted flow changed (KLT from the same guess fails the same way). wanted (M,)
     bool: the tracks whose result is used (None: all); a round then retries only the lost
     points within reach of them (the rounds left times NEIGHBOUR_RADIUS_PX: where a later
     round's flow of a wanted point can see them), so the wanted tracks are those of
     retrying every point, the others are not."""
+    prev, cur = views
     tracked, ok = found[0].copy(), found[1].copy()
     tried = np.full((len(start), 2), np.nan)  # the flow each lost point was last tried with
     for rounds_left in range(NEIGHBOUR_ROUNDS - 1, -1, -1):
