@@ -13,7 +13,11 @@ from surgrecon_cli.core.geometry.triangulate import (
     reprojection_residuals,
     triangulate,
 )
-from surgrecon_cli.core.noise.frame_noise import tracking_excess_px2, triangulate_found
+from surgrecon_cli.core.noise.frame_noise import (
+    tracked_observations,
+    tracking_excess_px2,
+    triangulate_found,
+)
 from surgrecon_cli.core.noise.model import (
     NoiseModel,
     covariance_sigma,
@@ -218,6 +222,11 @@ def test_one_triangulation_serves_any_subset_of_points():
     np.testing.assert_allclose(sub_tri.residual_px, alone.tri.residual_px, rtol=0, atol=1e-9)
     np.testing.assert_array_equal(sub_tri.in_front, alone.tri.in_front)
     assert np.median(np.linalg.norm(sub_tri.points - points[rows], axis=1)) < 1e-4
+    use = found[rows] & (rng.uniform(size=(len(rows), 4)) < 0.8)
+    views = multi.views_of(rows, use)
+    again = tracked_observations(use, pixels[rows], models)
+    for field in ("point", "camera", "pixels", "normalized", "rgb"):
+        np.testing.assert_array_equal(getattr(views, field), getattr(again, field))
 
 
 def test_image_noise_sigma_recovers_known_noise_on_a_smooth_image():

@@ -96,6 +96,13 @@ def test_a_two_frame_sweep_keeps_the_visible_points_tracked(sweep):
     assert np.percentile(error, 95) < 1.0
 
 
+def _template_at(pixels: np.ndarray) -> TemplateData:
+    """A template whose points were seen at pixels (N, C, 2) (what the anchor step uses)."""
+    n = len(pixels)
+    zeros = np.zeros((n, 3, 3))
+    return TemplateData(np.zeros((n, 3)), np.zeros((n, 3), np.uint8), zeros, zeros, pixels)
+
+
 def test_points_lost_by_the_chain_are_reacquired_from_the_template_images(sweep):
     # Frame 2 -> 4; half the points have no latest position nor pixel at frame 2 (lost for
     # a while): the template's frame-0 images and pixels bring them back.
@@ -110,7 +117,7 @@ def test_points_lost_by_the_chain_are_reacquired_from_the_template_images(sweep)
     pixels, found, _ = find_points(latest, Sighting(views[1], poses, prev),
                                    FrameInput(2, views[2], poses, scene.tool_poses[2]),
                                    _rig(scene, cfg), anchor_views=views[0],
-                                   anchor_pixels=pixels0)
+                                   template=_template_at(pixels0))
     both = seen.all(1)
     assert (lost & both).sum() > 80
     assert found[lost & both].all(1).mean() >= 0.8
@@ -175,7 +182,7 @@ def test_points_are_reassociated_by_descriptor_when_every_track_was_lost(sweep):
     pixels, found, _ = find_points(lost, Sighting(views[1], poses, unseen),
                                    FrameInput(2, views[2], poses, scene.tool_poses[2]),
                                    _rig(scene, cfg), anchor_views=views[0],
-                                   anchor_pixels=pixels0)
+                                   template=_template_at(pixels0))
     both = seen.all(1)
     assert both.sum() > 150
     assert found[both].all(1).mean() >= 0.8

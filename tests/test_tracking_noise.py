@@ -6,8 +6,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
-from surgrecon_cli.core.noise.frame_noise import local_motion_noise_px
+from surgrecon_cli.core.noise.frame_noise import PixelNeighbours, local_motion_noise_px
 from surgrecon_cli.core.noise.model import robust_sigma
 from surgrecon_cli.io.run.artefacts import (
     FrameRegistration,
@@ -75,6 +76,27 @@ def test_robust_to_lost_tracks_and_missing_points():
     found[:, ::7, 1] = False
     cur[:, ::11, 0] = np.nan
     assert local_motion_noise_px(ref, cur, found)[0] == pytest.approx(0.2, rel=0.15)
+
+
+def test_neighbours_among_found_tracks_are_the_k_d_tree_s():
+    """PixelNeighbours.among gives each found track's nearest found tracks as a k-d tree of
+    the found tracks alone does (order included), with duplicate pixels, tracks without a
+    reference pixel and sparse subsets (queried then); the noise is the same with them."""
+    rng = np.random.default_rng(3)
+    pixels = rng.uniform(0, 640, (900, 2))
+    pixels[5] = pixels[6]  # a tie: left to the tree
+    pixels[::50] = np.nan
+    held = PixelNeighbours.of(pixels)
+    for share in (0.2, 0.8, 1.0):
+        rows = np.flatnonzero((rng.uniform(size=900) < share) & np.isfinite(pixels).all(1))
+        for k in (12, 36):
+            expected = cKDTree(pixels[rows]).query(pixels[rows], k=k + 1)[1]
+            np.testing.assert_array_equal(held.among(rows, pixels, k), expected)
+    ref, cur, found = synthetic_tracks(0.2, amplitude_px=0.5, lost=0.05, seed=1)
+    found[:, ::7, 1] = False
+    candidates = [PixelNeighbours.of(ref[:, c]) for c in range(2)]
+    assert (local_motion_noise_px(ref, cur, found, candidates=candidates)
+            == local_motion_noise_px(ref, cur, found))
 
 
 def test_shared_part_of_the_error_is_separated():

@@ -35,6 +35,7 @@ NEIGHBOURS = 36  # ours: tracks in a track's quadratic motion fit (6 parameters 
 MIN_FIT_PER_TERM = 2  # ours: fewer weighted neighbours per monomial leave a fit undetermined
 MAX_LEVERAGE = 4.0  # ours: ... as does a leverage above this (neighbours nearly on a curve)
 RIDGE = 1e-9  # relative ridge keeping degenerate fits solvable (then caught by MAX_LEVERAGE)
+CANDIDATES = 64  # nearest tracks by reference pixel held per track (`PixelNeighbours`)
 
 
 def tracked_observations(found: np.ndarray, pixels: np.ndarray,
@@ -63,6 +64,14 @@ class MultiView:
         numbered 0..len(rows)-1: what triangulating them alone gives."""
         keep = np.isin(self.idx, rows)
         return self.obs.renumbered(keep), self.tri.of_points(keep, self.obs.point)
+
+    def views_of(self, rows: np.ndarray, use: np.ndarray) -> Observations:
+        """Observations of the points `rows` (ascending, a subset of idx) in the cameras
+        use (R, C) bool (a subset of each one's found views), numbered 0..R-1: what
+        `tracked_observations` of those views gives, without undistorting their pixels
+        again (each pixel is undistorted alone)."""
+        sub = self.obs.renumbered(np.isin(self.idx, rows))
+        return sub.subset(use[sub.point, sub.camera])
 
 
 def triangulate_found(found: np.ndarray, pixels: np.ndarray, models: list[CameraModel],
@@ -138,32 +147,103 @@ def retriangulate(found: np.ndarray, pixels: np.ndarray, models: list[CameraMode
 
 
 @dataclass(frozen=True)
+class PixelNeighbours:
+    """The CANDIDATES nearest tracks of each of N tracks by reference pixel, among every
+    track with one: idx (N, CANDIDATES) their rows, nearest first (the track itself first;
+    N where none), dist (N, CANDIDATES) px (inf there). Built once for a set of reference
+    pixels (the template's in one camera), it gives the nearest neighbours within any
+    subset of the tracks (`among`) without a k-d tree of that subset."""
+
+    idx: np.ndarray
+    dist: np.ndarray
+
+    @classmethod
+    def of(cls, reference: np.ndarray) -> PixelNeighbours:
+        """The neighbours of tracks at reference (N, 2) px (NaN: none; not a neighbour)."""
+        ref = np.asarray(reference, float).reshape(-1, 2)
+        n = len(ref)
+        have = np.flatnonzero(np.isfinite(ref).all(1))
+        idx = np.full((n, CANDIDATES), n)
+        dist = np.full((n, CANDIDATES), np.inf)
+        if len(have):
+            d, j = cKDTree(ref[have]).query(ref[have], k=CANDIDATES)
+            d, j = d.reshape(len(have), -1), j.reshape(len(have), -1)
+            idx[have] = np.append(have, n)[j]
+            dist[have] = d
+        return cls(idx, dist)
+
+    def among(self, rows: np.ndarray, reference: np.ndarray, k: int) -> np.ndarray:
+        """The k + 1 nearest (M, k + 1) of the tracks rows (M,) (ascending, with a
+        reference pixel) among themselves, as positions in rows, nearest first: what
+        `cKDTree(reference[rows]).query(reference[rows], k + 1)` gives (reference (N, 2) px
+        the pixels this was built from). A track whose k + 2 nearest in rows are not all
+        among its candidates at distinct distances (a tie leaves their order to the tree)
+        is queried so."""
+        n = len(self.idx)
+        position = np.full(n + 1, -1)
+        position[rows] = np.arange(len(rows))
+        found = position[self.idx[rows]]  # (M, CANDIDATES), -1: not in rows
+        valid = found >= 0
+        count = valid.sum(1)
+        enough = count >= k + 2
+        # the first k + 2 members of each row with enough, in order
+        take = valid & (np.cumsum(valid, 1) <= k + 2)
+        take[~enough] = False
+        members = np.nonzero(take)
+        dist = self.dist[rows][members].reshape(-1, k + 2)
+        nearest = found[members].reshape(-1, k + 2)
+        last = self.dist[rows][enough, -1]
+        exact = (np.diff(dist, axis=1) > 0).all(1) & (dist[:, -1] < last)
+        out = np.empty((len(rows), k + 1), int)
+        good = np.flatnonzero(enough)[exact]
+        out[good] = nearest[exact, :k + 1]
+        other = np.ones(len(rows), bool)
+        other[good] = False
+        if other.any():
+            ref = np.asarray(reference, float).reshape(-1, 2)[rows]
+            _, j = cKDTree(ref).query(ref[other], k=k + 1)
+            out[other] = j.reshape(-1, k + 1)
+        return out
+
+
+@dataclass(frozen=True)
 class LocalFits:
     """The leave-one-out quadratic fits of one camera's tracks (`local_motion_residuals`),
-    set up once for any weighting of the neighbours: idx (K, M) the K nearest other tracks
-    of each of the M tracks (by reference pixel), design (K, M, 6) their monomials
+    set up once for any weighting of the neighbours: idx (M, K) the K nearest other tracks
+    of each of the M tracks (by reference pixel), design (M, 6, K) their monomials
     1, u, v, u², uv, v² of the offsets (u, v) about the track divided by scale (M,) px (so
-    at most 1; (K, M, 3) for affine fits), motion (M, 2) px each track's motion."""
+    at most 1; (M, 3, K) for affine fits), columns (M, K, 8) the same monomials beside the
+    neighbours' motions (the right-hand factor of one batched product that gives each fit's
+    normal equations and right-hand side; (M, K, 5) for affine fits), motion (M, 2) px each
+    track's motion."""
 
     idx: np.ndarray
     design: np.ndarray
+    columns: np.ndarray
     motion: np.ndarray
     scale: np.ndarray
 
     @classmethod
     def of(cls, reference: np.ndarray, current: np.ndarray, neighbours: int,
-           quadratic: bool = True) -> LocalFits:
+           quadratic: bool = True, nearest: np.ndarray | None = None) -> LocalFits:
         """The fits of tracks from reference (M, 2) px to current (M, 2) px, M > neighbours
-        (quadratic=False: affine fits, the design's first 3 monomials)."""
+        (quadratic=False: affine fits, the design's first 3 monomials); nearest
+        (M, neighbours + 1): each track's nearest tracks by reference pixel, itself first
+        (`PixelNeighbours.among`; None: queried here)."""
         ref = np.asarray(reference, float).reshape(-1, 2)
         motion = np.asarray(current, float).reshape(-1, 2) - ref
-        _, idx = cKDTree(ref).query(ref, k=neighbours + 1)
-        idx = np.ascontiguousarray(idx[:, 1:].T)  # the nearest is the track itself: left out
-        u, v = ref[idx, 0] - ref[:, 0], ref[idx, 1] - ref[:, 1]  # (K, M) about the track
-        scale = np.maximum(np.maximum(np.abs(u).max(0), np.abs(v).max(0)), 1e-9)
-        u, v = u / scale, v / scale
-        monomials = [np.ones_like(u), u, v] + ([u * u, u * v, v * v] if quadratic else [])
-        return cls(idx, np.stack(monomials, -1), motion, scale)
+        idx = cKDTree(ref).query(ref, k=neighbours + 1)[1] if nearest is None else nearest
+        idx = np.ascontiguousarray(idx[:, 1:])  # the nearest is the track itself: left out
+        u, v = ref[idx, 0] - ref[:, :1], ref[idx, 1] - ref[:, 1:]  # (M, K) about the track
+        scale = np.maximum(np.maximum(np.abs(u).max(1), np.abs(v).max(1)), 1e-9)
+        u, v = u / scale[:, None], v / scale[:, None]
+        monomials = [1.0, u, v] + ([u * u, u * v, v * v] if quadratic else [])
+        columns = np.empty((*idx.shape, len(monomials) + 2))
+        for term, values in enumerate(monomials):
+            columns[:, :, term] = values
+        columns[:, :, len(monomials):] = motion[idx]
+        design = np.ascontiguousarray(columns[:, :, :len(monomials)].transpose(0, 2, 1))
+        return cls(idx, design, columns, motion, scale)
 
     def _solve(self, weight: np.ndarray | None, rows: np.ndarray | None
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -172,20 +252,20 @@ class LocalFits:
         (R, 6) and whether each fit is determined (R,) bool (at least MIN_FIT_PER_TERM
         weighted neighbours per monomial and a leverage under MAX_LEVERAGE); 3 in place of
         6 for affine fits."""
-        idx, design = (self.idx, self.design) if rows is None else (
-            self.idx[:, rows], self.design[:, rows])
-        w = np.ones(idx.shape) if weight is None else np.asarray(weight, float)[idx]  # (K, R)
-        weighted = design * w[..., None]
-        normal = np.matmul(np.ascontiguousarray(weighted.transpose(1, 2, 0)),
-                           np.ascontiguousarray(design.transpose(1, 0, 2)))
-        terms = design.shape[-1]
+        idx, design, columns = (self.idx, self.design, self.columns) if rows is None else (
+            self.idx[rows], self.design[rows], self.columns[rows])
+        w = np.ones(idx.shape) if weight is None else np.asarray(weight, float)[idx]  # (R, K)
+        weighted = design if weight is None else design * w[:, None, :]
+        product = np.matmul(weighted, columns)  # (R, terms, terms + 2): XᵀWX beside XᵀWy
+        terms = design.shape[1]
+        normal = product[:, :, :terms]
         normal += (RIDGE * np.trace(normal, axis1=1, axis2=2) + RIDGE)[:, None, None] * np.eye(
             terms)
         rhs = np.concatenate([np.eye(terms)[None, :, :1].repeat(len(normal), 0),
-                              np.einsum("kri,krd->rid", weighted, self.motion[idx])], 2)
+                              product[:, :, terms:]], 2)
         solved = np.linalg.solve(normal, rhs)  # (R, terms, 3)
         first = solved[:, :, 0]
-        ok = ((w.sum(0) >= MIN_FIT_PER_TERM * terms) & np.isfinite(first[:, 0])
+        ok = ((w.sum(1) >= MIN_FIT_PER_TERM * terms) & np.isfinite(first[:, 0])
               & (first[:, 0] < MAX_LEVERAGE))
         return solved[:, :, 1:], first, ok
 
@@ -232,7 +312,9 @@ def local_motion_residuals(reference: np.ndarray, current: np.ndarray,
 
 
 def local_motion_noise_px(reference: np.ndarray, current: np.ndarray, found: np.ndarray,
-                          neighbours: int = NEIGHBOURS) -> tuple[float, float]:
+                          neighbours: int = NEIGHBOURS,
+                          candidates: list[PixelNeighbours] | None = None
+                          ) -> tuple[float, float]:
     """Tracking localisation noise (σ, σ_shared) px per axis, measured from the tracks
     themselves: reference (N, C, 2) px where the tracks started (NaN = none), current
     (F, N, C, 2) or (N, C, 2) px where they are in F frames, found (F, N, C) or (N, C) bool.
@@ -244,7 +326,9 @@ def local_motion_noise_px(reference: np.ndarray, current: np.ndarray, found: np.
     views (the same pixel error in each; for a stereo pair, an error across the line of
     sight that no disparity shows), from pairs of views of one point: half their sum has
     variance σ_s² + σ_i²/2, half their difference σ_i²/2, over every pair of cameras
-    (0 without pairs). (NaN, 0) with fewer than MIN_POINTS residuals."""
+    (0 without pairs). (NaN, 0) with fewer than MIN_POINTS residuals. candidates: per
+    camera, `PixelNeighbours.of` its reference pixels (None: each fit's neighbours are
+    queried)."""
     ref = np.asarray(reference, float)
     cur = np.asarray(current, float)
     seen = np.asarray(found, bool)
@@ -256,8 +340,10 @@ def local_motion_noise_px(reference: np.ndarray, current: np.ndarray, found: np.
             if use[f, :, c].sum() > neighbours]
     # The neighbours and fits are set up once; a later pass recomputes only the tracks
     # whose neighbours' weights changed (the others' fits are the same).
-    fits = [LocalFits.of(ref[use[f, :, c], c], cur[f, use[f, :, c], c], neighbours)
-            for f, c in sets]
+    rows = [np.flatnonzero(use[f, :, c]) for f, c in sets]
+    fits = [LocalFits.of(ref[r, c], cur[f, r, c], neighbours, nearest=None if candidates is None
+                         else candidates[c].among(r, ref[:, c], neighbours))
+            for (f, c), r in zip(sets, rows, strict=True)]
     residuals = [fit.residuals() for fit in fits]
     used = [np.ones(len(fit.motion), bool) for fit in fits]  # the weights residuals came from
     weights = used
@@ -265,7 +351,7 @@ def local_motion_noise_px(reference: np.ndarray, current: np.ndarray, found: np.
     sigma = float("nan")
     for _ in range(3):
         for k, (fit, w, u) in enumerate(zip(fits, weights, used, strict=True)):
-            changed = np.flatnonzero((w[fit.idx] != u[fit.idx]).any(0))
+            changed = np.flatnonzero((w[fit.idx] != u[fit.idx]).any(1))
             if len(changed):
                 residuals[k][changed] = fit.residuals(w, changed)
         used = weights

@@ -35,7 +35,6 @@ from ..geometry.triangulate import triangulate
 from ..noise.frame_noise import (
     MultiView,
     local_motion_noise_px,
-    tracked_observations,
     tracking_excess_px2,
     triangulate_found,
 )
@@ -174,12 +173,12 @@ def reprojection_check(template: TemplateData, tracks: Tracks, rig: Rig, poses: 
         idx, use = candidates[keep], use[keep]
         if len(idx) == 0:
             break
+        if multi is None:
+            multi = triangulate_found(found, pixels, models, poses)
         if attempt == 0:  # every view of each point: the frame's triangulation of them
-            if multi is None:
-                multi = triangulate_found(found, pixels, models, poses)
             obs, tri = multi.of_rows(idx)
         else:
-            obs = tracked_observations(use, pixels[idx], models)
+            obs = multi.views_of(idx, use)
             tri = triangulate(obs, poses, models, len(idx))
         rows, cams = obs.point, obs.camera
         at = np.nan_to_num(tri.points[rows])
@@ -247,7 +246,7 @@ def build_target(template: TemplateData, rig: Rig, latest: np.ndarray, base: Sig
     (core/track_points.find_points; None: tracks from the base only).
     """
     n = len(template.points)
-    tracks = Tracks(*find_points(latest, base, frame, rig, anchor, template.pixels))
+    tracks = Tracks(*find_points(latest, base, frame, rig, anchor, template))
     found, poses = tracks.found, frame.poses
     # The bound is a floor: what the frame's re-triangulated residuals show beyond the
     # model is localisation error too (core/noise/frame_noise.py). One triangulation of the
@@ -256,7 +255,8 @@ def build_target(template: TemplateData, rig: Rig, latest: np.ndarray, base: Sig
     excess, _ = tracking_excess_px2(multi, tracks.localisation, rig.models, rig.noise)
     # Two views see only the error that differs between them; each camera's tracks against
     # their neighbours' motion measure all of it (core/noise/frame_noise.py).
-    tracking, shared = local_motion_noise_px(template.pixels, tracks.pixels, found)
+    tracking, shared = local_motion_noise_px(template.pixels, tracks.pixels, found,
+                                             candidates=template.neighbours)
     if found.any() and np.isfinite(tracking):
         excess = max(excess, tracking**2 - float(np.median(tracks.localisation[found])))
     tracks.localisation[found] += excess

@@ -9,12 +9,14 @@ import threading
 from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
 from ...config import TargetConfig
 from ..geometry.cameras import CameraModel
 from ..geometry.tool import ToolConfigs
+from ..noise.frame_noise import PixelNeighbours
 from ..noise.model import NoiseModel
 from .tracking import TrackingView
 
@@ -30,6 +32,13 @@ class TemplateData:
     covariance: np.ndarray
     pose_covariance: np.ndarray
     pixels: np.ndarray
+
+    @cached_property
+    def neighbours(self) -> list[PixelNeighbours]:
+        """Per camera, each point's nearest others by frame-0 pixel (core/noise/frame_noise.
+        PixelNeighbours), built when first asked for: the tracking noise's fits take their
+        neighbours among the points found in a frame from these."""
+        return [PixelNeighbours.of(self.pixels[:, c]) for c in range(self.pixels.shape[1])]
 
 
 class ChainMemo:

@@ -21,7 +21,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from ..noise.frame_noise import LocalFits
+from ..noise.frame_noise import LocalFits, PixelNeighbours
 from .tracking import TrackingView, correlation
 
 LOCK_NEIGHBOURS = 12  # ours: tracks whose affine fit gives a track's local map (patch warp)
@@ -44,17 +44,16 @@ def patch_offsets(window_px: int, stride: int = 1) -> np.ndarray:
     return np.column_stack([u.ravel(), v.ravel()])
 
 
-def sample_patches(image: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Bilinear samples (M, P) float32 of image (H, W) float32 at points (M, P, 2) px, or
-    (M, P, K) of an image (H, W, K)."""
-    out = np.empty(points.shape[:2] + image.shape[2:], np.float32)
-    maps = points.astype(np.float32, copy=False)
-    for start in range(0, len(maps), REMAP_ROWS):
-        chunk = maps[start:start + REMAP_ROWS]
-        out[start:start + REMAP_ROWS] = cv2.remap(image, chunk[..., 0], chunk[..., 1],
-                                                  cv2.INTER_LINEAR,
-                                                  borderMode=cv2.BORDER_REPLICATE)
-    return out
+def sample_patches(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Bilinear samples (M, P) float32 of image (H, W) float32 at pixels (x, y) (each
+    (M, P) px), or (M, P, K) of an image (H, W, K)."""
+    if not len(x):
+        return np.empty(x.shape + image.shape[2:], np.float32)
+    map_x, map_y = x.astype(np.float32, copy=False), y.astype(np.float32, copy=False)
+    parts = [cv2.remap(image, map_x[start:start + REMAP_ROWS], map_y[start:start + REMAP_ROWS],
+                       cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+             for start in range(0, len(map_x), REMAP_ROWS)]
+    return parts[0] if len(parts) == 1 else np.concatenate(parts)
 
 
 def _inside(pixels: np.ndarray, shape: tuple[int, ...], margin: float | np.ndarray
@@ -74,7 +73,8 @@ def template_patches(anchor: TrackingView, centres: np.ndarray, maps: np.ndarray
     gradient in that view's pixels, A⁻ᵀ ∇I₀ (`TrackingView.gradients`)."""
     inv = np.linalg.inv(maps).astype(np.float32)
     back = np.matmul(offsets[None], inv.transpose(0, 2, 1))
-    samples = sample_patches(anchor.gradients, centres.astype(np.float32)[:, None, :] + back)
+    at = centres.astype(np.float32)
+    samples = sample_patches(anchor.gradients, at[:, :1] + back[..., 0], at[:, 1:] + back[..., 1])
     patch, gx, gy = samples[..., 0], samples[..., 1], samples[..., 2]
     dx = inv[:, 0, 0, None] * gx + inv[:, 1, 0, None] * gy
     dy = inv[:, 0, 1, None] * gx + inv[:, 1, 1, None] * gy
@@ -105,8 +105,8 @@ def align_patches(template: tuple[np.ndarray, np.ndarray, np.ndarray], image: np
     for iteration in range(LOCK_ITERATIONS):
         if not len(active):
             break
-        values = sample_patches(image, (pixels[active] + shift[active])[:, None, :]
-                                + offsets[None])
+        at = pixels[active] + shift[active]
+        values = sample_patches(image, at[:, :1] + offsets[:, 0], at[:, 1:] + offsets[:, 1])
         last_ncc[active] = correlation(values, patch[active])
         if iteration == 0:
             start_ncc = last_ncc.copy()
@@ -122,20 +122,24 @@ def align_patches(template: tuple[np.ndarray, np.ndarray, np.ndarray], image: np
 
 
 def lock_to_template(anchor: TrackingView, view: TrackingView, anchor_pixels: np.ndarray,
-                     pixels: np.ndarray, window_px: int) -> np.ndarray:
+                     pixels: np.ndarray, window_px: int,
+                     candidates: PixelNeighbours | None = None) -> np.ndarray:
     """The corrections (M, 2) px that take the drift out of one camera's tracked pixels
     (M, 2) (NaN = not found) against the template's image of that camera (module
     docstring): anchor_pixels (M, 2) px where the points were at frame 0 in `anchor` (NaN =
     not seen there), `view` the current image. NaN for tracks with too few neighbours
     (LOCK_NEIGHBOURS), no frame-0 pixel, a window leaving either image, or a correction
-    not kept."""
+    not kept. candidates: `PixelNeighbours.of(anchor_pixels)` (None: the local maps'
+    neighbours are queried)."""
     out = np.asarray(pixels, float)
     correction = np.full(out.shape, np.nan)
     rows = np.flatnonzero(np.isfinite(out).all(1) & np.isfinite(anchor_pixels).all(1))
     if len(rows) <= LOCK_NEIGHBOURS:
         return correction
-    jac = LocalFits.of(anchor_pixels[rows], out[rows], LOCK_NEIGHBOURS, quadratic=False
-                       ).jacobians()
+    nearest = None if candidates is None else candidates.among(rows, anchor_pixels,
+                                                               LOCK_NEIGHBOURS)
+    jac = LocalFits.of(anchor_pixels[rows], out[rows], LOCK_NEIGHBOURS, quadratic=False,
+                       nearest=nearest).jacobians()
     det = np.where(np.isfinite(jac).all((1, 2)), np.linalg.det(np.nan_to_num(jac)), 0.0)
     offsets = patch_offsets(window_px, LOCK_STRIDE)
     reach = float(np.abs(offsets).max())

@@ -63,7 +63,7 @@ from ..geometry.cameras import CameraModel, in_image, project, undistort_pixels
 from ..geometry.poses import invert_pose
 from ..geometry.tool import tool_pixel_mask
 from ..noise.model import localisation_variance_px2
-from .frame_inputs import FrameInput, Rig, Sighting
+from .frame_inputs import FrameInput, Rig, Sighting, TemplateData
 from .reacquire import descriptor_motion
 from .stereo_check import disparity_errors, stereo_match
 from .template_lock import lock_groups, lock_to_template, shared_drift
@@ -75,7 +75,9 @@ from .tracking import (
     apply_motion,
     image_motion,
     neighbour_flow,
+    retrack_from_neighbours,
     track_adaptive,
+    track_first,
 )
 
 KLT_BORDER_PX = 8.0  # a track starts this far inside the image at least (px)
@@ -250,12 +252,20 @@ def _direct(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig, c: 
     failed again with every point within NEIGHBOUR_ROUNDS x NEIGHBOUR_RADIUS_PX of one in
     the base image (each round of neighbour retries, core/target/tracking.
     retrack_from_neighbours, looks at the tracks within NEIGHBOUR_RADIUS_PX, whose own
-    retries looked as far again). Pixels (N, 2) of the lost points (NaN = not found),
-    found (N,). (Every point tracked directly cost a second chain: ~0.1 s of a 5-camera
-    640x512 frame.)"""
+    retries looked as far again), the failed ones' first tracks not tracked again (with a
+    known motion, each point's are the same in any company) and the retries limited to
+    the points the failed ones' retries see. Pixels (N, 2) of the lost points (NaN = not
+    found), found (N,). (Every point tracked directly cost a second chain: ~0.1 s of a
+    5-camera 640x512 frame.)"""
     rows, predicted = lost
-    pixels, tried = _straight(latest, base, frame, rig, c, (rows, predicted, False))
-    failed = tried & ~np.isfinite(pixels).all(1)
+    prev, cur = base.views[c], frame.views[c]
+    assert prev is not None and cur is not None
+    idx, start, prior = _straight_inputs(latest, base, frame, rig, c, (rows, predicted))
+    tracked, ok, _ = track_first(prev, cur, start, prior, rig.cfg)
+    pixels = np.full((len(latest), 2), np.nan)
+    pixels[idx[ok]] = tracked[ok]
+    failed = np.zeros(len(latest), bool)
+    failed[idx[~ok]] = True
     if failed.any():
         start = _starts(latest, base, rig.models[c], c)
         has = np.flatnonzero(np.isfinite(start).all(1))
@@ -263,28 +273,37 @@ def _direct(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig, c: 
         near = cKDTree(start[failed]).query(start[has], k=1, distance_upper_bound=reach)[0]
         around = failed.copy()
         around[has[np.isfinite(near)]] = True
-        again, _ = _straight(latest, base, frame, rig, c, (around, predicted, True))
-        pixels[failed] = again[failed]
+        near_idx, near_start, near_prior = _straight_inputs(latest, base, frame, rig, c,
+                                                            (around, predicted))
+        if np.isfinite(near_prior.motion_px):  # no pilots: the first tracks above hold
+            again, again_ok = np.empty((len(near_idx), 2)), np.empty(len(near_idx), bool)
+            known = np.isin(near_idx, idx)
+            at = np.searchsorted(idx, near_idx[known])
+            again[known], again_ok[known] = tracked[at], ok[at]
+            again[~known], again_ok[~known], _ = track_first(
+                prev, cur, near_start[~known],
+                TrackPrior(near_prior.guess[~known], near_prior.motion_px), rig.cfg)
+            guess = near_prior.guess
+        else:
+            again, again_ok, guess = track_first(prev, cur, near_start, near_prior, rig.cfg)
+        wanted = failed[near_idx]
+        again, again_ok = retrack_from_neighbours((prev, cur), near_start, guess,
+                                                  (again, again_ok), rig.cfg, wanted)
+        back = wanted & again_ok
+        pixels[near_idx[back]] = again[back]
     pixels = np.where(rows[:, None], pixels, np.nan)
     return pixels, np.isfinite(pixels).all(1)
 
 
-def _straight(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig, c: int,
-              subset: tuple[np.ndarray, tuple[np.ndarray, float] | None, bool]
-              ) -> tuple[np.ndarray, np.ndarray]:
-    """`_chain` from the base straight into `frame` for camera c of the points subset[0]
-    (N,) bool, guided by subset[1], with neighbour retries if subset[2]: pixels (N, 2)
-    (NaN = not found) and which points were tracked (N,) bool."""
-    rows, predicted, retry = subset
+def _straight_inputs(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig, c: int,
+                     subset: tuple[np.ndarray, tuple[np.ndarray, float] | None]
+                     ) -> tuple[np.ndarray, np.ndarray, TrackPrior]:
+    """What `_chain` from the base straight into `frame` tracks in camera c of the points
+    subset[0] (N,) bool, guided by subset[1] (`_chain_inputs`): their rows (K,), start
+    pixels (K, 2) and prior. Each point's start and guess are the same in any subset."""
+    rows, predicted = subset
     only = Sighting(base.views, base.poses, np.where(rows[:, None, None], base.pixels, np.nan))
-    idx, start, prior = _chain_inputs(latest, only, replace(frame, previous=None), rig, c,
-                                      predicted)
-    prev, cur = base.views[c], frame.views[c]
-    assert prev is not None and cur is not None
-    tracked, ok, _ = track_adaptive(prev, cur, start, prior, rig.cfg, retry)
-    pixels = np.full((len(latest), 2), np.nan)
-    pixels[idx[ok]] = tracked[ok]
-    return pixels, np.isin(np.arange(len(latest)), idx)
+    return _chain_inputs(latest, only, replace(frame, previous=None), rig, c, predicted)
 
 
 def _direct_camera(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig, c: int,
@@ -324,7 +343,7 @@ def _scene(latest: np.ndarray, pixels: np.ndarray, found: np.ndarray, model: Cam
 
 def find_points(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig,
                 anchor_views: list[TrackingView | None] | None = None,
-                anchor_pixels: np.ndarray | None = None):
+                template: TemplateData | None = None):
     """Pixels (N, C, 2) where the template points are found in `frame`'s images (NaN = not
     found), found (N, C) bool and each found pixel's localisation variance (N, C) px² (inf
     where not found).
@@ -333,11 +352,13 @@ def find_points(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig,
     where each point was found in its images (NaN: not found); rig: the cameras, the target
     config, the tools (masked out) and the memo of chained tracks (`rig.chains`: a frame
     tracked straight from its base leaves its chained pixels there for the next frame's
-    `_via`); anchor_views / anchor_pixels (N, C, 2): the
-    template's images and pixels (None: no anchoring). When the base is the template's
-    frame, the anchor step is a second try from the same images, from the image motion
-    fitted to the tracks that were found or, with too few (measured: SurgT at 320x256
-    turned 7° since the template, 5 % of the points found), to ORB matches."""
+    `_via`); anchor_views: the template's images, template: where its points are in them
+    (`TemplateData.pixels` (N, C, 2)) and their nearest others there (`TemplateData.
+    neighbours`, the lock's local maps) (either None: no anchoring). When the base is the
+    template's frame,
+    the anchor step is a second try from the same images, from the image motion fitted to
+    the tracks that were found or, with too few (measured: SurgT at 320x256 turned 7° since
+    the template, 5 % of the points found), to ORB matches."""
     models, cur_poses, cfg = rig.models, frame.poses, rig.cfg
     n, n_cams = len(latest), len(models)
     direct = None  # the base, where the frame is chained through its previous frame
@@ -363,11 +384,11 @@ def find_points(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig,
         if predicted is None:  # the first camera whose tracks show it
             predicted = _scene(latest, px, ok, models[c], cur_poses[c])
         anchor = None if anchor_views is None else anchor_views[c]
-        if anchor is not None and anchor_pixels is not None:
-            px, ok = _anchor(anchor, cur, anchor_pixels[:, c], px, models[c], cfg)
-            drift[:, c] = lock_to_template(anchor, cur, anchor_pixels[:, c],
+        if anchor is not None and template is not None:
+            px, ok = _anchor(anchor, cur, template.pixels[:, c], px, models[c], cfg)
+            drift[:, c] = lock_to_template(anchor, cur, template.pixels[:, c],
                                            np.where(ok[:, None], px, np.nan),
-                                           cfg.klt_window_px)
+                                           cfg.klt_window_px, template.neighbours[c])
         rows = np.flatnonzero(ok)
         rows = rows[_unmasked(px[rows], frame, rig, c)]
         pixels[rows, c] = px[rows]

@@ -280,8 +280,20 @@ class TrackPrior:
 
 
 def track_adaptive(prev: TrackingView, cur: TrackingView, start: np.ndarray,
-                   prior: TrackPrior, cfg: TargetConfig, retry: bool = True
+                   prior: TrackPrior, cfg: TargetConfig
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`klt_track` from `start` (M, 2) px with `prior`'s guesses (`track_first`), the
+    failed tracks tracked again from their neighbours' flow (`retrack_from_neighbours`).
+    Returns tracked (M, 2), ok (M,) and each track's distance from its (corrected) guess
+    (M,) px (NaN where not ok)."""
+    tracked, ok, guess = track_first(prev, cur, start, prior, cfg)
+    tracked, ok = retrack_from_neighbours((prev, cur), start, guess, (tracked, ok), cfg)
+    moved = np.linalg.norm(tracked - guess, axis=1)
+    return tracked, ok, np.where(ok, moved, np.nan)
+
+
+def track_first(prev: TrackingView, cur: TrackingView, start: np.ndarray, prior: TrackPrior,
+                cfg: TargetConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """`klt_track` from `start` (M, 2) px with `prior`'s guesses, the pyramid depth chosen
     for its expected motion `motion_px` px (`klt_levels_for`), and a safe fallback: the
     tracks that failed, or that moved from their guess farther than the chosen depth
@@ -292,9 +304,9 @@ def track_adaptive(prev: TrackingView, cur: TrackingView, start: np.ndarray,
     the poses saying so), and the motion left is the expected one (`expected_motion_px`).
     `alternative` (M, 2): other guesses (e.g. no motion, where `guess` comes from the
     poses), piloted too unless `guess`'s pilots track PILOT_ENOUGH of their points; the one
-    whose pilot tracks more points is used. `retry`: the failed tracks get their neighbour
-    retries (`retrack_from_neighbours`). Returns tracked (M, 2), ok (M,) and each track's
-    distance from its (corrected) guess (M,) px (NaN where not ok)."""
+    whose pilot tracks more points is used. With a known motion each point's track is the
+    same whichever points are tracked with it. Returns tracked (M, 2), ok (M,) and the
+    (corrected) guesses (M, 2) px."""
     guess, motion_px, alternative = prior.guess, prior.motion_px, prior.alternative
     full = cfg.klt_levels
     if not np.isfinite(motion_px) and len(start) >= 2 * PILOT_STRIDE:
@@ -316,11 +328,7 @@ def track_adaptive(prev: TrackingView, cur: TrackingView, start: np.ndarray,
     again = np.flatnonzero(~ok | (moved > reach)) if levels < full else np.zeros(0, int)
     if len(again):
         tracked[again], ok[again] = klt_track(prev, cur, start[again], guess[again], cfg, full)
-        moved[again] = np.linalg.norm(tracked[again] - guess[again], axis=1)
-    if retry:
-        tracked, ok = retrack_from_neighbours(prev, cur, start, guess, (tracked, ok), cfg)
-    moved = np.linalg.norm(tracked - guess, axis=1)
-    return tracked, ok, np.where(ok, moved, np.nan)
+    return tracked, ok, guess
 
 
 def patch_ncc(image_a: np.ndarray, pixels_a: np.ndarray, image_b: np.ndarray,
@@ -388,19 +396,27 @@ def _nanmedian_axis1(values: np.ndarray) -> np.ndarray:
     return np.where(count[:, 0] > 0, 0.5 * (low + high), np.nan)
 
 
-def retrack_from_neighbours(prev: TrackingView, cur: TrackingView, start: np.ndarray,
+def retrack_from_neighbours(views: tuple[TrackingView, TrackingView], start: np.ndarray,
                             guess: np.ndarray, found: tuple[np.ndarray, np.ndarray],
-                            cfg: TargetConfig) -> tuple[np.ndarray, np.ndarray]:
-    """The first pass's `found` = (tracks (M, 2), ok (M,)), with the failed ones tracked
-    again (full pyramid, same checks) from their guess (M, 2) moved by the
-    `neighbour_flow` of the found tracks' departures from their guesses, around their start
-    pixels (M, 2); NEIGHBOUR_ROUNDS rounds, so a patch of tissue that moved far from the
+                            cfg: TargetConfig, wanted: np.ndarray | None = None
+                            ) -> tuple[np.ndarray, np.ndarray]:
+    """The first pass's `found` = (tracks (M, 2), ok (M,)) from views = (prev, cur), with
+    the failed ones tracked again (full pyramid, same checks) from their guess (M, 2) moved
+    by the `neighbour_flow` of the found tracks' departures from their guesses, around
+    their start pixels (M, 2); NEIGHBOUR_ROUNDS rounds, so a patch of tissue that moved far from the
     prediction is reached from its rim inwards. A later round tracks again only the points
-    whose predicted flow changed (KLT from the same guess fails the same way)."""
+    whose predicted flow changed (KLT from the same guess fails the same way). wanted (M,)
+    bool: the tracks whose result is used (None: all); a round then retries only the lost
+    points within reach of them (the rounds left times NEIGHBOUR_RADIUS_PX: where a later
+    round's flow of a wanted point can see them), so the wanted tracks are those of
+    retrying every point, the others are not."""
+    prev, cur = views
     tracked, ok = found[0].copy(), found[1].copy()
     tried = np.full((len(start), 2), np.nan)  # the flow each lost point was last tried with
-    for _ in range(NEIGHBOUR_ROUNDS):
+    for rounds_left in range(NEIGHBOUR_ROUNDS - 1, -1, -1):
         lost = np.flatnonzero(~ok)
+        if wanted is not None and len(lost):
+            lost = lost[_within(start[wanted], start[lost], rounds_left * NEIGHBOUR_RADIUS_PX)]
         if not len(lost) or not ok.any():
             break
         flow = neighbour_flow(start[ok], tracked[ok] - guess[ok], start[lost])
@@ -419,3 +435,12 @@ def retrack_from_neighbours(prev: TrackingView, cur: TrackingView, start: np.nda
         tracked[lost[again_ok]] = again[again_ok]
         ok[lost[again_ok]] = True
     return tracked, ok
+
+
+def _within(centres: np.ndarray, pixels: np.ndarray, reach_px: float) -> np.ndarray:
+    """(M,) bool: pixels (M, 2) within reach_px (plus 1 px of slack) of one of centres
+    (K, 2)."""
+    if not len(centres):
+        return np.zeros(len(pixels), bool)
+    distance = cKDTree(centres).query(pixels, k=1, distance_upper_bound=reach_px + 1.0)[0]
+    return np.isfinite(distance)
