@@ -403,7 +403,8 @@ def find_points(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig,
         groups = lock_groups(cur_poses[:, :3, 3], latest)
         pixels += np.where(found[..., None], shared_drift(drift, groups), 0.0)
         for pair in (g for g in groups if len(g) == 2):
-            _stereo_disparity(pixels, found, pair, frame, rig, (anchor_views, anchor_pixels))
+            _stereo_disparity(pixels, found, pair, frame, rig,
+                              (anchor_views, None if template is None else template.pixels))
     return pixels, found, localisation
 
 
