@@ -67,10 +67,7 @@ def decisions(template: np.ndarray, registered: np.ndarray, status: np.ndarray,
     labels = rules.classify_frame(template, rules.RegisteredFrame(registered, None, status), nb,
                                   cfg, evidence=evidence)
     moved = labels.displacement_mm >= cfg.static_mm
-    significant = rules.significant_motion(registered - template, evidence.displacement_cov,
-                                           cfg.significance)
-    known = np.isfinite(registered).all(1)
-    known &= significant | (evidence.displacement_sigma() * 1e3 <= cfg.max_sigma_mm)
+    known, significant = rules.labelled_motion(registered - template, evidence, cfg)
     step = np.full(n, STEPS.index("deforming"))
     dynamic = known & moved & significant
     rms = np.where(dynamic, labels.deformation_mm, np.nan)
@@ -88,8 +85,7 @@ def measured_scale(template: np.ndarray, registered: np.ndarray, evidence: rules
     """The frame's departures over what its covariances predict, as rules.noise_scale reads
     it but not floored at 1 (below 1: the covariances overstate the scatter)."""
     cfg = config.classify
-    judged = np.flatnonzero(np.isfinite(registered).all(1)
-                            & (evidence.displacement_sigma() * 1e3 <= cfg.max_sigma_mm))
+    judged = np.flatnonzero(rules.labelled_motion(registered - template, evidence, cfg)[0])
     stat, dof = rules.departure_statistic(template, evidence.measured, evidence.departure_cov,
                                           nb, judged)
     ok = (dof > 0) & np.isfinite(stat)

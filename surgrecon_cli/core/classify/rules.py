@@ -287,6 +287,17 @@ def significant_motion(displacement: np.ndarray, covariance: np.ndarray,
     return out
 
 
+def labelled_motion(displacement: np.ndarray, evidence: Evidence, cfg: ClassifyConfig
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """Steps 1-2 of the module docstring for displacements (N, 3) m from frame 0: known (N,)
+    bool, a finite displacement whose σ_Δ is at most `max_sigma_mm` or that moved, and moved
+    (N,) bool, beyond its covariance (`significant_motion` at `significance`)."""
+    moved = significant_motion(displacement, evidence.displacement_cov, cfg.significance)
+    known = np.isfinite(displacement).all(1) & (
+        moved | (evidence.displacement_sigma() * 1e3 <= cfg.max_sigma_mm))
+    return known, moved
+
+
 def departure_statistic(template: np.ndarray, positions: np.ndarray, covariance: np.ndarray,
                         nb: Neighbourhoods, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """How far each neighbourhood (the point `rows` (M,) and its neighbours) departs from one
@@ -381,9 +392,8 @@ def classify_frame(template: np.ndarray, frame: RegisteredFrame, nb: Neighbourho
     disp[known] = displacement_mm(template[known], registered[known])
     dynamic = known & (disp >= cfg.static_mm)
     if evidence is not None:
-        moved = significant_motion(registered - template, evidence.displacement_cov,
-                                   cfg.significance)
-        known &= moved | (evidence.displacement_sigma() * 1e3 <= cfg.max_sigma_mm)
+        decidable, moved = labelled_motion(registered - template, evidence, cfg)
+        known &= decidable
         dynamic &= known & moved
     if status is not None and cfg.status_band_mm > 0:
         status = np.asarray(status)
