@@ -184,6 +184,10 @@ class TemplateConfig:
         0.008, "SIFT contrast threshold (OpenCV default 0.04; tissue is low-contrast)",
         bounds=(0, 1)
     )
+    min_features: int = _doc(
+        2000, "images where SIFT finds fewer keypoints get Shi-Tomasi corners (upright SIFT "
+        "descriptors) up to this many features: small or low-texture images (0: off)",
+        bounds=(0, 200_000))
     detect_width_px: int = _doc(
         1280, "wider images: SIFT on the image scaled to this width (0: off)", bounds=(0, 9999)
     )
