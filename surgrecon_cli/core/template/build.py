@@ -7,7 +7,7 @@ pair sequence -> tracks -> N-view triangulation -> outlier rejection -> tool poi
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import cv2
@@ -146,20 +146,27 @@ def build_template(
     if usable.sum() < 2:
         raise GeometryError(f"frame 0 has {int(usable.sum())} usable camera(s); need >= 2")
     per_camera = np.asarray(tool_pose).ndim == 4
-    detect = [(images[c], models[c], cfg, tool_image_mask(models[c], poses[c],
-                                                          tool_pose[c] if per_camera else tool_pose,
-                                                          tool_cfg,
-                               step=max(MASK_STEP_PX, round(MASK_STEP_PX * models[c].width
-                                                            / MASK_STEP_WIDTH_PX))))
-              for c in np.flatnonzero(usable)]
+    prediction = predict_pairs(
+        models, np.where(usable[:, None, None], poses, np.eye(4)), usable, cfg.working_distance_m
+    )
+    # a stereo head's cameras (a partner at most 0.18 x the depth away: `refinable_pairs`)
+    narrow = refinable_pairs(prediction.baseline_ratio) & usable[:, None] & usable[None, :]
+    np.fill_diagonal(narrow, False)
+    # corners (template.min_features) only in a camera with a stereo partner: their upright
+    # descriptors are for views the same way up, and on a wide rig they only crowd SIFT's
+    # matches out of the ratio test (6 cameras at 320x240: 398 -> 387 points, the
+    # simulator's indentation error 0.03 -> 0.33 mm)
+    masks = {c: tool_image_mask(models[c], poses[c], tool_pose[c] if per_camera else tool_pose,
+                                tool_cfg, step=max(MASK_STEP_PX, round(
+                                    MASK_STEP_PX * models[c].width / MASK_STEP_WIDTH_PX)))
+             for c in np.flatnonzero(usable)}
+    detect = [(images[c], models[c], cfg if narrow[c].any() else replace(cfg, min_features=0),
+               masks[c]) for c in np.flatnonzero(usable)]
     detected = iter(map_calls(detect_features, detect))
     features = [next(detected) if usable[c] else no_features() for c in range(len(images))]
     minimums = pair_minimums([len(f) for f in features], cfg.min_pair_matches,
                              cfg.min_pair_match_fraction)
     step("features")
-    prediction = predict_pairs(
-        models, np.where(usable[:, None, None], poses, np.eye(4)), usable, cfg.working_distance_m
-    )
     focal = [m.K[0, 0] for m in models]
     views = [CameraView(features[c], poses[c], focal[c]) for c in range(len(features))]
     pairs = candidate_pairs(prediction, cfg.min_view_overlap)
@@ -189,14 +196,11 @@ def build_template(
     obs = track_observations(features, track_ids).observations
     unrefined = 0
     if cfg.refine_matches:
-        refinable = (refinable_pairs(prediction.baseline_ratio) & usable[:, None]
-                     & usable[None, :])
-        np.fill_diagonal(refinable, False)
         # only the cameras with a refinable partner need their tracking image (a wide rig: none)
-        tracking = [tracking_view(im) if refinable[c].any() and im is not None else None
+        tracking = [tracking_view(im) if narrow[c].any() and im is not None else None
                     for c, im in enumerate(images)]
         obs, kept = refine_observations(obs, tracking, models, opts.tracker, cfg.epipolar_px,
-                                        refinable)
+                                        narrow)
         obs, unrefined = obs.subset(kept), int((~kept).sum())
         seen = np.bincount(obs.point, minlength=n_tracks) >= 2
         obs, n_tracks = obs.renumbered(seen), int(seen.sum())
