@@ -1,5 +1,6 @@
-"""The frame step's cheap paths: KLT depth from the measured motion (with a full-depth
-retry) and the tool contact folded into one registration."""
+"""The frame step's cheap paths: KLT depth from the measured motion (the tracks beyond its
+reach retried from their neighbours' flow) and the tool contact folded into one
+registration."""
 
 from __future__ import annotations
 
@@ -16,6 +17,7 @@ from surgrecon_cli.core.target.tracking import (
     klt_track,
     retrack_from_neighbours,
     track_adaptive,
+    track_first,
     tracking_view,
 )
 from surgrecon_cli.sim.scene import SimConfig
@@ -45,18 +47,24 @@ def _texture(shift_x: float, size: int = 200) -> np.ndarray:
     return np.repeat(grey[:, :, None], 3, axis=2)
 
 
-def test_a_motion_beyond_the_chosen_depth_is_found_by_the_full_depth_retry():
-    # The true motion is 14 px; the expected motion says 1 px (depth 0 reaches ~5 px):
-    # the tracks fail or stray there and are tracked again at the full depth.
+def test_a_motion_beyond_the_chosen_depth_is_found_by_the_neighbour_retries():
+    # The image moved 14 px; the guesses miss it by 0 px on the left growing to 14 px on
+    # the right, and the expected motion says 1 px (depth 0 reaches ~5 px): the first
+    # tracks beyond that reach fail (none is kept where it slid), and the retries from
+    # their found neighbours' departures find them, ring by ring.
     cfg = Config().target
     prev, cur = tracking_view(_texture(0.0)), tracking_view(_texture(14.0))
     g = np.arange(50.0, 150.0, 12.0)
     start = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
-    tracked, ok, moved = track_adaptive(prev, cur, start, TrackPrior(start.copy(), 1.0), cfg)
+    miss = 14.0 * (start[:, 0] - 50.0) / 100.0
+    guess = start + np.column_stack([14.0 - miss, np.zeros(len(start))])
+    truth = start + np.array([14.0, 0.0])
+    first, ok_first, _ = track_first(prev, cur, start, TrackPrior(guess, 1.0), cfg)
+    assert ok_first[miss < 4.0].all() and not ok_first[miss > 6.0].any()
+    assert np.abs(first[ok_first] - truth[ok_first]).max() < 0.25
+    tracked, ok, _ = track_adaptive(prev, cur, start, TrackPrior(guess, 1.0), cfg)
     assert ok.mean() > 0.9
-    err = np.abs(tracked[ok] - (start[ok] + [14.0, 0.0]))
-    assert np.median(err) < 0.05
-    assert np.nanmedian(moved) > 13.0
+    assert np.median(np.abs(tracked[ok] - truth[ok])) < 0.05
 
 
 def test_of_two_priors_the_one_whose_pilot_tracks_more_points_is_used():

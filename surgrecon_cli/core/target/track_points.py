@@ -10,9 +10,12 @@ Per camera:
    whose pilot sample tracks more points), moved by the image motion measured on that
    pilot sample (core/tracking.track_adaptive); in every later camera, at their latest
    positions moved by the scene's rigid motion that the first camera's tracks show
-   (`scene_motion`), without pilots. So a camera or scene moving 6-15 px a frame is
+   (`scene_motion`), without pilots (piloted after all where fewer than half of them are
+   found: that camera moved otherwise). So a camera or scene moving 6-15 px a frame is
    followed whether or not the poses say so, mostly by one forward pass at full
-   resolution;
+   resolution; the tracks that failed, or slid beyond the reach of the pass's pyramid
+   depth, are tracked again from their guesses moved by their found neighbours' flow
+   (core/target/tracking.retrack_from_neighbours);
 2. anchor: the points not found so (lost in the previous frame, newly back in view, or
    failed) are tracked from the template's image of that camera, starting at their
    template pixel moved by the template-to-now image motion fitted on the chained tracks
@@ -83,6 +86,7 @@ from .tracking import (
 KLT_BORDER_PX = 8.0  # a track starts this far inside the image at least (px)
 MIN_SCENE_FIT = 12  # tracks of one camera needed to measure the scene's motion (PnP)
 SCENE_FIT_PX = 2.0  # RANSAC inlier bound of that fit (px)
+MIN_PREDICTED_SHARE = 0.8  # ours: a camera tracking fewer from the predicted guesses is piloted
 
 
 def visible_points(
@@ -156,11 +160,15 @@ def _chain(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig, c: i
            predicted: tuple[np.ndarray, float] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Step 1 for camera c: pixels (N, 2) (NaN = not found) and found (N,). `predicted`:
     the scene's motion measured in another camera (`scene_motion`) and its residual px:
-    the guesses are the latest positions moved by it, without pilot tracks."""
+    the guesses are the latest positions moved by it, without pilot tracks; where fewer
+    than MIN_PREDICTED_SHARE of them are found, this camera moved otherwise (its pose is
+    off) and its points are tracked again, piloted."""
     idx, start, prior = _chain_inputs(latest, base, frame, rig, c, predicted)
     prev, cur = base.views[c], frame.views[c]
     assert prev is not None and cur is not None  # find_points skips unusable cameras
     tracked, ok, _ = track_adaptive(prev, cur, start, prior, rig.cfg)
+    if predicted is not None and ok.sum() < MIN_PREDICTED_SHARE * len(ok):
+        return _chain(latest, base, frame, rig, c)
     pixels = np.full((len(latest), 2), np.nan)
     pixels[idx[ok]] = tracked[ok]
     return pixels, np.isfinite(pixels).all(1)
