@@ -70,6 +70,16 @@ def _truth(scene, poses, points: np.ndarray, frame: int) -> np.ndarray:
     return uv, seen
 
 
+def _step(sweep, base: int, frame: int):
+    """Tracking rendered frame `base` -> `frame`: the points' positions at the base (N, 3),
+    the base's Sighting (the true pixels), and the true pixels (N, C, 2) and visibility
+    (N, C) at the frame."""
+    scene, _, points, views, poses = sweep
+    start, _ = _truth(scene, poses, points, base)
+    truth, seen = _truth(scene, poses, points, frame)
+    return scene.vertices[base][points], Sighting(views[base], poses, start), truth, seen
+
+
 def _rig(scene, cfg: Config) -> Rig:
     return Rig(list(scene.models), NoiseModel(0.3, 0.3, 0.0, 0.0), cfg.target, cfg.tool)
 
@@ -173,11 +183,8 @@ def test_a_camera_that_did_not_move_as_predicted_is_piloted(sweep):
     # Frame 2 -> 4: the rig swept ~15 px, but the scene's motion handed to camera 1 says
     # nothing moved (within 0.5 px): its tracks from those guesses fail, and the camera's
     # points are tracked again from pilot tracks that measure the motion.
-    scene, cfg, points, views, poses = sweep
-    start, _ = _truth(scene, poses, points, 1)
-    truth, seen = _truth(scene, poses, points, 2)
-    latest = scene.vertices[1][points]
-    base = Sighting(views[1], poses, start)
+    scene, cfg, _, views, poses = sweep
+    latest, base, truth, seen = _step(sweep, 1, 2)
     frame = FrameInput(2, views[2], poses, scene.tool_poses[2])
     pixels, found = _chain(latest, base, frame, _rig(scene, cfg), 1, (np.eye(4), 0.5))
     assert seen[:, 1].sum() > 150
@@ -287,11 +294,8 @@ def test_a_frame_chained_through_its_previous_frame_starts_from_the_held_chain(s
     # Base frame 0 -> previous 2 -> frame 4 (rendered 0, 2, 4): the previous frame, tracked
     # first, leaves its chained pixels in the memo; the frame then finds the same pixels as
     # when they are tracked again, near the truth (two steps of a ~6 deg sweep, chained).
-    scene, cfg, points, views, poses = sweep
-    start, _ = _truth(scene, poses, points, 0)
-    truth, seen = _truth(scene, poses, points, 2)
-    latest = scene.vertices[0][points]
-    base = Sighting(views[0], poses, start)
+    scene, cfg, _, views, poses = sweep
+    latest, base, truth, seen = _step(sweep, 0, 2)
     previous = FrameInput(1, views[1], poses, scene.tool_poses[1])
     frame = FrameInput(2, views[2], poses, scene.tool_poses[2], previous=previous)
     memo = ChainMemo()
