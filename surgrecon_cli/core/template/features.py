@@ -1,4 +1,5 @@
-"""Colour SIFT features: keypoints, descriptors, undistorted coordinates and RGB per feature."""
+"""Colour SIFT features, topped up with corners in small or low-texture images: keypoints,
+descriptors, undistorted coordinates and RGB per feature."""
 
 from __future__ import annotations
 
@@ -90,10 +91,10 @@ def detect_features(image: np.ndarray, camera: CameraModel, cfg: TemplateConfig,
     An image where SIFT finds fewer than `cfg.min_features` keypoints (a small or
     low-texture image: 1,400 on the SurgT frames at 360x288, ~200 on d-lfd's 310x244 foam)
     gets Shi-Tomasi corners up to that count (`corner_features`; build_template asks for
-    them in a stereo head's cameras only). Measured on SurgT clips at
-    360x288 (breathing and a scope turning 3.5 deg a frame, min_features 2,000 against
-    none): template 406 -> 574 points, positions against the truth p95 1.37-1.54 -> 1.17-1.37
-    mm, deforming where truly rigid 1.3-4.5 % -> 0.7-2.9 %.
+    them in a stereo head's cameras only). Measured on the SurgT clips at 360x288
+    (breathing, min_features 2,000 against none; docs/method.md): template 406 -> 653
+    points, positions against the truth p95 1.37-1.54 -> 1.10-1.37 mm, deforming where
+    truly rigid 1.3-4.5 % -> 0.6-2.7 %.
     """
     height, width = image.shape[:2]
     small = image
