@@ -145,9 +145,8 @@ def response_peaks(response: np.ndarray, pixels: np.ndarray) -> np.ndarray:
     for before, after in ((response[yi, xi - 1], response[yi, xi + 1]),
                           (response[yi - 1, xi], response[yi + 1, xi])):
         curvature = before - 2.0 * centre + after
-        step = np.where(curvature < 0, 0.5 * (before - after) / np.where(curvature < 0,
-                                                                            curvature, -1.0),
-                        0.0)
+        peaked = curvature < 0
+        step = np.where(peaked, 0.5 * (before - after) / np.where(peaked, curvature, -1.0), 0.0)
         offsets.append(np.where(inside, np.clip(step, -0.5, 0.5), 0.0))
     return pixels + np.column_stack(offsets)
 
@@ -157,12 +156,13 @@ def corner_features(grey: np.ndarray, mask: np.ndarray, taken: np.ndarray, count
     """Up to `count` Shi-Tomasi corners of grey (H, W) uint8 where mask (H, W) uint8 is set,
     strongest first, at least CORNER_SPACING_PX from each other and from the pixels `taken`
     (K, 2) (the SIFT keypoints), located to sub-pixel at the peak of the corner response
-    (`response_peaks` of cv2.cornerMinEigenVal, what goodFeaturesToTrack ranks by; a
-    corner of smooth tissue texture is no intersection of edges, which cv2.cornerSubPix
-    assumes: measured on blurred noise, it stays put or wanders 2-7 px), with upright SIFT
-    descriptors of CORNER_SIZE_PX (orientation 0: they match between views that are the
-    same way up, as a stereo head's; views rolled far apart match by SIFT's own keypoints):
-    pixels (M, 2) px of grey, descriptors (M, 128) float32."""
+    (`response_peaks` of the log of cv2.cornerMinEigenVal, what goodFeaturesToTrack ranks
+    by: the parabola of a Gaussian peak; a corner of smooth tissue texture is no crossing
+    of edges, which cv2.cornerSubPix assumes: measured on blurred noise, it stays put or
+    wanders 2-7 px), with upright SIFT descriptors of CORNER_SIZE_PX (orientation 0: they
+    match between views that are the same way up, as a stereo head's; views rolled far
+    apart match by SIFT's own keypoints): pixels (M, 2) px of grey, descriptors (M, 128)
+    float32."""
     none = np.zeros((0, 2)), np.zeros((0, 128), np.float32)
     if count <= 0:
         return none
