@@ -88,15 +88,14 @@ def test_a_two_frame_sweep_keeps_the_visible_points_tracked(sweep):
     # Frame 2 -> 4, found at frame 2; their latest positions lag (those of frame 0: the
     # registration did not keep up), and the fixed poses do not say that anything moved.
     scene, cfg, points, views, poses = sweep
-    start, _ = _truth(scene, poses, points, 1)
-    truth, seen = _truth(scene, poses, points, 2)
-    assert np.median(np.linalg.norm(truth - start, axis=2)[seen]) > 15.0  # real motion
+    _, base, truth, seen = _step(sweep, 1, 2)
+    assert np.median(np.linalg.norm(truth - base.pixels, axis=2)[seen]) > 15.0  # real motion
     template = scene.vertices[0][points]
     n = len(points)
     zeros = np.zeros((n, 3, 3))
     data = TemplateData(template, np.zeros((n, 3), np.uint8), zeros, zeros,
                         np.full((n, len(poses), 2), np.nan))
-    target = build_target(data, _rig(scene, cfg), template, Sighting(views[1], poses, start),
+    target = build_target(data, _rig(scene, cfg), template, base,
                           FrameInput(2, views[2], poses, scene.tool_poses[2]))
     found = np.isfinite(target.pixels).all(2)
     both = seen.all(1)

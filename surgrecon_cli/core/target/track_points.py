@@ -10,12 +10,12 @@ Per camera:
    whose pilot sample tracks more points), moved by the image motion measured on that
    pilot sample (core/tracking.track_adaptive); in every later camera, at their latest
    positions moved by the scene's rigid motion that the first camera's tracks show
-   (`scene_motion`), without pilots (piloted after all where fewer than half of them are
-   found: that camera moved otherwise). So a camera or scene moving 6-15 px a frame is
-   followed whether or not the poses say so, mostly by one forward pass at full
-   resolution; the tracks that failed, or slid beyond the reach of the pass's pyramid
-   depth, are tracked again from their guesses moved by their found neighbours' flow
-   (core/target/tracking.retrack_from_neighbours);
+   (`scene_motion`), without pilots (piloted after all where fewer than
+   MIN_PREDICTED_SHARE of them are found: that camera moved otherwise). So a camera or
+   scene moving 6-15 px a frame is followed whether or not the poses say so, mostly by one
+   forward pass at full resolution; the tracks that failed, or slid beyond the reach of
+   the pass's pyramid depth, are tracked again from their guesses moved by their found
+   neighbours' flow (core/target/tracking.retrack_from_neighbours);
 2. anchor: the points not found so (lost in the previous frame, newly back in view, or
    failed) are tracked from the template's image of that camera, starting at their
    template pixel moved by the template-to-now image motion fitted on the chained tracks
