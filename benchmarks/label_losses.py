@@ -129,9 +129,7 @@ def analyse(run_dir: Path, gt_path: Path) -> None:
     agree = 0
     for k in range(1, log.n_frames):
         reg = read_registration(layout, k, len(template))
-        evidence = stage.frame_evidence(reg, reg.registered.astype(float), template_noise)
-        registered, evidence = stage.static_verdicts_checked(
-            reg, template_noise, evidence, list(log.models), log.usable_poses(k))
+        registered, evidence = stage.frame_inputs(reg, template_noise, log, k, config)
         step = decisions(template, registered, reg.status, evidence, nb, config)
         recomputed = rules.classify_frame(template, rules.RegisteredFrame(
             registered, None, reg.status), nb, cfg, evidence=evidence).labels

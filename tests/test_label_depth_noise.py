@@ -101,3 +101,40 @@ def test_depth_noise_of_a_rigid_shift_is_not_deformation_lateral_bending_is():
     far = r2 > 0.012**2
     assert (truth[far] == SHIFTING).all()
     assert (labels[far] == DEFORMING).mean() < 0.1
+
+
+def test_a_dent_the_tool_hides_is_deforming_where_the_tool_touches_it():
+    """Points under the tool have no target: their registered positions carry the
+    extrapolation's σ (0.6 mm a direction here), which no departure exceeds. The tool
+    touching them is the evidence; it does not make a rigid shift deform."""
+    cfg = ClassifyConfig()
+    template = _patch()
+    n = len(template)
+    r2 = (template[:, :2] ** 2).sum(1)
+    shift = template + np.array([0.005, 0.0, 0.0])
+    dented = shift.copy()
+    dented[:, 2] += 0.0015 * np.exp(-r2 / (2 * 0.002**2))  # pressed 1.5 mm along the view
+    hidden = r2 < 0.007**2
+    cov = _depth_cov(n, 0.1e-3, 0.03e-3)
+    cov[hidden] = np.eye(3) * 0.6e-3**2
+    nb = template_neighbourhoods(template, cfg.neighbourhood_mm, cfg.min_neighbours,
+                                 cfg.max_neighbours)
+    index, mask = radius_neighbourhoods(template, cfg.neighbourhood_mm * 1e-3)
+    truth = label_rule(template, dented, index, mask, cfg.static_mm, cfg.deform_mm)
+    core = r2 < 0.0025**2
+    assert (truth[core] == DEFORMING).all()
+
+    def labels(positions: np.ndarray, touched: np.ndarray | None) -> np.ndarray:
+        evidence = Evidence(sigma=np.sqrt(np.trace(cov, axis1=1, axis2=2)),
+                            template_sigma=np.zeros(n), measured=positions,
+                            measured_sigma=np.sqrt(np.trace(cov, axis1=1, axis2=2)),
+                            displacement_cov=cov, departure_cov=cov, touched=touched)
+        return classify_frame(template, RegisteredFrame(positions), nb, cfg,
+                              evidence=evidence).labels
+
+    assert (labels(dented, None)[core] == SHIFTING).mean() > 0.8
+    touched = r2 < 0.0025**2
+    assert (labels(dented, touched)[core] == DEFORMING).all()
+    far = r2 > 0.012**2
+    assert (truth[far] == SHIFTING).all() and (labels(dented, touched)[far] == SHIFTING).all()
+    assert (labels(shift, touched) == SHIFTING).all()

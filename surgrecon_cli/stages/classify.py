@@ -36,6 +36,7 @@ from ..core.classify.rules import (
     template_neighbourhoods,
 )
 from ..core.geometry.cameras import CameraModel
+from ..core.geometry.tool import points_near_tool
 from ..core.noise.frame_noise import retriangulate
 from ..core.noise.model import NoiseModel, covariance_sigma, noise_from_report
 from ..executors import Executor, Task
@@ -48,7 +49,7 @@ from ..io.run.artefacts import (
     write_frame_cloud,
 )
 from ..io.run.atomic import file_identity, write_npz
-from ..io.run.ingest_store import load_ingested
+from ..io.run.ingest_store import IngestedLog, load_ingested
 from ..io.run.layout import RunLayout
 from ..io.run.rows import RowFile, npz_rows, write_npz_rows
 from .common import stage_run
@@ -117,10 +118,8 @@ def classify_one_frame(run_dir: Path, frame: int, config: Config) -> int:
     reg = read_registration(layout, frame, len(template))
     cfg = config.classify
     transforms = reg.transforms.astype(float) if cfg.measure == "transform_diff" else None
-    log = load_ingested(layout.ingest_dir)
-    evidence = frame_evidence(reg, reg.registered.astype(float), template_noise)
-    registered, evidence = static_verdicts_checked(
-        reg, template_noise, evidence, list(log.models), log.usable_poses(frame))
+    registered, evidence = frame_inputs(reg, template_noise, load_ingested(layout.ingest_dir),
+                                        frame, config)
     classes = classify_frame(template, RegisteredFrame(registered, transforms, reg.status), nb,
                              cfg, evidence=evidence)
     quality = frame_quality(frame, FrameFit(
@@ -138,6 +137,20 @@ def _rows(classes: FrameClasses, status: np.ndarray) -> dict[str, np.ndarray]:
             "displacement_mm": classes.displacement_mm.astype(np.float32),
             "deformation_mm": classes.deformation_mm.astype(np.float32),
             "status": status.astype(np.uint8)}
+
+
+def frame_inputs(reg: FrameRegistration, template_noise: TemplateNoise, log: IngestedLog,
+                 frame: int, config: Config) -> tuple[np.ndarray, Evidence]:
+    """Registered positions (N, 3) m and evidence of frame k that `classify_frame` labels:
+    `frame_evidence`, the reprojection check's static verdicts re-measured
+    (`static_verdicts_checked`), and the points the tools touch at their registered
+    positions (core/geometry/tool.points_near_tool: within a capsule's radius + margin_m;
+    none where the log has no tool pose)."""
+    evidence = frame_evidence(reg, reg.registered.astype(float), template_noise)
+    registered, evidence = static_verdicts_checked(
+        reg, template_noise, evidence, list(log.models), log.usable_poses(frame))
+    touched = points_near_tool(registered, log.all_tool_poses(frame), config.tool_configs())
+    return registered, replace(evidence, touched=touched)
 
 
 def frame_evidence(reg: FrameRegistration, registered: np.ndarray,
