@@ -86,14 +86,15 @@ RIM_COMPANIONS = 2
 # FOLLOW_REACH_COLOURED x the diagonal, fading to not moving (nothing measured its motion:
 # following them out to 2-5 % as without colour left cut-away static cells +0.4 mm off, and
 # out to any distance +2.3 mm). The across-plane term's variance is the spread's plus (the
-# position's distance along the plane from its centre x the error of the plane's normal, `tilt`)^2:
-# a plane extrapolated past the rim of a cut (its 16 points a strip along the rim, normals off by
-# 20-30 degrees) put static tissue 1 mm past the rim 0.7 mm off it, and one such point outweighed
-# its 15 neighbours (stray_colour_partial 5k seed 396: worst cell +0.31 -> 0 mm, 301 +0.19 -> 0;
-# over tuning seeds 0-9, 200-209, 300-399 max +0.31 -> +0.15, mean +0.023 -> +0.009; mean median
-# 0.1654 -> 0.1656 mm, mean p95 2.211 -> 2.215 mm; the normal's error as the residual variance over
-# k x the in-plane one, without the perturbation's denominator: the same cells; capping the term as
-# the colour is capped instead: +0.19 mm, mean median +0.003 and p95 +0.036 mm)
+# position's distance along the plane from its centre x the error of the plane's normal,
+# `tilt`)^2: a plane extrapolated past the rim of a cut (its 16 points a strip along the
+# rim, normals off by 20-30 degrees) put static tissue 1 mm past the rim 0.7 mm off it, and
+# one such point outweighed its 15 neighbours (stray_colour_partial 5k seed 396: worst cell
+# +0.31 -> 0 mm, 301 +0.19 -> 0; over tuning seeds 0-9, 200-209, 300-399 max +0.31 ->
+# +0.15, mean +0.023 -> +0.009; mean median 0.1654 -> 0.1656 mm, mean p95 2.211 -> 2.215
+# mm; the normal's error as the residual variance over k x the in-plane one, without the
+# perturbation's denominator: the same cells; capping the term as the colour is capped
+# instead: +0.19 mm, mean median +0.003 and p95 +0.036 mm)
 IDENTITY_NEIGHBOURS = 16
 IDENTITY_MARGIN = 2.8
 FOLLOW_REACH_COLOURED = (0.0, 0.01)
