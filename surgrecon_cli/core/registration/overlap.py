@@ -85,7 +85,16 @@ RIM_COMPANIONS = 2
 # colour an unsupported point follows its nearest supported points only within
 # FOLLOW_REACH_COLOURED x the diagonal, fading to not moving (nothing measured its motion:
 # following them out to 2-5 % as without colour left cut-away static cells +0.4 mm off, and
-# out to any distance +2.3 mm)
+# out to any distance +2.3 mm). The across-plane term's variance is the spread's plus (the
+# position's distance along the plane from its centre x the error of the plane's normal,
+# `tilt`)^2: a plane extrapolated past the rim of a cut (its 16 points a strip along the
+# rim, normals off by 20-30 degrees) put static tissue 1 mm past the rim 0.7 mm off it, and
+# one such point outweighed its 15 neighbours (stray_colour_partial 5k seed 396: worst cell
+# +0.31 -> 0 mm, 301 +0.19 -> 0; over tuning seeds 0-9, 200-209, 300-399 max +0.31 ->
+# +0.15, mean +0.023 -> +0.009; mean median 0.1654 -> 0.1656 mm, mean p95 2.211 -> 2.215
+# mm; the normal's error as the residual variance over k x the in-plane one, without the
+# perturbation's denominator: the same cells; capping the term as the colour is capped
+# instead: +0.19 mm, mean median +0.003 and p95 +0.036 mm)
 IDENTITY_NEIGHBOURS = 16
 IDENTITY_MARGIN = 2.8
 FOLLOW_REACH_COLOURED = (0.0, 0.01)
@@ -144,12 +153,16 @@ def target_rim(xyz: np.ndarray, k: int = RIM_NEIGHBOURS,
 def rim_and_planes(xyz: np.ndarray, k: int = RIM_NEIGHBOURS, gap_deg: float = RIM_GAP_DEG,
                    companions: int = RIM_COMPANIONS,
                    near: Neighbourhoods | None = None) -> tuple[np.ndarray, ...]:
-    """(rim (M,) bool as `target_rim`, centre (M, 3) m, normal (M, 3) unit): with each point's
-    local plane, the centroid and PCA normal of its k nearest neighbours (xyz (M, 3) m);
-    near: the points' neighbour lists (`colour.Neighbourhoods`; None: measured here)."""
+    """(rim (M,) bool as `target_rim`, centre (M, 3) m, normal (M, 3) unit, tilt (M,)
+    radians): with each point's local plane, the centroid and PCA normal of its k nearest
+    neighbours (xyz (M, 3) m), and the standard error of that normal towards the plane's
+    weaker in-plane axis (first-order eigenvector perturbation: large where the neighbours
+    span a strip, at a rim); near: the points' neighbour lists (`colour.Neighbourhoods`;
+    None: measured here)."""
     m = len(xyz)
     if m <= 3:
-        return np.zeros(m, bool), xyz.copy(), np.tile([0.0, 0.0, 1.0], (m, 1))
+        return (np.zeros(m, bool), xyz.copy(), np.tile([0.0, 0.0, 1.0], (m, 1)),
+                np.zeros(m))
     k = min(k, m - 1)
     if near is not None and near.indices.shape[1] >= k + 1:
         nn = near.indices[:, :k + 1]
@@ -162,12 +175,21 @@ def rim_and_planes(xyz: np.ndarray, k: int = RIM_NEIGHBOURS, gap_deg: float = RI
     u = np.cross(normal, axis)
     u /= np.linalg.norm(u, axis=1)[:, None]
     v = np.cross(normal, u)
-    angle = np.sort(np.arctan2(np.einsum("pki,pi->pk", rel, v),
-                               np.einsum("pki,pi->pk", rel, u)), axis=1)
+    along_u, along_v = np.einsum("pki,pi->pk", rel, u), np.einsum("pki,pi->pk", rel, v)
+    angle = np.sort(np.arctan2(along_v, along_u), axis=1)
     gaps = np.diff(angle, axis=1, append=angle[:, :1] + 2 * np.pi)
     rim = gaps.max(axis=1) > np.deg2rad(gap_deg)
     # a rim is a line: a point flagged alone among its neighbours is a sampling accident
-    return np.asarray(rim & (rim[nn[:, 1:]].sum(axis=1) >= companions)), centre, normal
+    rim = np.asarray(rim & (rim[nn[:, 1:]].sum(axis=1) >= companions))
+    # the normal's error towards the weaker in-plane axis (an eigenvector's perturbation):
+    # variance l2 l3 / (k (l2 - l3)^2), l3 the residual variance across the plane, l2 the
+    # smallest eigenvalue of the neighbours' 2x2 in-plane covariance
+    l3 = (np.einsum("pki,pi->pk", xyz[nn[:, 1:]] - centre[:, None, :], normal) ** 2).mean(1)
+    cuu, cvv = along_u.var(axis=1), along_v.var(axis=1)
+    cuv = (along_u * along_v).mean(axis=1) - along_u.mean(axis=1) * along_v.mean(axis=1)
+    l2 = 0.5 * (cuu + cvv) - np.sqrt(0.25 * (cuu - cvv) ** 2 + cuv**2)
+    tilt = np.sqrt(l2 * l3 / (k * np.maximum(l2 - l3, 1e-12 * l2 + 1e-30) ** 2))
+    return rim, centre, normal, tilt
 
 
 def follow_supported(source: np.ndarray, registered: np.ndarray, supported: np.ndarray,
@@ -200,14 +222,16 @@ def follow_supported(source: np.ndarray, registered: np.ndarray, supported: np.n
 class ColouredPoints:
     """Points xyz (M, 3) m with their colours rgb (M, 3) 0..1; rim (M,) bool: the points on
     the cloud's boundary (`target_rim`; None = none known); centre (M, 3) m and normal (M, 3)
-    unit: each point's local plane (`rim_and_planes`; None = not known); kdtree: the points'
-    k-d tree when already built (None: built on first use)."""
+    unit: each point's local plane and tilt (M,) radians the standard error of its normal
+    (`rim_and_planes`; None = not known); kdtree: the points' k-d tree when already built
+    (None: built on first use)."""
 
     xyz: np.ndarray
     rgb: np.ndarray
     rim: np.ndarray | None = None
     centre: np.ndarray | None = None
     normal: np.ndarray | None = None
+    tilt: np.ndarray | None = None
     kdtree: cKDTree | None = dataclasses.field(default=None, repr=False, compare=False)
 
     @classmethod
@@ -216,8 +240,8 @@ class ColouredPoints:
         """The points with their rim and local planes (`rim_and_planes`); near: their tree
         and neighbour lists when measured already (`colour.Neighbourhoods`, e.g. the colour
         decision's of the agreeing target points), None: measured here."""
-        rim, centre, normal = rim_and_planes(xyz, near=near)
-        return cls(xyz, rgb, rim, centre, normal, None if near is None else near.tree)
+        rim, centre, normal, tilt = rim_and_planes(xyz, near=near)
+        return cls(xyz, rgb, rim, centre, normal, tilt, None if near is None else near.tree)
 
     @functools.cached_property
     def tree(self) -> cKDTree:
@@ -311,13 +335,16 @@ def explained_by(test: MotionTest, target: ColouredPoints,
     its alternative (not moving by default) explains the data about as well as their motion
     does. Per point and position, the misfit is `robust_colour`(|source colour - target
     colour smoothed at it|^2 / noise^2, the colour noise measured on the target; in full
-    when not test.robust) + (distance across the local plane of its nearest target point /
-    s)^2, s the robust spread of that distance at the registered positions (the target's
-    noise as this run sees it); a point is explained by the alternative unless its motion
-    lowers the mean misfit of its IDENTITY_NEIGHBOURS nearest supported points by more than
-    IDENTITY_MARGIN. A point whose nearest target point, at either position, is on the
-    target's rim (`target.rim`) is left out of the means (there the misfits favour any
-    motion onto the target); one whose neighbours are all left out keeps its motion.
+    when not test.robust) + (distance across the local plane of its nearest target point)^2
+    / (s^2 + (its distance along that plane from the plane's centre x the plane's `tilt`)^2),
+    s the robust spread of that distance at the registered positions (the target's noise as
+    this run sees it; the second term: a plane's error grows with the distance it is
+    extrapolated over, most where its points span a strip, at a rim); a point is explained
+    by the alternative unless its motion lowers the mean misfit of its IDENTITY_NEIGHBOURS
+    nearest supported points by more than IDENTITY_MARGIN. A point whose nearest target
+    point, at either position, is on the target's rim (`target.rim`) is left out of the
+    means (there the misfits favour any motion onto the target); one whose neighbours are
+    all left out keeps its motion.
     target: the agreeing target points, colours 0..1, with their planes (computed when not
     given)."""
     source, registered, supported = test.source, test.registered, test.supported
@@ -328,24 +355,28 @@ def explained_by(test: MotionTest, target: ColouredPoints,
     have = np.flatnonzero(supported)
     if len(have) == 0 or len(target.xyz) < STAY_TARGET_NEIGHBOURS:
         return still
-    if target.centre is None or target.normal is None:
+    if target.centre is None or target.normal is None or target.tilt is None:
         target = ColouredPoints.analysed(target.xyz, target.rgb)
-    centre, normal = target.centre, target.normal
-    assert centre is not None and normal is not None
+    centre, normal, tilt = target.centre, target.normal, target.tilt
+    assert centre is not None and normal is not None and tilt is not None
     h = max(decision.spacing_m, 1e-9)
     noise = max(decision.noise, 1e-6)
 
     rim = target.rim if target.rim is not None else np.zeros(len(target.xyz), bool)
 
     def fit(pos: np.ndarray, rgb: np.ndarray) -> tuple[np.ndarray, ...]:
-        """Colour and across-plane misfits at pos, and whether its nearest target point is
-        on the target's rim."""
+        """Colour misfit at pos, its distance across the plane and that distance's variance
+        from the plane's tilt, and whether its nearest target point is on the target's rim."""
         smoothed, _, j = target.colour_at(pos, h)
-        return (((rgb - smoothed) ** 2).sum(axis=1) / noise**2, across(pos, j[:, 0]),
+        return (((rgb - smoothed) ** 2).sum(axis=1) / noise**2, *across(pos, j[:, 0]),
                 rim[j[:, 0]])
 
-    def across(pos: np.ndarray, near: np.ndarray) -> np.ndarray:
-        return np.abs(((pos - centre[near]) * normal[near]).sum(axis=1))
+    def across(pos: np.ndarray, near: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Distance across the plane of target point `near`, and its variance from the
+        plane's tilt over the distance along it (lateral distance x tilt, squared)."""
+        rel = pos - centre[near]
+        off = np.abs((rel * normal[near]).sum(axis=1))
+        return off, np.maximum((rel**2).sum(axis=1) - off**2, 0.0) * tilt[near] ** 2
 
     # where a point does not move both misfits are the same and not moving changes nothing:
     # only the moving ones are sought and tested (the others count in the spread alone)
@@ -363,15 +394,17 @@ def explained_by(test: MotionTest, target: ColouredPoints,
         return still
     resting = np.setdiff1d(np.arange(len(have)), moving, assume_unique=True)
     across1 = np.empty(len(have))
-    colour1, across1[moving], rim1 = fit(registered[have[moving]], source_rgb[have[moving]])
+    colour1, across1[moving], tilted1, rim1 = fit(registered[have[moving]],
+                                                  source_rgb[have[moving]])
     if len(resting):
         pos = registered[have[resting]]
-        across1[resting] = across(pos, target.tree.query(pos, k=1)[1])
-    spread = max(1.4826 * float(np.median(across1)), 1e-9)
+        across1[resting] = across(pos, target.tree.query(pos, k=1)[1])[0]
+    spread2 = max(1.4826 * float(np.median(across1)), 1e-9) ** 2
     gain = np.zeros(len(have))  # > 0: the motion fits better
-    colour0, across0, rim0 = fit(alt[have[moving]], source_rgb[have[moving]])
+    colour0, across0, tilted0, rim0 = fit(alt[have[moving]], source_rgb[have[moving]])
     c0, c1 = (robust_colour(colour0), robust_colour(colour1)) if robust else (colour0, colour1)
-    gain[moving] = c0 + (across0 / spread) ** 2 - c1 - (across1[moving] / spread) ** 2
+    gain[moving] = (c0 + across0**2 / (spread2 + tilted0)
+                    - c1 - across1[moving] ** 2 / (spread2 + tilted1))
     # at the target's rim the misfits favour the motion whatever the truth (past the rim the
     # colour is smoothed over one side and the plane is fitted on one side): a point whose
     # position either way has its nearest target point on the rim tells nothing, and its
