@@ -15,6 +15,7 @@ from surgrecon_cli.core.target.tracking import (
     TrackPrior,
     klt_levels_for,
     klt_track,
+    retrack_from_neighbours,
     track_adaptive,
     track_first,
     tracking_view,
@@ -95,6 +96,27 @@ def test_the_chosen_depth_tracks_as_the_full_depth_on_a_simulated_frame_pair():
     assert both.sum() >= 0.95 * ok_full.sum()
     # Within the tracker's own stopping tolerance (an update below 0.01 px ends it).
     assert np.percentile(np.linalg.norm(chosen[both] - full[both], axis=1), 95) < 1e-2
+
+
+def test_retries_for_wanted_tracks_alone_give_those_tracks():
+    # A 14 px motion guessed as none at depth 0: most tracks fail and are retried from
+    # their neighbours' flow. Retrying only where the wanted tracks' retries look gives
+    # the wanted tracks of retrying every one, with fewer KLT points.
+    cfg = Config().target
+    prev, cur = tracking_view(_texture(0.0)), tracking_view(_texture(14.0))
+    g = np.arange(30.0, 170.0, 7.0)
+    start = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
+    guess = start.copy()
+    first = klt_track(prev, cur, start, guess, cfg, 0)
+    moved = start[:, 0] < 80.0  # found (at the truth) left of x = 80, lost right of it
+    found = (np.where(moved[:, None], start + np.array([14.0, 0.0]), first[0]), first[1] & moved)
+    every = retrack_from_neighbours((prev, cur), start, guess, found, cfg)
+    wanted = np.linalg.norm(start - [90.0, 100.0], axis=1) < 8.0
+    alone = retrack_from_neighbours((prev, cur), start, guess, found, cfg, wanted)
+    assert (~found[1] & wanted).any() and every[1][wanted].any()
+    np.testing.assert_array_equal(alone[1][wanted], every[1][wanted])
+    np.testing.assert_array_equal(alone[0][wanted], every[0][wanted])
+    assert (alone[1] != every[1]).any()  # the others were not all retried
 
 
 def test_contact_is_folded_into_one_registration_and_keeps_the_tissue_out_of_the_tool(

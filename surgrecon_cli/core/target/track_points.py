@@ -44,9 +44,9 @@ A frame whose previous frame is not its base (re-basing every N_T >= 2 frames) i
 through the previous frame's images (base -> previous -> frame, `_via`: the previous
 frame's chained pixels are held in `Rig.chains` when this process tracked it, else tracked
 again), with the points lost on the way tracked directly from the base (`_direct_camera`:
-those points alone, guided by the scene's motion the first camera's chained tracks show,
-their neighbour retries led by the chained tracks around them): one frame's step of
-tissue pressed by a tool. Points lost in the chain are tracked again
+every point in the first camera, for the scene's motion, then those points alone with the
+points their neighbour retries look at; the same tracks as tracking every point directly):
+one frame's step of tissue pressed by a tool. Points lost in the chain are tracked again
 from their guess moved by the median departure of the tracks found around them
 (core/target/tracking.neighbour_flow), and the anchor step's guesses are moved the same way
 by the chained tracks around them.
@@ -59,6 +59,7 @@ from functools import partial
 
 import cv2
 import numpy as np
+from scipy.spatial import cKDTree
 
 from ...config import TargetConfig
 from ..geometry.cameras import CameraModel, in_image, project, undistort_pixels
@@ -70,6 +71,8 @@ from .reacquire import descriptor_motion
 from .stereo_check import disparity_errors, stereo_match
 from .template_lock import lock_groups, lock_to_template, shared_drift
 from .tracking import (
+    NEIGHBOUR_RADIUS_PX,
+    NEIGHBOUR_ROUNDS,
     TrackingView,
     TrackPrior,
     apply_motion,
@@ -248,51 +251,88 @@ def _via(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig) -> Sig
 
 
 def _direct(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig, c: int,
-            chained: tuple[np.ndarray, np.ndarray, tuple[np.ndarray, float]]
+            lost: tuple[np.ndarray, tuple[np.ndarray, float] | None]
             ) -> tuple[np.ndarray, np.ndarray]:
-    """The points the chain through the previous frame lost in camera c, tracked from the
-    base straight into `frame`: chained = (pixels (N, 2), found (N,)) of the chain and the
-    scene's motion its tracks show (`scene_motion`), which guides them (no pilots). The
-    failed ones are tracked again from their neighbours' flow
-    (core/target/tracking.retrack_from_neighbours), the neighbours being the chain's tracks:
-    their departures from the same straight guesses are the local motion since the base
-    (tracking them straight again for it, as before 2026-12-04, cost ~20 ms of a 5-camera
-    640x512 frame chained so, for ~1 % of the lost points more found). Pixels (N, 2) of the
-    lost points (NaN = not found), found (N,)."""
-    pixels, found, predicted = chained
+    """`_chain` from the base straight into `frame` for camera c of the points lost (N,)
+    bool on the way through the previous frame, guided by the scene's motion (lost[1],
+    `scene_motion`; None: piloted), with the tracks of tracking every point: first the lost
+    points alone without neighbour retries (KLT tracks each point alone), then those that
+    failed again with every point within NEIGHBOUR_ROUNDS x NEIGHBOUR_RADIUS_PX of one in
+    the base image (each round of neighbour retries, core/target/tracking.
+    retrack_from_neighbours, looks at the tracks within NEIGHBOUR_RADIUS_PX, whose own
+    retries looked as far again), the failed ones' first tracks not tracked again (with a
+    known motion, each point's are the same in any company) and the retries limited to
+    the points the failed ones' retries see. Pixels (N, 2) of the lost points (NaN = not
+    found), found (N,). (Every point tracked directly cost a second chain: ~0.1 s of a
+    5-camera 640x512 frame.)"""
+    rows, predicted = lost
     prev, cur = base.views[c], frame.views[c]
     assert prev is not None and cur is not None
-    idx, start, prior = _chain_inputs(latest, base, replace(frame, previous=None), rig, c,
-                                      predicted)
-    lost = ~found[idx]
-    tracked, ok = pixels[idx], found[idx]
-    tracked[lost], ok[lost], _ = track_first(
-        prev, cur, start[lost], TrackPrior(prior.guess[lost], prior.motion_px), rig.cfg)
-    tracked, ok = retrack_from_neighbours((prev, cur), start, prior.guess, (tracked, ok),
-                                          rig.cfg)
-    out = np.full((len(latest), 2), np.nan)
-    back = lost & ok
-    out[idx[back]] = tracked[back]
-    return out, np.isfinite(out).all(1)
+    idx, start, prior = _straight_inputs(latest, base, frame, rig, c, (rows, predicted))
+    tracked, ok, _ = track_first(prev, cur, start, prior, rig.cfg)
+    pixels = np.full((len(latest), 2), np.nan)
+    pixels[idx[ok]] = tracked[ok]
+    failed = np.zeros(len(latest), bool)
+    failed[idx[~ok]] = True
+    if failed.any():
+        start = _starts(latest, base, rig.models[c], c)
+        has = np.flatnonzero(np.isfinite(start).all(1))
+        reach = NEIGHBOUR_ROUNDS * NEIGHBOUR_RADIUS_PX
+        near = cKDTree(start[failed]).query(start[has], k=1, distance_upper_bound=reach)[0]
+        around = failed.copy()
+        around[has[np.isfinite(near)]] = True
+        near_idx, near_start, near_prior = _straight_inputs(latest, base, frame, rig, c,
+                                                            (around, predicted))
+        if np.isfinite(near_prior.motion_px):  # no pilots: the first tracks above hold
+            again, again_ok = np.empty((len(near_idx), 2)), np.empty(len(near_idx), bool)
+            known = np.isin(near_idx, idx)
+            at = np.searchsorted(idx, near_idx[known])
+            again[known], again_ok[known] = tracked[at], ok[at]
+            again[~known], again_ok[~known], _ = track_first(
+                prev, cur, near_start[~known],
+                TrackPrior(near_prior.guess[~known], near_prior.motion_px), rig.cfg)
+            guess = near_prior.guess
+        else:
+            again, again_ok, guess = track_first(prev, cur, near_start, near_prior, rig.cfg)
+        wanted = failed[near_idx]
+        again, again_ok = retrack_from_neighbours((prev, cur), near_start, guess,
+                                                  (again, again_ok), rig.cfg, wanted)
+        back = wanted & again_ok
+        pixels[near_idx[back]] = again[back]
+    pixels = np.where(rows[:, None], pixels, np.nan)
+    return pixels, np.isfinite(pixels).all(1)
+
+
+def _straight_inputs(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig, c: int,
+                     subset: tuple[np.ndarray, tuple[np.ndarray, float] | None]
+                     ) -> tuple[np.ndarray, np.ndarray, TrackPrior]:
+    """What `_chain` from the base straight into `frame` tracks in camera c of the points
+    subset[0] (N,) bool, guided by subset[1] (`_chain_inputs`): their rows (K,), start
+    pixels (K, 2) and prior. Each point's start and guess are the same in any subset."""
+    rows, predicted = subset
+    only = Sighting(base.views, base.poses, np.where(rows[:, None, None], base.pixels, np.nan))
+    return _chain_inputs(latest, only, replace(frame, previous=None), rig, c, predicted)
 
 
 def _direct_camera(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig, c: int,
-                   chained: tuple[np.ndarray, np.ndarray, tuple[np.ndarray, float] | None]
-                   ) -> tuple[np.ndarray, np.ndarray]:
-    """The points the chain through the previous frame lost in camera c (chained =
-    (pixels (N, 2), found (N,), the scene's motion the first camera's chained tracks show)),
-    tracked from the base straight into camera c: pixels (N, 2) (NaN = not found, or
-    masked: `_unmasked`) and found (N,). Guided by the scene's motion (`_direct`); where it
-    is not known, every point is tracked straight, piloted, and the lost ones kept."""
-    pixels, found, predicted = chained
-    if predicted is None:
+                   lost: tuple[np.ndarray, tuple[np.ndarray, float] | None]
+                   ) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, float] | None]:
+    """The points lost (lost[0], (N,) bool) on the way through the previous frame, tracked
+    from the base straight into camera c: pixels (N, 2) (NaN = not found, or masked:
+    `_unmasked`), found (N,) and the scene's motion these straight tracks show. Until that
+    motion is known (lost[1] None: the first camera), every point is tracked, piloted, and
+    the motion measured on them (`_scene`); then only the lost ones (`_direct`), guided by
+    it: the tracks, guesses and neighbour flows of tracking every point straight."""
+    rows, straight = lost
+    if straight is None:
         pixels, found = _chain(latest, base, replace(frame, previous=None), rig, c)
-        found &= ~chained[1]
+        straight = _scene(latest, pixels, found, rig.models[c], frame.poses[c])
+        found &= rows
     else:
-        pixels, found = _direct(latest, base, frame, rig, c, (pixels, found, predicted))
+        pixels, found = _direct(latest, base, frame, rig, c, (rows, straight))
     idx = np.flatnonzero(found)
     found[idx] = _unmasked(pixels[idx], frame, rig, c)
-    return np.where(found[:, None], pixels, np.nan), found
+    return np.where(found[:, None], pixels, np.nan), found, straight
 
 
 def _unmasked(pixels: np.ndarray, frame: FrameInput, rig: Rig, c: int) -> np.ndarray:
@@ -337,7 +377,7 @@ def find_points(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig,
     found = np.zeros((n, n_cams), bool)
     localisation = np.full((n, n_cams), np.inf)
     chained = np.full((n, n_cams, 2), np.nan)  # by the chain alone (for rig.chains)
-    predicted = None  # the scene's motion the first camera's chained tracks show
+    predicted = straight = None  # the scene's motion the chain's / the direct tracks show
     drift = np.full((n, n_cams, 2), np.nan)  # the lock's corrections (NaN: none)
     for c in range(n_cams):
         cur, prev = frame.views[c], base.views[c]
@@ -345,11 +385,12 @@ def find_points(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig,
             continue
         px, ok = _chain(latest, base, frame, rig, c, predicted)
         chain_ok = ok.copy()
+        if direct is not None:  # lost on the way through the previous frame: tracked directly
+            back, back_ok, straight = _direct_camera(latest, direct, frame, rig, c,
+                                                     (~ok, straight))
+            px[back_ok], ok[back_ok] = back[back_ok], True
         if predicted is None:  # the first camera whose tracks show it
             predicted = _scene(latest, px, ok, models[c], cur_poses[c])
-        if direct is not None:  # lost on the way through the previous frame: tracked directly
-            back, back_ok = _direct_camera(latest, direct, frame, rig, c, (px, ok, predicted))
-            px[back_ok], ok[back_ok] = back[back_ok], True
         anchor = None if anchor_views is None else anchor_views[c]
         if anchor is not None and template is not None:
             px, ok = _anchor(anchor, cur, template.pixels[:, c], px, models[c], cfg)

@@ -407,7 +407,8 @@ def _nanmedian_axis1(values: np.ndarray) -> np.ndarray:
 
 def retrack_from_neighbours(views: tuple[TrackingView, TrackingView], start: np.ndarray,
                             guess: np.ndarray, found: tuple[np.ndarray, np.ndarray],
-                            cfg: TargetConfig) -> tuple[np.ndarray, np.ndarray]:
+                            cfg: TargetConfig, wanted: np.ndarray | None = None
+                            ) -> tuple[np.ndarray, np.ndarray]:
     """The first pass's `found` = (tracks (M, 2), ok (M,)) from views = (prev, cur), with
     the failed ones tracked again (full pyramid, same checks, half the window: a deformed
     patch, which the full window failed on from its guess, shows less of its deformation
@@ -417,13 +418,19 @@ def retrack_from_neighbours(views: tuple[TrackingView, TrackingView], start: np.
     reached from its rim inwards. (Retried with the full window first, on simulated runs
     7 of ~4,300 retried tracks passed on the 5-camera frame-cost log and the stereo and
     rig-sweep seed-201 runs.) A later round tracks again only the points
-    whose predicted flow changed (KLT from the same guess fails the same way)."""
+    whose predicted flow changed (KLT from the same guess fails the same way). wanted (M,)
+    bool: the tracks whose result is used (None: all); a round then retries only the lost
+    points within reach of them (the rounds left times NEIGHBOUR_RADIUS_PX: where a later
+    round's flow of a wanted point can see them), so the wanted tracks are those of
+    retrying every point, the others are not."""
     prev, cur = views
     narrow = replace(cfg, klt_window_px=max(5, cfg.klt_window_px // 2 | 1))
     tracked, ok = found[0].copy(), found[1].copy()
     tried = np.full((len(start), 2), np.nan)  # the flow each lost point was last tried with
-    for _ in range(NEIGHBOUR_ROUNDS):
+    for rounds_left in range(NEIGHBOUR_ROUNDS - 1, -1, -1):
         lost = np.flatnonzero(~ok)
+        if wanted is not None and len(lost):
+            lost = lost[_within(start[wanted], start[lost], rounds_left * NEIGHBOUR_RADIUS_PX)]
         if not len(lost) or not ok.any():
             break
         flow = neighbour_flow(start[ok], tracked[ok] - guess[ok], start[lost])
@@ -438,3 +445,11 @@ def retrack_from_neighbours(views: tuple[TrackingView, TrackingView], start: np.
         ok[lost[again_ok]] = True
     return tracked, ok
 
+
+def _within(centres: np.ndarray, pixels: np.ndarray, reach_px: float) -> np.ndarray:
+    """(M,) bool: pixels (M, 2) within reach_px (plus 1 px of slack) of one of centres
+    (K, 2)."""
+    if not len(centres):
+        return np.zeros(len(pixels), bool)
+    distance = cKDTree(centres).query(pixels, k=1, distance_upper_bound=reach_px + 1.0)[0]
+    return np.isfinite(distance)
