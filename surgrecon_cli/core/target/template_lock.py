@@ -90,27 +90,26 @@ def align_patches(template: tuple[np.ndarray, np.ndarray, np.ndarray], image: np
     offset b, with the template's gradients (inverse compositional: I's gradient is a ∇T
     where they match, so the normal equations are set up once per patch, and with u = a δ
     each step is linear). Returns the shifts (M, 2) px, whether each converged (its last
-    step under LOCK_STEP_PX, a positive gain) and, for the converged ones (NaN elsewhere:
-    the others are not kept, so their NCC is not computed), each patch's NCC with the image
-    at the start and at its last step (each (M,))."""
+    step under LOCK_STEP_PX, a positive gain), each patch's NCC with the image at the start
+    and, for the converged ones (NaN elsewhere: the others are not kept, so it is not
+    computed), at its last step (each (M,))."""
     patch, dx, dy = template
     design = np.stack([dx, dy, -patch, -np.ones_like(patch)], 1)  # (M, 4, P)
     normal = np.matmul(design, design.transpose(0, 2, 1)).astype(float)
     normal += (1e-6 * np.trace(normal, axis1=1, axis2=2) + 1e-9)[:, None, None] * np.eye(4)
     solver = np.linalg.inv(normal)
     shift = np.zeros(pixels.shape)
-    start_ncc = np.full(len(pixels), np.nan)
+    start_ncc = np.full(len(pixels), -1.0)
     end_ncc = np.full(len(pixels), np.nan)
     active = np.arange(len(pixels))
     converged = np.zeros(len(pixels), bool)
-    first = np.empty(patch.shape, np.float32)  # the samples at the start
     for iteration in range(LOCK_ITERATIONS):
         if not len(active):
             break
         at = pixels[active] + shift[active]
         values = sample_patches(image, at[:, :1] + offsets[:, 0], at[:, 1:] + offsets[:, 1])
-        if iteration == 0:
-            first = values
+        if iteration == 0:  # every patch is active
+            start_ncc = correlation(values, patch)
         fit = -np.matmul(solver[active], np.matmul(design[active], values[..., None]))[..., 0]
         gain = fit[:, 2]
         valid = gain > MIN_GAIN
@@ -118,9 +117,9 @@ def align_patches(template: tuple[np.ndarray, np.ndarray, np.ndarray], image: np
         shift[active[valid]] += step[valid]
         done = valid & (np.abs(step) < LOCK_STEP_PX).all(1)
         converged[active[done]] = True
-        end_ncc[active[done]] = correlation(values[done], patch[active[done]])
+        end_ncc[active[done]] = (start_ncc[done] if iteration == 0
+                                 else correlation(values[done], patch[active[done]]))
         active = active[valid & ~done]
-    start_ncc[converged] = correlation(first[converged], patch[converged])
     return shift, converged, (start_ncc, end_ncc)
 
 
