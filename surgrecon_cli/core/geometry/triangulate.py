@@ -92,12 +92,15 @@ def _point_sums(point: np.ndarray, values: np.ndarray, n_points: int) -> np.ndar
     return np.stack([np.bincount(point, weights=v, minlength=n_points) for v in values], axis=1)
 
 
-def _symmetric_sums(point: np.ndarray, rows: np.ndarray, n_points: int) -> np.ndarray:
-    """Per-point Σ rowsᵀ rows (N, K, K) of the observations' rows (R, K, M) (observations
-    last: every product below runs over M contiguous values)."""
+def symmetric_sums(point: np.ndarray, rows: np.ndarray, n_points: int,
+                   weights: np.ndarray | None = None) -> np.ndarray:
+    """Per-point Σ w rowsᵀ rows (N, K, K) of the observations' rows (R, K, M) (observations
+    last: every product below runs over M contiguous values), weighted by weights (M,)
+    (None: 1)."""
     k = rows.shape[1]
     i, j = np.triu_indices(k)
-    upper = _point_sums(point, (rows[:, i] * rows[:, j]).sum(axis=0), n_points)
+    products = (rows[:, i] * rows[:, j]).sum(axis=0)
+    upper = _point_sums(point, products if weights is None else products * weights, n_points)
     out = np.empty((n_points, k, k))
     out[:, i, j] = upper
     out[:, j, i] = upper
@@ -109,7 +112,7 @@ def triangulate_linear(obs: Observations, poses: np.ndarray, n_points: int) -> n
     P = np.moveaxis(_world_to_camera(poses)[obs.camera], 0, -1)  # (3, 4, M)
     x, y = obs.normalized[:, 0], obs.normalized[:, 1]
     rows = np.stack([x * P[2] - P[0], y * P[2] - P[1]])  # (2, 4, M)
-    _, vecs = np.linalg.eigh(_symmetric_sums(obs.point, rows, n_points))
+    _, vecs = np.linalg.eigh(symmetric_sums(obs.point, rows, n_points))
     h = vecs[:, :, 0]
     with np.errstate(divide="ignore", invalid="ignore"):
         return h[:, :3] / h[:, 3:4]
@@ -140,7 +143,7 @@ def refine_points(
         # ∂π/∂X R = [R_0 - x R_2; R_1 - y R_2] / z (rows of R), then D and the focal length
         dR = (R[:2] - proj[:, None] * R[2:3]) * (w / z)  # (2, 3, M)
         J = (D[:, :, None] * dR[None]).sum(axis=1)  # (2, 3, M)
-        JtJ = _symmetric_sums(obs.point, J, n)
+        JtJ = symmetric_sums(obs.point, J, n)
         Jtr = _point_sums(obs.point, (J * r[:, None]).sum(axis=0), n)
         JtJ += np.eye(3) * 1e-9 * np.trace(JtJ, axis1=1, axis2=2)[:, None, None] + np.eye(3) * 1e-12
         X = X - np.linalg.solve(JtJ, Jtr[..., None])[..., 0]

@@ -364,12 +364,12 @@ def local_motion_noise_px(reference: np.ndarray, current: np.ndarray, found: np.
         sigma = robust_sigma(stacked)
         weights = [np.nan_to_num(np.abs(r).max(1), nan=np.inf) <= REJECT * sigma
                    for r in residuals]
-    halves = [(out[..., a, :] + sign * out[..., b, :]) / 2.0
-              for a in range(n_cams) for b in range(a + 1, n_cams) for sign in (1.0, -1.0)]
-    if not halves:
+    first, second = np.triu_indices(n_cams, 1)  # every pair of cameras at once
+    if not len(first):
         return sigma, 0.0
-    both = [h[np.isfinite(h).all(-1) & (np.abs(h).max(-1) <= REJECT * sigma)] for h in halves]
-    total, difference = np.concatenate(both[0::2]), np.concatenate(both[1::2])
+    view_a, view_b = out[..., first, :], out[..., second, :]  # (F, N, pairs, 2)
+    total, difference = (h[np.isfinite(h).all(-1) & (np.abs(h).max(-1) <= REJECT * sigma)]
+                         for h in ((view_a + view_b) / 2.0, (view_a - view_b) / 2.0))
     if min(len(total), len(difference)) < MIN_POINTS:
         return sigma, 0.0
     shared2 = robust_sigma(total) ** 2 - robust_sigma(difference) ** 2

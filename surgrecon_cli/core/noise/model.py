@@ -45,6 +45,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
+from ..geometry.triangulate import symmetric_sums
+
 MAD_TO_SIGMA = 1.4826  # σ of a Gaussian from its median absolute deviation
 
 
@@ -312,10 +314,8 @@ def point_covariances(point_index: np.ndarray, jacobians: np.ndarray, variance_p
     """3D covariances (N, 3, 3) m² of triangulated points from their views: point_index (M,)
     the point of each view, jacobians (M, 2, 3), variance_px2 (M,) pixel variance per view.
     Points with fewer than 2 views or a degenerate geometry get NaN."""
-    info = np.zeros((n_points, 3, 3))
     weights = 1.0 / np.maximum(np.asarray(variance_px2, float), 1e-12)
-    np.add.at(info, point_index, np.einsum("mai,maj->mij", jacobians, jacobians)
-              * weights[:, None, None])
+    info = symmetric_sums(point_index, np.moveaxis(jacobians, 0, -1), n_points, weights)
     cov = np.full((n_points, 3, 3), np.nan)
     eig = np.linalg.eigvalsh(info)
     ok = eig[:, 0] > 1e-12 * np.maximum(eig[:, 2], 1e-300)

@@ -90,8 +90,9 @@ def align_patches(template: tuple[np.ndarray, np.ndarray, np.ndarray], image: np
     offset b, with the template's gradients (inverse compositional: I's gradient is a ∇T
     where they match, so the normal equations are set up once per patch, and with u = a δ
     each step is linear). Returns the shifts (M, 2) px, whether each converged (its last
-    step under LOCK_STEP_PX, a positive gain) and each patch's NCC with the image at the
-    start and at its last step (each (M,))."""
+    step under LOCK_STEP_PX, a positive gain), each patch's NCC with the image at the start
+    and, for the converged ones (NaN elsewhere: the others are not kept, so it is not
+    computed), at its last step (each (M,))."""
     patch, dx, dy = template
     design = np.stack([dx, dy, -patch, -np.ones_like(patch)], 1)  # (M, 4, P)
     normal = np.matmul(design, design.transpose(0, 2, 1)).astype(float)
@@ -99,7 +100,7 @@ def align_patches(template: tuple[np.ndarray, np.ndarray, np.ndarray], image: np
     solver = np.linalg.inv(normal)
     shift = np.zeros(pixels.shape)
     start_ncc = np.full(len(pixels), -1.0)
-    last_ncc = np.full(len(pixels), -1.0)
+    end_ncc = np.full(len(pixels), np.nan)
     active = np.arange(len(pixels))
     converged = np.zeros(len(pixels), bool)
     for iteration in range(LOCK_ITERATIONS):
@@ -107,9 +108,8 @@ def align_patches(template: tuple[np.ndarray, np.ndarray, np.ndarray], image: np
             break
         at = pixels[active] + shift[active]
         values = sample_patches(image, at[:, :1] + offsets[:, 0], at[:, 1:] + offsets[:, 1])
-        last_ncc[active] = correlation(values, patch[active])
-        if iteration == 0:
-            start_ncc = last_ncc.copy()
+        if iteration == 0:  # every patch is active
+            start_ncc = correlation(values, patch)
         fit = -np.matmul(solver[active], np.matmul(design[active], values[..., None]))[..., 0]
         gain = fit[:, 2]
         valid = gain > MIN_GAIN
@@ -117,8 +117,10 @@ def align_patches(template: tuple[np.ndarray, np.ndarray, np.ndarray], image: np
         shift[active[valid]] += step[valid]
         done = valid & (np.abs(step) < LOCK_STEP_PX).all(1)
         converged[active[done]] = True
+        end_ncc[active[done]] = (start_ncc[done] if iteration == 0
+                                 else correlation(values[done], patch[active[done]]))
         active = active[valid & ~done]
-    return shift, converged, (start_ncc, last_ncc)
+    return shift, converged, (start_ncc, end_ncc)
 
 
 def lock_to_template(anchor: TrackingView, view: TrackingView, anchor_pixels: np.ndarray,

@@ -79,6 +79,12 @@ class TrackingView:
         dy = cv2.Sobel(grey, cv2.CV_32F, 0, 1, ksize=1, scale=0.5)
         return cv2.merge([grey, dx, dy])
 
+    @cached_property
+    def has_specular(self) -> bool:
+        """Whether `specular` marks any pixel (an image without highlights: no track is
+        refused for one, `on_specular`)."""
+        return bool(self.specular.any())
+
 
 def specular_mask(image: np.ndarray) -> np.ndarray:
     """Saturated specular highlights of an RGB image (H, W, 3) uint8: near-white pixels of
@@ -120,6 +126,8 @@ def tracking_view(image: np.ndarray) -> TrackingView:
 
 def on_specular(view: TrackingView, pixels: np.ndarray) -> np.ndarray:
     """Whether pixels (M, 2) (finite) lie on or next to a highlight of `view`, (M,) bool."""
+    if not view.has_specular:
+        return np.zeros(len(pixels), bool)
     h, w = view.specular.shape
     col = np.clip(np.rint(pixels[:, 0]).astype(int), 0, w - 1)
     row = np.clip(np.rint(pixels[:, 1]).astype(int), 0, h - 1)
