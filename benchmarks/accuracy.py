@@ -285,8 +285,10 @@ def check_goals(rows: list[dict[str, Any]], variants: list[str]) -> list[dict[st
             present = [v for v in values if v is not None]
 
             def badness(v: float, low=low, high=high) -> float:
-                return max((low - v) if low is not None else 0.0,
-                           (v - high) if high is not None else 0.0)
+                """How far v is past its bound (> 0: missed; the seed nearest to missing a
+                met goal has the largest)."""
+                return max((low - v) if low is not None else -math.inf,
+                           (v - high) if high is not None else -math.inf)
 
             worst = max(present, key=badness) if present else None
             if failed_runs:
