@@ -1,8 +1,10 @@
 """Stage `classify`: label every template point at every frame (core/classify/rules.py).
 
 Reads the template and every registered frame (io/run/artefacts.py); intra-camera inliers are
-classified from their own re-triangulated pixels (`static_verdicts_checked`); a frame's points
-whose evidence does not support a label (core/quality.unsupported_points) are unknown. Writes
+classified from their own re-triangulated pixels (`static_verdicts_checked`); the points the
+logged tools touch are found (`frame_inputs`: the deforming test takes the touch as evidence);
+a frame's points whose evidence does not support a label (core/quality.unsupported_points) are
+unknown. Writes
 RUN/classify/labels.npz (`io/artefacts.FrameLabels`: labels after hysteresis, raw labels, the
 displacement and deformation measures, reprojection status) and every frame's labelled
 cloud RUN/clouds/FFFFFF.ply, written once, here: positions, template colours, point_id,
