@@ -54,7 +54,7 @@ from ..io.run.atomic import file_identity, write_npz
 from ..io.run.ingest_store import IngestedLog, load_ingested
 from ..io.run.layout import RunLayout
 from ..io.run.rows import RowFile, npz_rows, write_npz_rows
-from .common import stage_run
+from .common import stage_run, tool_poses
 from .registry import StageContext
 
 logger = logging.getLogger(__name__)
@@ -151,7 +151,8 @@ def frame_inputs(reg: FrameRegistration, template_noise: TemplateNoise, log: Ing
     evidence = frame_evidence(reg, reg.registered.astype(float), template_noise)
     registered, evidence = static_verdicts_checked(
         reg, template_noise, evidence, list(log.models), log.usable_poses(frame))
-    touched = points_near_tool(registered, log.all_tool_poses(frame), config.tool_configs())
+    touched = points_near_tool(registered, tool_poses(log, config, frame),
+                               config.tool_configs())
     return registered, replace(evidence, touched=touched)
 
 

@@ -61,10 +61,22 @@ def stage_run(run_dir: Path, name: str, config: Config,
                    **{"config": recorded_config(config, name), **info})
 
 
+def tool_poses(log: IngestedLog, config: Config, frame: int) -> np.ndarray:
+    """Every tool's pose (K, 4, 4) in the world at `frame`, in `Config.tool_configs()` order
+    (NaN where unknown). InputError when the log was ingested with another number of tools
+    than the config names (a `[[tools]]` entry added or removed after ingest)."""
+    tools = log.all_tool_poses(frame)
+    wanted = len(config.tool_configs())
+    if len(tools) != wanted:
+        raise InputError(f"{log.root}: ingested with {len(tools)} tools, the config has "
+                         f"{wanted}; ingest again with this config")
+    return tools
+
+
 def tools_as_seen(log: IngestedLog, config: Config, frame: int) -> np.ndarray:
     """The tools' poses at `frame`: (K, 4, 4) in the world, or (C, K, 4, 4) per camera when
     a tool has `camera_offsets` (`camera_tool_poses`)."""
-    tools = log.all_tool_poses(frame)
+    tools = tool_poses(log, config, frame)
     try:
         per_camera = camera_tool_poses(tools, config.tool_configs(), list(log.cameras))
     except ValueError as exc:

@@ -57,7 +57,7 @@ from ..io.run.ingest_store import IngestedLog, load_ingested
 from ..io.run.layout import RunLayout
 from ..io.run.metrics import finite_json, write_csv
 from ..io.run.rows import RowFile, write_npz_rows
-from .common import stage_run
+from .common import stage_run, tool_poses
 from .registry import StageContext
 
 logger = logging.getLogger(__name__)
@@ -111,7 +111,8 @@ def run_measure(run_dir: Path, config: Config,
                                      * reg.support_mm.astype(float) * 1e-3)
                 frame_figs, rows = measure_tools(
                     surface, SurfaceEstimate(positions, sigma, extrapolation),
-                    log.all_tool_poses(k), config.deformation, config.tool_configs(), held)
+                    tool_poses(log, config, k), config.deformation, config.tool_configs(),
+                    held)
                 held = held_contact(held, frame_figs)
                 for t, fig in enumerate(frame_figs):
                     figs[t].append(fig)

@@ -25,6 +25,7 @@ from ..core.geometry.tool_fit import ShaftFit, fit_tool_offset
 from ..errors import InputError
 from ..io.run.ingest_store import load_ingested
 from ..io.run.layout import RunLayout
+from .common import tool_poses
 
 ToolT = TypeVar("ToolT", bound=ToolConfig)
 
@@ -74,10 +75,7 @@ def fit_run_tool_offsets(run_dir: Path, config: Config, frame: int = 0,
     if not 0 <= frame < log.n_frames:
         raise InputError(f"--frame {frame}: the run has frames 0..{log.n_frames - 1}")
     cfgs = config.tool_configs()
-    tools = log.all_tool_poses(frame)
-    if len(tools) != len(cfgs):
-        raise InputError(f"{run_dir}: ingested with {len(tools)} tools, the config has "
-                         f"{len(cfgs)}; ingest again with this config")
+    tools = tool_poses(log, config, frame)
     index = {name: c for c, name in enumerate(log.cameras)}
     poses = log.usable_poses(frame)
     options = ShaftFit(radius_m=radius_m, search_m=search_m, max_turn_deg=0.0)
