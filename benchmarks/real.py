@@ -20,11 +20,12 @@ checkout). One table, a row per log:
   disparities do not);
 - σ truth: simulator only, the localisation error against the true geometry;
 - trk run: the tracking noise the run measured (summary noise.tracking_px, the median over
-  frames); trk rigid: real logs only, an independent check on a rigid scene (the SurgT clip;
-  real_reference.rigid_tracking_px, epipolar residuals of the tracks); trk truth: simulator
-  only, the tracks against the true motion (real_reference.ground_truth_tracking_px); both
-  over every camera, as the run;
-  trk/check: trk run over trk truth (simulator) or trk rigid (real);
+  frames); trk rigid: real logs of a rigid scene only, an independent check (the SurgT
+  clip; real_reference.rigid_tracking_px, epipolar residuals of the tracks); trk truth:
+  logs with a ground truth (the simulator's, and the `breathe=A` clips: real texture, known
+  motion, `clip_truth_tracking`), the tracks against the true motion
+  (real_reference.ground_truth_tracking_px); both over every camera, as the run;
+  trk/check: trk run over trk truth or trk rigid;
 - tracked / outlier: mean share of template points observed / outliers, frames 1 on;
 - static / shifting / deforming / unknown: label shares over point-frames, frames 1 on;
   "deform|lab" the share of labelled point-frames called deforming;
@@ -41,10 +42,11 @@ checkout). One table, a row per log:
   whose true neighbourhood is confidently rigid (moved, or not, with a rigid-fit RMS under
   half of classify.deform_mm) called deforming;
   "moving det" the share of truly moving point-frames (shifting or deforming) called moving;
-  "covered" the share of template points whose line of sight from camera 0 meets the true
-  surface at frame 0 (the breathing clips' truth has holes where SGBM measured nothing;
-  `truth_covers`), "cov med" / "cov p95" the labelled positions of those against the truth
-  (mm, frames 1 on): "true med" / "true p95" without the points over holes.
+  "covered" the share of template points the true surface covers (the breathing clips'
+  truth has holes where SGBM measured nothing, and maps a point over one to its rim:
+  core/evaluate/scoring.on_mesh_rim, as `surgrecon evaluate`'s calib2σ counts them), "cov
+  med" / "cov p95" the labelled positions of those against the truth (mm, frames 1 on):
+  "true med" / "true p95" without the points over holes.
 Real logs without a ground truth also get a second table, "real motion" (issue 24; the
 scene must be rigid and the rig fixed in the world, as `surgrecon convert` writes it
 without --camera-poses), against the scene's rigid motion measured from the images alone
@@ -196,6 +198,19 @@ def truth_tracking(variant: str, seed: int, frames: int, template_px: np.ndarray
                                     template_px, tracked)
 
 
+def clip_truth_tracking(log: Any, gt_path: Path, template_px: np.ndarray,
+                        tracked: np.ndarray) -> float:
+    """`trk truth` of a real-texture clip with a ground truth beside it (the `breathe=A`
+    clips): its rig is fixed and calibrated, so the ingested poses are the true ones, and
+    the truth's surface is the same for every camera of a frame."""
+    gt = load_ground_truth(gt_path)
+    frames = len(tracked) + 1
+    cams = template_px.shape[1]
+    vertices = np.repeat(gt.vertices[:frames, None], cams, axis=1)
+    return ground_truth_tracking_px(log.poses[:frames, :cams], list(log.models), vertices,
+                                    gt.faces, template_px, tracked)
+
+
 def rotation_deg(transform: np.ndarray) -> float:
     """Rotation angle (degrees) of a rigid transform (4, 4)."""
     c = np.clip((np.trace(transform[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
@@ -283,6 +298,9 @@ def measure(name: str, run: Path, variant: str | None, seed: int | None,
     tracked = tracked_pixels(layout, n, log.n_frames)
     if variant is not None and seed is not None:
         row["trk_truth"] = truth_tracking(variant, seed, frames, template_px, tracked)
+    elif gt_path_beside(log_path).exists():  # a real-texture clip of known (breathing) motion
+        row["trk_truth"] = clip_truth_tracking(log, gt_path_beside(log_path), template_px,
+                                               tracked)
     else:
         row["trk_rigid"] = rigid_tracking_px(log.models, template_px, tracked)
     check = row.get("trk_truth", row.get("trk_rigid"))
@@ -323,7 +341,7 @@ def truth_label_checks(layout: RunLayout, n_frames: int, log_path: Path,
     from surgrecon_cli.config import Config
     from surgrecon_cli.core.classify.labels import rigid_fit_rms
     from surgrecon_cli.core.classify.rules import template_neighbourhoods
-    from surgrecon_cli.core.evaluate.scoring import map_to_surface
+    from surgrecon_cli.core.evaluate.scoring import map_to_surface, on_mesh_rim
     gt = load_ground_truth(gt_path_beside(log_path))
     template = read_template(layout).points
     mapping = map_to_surface(template, gt.vertices[0], gt.faces)
@@ -333,8 +351,7 @@ def truth_label_checks(layout: RunLayout, n_frames: int, log_path: Path,
     index, mask = nb.members()
     truth = np.load(layout.evaluation_errors)["true_labels"]
     start = mapping.follow(gt.vertices[0], gt.faces)  # the true frame-0 material points
-    covered = truth_covers(template, load_ingested(layout.ingest_dir).poses[0, 0, :3, 3],
-                           gt.vertices[0], gt.faces)
+    covered = ~on_mesh_rim(mapping, gt.faces)
     point, positions = reference
     ref_covered = covered[point]
     rigid = moving = rigid_deforming = moving_found = 0
@@ -366,20 +383,6 @@ def truth_label_checks(layout: RunLayout, n_frames: int, log_path: Path,
             "covered_p95_mm": float(np.percentile(e, 95)) if e.size else float("nan"),
             "ref_truth_median_mm": float(np.median(r)) if r.size else float("nan"),
             "ref_truth_p95_mm": float(np.percentile(r, 95)) if r.size else float("nan")}
-
-
-def truth_covers(points: np.ndarray, eye: np.ndarray, vertices: np.ndarray, faces: np.ndarray
-                 ) -> np.ndarray:
-    """Whether the true surface (V, 3) / (F, 3) m covers each template point (N, 3) m: the
-    line of sight from camera 0's centre `eye` (3,) through it meets the surface. A truth
-    mesh with holes (the breathing clips': cells without a measured disparity) maps a point
-    over a hole to the hole's rim, millimetres away, an error of the truth, not the run."""
-    from surgrecon_cli.sim.render import cast_rays, mesh_scene
-
-    dirs = points - eye
-    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
-    rays = np.column_stack([np.broadcast_to(eye, dirs.shape), dirs])
-    return np.isfinite(cast_rays(mesh_scene(vertices, faces), rays)["t_hit"].numpy())
 
 
 COLUMNS = (("sigma_run", "σ run", ".3f"), ("sigma_ncc", "σ NCC", ".3f"),

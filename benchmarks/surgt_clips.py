@@ -38,6 +38,9 @@ import cv2
 import numpy as np
 from surgt_breathing import breathing_frames
 
+from surgrecon_cli.config import LabelsConfig
+from surgrecon_cli.core.classify.labels import true_labels
+
 SURGT = Path(__file__).resolve().parents[1] / "tests" / "data" / "surgt"
 CLIP_FPS = 5  # frames a second the clips are converted at
 
@@ -98,8 +101,26 @@ def breathing_clip(frame: np.ndarray, opts: dict[str, float], out_dir: Path
                                     opts["breathe"], length, opts["period"] or length,
                                     opts["ripple"])
     truth["stamps_ns"] = np.round(np.arange(length) * 1e9 / CLIP_FPS).astype(np.int64)
+    if opts["pitch"]:  # the turning rig sees the tissue turn the other way about its eye
+        rots = np.stack([pitch_rotation(opts["pitch"], i) for i in range(length)])
+        truth["vertices"] = np.einsum("tij,tvj->tvi", rots, truth["vertices"])
+        cfg = LabelsConfig()
+        truth["labels"] = true_labels(truth["vertices"], cfg.static_mm, cfg.neighbourhood_mm,
+                                      cfg.rigid_rms_mm).astype(np.uint8)
     np.savez_compressed(out_dir / "clip.gt.npz", **truth)
     return [np.hstack(pair) for pair in pairs]
+
+
+PITCH_WAVE = np.array([0, 1, 2, 3, 2, 1, 0, -1, -2, -3, -2, -1])  # `pitch` steps by frame
+
+
+def pitch_rotation(pitch_deg: float, frame: int) -> np.ndarray:
+    """(3, 3) the rotation about the left eye's x axis (the baseline) by which `pitch`'s
+    rig has turned at `frame`: each eye's image is warped by K R K⁻¹ (R for the left eye),
+    so a tissue point X of the left camera's frame-0 coordinates is seen at R X."""
+    angle = np.radians(pitch_deg * PITCH_WAVE[frame % len(PITCH_WAVE)])
+    c, s = np.cos(angle), np.sin(angle)
+    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
 
 
 def relit(view: np.ndarray, wave: float, gain: float, shade: float) -> np.ndarray:
@@ -127,18 +148,16 @@ def make_clip(spec: str, out_dir: Path) -> tuple[Path, Path]:
     calib = calibration()
     K = {"left": calib["M1"], "right": calib["M2"]}
     r_rel = calib["R"]  # x_right = R x_left + T
-    tri = np.array([0, 1, 2, 3, 2, 1, 0, -1, -2, -3, -2, -1])
     for i, frame in enumerate(frames):
-        angle = np.radians(opts["pitch"] * tri[i % len(tri)])
-        c, s = np.cos(angle), np.sin(angle)
-        rot = np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+        rot = pitch_rotation(opts["pitch"], i)
         for side, view in (("left", frame[:, :1280]), ("right", frame[:, 1280:])):
-            if angle:
+            if opts["pitch"]:
                 r = rot if side == "left" else r_rel @ rot @ r_rel.T
                 h = K[side] @ r @ np.linalg.inv(K[side])
                 view = cv2.warpPerspective(view, h, (1280, 1024), flags=cv2.INTER_LINEAR)
             if opts["gain"] or opts["shade"]:
-                view = relit(view, tri[i % len(tri)] / 3.0, opts["gain"], opts["shade"])
+                view = relit(view, PITCH_WAVE[i % len(PITCH_WAVE)] / 3.0, opts["gain"],
+                             opts["shade"])
             if opts["scale"] != 1.0:
                 size = (round(1280 * opts["scale"]), round(1024 * opts["scale"]))
                 view = cv2.resize(view, size, interpolation=cv2.INTER_AREA)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -17,6 +18,8 @@ from surgrecon_cli.io.logs.ground_truth import gt_path_beside, load_ground_truth
 from surgrecon_cli.io.run.artefacts import (
     FrameLabels,
     FrameRegistration,
+    read_registration,
+    read_template,
     write_labels,
     write_registration,
 )
@@ -103,6 +106,37 @@ def test_scores_of_known_errors(known_run):
     f1 = {r["frame"]: r["macro_f1"] for r in lab["per_frame"]}
     assert f1[2] < 1.0 and all(f1[k] == 1.0 for k in f1 if k != 2)
     assert RunFolder(run_dir).stage("evaluate")["parts"] == ["template", "registration", "labels"]
+
+
+def test_calibration_counts_the_points_the_truth_covers(known_run, tmp_path):
+    """A truth with a hole (a depth map's, where nothing was measured) maps the points over it
+    to the hole's rim, millimetres from where they are: that error is the truth's, and the
+    2σ calibration leaves those points out (the spec's registration errors keep them)."""
+    run_dir, gt, _, _ = known_run
+    layout = RunLayout(run_dir)
+    points = read_template(layout).points[:-1]  # the 300 on the surface
+    centre = points[0]
+    centroids = gt.vertices[0][gt.faces].mean(1)
+    holed = gt.faces[np.linalg.norm(centroids - centre, axis=1) > 3e-3]
+    distance = np.linalg.norm(points - centre, axis=1)
+    over, near = (distance < 2e-3).sum(), (distance < 4e-3).sum()  # inside; up to its rim
+    assert over >= 1
+    data = dict(np.load(gt.path))
+    data["faces"] = holed
+    gt_holed = tmp_path / "holed.gt.npz"
+    np.savez(gt_holed, **data)
+    n = len(points) + 1
+    for k in range(1, gt.n_frames):  # σ 0.3 mm: 2σ holds the 0.5 mm offset, not the rim's
+        reg = read_registration(layout, k, n)
+        write_registration(layout, k, replace(reg, sigma=np.full(n, 3e-4)))
+    whole = run_evaluate(run_dir, Config(), gt.path)["labels"]
+    result = run_evaluate(run_dir, Config(), gt_holed)
+    assert whole["truth_covered_fraction"] == 1.0
+    assert whole["calibration_2sigma"] == pytest.approx(1.0)
+    lab = result["labels"]
+    assert 1.0 - near / n <= lab["truth_covered_fraction"] <= 1.0 - over / n
+    assert lab["calibration_2sigma"] == pytest.approx(1.0)
+    assert result["registration"]["overall"]["max_mm"] > 1.0  # the rim's error is scored
 
 
 def test_template_only_run_gets_the_template_part(known_run):

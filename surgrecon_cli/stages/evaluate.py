@@ -29,7 +29,12 @@ from ..core.evaluate.evaluation import (
     registration_errors,
     true_point_labels,
 )
-from ..core.evaluate.scoring import distance_stats_mm, label_scores, map_to_surface
+from ..core.evaluate.scoring import (
+    distance_stats_mm,
+    label_scores,
+    map_to_surface,
+    on_mesh_rim,
+)
 from ..core.measure.indentation import NOT_MEASURED, camera_viewpoint, tool_known
 from ..errors import InputError
 from ..io.logs.ground_truth import GroundTruth, load_ground_truth
@@ -92,7 +97,8 @@ def run_evaluate(run_dir: Path, config: Config, gt_path: Path,
             labels = read_labels(layout, truth.shape).labels
             result["labels"] = _labels_part(labels, truth)
             if result["registration"] is not None:
-                _honesty_part(result, labels, errors, sigma, has_data)
+                covered = ~on_mesh_rim(mapping, gt.faces)
+                _honesty_part(result, labels, (errors, sigma, has_data), covered)
         if run.is_done("measure"):
             result["deformation"] = _deformation_part(layout, gt, log, config, len(template))
         write_npz(layout.evaluation_errors,
@@ -140,17 +146,23 @@ def _registration_part(layout: RunLayout, gt: GroundTruth, mapping: Any, errors:
     return {"overall": error_summary(errors[1:].astype(float) * 1e-3), "per_frame": per_frame}
 
 
-def _honesty_part(result: dict[str, Any], labels: np.ndarray, errors: np.ndarray,
-                  sigma: np.ndarray, has_data: np.ndarray) -> None:
-    """Does the run know what it does not know? Over frames >= 1: the registration error of
+def _honesty_part(result: dict[str, Any], labels: np.ndarray,
+                  frames: tuple[np.ndarray, np.ndarray, np.ndarray], covered: np.ndarray
+                  ) -> None:
+    """Does the run know what it does not know? Over frames >= 1 (frames: errors (T, N) mm,
+    sigma (T, N) mm, has_data (T, N) of `_registration_part`): the registration error of
     labelled points; the share of labelled points whose true error is within the reported
     2σ (calibration) and the factor 2σ would need to cover 95 % of them (`sigma_scale_95`,
-    above 1 when σ understates the error); the share unknown; labelled points with no data
+    above 1 when σ understates the error), both over the points the truth covers (covered
+    (N,): not mapped to the rim of a truth with holes, `on_mesh_rim`, whose error there is
+    the truth's; `truth_covered_fraction`); the share unknown; labelled points with no data
     that are more than `UNSUPPORTED_MM` off (extrapolated and still labelled)."""
+    errors, sigma, has_data = frames
     labelled = labels[1:] != UNKNOWN
     err, sig = errors[1:].astype(float), sigma[1:].astype(float)
     result["registration"]["labelled"] = error_summary(np.where(labelled, err, np.nan) * 1e-3)
-    checked = labelled & np.isfinite(err)
+    result["labels"]["truth_covered_fraction"] = float(np.mean(covered))
+    checked = labelled & np.isfinite(err) & covered[None, :]
     within = (err <= 2.0 * sig)[checked]
     result["labels"]["calibration_2sigma"] = float(within.mean()) if within.size else None
     with np.errstate(divide="ignore", invalid="ignore"):

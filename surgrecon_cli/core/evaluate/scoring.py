@@ -97,6 +97,25 @@ def map_to_surface(
     )
 
 
+def on_mesh_rim(mapping: SurfaceMapping, faces: np.ndarray) -> np.ndarray:
+    """(N,) bool: mapped points whose nearest point lies on the mesh's rim (an edge of one
+    face only, or a vertex of one), i.e. points beyond the mesh's border or over one of its
+    holes: a truth with holes (depth maps, where stereo or a scanner measured nothing) maps
+    them to the hole's rim, millimetres from where the surface is, an error of the truth."""
+    faces = np.asarray(faces)
+    edges = np.sort(np.stack([faces[:, [1, 2]], faces[:, [2, 0]], faces[:, [0, 1]]], 1), -1)
+    pairs, inverse, count = np.unique(edges.reshape(-1, 2), axis=0, return_inverse=True,
+                                      return_counts=True)
+    rim_edge = (count == 1)[inverse.ravel()].reshape(len(faces), 3)  # edge opposite vertex j
+    rim_vertex = np.zeros(int(faces.max()) + 1, bool)
+    rim_vertex[pairs[count == 1].ravel()] = True
+    zero = mapping.bary <= 0.0
+    on_edge = (zero & rim_edge[mapping.face]).any(1)
+    corner = zero.sum(1) == 2  # nearest point is a vertex: the one of weight 1
+    at_vertex = corner & rim_vertex[faces[mapping.face, np.argmax(mapping.bary, 1)]]
+    return on_edge | at_vertex
+
+
 def distance_stats_mm(distances_m: np.ndarray) -> dict[str, float]:
     """Median / p95 / max / mean of distances, in millimetres (NaNs ignored)."""
     d = np.asarray(distances_m, float)
