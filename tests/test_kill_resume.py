@@ -331,12 +331,27 @@ def test_killed_at_the_first_write(pipeline_log: Path, tmp_path: Path, leftover:
     assert main(["ingest", str(pipeline_log), "-o", str(run), "-q"]) == 0
 
 
+@pytest.fixture(scope="module")
+def interruptible_log(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """`pipeline_log`'s rig over 16 frames: after the first registered frame, enough
+    registering is left that a poller starved on a loaded machine still interrupts it (on 6
+    frames, at a load of 3-4 on 2 cores, the run finished first)."""
+    from surgrecon_cli.sim.scene import SimConfig
+    from surgrecon_cli.sim.simulate import simulate
+
+    out = tmp_path_factory.mktemp("interruptible_log") / "sim.mcap"
+    simulate(out, SimConfig(cameras=6, frames=16, width=320, height=240))
+    return out
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("executor", ["serial", "processes"])
-def test_ctrl_c_keeps_registered_frames(pipeline_log: Path, tmp_path: Path, executor: str):
+def test_ctrl_c_keeps_registered_frames(interruptible_log: Path, tmp_path: Path,
+                                        executor: str):
     """Ctrl-C (SIGINT to the process group, as a terminal sends it) during register keeps
     the frames recorded so far, as SIGKILL does; the rerun resumes from them."""
     run = tmp_path / "run"
+    pipeline_log = interruptible_log
     proc = subprocess.Popen([*SURGRECON, "run", str(pipeline_log), "-o", str(run), "-q",
                              "--executor", executor, "--workers", "2"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE,
@@ -345,7 +360,7 @@ def test_ctrl_c_keeps_registered_frames(pipeline_log: Path, tmp_path: Path, exec
     deadline = time.perf_counter() + HANG_GUARD_S
     while proc.poll() is None and time.perf_counter() < deadline:
         seen = registered(run)
-        if len(seen) >= 2:
+        if seen:
             os.killpg(proc.pid, signal.SIGINT)
             break
         time.sleep(0.01)
