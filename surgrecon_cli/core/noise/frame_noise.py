@@ -187,12 +187,14 @@ class PixelNeighbours:
         count = valid.sum(1)
         enough = count >= k + 2
         # the first k + 2 members of each row with enough, in order
-        take = valid & (np.cumsum(valid, 1) <= k + 2)
+        take = valid & (np.cumsum(valid, 1, dtype=np.int32) <= k + 2)
         take[~enough] = False
-        members = np.nonzero(take)
-        dist = self.dist[rows][members].reshape(-1, k + 2)
-        nearest = found[members].reshape(-1, k + 2)
-        last = self.dist[rows][enough, -1]
+        width = self.idx.shape[1]
+        members = np.flatnonzero(take)  # flat indices into (M, width), row by row
+        nearest = found.ravel()[members].reshape(-1, k + 2)
+        ample = rows[enough]  # the rows with enough members: their distances alone
+        dist = self.dist.ravel()[(ample * width)[:, None] + (members % width).reshape(-1, k + 2)]
+        last = self.dist[ample, -1]
         exact = (np.diff(dist, axis=1) > 0).all(1) & (dist[:, -1] < last)
         out = np.empty((len(rows), k + 1), int)
         good = np.flatnonzero(enough)[exact]
