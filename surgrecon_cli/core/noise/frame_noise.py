@@ -208,6 +208,27 @@ class PixelNeighbours:
         return out
 
 
+def spd_solve(normal: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """Solutions (R, n, m) of R symmetric positive definite systems normal (R, n, n) with
+    right-hand sides rhs (R, n, m), by Cholesky factors computed for all R at once (a loop
+    over the n columns, not over the systems: np.linalg.solve's LU of each small system
+    costs twice as much for n = 6, R ~ 700). NaN where a system is not positive definite."""
+    n = normal.shape[1]
+    a = np.ascontiguousarray(np.moveaxis(normal, 0, -1))  # (n, n, R): systems last
+    low = np.zeros(a.shape)  # the Cholesky factor, lower triangle
+    for j in range(n):
+        row = low[j, :j]  # (j, R)
+        with np.errstate(invalid="ignore"):
+            low[j, j] = np.sqrt(a[j, j] - (row * row).sum(0))
+        low[j + 1:, j] = (a[j + 1:, j] - (low[j + 1:, :j] * row).sum(1)) / low[j, j]
+    x = np.ascontiguousarray(np.moveaxis(rhs, 0, -1), dtype=float)  # (n, m, R)
+    for i in range(n):  # forward: low y = rhs
+        x[i] = (x[i] - (low[i, :i, None] * x[:i]).sum(0)) / low[i, i]
+    for i in range(n - 1, -1, -1):  # backward: lowᵀ x = y
+        x[i] = (x[i] - (low[i + 1:, i, None] * x[i + 1:]).sum(0)) / low[i, i]
+    return np.moveaxis(x, -1, 0)
+
+
 @dataclass(frozen=True)
 class LocalFits:
     """The leave-one-out quadratic fits of one camera's tracks (`local_motion_residuals`),
@@ -261,11 +282,11 @@ class LocalFits:
         product = np.matmul(weighted, columns)  # (R, terms, terms + 2): XᵀWX beside XᵀWy
         terms = design.shape[1]
         normal = product[:, :, :terms]
-        normal += (RIDGE * np.trace(normal, axis1=1, axis2=2) + RIDGE)[:, None, None] * np.eye(
-            terms)
+        diagonal = np.einsum("rii->ri", normal)  # a view
+        diagonal += (RIDGE * diagonal.sum(1) + RIDGE)[:, None]
         rhs = np.concatenate([np.eye(terms)[None, :, :1].repeat(len(normal), 0),
                               product[:, :, terms:]], 2)
-        solved = np.linalg.solve(normal, rhs)  # (R, terms, 3)
+        solved = spd_solve(normal, rhs)  # (R, terms, 3)
         first = solved[:, :, 0]
         ok = ((w.sum(1) >= MIN_FIT_PER_TERM * terms) & np.isfinite(first[:, 0])
               & (first[:, 0] < MAX_LEVERAGE))
