@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from surgrecon_cli.core.geometry.poses import make_pose, matrix_to_quat, quat_to_matrix, slerp
+from surgrecon_cli.core.geometry.triangulate import symmetric3_inverse
 
 HALF = np.sqrt(0.5)
 
@@ -35,3 +36,16 @@ def test_slerp_takes_the_shorter_arc_from_q0():
     np.testing.assert_allclose(q[0], q0[0], atol=1e-15)
     np.testing.assert_allclose(q[1], [0, 0, np.sin(np.pi / 8), np.cos(np.pi / 8)], atol=1e-15)
     np.testing.assert_allclose(q[2], -q1[2], atol=1e-15)  # in q0's hemisphere
+
+
+def test_symmetric3_inverse_is_lapack_s_inverse():
+    """symmetric3_inverse (cofactors over the determinant) equals np.linalg.inv on
+    symmetric positive definite 3x3 matrices of very different scales per axis (the
+    information of a triangulated point), to rounding; not finite where singular."""
+    rng = np.random.default_rng(5)
+    rows = rng.normal(size=(500, 4, 3)) * np.array([1.0, 30.0, 1e3])
+    info = np.matmul(rows.transpose(0, 2, 1), rows)
+    expected = np.linalg.inv(info)
+    scale = np.abs(expected).max((1, 2), keepdims=True)
+    assert (np.abs(symmetric3_inverse(info) - expected) <= 1e-9 * scale).all()
+    assert not np.isfinite(symmetric3_inverse(np.zeros((1, 3, 3)))).any()

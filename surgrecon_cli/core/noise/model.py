@@ -45,7 +45,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
-from ..geometry.triangulate import symmetric_sums
+from ..geometry.triangulate import symmetric3_inverse, symmetric_sums
 
 MAD_TO_SIGMA = 1.4826  # σ of a Gaussian from its median absolute deviation
 
@@ -319,7 +319,7 @@ def point_covariances(point_index: np.ndarray, jacobians: np.ndarray, variance_p
     cov = np.full((n_points, 3, 3), np.nan)
     eig = np.linalg.eigvalsh(info)
     ok = eig[:, 0] > 1e-12 * np.maximum(eig[:, 2], 1e-300)
-    cov[ok] = np.linalg.inv(info[ok])
+    cov[ok] = symmetric3_inverse(info[ok])
     return cov
 
 
