@@ -8,11 +8,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from surgrecon_cli.core.noise.frame_noise import (
-    PixelNeighbours,
-    local_motion_noise_px,
-    spd_solve,
-)
+from surgrecon_cli.core.noise.frame_noise import PixelNeighbours, local_motion_noise_px
 from surgrecon_cli.core.noise.model import robust_sigma
 from surgrecon_cli.io.run.artefacts import (
     FrameRegistration,
@@ -101,22 +97,6 @@ def test_neighbours_among_found_tracks_are_the_k_d_tree_s():
     candidates = [PixelNeighbours.of(ref[:, c]) for c in range(2)]
     assert (local_motion_noise_px(ref, cur, found, candidates=candidates)
             == local_motion_noise_px(ref, cur, found))
-
-
-def test_batched_cholesky_solves_as_lapack():
-    """spd_solve: the solutions of a batch of positive definite systems (well and poorly
-    conditioned) equal np.linalg.solve's to rounding; NaN for a system that is not
-    positive definite."""
-    rng = np.random.default_rng(3)
-    design = rng.normal(size=(200, 36, 6)) * np.logspace(0, -4, 6)
-    normal = np.matmul(design.transpose(0, 2, 1), design)
-    rhs = rng.normal(size=(200, 6, 3))
-    expected = np.linalg.solve(normal, rhs)
-    assert np.allclose(spd_solve(normal, rhs), expected, rtol=1e-6,
-                       atol=1e-9 * np.abs(expected).max())
-    indefinite = np.array([[[1.0, 2.0], [2.0, 1.0]]])
-    assert np.isnan(spd_solve(indefinite, np.ones((1, 2, 1)))).all()
-    assert spd_solve(np.zeros((0, 6, 6)), np.zeros((0, 6, 3))).shape == (0, 6, 3)
 
 
 def test_shared_part_of_the_error_is_separated():

@@ -19,7 +19,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..geometry.cameras import CameraModel, undistort_pixels, view_distortion_jacobians
-from ..geometry.triangulate import Observations, Triangulation, triangulate
+from ..geometry.triangulate import Observations, Triangulation, spd_solve, triangulate
 from .model import (
     NoiseModel,
     body_pose_covariance,
@@ -206,27 +206,6 @@ class PixelNeighbours:
             _, j = cKDTree(ref).query(ref[other], k=k + 1)
             out[other] = j.reshape(-1, k + 1)
         return out
-
-
-def spd_solve(normal: np.ndarray, rhs: np.ndarray) -> np.ndarray:
-    """Solutions (R, n, m) of R symmetric positive definite systems normal (R, n, n) with
-    right-hand sides rhs (R, n, m), by Cholesky factors computed for all R at once (a loop
-    over the n columns, not over the systems: np.linalg.solve's LU of each small system
-    costs twice as much for n = 6, R ~ 700). NaN where a system is not positive definite."""
-    n = normal.shape[1]
-    a = np.ascontiguousarray(np.moveaxis(normal, 0, -1))  # (n, n, R): systems last
-    low = np.zeros(a.shape)  # the Cholesky factor, lower triangle
-    for j in range(n):
-        row = low[j, :j]  # (j, R)
-        with np.errstate(invalid="ignore"):
-            low[j, j] = np.sqrt(a[j, j] - (row * row).sum(0))
-        low[j + 1:, j] = (a[j + 1:, j] - (low[j + 1:, :j] * row).sum(1)) / low[j, j]
-    x = np.ascontiguousarray(np.moveaxis(rhs, 0, -1), dtype=float)  # (n, m, R)
-    for i in range(n):  # forward: low y = rhs
-        x[i] = (x[i] - (low[i, :i, None] * x[:i]).sum(0)) / low[i, i]
-    for i in range(n - 1, -1, -1):  # backward: lowᵀ x = y
-        x[i] = (x[i] - (low[i + 1:, i, None] * x[i + 1:]).sum(0)) / low[i, i]
-    return np.moveaxis(x, -1, 0)
 
 
 @dataclass(frozen=True)
