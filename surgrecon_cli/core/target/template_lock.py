@@ -21,6 +21,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from ..geometry.triangulate import spd_solve
 from ..noise.frame_noise import LocalFits, PixelNeighbours
 from .tracking import TrackingView, correlation
 
@@ -105,7 +106,7 @@ def align_patches(template: tuple[np.ndarray, np.ndarray, np.ndarray], image: np
     design = np.stack([dx, dy, -patch, -np.ones_like(patch)], 1)  # (M, 4, P)
     normal = np.matmul(design, design.transpose(0, 2, 1)).astype(float)
     normal += (1e-6 * np.trace(normal, axis1=1, axis2=2) + 1e-9)[:, None, None] * np.eye(4)
-    solver = np.linalg.inv(normal)
+    solver = spd_solve(normal, np.broadcast_to(np.eye(4), normal.shape))  # its inverse
     shift = np.zeros(pixels.shape)
     start_ncc = np.full(len(pixels), -1.0)
     end_ncc = np.full(len(pixels), np.nan)
