@@ -236,15 +236,18 @@ class LocalFits:
         motion = np.asarray(current, float).reshape(-1, 2) - ref
         idx = cKDTree(ref).query(ref, k=neighbours + 1)[1] if nearest is None else nearest
         idx = np.ascontiguousarray(idx[:, 1:])  # the nearest is the track itself: left out
-        u, v = ref[idx, 0] - ref[:, :1], ref[idx, 1] - ref[:, 1:]  # (M, K) about the track
+        # Per coordinate, each (M, K) plane contiguous (gathers and writes of planes cost a
+        # quarter of those of (M, K, 2) or (M, K, 8) arrays), transposed once at the end.
+        (x, y), (mx, my) = np.ascontiguousarray(ref.T), np.ascontiguousarray(motion.T)
+        u, v = x[idx] - x[:, None], y[idx] - y[:, None]  # (M, K) about the track
         scale = np.maximum(np.maximum(np.abs(u).max(1), np.abs(v).max(1)), 1e-9)
         u, v = u / scale[:, None], v / scale[:, None]
         monomials = [1.0, u, v] + ([u * u, u * v, v * v] if quadratic else [])
-        columns = np.empty((*idx.shape, len(monomials) + 2))
-        for term, values in enumerate(monomials):
-            columns[:, :, term] = values
-        columns[:, :, len(monomials):] = motion[idx]
-        design = np.ascontiguousarray(columns[:, :, :len(monomials)].transpose(0, 2, 1))
+        planes = np.empty((len(monomials) + 2, *idx.shape))
+        for term, values in enumerate([*monomials, mx[idx], my[idx]]):
+            planes[term] = values
+        columns = np.ascontiguousarray(planes.transpose(1, 2, 0))
+        design = np.ascontiguousarray(planes[:len(monomials)].transpose(1, 0, 2))
         return cls(idx, design, columns, motion, scale)
 
     def _solve(self, weight: np.ndarray | None, rows: np.ndarray | None
