@@ -19,7 +19,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..geometry.cameras import CameraModel, undistort_pixels, view_distortion_jacobians
-from ..geometry.triangulate import Observations, Triangulation, triangulate
+from ..geometry.triangulate import Observations, Triangulation, spd_solve, triangulate
 from .model import (
     NoiseModel,
     body_pose_covariance,
@@ -187,12 +187,14 @@ class PixelNeighbours:
         count = valid.sum(1)
         enough = count >= k + 2
         # the first k + 2 members of each row with enough, in order
-        take = valid & (np.cumsum(valid, 1) <= k + 2)
+        take = valid & (np.cumsum(valid, 1, dtype=np.int32) <= k + 2)
         take[~enough] = False
-        members = np.nonzero(take)
-        dist = self.dist[rows][members].reshape(-1, k + 2)
-        nearest = found[members].reshape(-1, k + 2)
-        last = self.dist[rows][enough, -1]
+        width = self.idx.shape[1]
+        members = np.flatnonzero(take)  # flat indices into (M, width), row by row
+        nearest = found.ravel()[members].reshape(-1, k + 2)
+        ample = rows[enough]  # the rows with enough members: their distances alone
+        dist = self.dist.ravel()[(ample * width)[:, None] + (members % width).reshape(-1, k + 2)]
+        last = self.dist[ample, -1]
         exact = (np.diff(dist, axis=1) > 0).all(1) & (dist[:, -1] < last)
         out = np.empty((len(rows), k + 1), int)
         good = np.flatnonzero(enough)[exact]
@@ -234,15 +236,18 @@ class LocalFits:
         motion = np.asarray(current, float).reshape(-1, 2) - ref
         idx = cKDTree(ref).query(ref, k=neighbours + 1)[1] if nearest is None else nearest
         idx = np.ascontiguousarray(idx[:, 1:])  # the nearest is the track itself: left out
-        u, v = ref[idx, 0] - ref[:, :1], ref[idx, 1] - ref[:, 1:]  # (M, K) about the track
+        # Per coordinate, each (M, K) plane contiguous (gathers and writes of planes cost a
+        # quarter of those of (M, K, 2) or (M, K, 8) arrays), transposed once at the end.
+        (x, y), (mx, my) = np.ascontiguousarray(ref.T), np.ascontiguousarray(motion.T)
+        u, v = x[idx] - x[:, None], y[idx] - y[:, None]  # (M, K) about the track
         scale = np.maximum(np.maximum(np.abs(u).max(1), np.abs(v).max(1)), 1e-9)
         u, v = u / scale[:, None], v / scale[:, None]
         monomials = [1.0, u, v] + ([u * u, u * v, v * v] if quadratic else [])
-        columns = np.empty((*idx.shape, len(monomials) + 2))
-        for term, values in enumerate(monomials):
-            columns[:, :, term] = values
-        columns[:, :, len(monomials):] = motion[idx]
-        design = np.ascontiguousarray(columns[:, :, :len(monomials)].transpose(0, 2, 1))
+        planes = np.empty((len(monomials) + 2, *idx.shape))
+        for term, values in enumerate([*monomials, mx[idx], my[idx]]):
+            planes[term] = values
+        columns = np.ascontiguousarray(planes.transpose(1, 2, 0))
+        design = np.ascontiguousarray(planes[:len(monomials)].transpose(1, 0, 2))
         return cls(idx, design, columns, motion, scale)
 
     def _solve(self, weight: np.ndarray | None, rows: np.ndarray | None
@@ -259,11 +264,11 @@ class LocalFits:
         product = np.matmul(weighted, columns)  # (R, terms, terms + 2): XᵀWX beside XᵀWy
         terms = design.shape[1]
         normal = product[:, :, :terms]
-        normal += (RIDGE * np.trace(normal, axis1=1, axis2=2) + RIDGE)[:, None, None] * np.eye(
-            terms)
+        diagonal = np.einsum("rii->ri", normal)  # a view
+        diagonal += (RIDGE * diagonal.sum(1) + RIDGE)[:, None]
         rhs = np.concatenate([np.eye(terms)[None, :, :1].repeat(len(normal), 0),
                               product[:, :, terms:]], 2)
-        solved = np.linalg.solve(normal, rhs)  # (R, terms, 3)
+        solved = spd_solve(normal, rhs)  # (R, terms, 3)
         first = solved[:, :, 0]
         ok = ((w.sum(1) >= MIN_FIT_PER_TERM * terms) & np.isfinite(first[:, 0])
               & (first[:, 0] < MAX_LEVERAGE))

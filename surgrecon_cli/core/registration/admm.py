@@ -90,9 +90,16 @@ class AdmmInfo:
     energy: float  # E(X) of the returned X (`energy`), normalised units
 
 
+def row_norms2(v: np.ndarray) -> np.ndarray:
+    """Squared norms (K,) of the rows of v (K, 3), by columns (a third of einsum's cost on
+    the few-thousand-row arrays of an iteration)."""
+    x, y, z = v[:, 0], v[:, 1], v[:, 2]
+    return x * x + y * y + z * z
+
+
 def shrink_rows(v: np.ndarray, tau: np.ndarray) -> np.ndarray:
     """Group soft threshold: v_i * max(0, 1 - tau_i / |v_i|) (prox of tau |.|_2), v (K, 3)."""
-    norm = np.sqrt(np.einsum("ij,ij->i", v, v))
+    norm = np.sqrt(row_norms2(v))
     scale = np.maximum(0.0, 1.0 - tau / np.maximum(norm, 1e-300))
     return v * scale[:, None]
 
@@ -170,7 +177,7 @@ def energy(prob: AdmmProblem, X: np.ndarray) -> float:
 
 def _energy(prob: AdmmProblem, DX: np.ndarray, BX: np.ndarray) -> float:
     d = np.concatenate([DX - prob.G, BX])
-    return _energy_rows(prob, np.sqrt(np.einsum("ij,ij->i", d, d)))
+    return _energy_rows(prob, np.sqrt(row_norms2(d)))
 
 
 def _energy_rows(prob: AdmmProblem, norms: np.ndarray) -> float:
@@ -248,8 +255,8 @@ def run_admm(
         primal = np.sqrt(_sq(d - W) / rows)
         dual = np.sqrt(_sq(W - W_old) / rows)
         moved = (X - X_old).reshape(-1, 4, 3)[:, 3, :]
-        step = float(np.sqrt(np.max(np.einsum("ij,ij->i", moved, moved))))
-        e_now = _energy_rows(prob, np.sqrt(np.einsum("ij,ij->i", d, d)))
+        step = float(np.sqrt(np.max(row_norms2(moved))))
+        e_now = _energy_rows(prob, np.sqrt(row_norms2(d)))
         change = abs(e_now - e_prev) / max(abs(e_now), 1e-300)
         e_prev = e_now
         if primal < tol and step < tol and change < ENERGY_RTOL:

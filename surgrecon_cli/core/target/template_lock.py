@@ -21,6 +21,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from ..geometry.triangulate import spd_solve
 from ..noise.frame_noise import LocalFits, PixelNeighbours
 from .tracking import TrackingView, correlation
 
@@ -65,13 +66,21 @@ def _inside(pixels: np.ndarray, shape: tuple[int, ...], margin: float | np.ndarr
             & (pixels[:, 0] <= w - 1 - margin) & (pixels[:, 1] <= h - 1 - margin))
 
 
+def inverse2(maps: np.ndarray) -> np.ndarray:
+    """Inverses (M, 2, 2) of 2x2 matrices maps (M, 2, 2) in closed form (the adjugate over
+    the determinant; LAPACK's batched inverse costs ~7x as much); not finite where singular."""
+    a, b, c, d = maps[:, 0, 0], maps[:, 0, 1], maps[:, 1, 0], maps[:, 1, 1]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.stack([d, -b, -c, a], 1).reshape(-1, 2, 2) / (a * d - b * c)[:, None, None]
+
+
 def template_patches(anchor: TrackingView, centres: np.ndarray, maps: np.ndarray,
                      offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The patches T, ∂T/∂x, ∂T/∂y (each (M, P)) of the anchor's image at `offsets` (P, 2)
     px about centres (M, 2) px, resampled through the local maps A (M, 2, 2) (∂ current /
     ∂ anchor): the patch as a view the maps lead to sees it, T(o) = I₀(c + A⁻¹ o), and its
     gradient in that view's pixels, A⁻ᵀ ∇I₀ (`TrackingView.gradients`)."""
-    inv = np.linalg.inv(maps).astype(np.float32)
+    inv = inverse2(maps).astype(np.float32)
     back = np.matmul(offsets[None], inv.transpose(0, 2, 1))
     at = centres.astype(np.float32)
     samples = sample_patches(anchor.gradients, at[:, :1] + back[..., 0], at[:, 1:] + back[..., 1])
@@ -97,7 +106,7 @@ def align_patches(template: tuple[np.ndarray, np.ndarray, np.ndarray], image: np
     design = np.stack([dx, dy, -patch, -np.ones_like(patch)], 1)  # (M, 4, P)
     normal = np.matmul(design, design.transpose(0, 2, 1)).astype(float)
     normal += (1e-6 * np.trace(normal, axis1=1, axis2=2) + 1e-9)[:, None, None] * np.eye(4)
-    solver = np.linalg.inv(normal)
+    solver = spd_solve(normal, np.broadcast_to(np.eye(4), normal.shape))  # its inverse
     shift = np.zeros(pixels.shape)
     start_ncc = np.full(len(pixels), -1.0)
     end_ncc = np.full(len(pixels), np.nan)
@@ -142,13 +151,13 @@ def lock_to_template(anchor: TrackingView, view: TrackingView, anchor_pixels: np
                                                                LOCK_NEIGHBOURS)
     jac = LocalFits.of(anchor_pixels[rows], out[rows], LOCK_NEIGHBOURS, quadratic=False,
                        nearest=nearest).jacobians()
-    det = np.where(np.isfinite(jac).all((1, 2)), np.linalg.det(np.nan_to_num(jac)), 0.0)
+    det = np.nan_to_num(jac[:, 0, 0] * jac[:, 1, 1] - jac[:, 0, 1] * jac[:, 1, 0])
     offsets = patch_offsets(window_px, LOCK_STRIDE)
     reach = float(np.abs(offsets).max())
     usable = ((det >= MIN_AREA_RATIO) & (det <= 1.0 / MIN_AREA_RATIO)
               & _inside(out[rows], view.grey_f32.shape, reach + 1.0))
     rows, jac = rows[usable], jac[usable]
-    footprint = reach * np.abs(np.linalg.inv(jac)).sum(2).max(1)  # frame-0 patch half-size
+    footprint = reach * np.abs(inverse2(jac)).sum(2).max(1)  # frame-0 patch half-size
     inside = _inside(anchor_pixels[rows], anchor.grey_f32.shape, footprint + 2.0)
     rows, jac = rows[inside], jac[inside]
     if not len(rows):

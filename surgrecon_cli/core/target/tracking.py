@@ -371,8 +371,8 @@ def correlation(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     b = b.astype(np.float64)
     a -= a.mean(1, keepdims=True)
     b -= b.mean(1, keepdims=True)
-    denom = np.sqrt((a * a).sum(1) * (b * b).sum(1))
-    return np.where(denom > 1e-9, (a * b).sum(1) / np.maximum(denom, 1e-9), -1.0)
+    denom = np.sqrt(np.einsum("ij,ij->i", a, a) * np.einsum("ij,ij->i", b, b))
+    return np.where(denom > 1e-9, np.einsum("ij,ij->i", a, b) / np.maximum(denom, 1e-9), -1.0)
 
 
 def neighbour_flow(source: np.ndarray, flow: np.ndarray, query: np.ndarray) -> np.ndarray:
