@@ -127,6 +127,21 @@ def test_report_boxes_caveats_and_words_the_verdict(copy_run: Path):
     assert summary["quality"]["verdict"]["basis"] == "ground truth"
 
 
+def test_a_truth_with_holes_is_said_to_cover_part_of_the_template(copy_run: Path):
+    """The calibration of a run against a truth with holes counts the points it covers
+    (evaluate); the verdict and the overview say how many those are."""
+    evaluation = copy_run / "metrics" / "evaluation.json"
+    ev = json.loads(evaluation.read_text())
+    ev["labels"]["calibration_2sigma"], ev["labels"]["truth_covered_fraction"] = 0.97, 0.65
+    evaluation.write_text(json.dumps(ev))
+    files = run_report(copy_run, Config())
+    verdict = json.loads(files.summary_json.read_text())["quality"]["verdict"]
+    assert verdict["fits"] is True
+    assert "The truth covers 65% of the template points" in verdict["text"]
+    assert "within 2σ of the truth (95 % expected, of the 65% it covers)" in (
+        files.html.read_text())
+
+
 def test_report_stage_table_and_file_links(pipeline_run):
     run_dir, _ = pipeline_run
     html = (run_dir / "report.html").read_text()

@@ -6,7 +6,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -69,14 +69,26 @@ def measure(data: RunData, config: Config) -> Metrics:
 
 def run_verdict(data: RunData) -> Verdict:
     """The verdict from the evaluation's calibration when there is ground truth, else from
-    the registration residuals against their σ."""
+    the registration residuals against their σ; a truth that covers only part of the
+    template (holes, a border) is said to."""
     assert data.frames is not None
     quality = data.frames.quality
     share, ratio = pooled_within_2sigma(quality)
     labels = (data.evaluation or {}).get("labels") or {}
-    return verdict(share, ratio, labels.get("calibration_2sigma"),
-                   labels.get("sigma_scale_95"), flagged=sum(bool(q.warnings) for q in quality),
-                   frames=len(quality))
+    judged = verdict(share, ratio, labels.get("calibration_2sigma"),
+                     labels.get("sigma_scale_95"),
+                     flagged=sum(bool(q.warnings) for q in quality), frames=len(quality))
+    covered = labels.get("truth_covered_fraction")
+    if judged.basis == "ground truth" and covered is not None and covered < 1.0:
+        judged = replace(judged, text=f"{judged.text} {truth_coverage_words(covered)}")
+    return judged
+
+
+def truth_coverage_words(covered: float) -> str:
+    """What a calibration over the covered share (0-1) of the template leaves out."""
+    return (f"The truth covers {covered:.0%} of the template points; the others lie over its "
+            "holes or beyond its border, where its own error is the hole's, and are not "
+            "counted.")
 
 
 def noise_figures(ingest_report: dict[str, Any], cameras: tuple[str, ...],

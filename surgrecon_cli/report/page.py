@@ -78,9 +78,12 @@ def _overview(data: RunData, metrics: Metrics) -> rh.Section:
                       "good" if med is not None and med <= 1.0 else "bad"))
     if ev and ev.get("macro_f1") is not None:
         items.append(("label macro-F1", f"{ev['macro_f1']:.3f}", ""))
-    calibration = ((data.evaluation or {}).get("labels") or {}).get("calibration_2sigma")
+    labels = (data.evaluation or {}).get("labels") or {}
+    calibration, covered = labels.get("calibration_2sigma"), labels.get("truth_covered_fraction")
     if calibration is not None:
-        items.append(("labelled points within 2σ of the truth (95 % expected)",
+        where = (f", of the {covered:.0%} it covers" if covered is not None and covered < 1.0
+                 else "")
+        items.append((f"labelled points within 2σ of the truth (95 % expected{where})",
                       f"{calibration:.0%}", "good" if calibration >= GOOD_2SIGMA else "bad"))
     inp = data.run.get("input", {})
     seconds = stage_seconds(data.run)
