@@ -14,7 +14,7 @@ import numpy as np
 from .. import __version__
 from ..config import Config
 from ..core.classify.labels import STATUS_NAMES
-from ..core.classify.quality import Verdict, pooled_within_2sigma, verdict
+from ..core.classify.quality import GOOD_2SIGMA, Verdict, pooled_within_2sigma, verdict
 from ..io.run.metrics import finite_json
 from .caveats import run_caveats
 from .frames import CLASS_CODES, STATUS_CODES, stats
@@ -82,6 +82,17 @@ def run_verdict(data: RunData) -> Verdict:
     if judged.basis == "ground truth" and covered is not None and covered < 1.0:
         judged = replace(judged, text=f"{judged.text} {truth_coverage_words(covered)}")
     return judged
+
+
+def calibration_tile(labels: dict[str, Any]) -> tuple[str, str, str] | None:
+    """The overview's tile (label, value, "good" / "bad") of an evaluation's 2σ calibration
+    (its `labels` part), saying how much of the template the truth covers; None without."""
+    calibration, covered = labels.get("calibration_2sigma"), labels.get("truth_covered_fraction")
+    if calibration is None:
+        return None
+    where = f", of the {covered:.0%} it covers" if covered is not None and covered < 1.0 else ""
+    return (f"labelled points within 2σ of the truth (95 % expected{where})",
+            f"{calibration:.0%}", "good" if calibration >= GOOD_2SIGMA else "bad")
 
 
 def truth_coverage_words(covered: float) -> str:

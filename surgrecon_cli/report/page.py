@@ -19,7 +19,6 @@ import numpy as np
 from .. import __version__
 from ..config import Config
 from ..core.classify.quality import (
-    GOOD_2SIGMA,
     MAX_RESIDUAL_RATIO,
     MAX_UNKNOWN,
     MIN_OBSERVED,
@@ -33,7 +32,7 @@ from . import html as rh
 from .figures import cloud_key
 from .frames import FrameFigures
 from .gather import CloudView, RunData
-from .metrics import TIMED_STAGES, Metrics, stage_seconds
+from .metrics import TIMED_STAGES, Metrics, calibration_tile, stage_seconds
 
 Figures = Mapping[str, bytes]
 
@@ -78,13 +77,9 @@ def _overview(data: RunData, metrics: Metrics) -> rh.Section:
                       "good" if med is not None and med <= 1.0 else "bad"))
     if ev and ev.get("macro_f1") is not None:
         items.append(("label macro-F1", f"{ev['macro_f1']:.3f}", ""))
-    labels = (data.evaluation or {}).get("labels") or {}
-    calibration, covered = labels.get("calibration_2sigma"), labels.get("truth_covered_fraction")
-    if calibration is not None:
-        where = (f", of the {covered:.0%} it covers" if covered is not None and covered < 1.0
-                 else "")
-        items.append((f"labelled points within 2σ of the truth (95 % expected{where})",
-                      f"{calibration:.0%}", "good" if calibration >= GOOD_2SIGMA else "bad"))
+    tile = calibration_tile((data.evaluation or {}).get("labels") or {})
+    if tile is not None:
+        items.append(tile)
     inp = data.run.get("input", {})
     seconds = stage_seconds(data.run)
     stage_rows = [(name, "reused" if entry.get("reused_from") else entry.get("status"),
