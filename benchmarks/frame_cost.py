@@ -9,7 +9,7 @@ base commit: `git worktree add /tmp/base 1405d84`, then `--before /tmp/base`) on
 run folders, in a child process with PYTHONPATH=SRC, printed as a "before" row above this
 tree's "after" row, both against the same floor (this tree is measured in a child process
 too, so that both start cold alike). `--repeat N`: each tree is measured N times,
-interleaved (before, after, before, ...), and the run with the smallest CPU total is
+interleaved, each tree first in every other turn, and the run with the smallest CPU total is
 printed: on a shared machine, the least disturbed one.
 
 For every case (size:cameras): `surgrecon simulate LOG --width W --height H --cameras C
@@ -250,8 +250,8 @@ def main() -> None:
             continue
         codes = ([("before", args.before)] if args.before else []) + [("after", None)]
         runs: dict[str, list[dict[str, float]]] = {label: [] for label, _ in codes}
-        for _ in range(args.repeat):  # interleaved, so that both see the same load
-            for label, code in codes:
+        for turn in range(args.repeat):  # interleaved, so that both see the same load,
+            for label, code in codes[::-1] if turn % 2 else codes:  # each first in turn
                 runs[label].append(measured_by(code, run, args.frames))
         rows = [(label, min(runs[label], key=lambda m: m["total"])) for label, _ in codes]
         t = tracking_floor(run, args.floor_levels, config.target.klt_window_px)
