@@ -73,12 +73,19 @@ def tool_poses(log: IngestedLog, config: Config, frame: int) -> np.ndarray:
     return tools
 
 
-def tools_as_seen(log: IngestedLog, config: Config, frame: int) -> np.ndarray:
-    """The tools' poses at `frame`: (K, 4, 4) in the world, or (C, K, 4, 4) per camera when
-    a tool has `camera_offsets` (`camera_tool_poses`)."""
-    tools = tool_poses(log, config, frame)
+def tools_per_camera(tools: np.ndarray, log: IngestedLog, config: Config
+                     ) -> np.ndarray | None:
+    """The tools' poses (K, 4, 4) in the world as each camera sees them, (C, K, 4, 4), when
+    a tool has `camera_offsets` (`camera_tool_poses`); None when none has."""
     try:
-        per_camera = camera_tool_poses(tools, config.tool_configs(), list(log.cameras))
+        return camera_tool_poses(tools, config.tool_configs(), list(log.cameras))
     except ValueError as exc:
         raise InputError(str(exc)) from exc
+
+
+def tools_as_seen(log: IngestedLog, config: Config, frame: int) -> np.ndarray:
+    """The tools' poses at `frame`: (K, 4, 4) in the world, or (C, K, 4, 4) per camera when
+    a tool has `camera_offsets` (`tools_per_camera`)."""
+    tools = tool_poses(log, config, frame)
+    per_camera = tools_per_camera(tools, log, config)
     return tools if per_camera is None else per_camera

@@ -46,7 +46,7 @@ from ..io.run.atomic import file_identity
 from ..io.run.folder import FrameProgress, RunFolder
 from ..io.run.ingest_store import IngestedLog, ingest_identity, load_ingested
 from ..io.run.layout import RunLayout
-from .common import stage_run, tool_poses, tools_as_seen
+from .common import stage_run, tool_poses, tools_per_camera
 from .registry import CLASSIFY_FRAME_TASK, StageContext, resolve
 from .staleness import recorded_config, same_config
 
@@ -126,10 +126,10 @@ def _frame_input(log: IngestedLog, config: Config, frame: int,
     """A frame's tracking views, usable poses and tools (with each camera's view of them
     where `tool.camera_offsets` moves them), its RGB images when new points are to be
     triangulated, and the frame tracked through on the way from the base."""
-    seen = tools_as_seen(log, config, frame)
-    return FrameInput(frame, frame_views(log, frame), log.usable_poses(frame),
-                      tool_poses(log, config, frame), images,
-                      camera_tool_pose=seen if seen.ndim == 4 else None, previous=previous)
+    tools = tool_poses(log, config, frame)
+    return FrameInput(frame, frame_views(log, frame), log.usable_poses(frame), tools, images,
+                      camera_tool_pose=tools_per_camera(tools, log, config),
+                      previous=previous)
 
 
 def register_frame(run_dir: Path, frame: int, config: Config) -> dict:
