@@ -167,11 +167,16 @@ def breathing_frames(left: np.ndarray, right: np.ndarray, calib: dict[str, np.nd
                     gx.shape)
             for eye, (image, p) in enumerate(((left, points[0]), (right, points[1])))))
     moved = np.stack([vertices + motion.displacement(vertices, t) for t in range(length)])
-    cfg = LabelsConfig()
-    truth = {"faces": faces, "vertices": moved * 1e-3,
-             "labels": true_labels(moved * 1e-3, cfg.static_mm, cfg.neighbourhood_mm,
-                                   cfg.rigid_rms_mm).astype(np.uint8)}
+    truth = {"faces": faces, "vertices": moved * 1e-3, "labels": spec_labels(moved * 1e-3)}
     return frames, truth  # type: ignore[return-value]
+
+
+def spec_labels(vertices: np.ndarray) -> np.ndarray:
+    """The true labels (T, V) uint8 of vertices (T, V, 3) m by the spec's rule at the
+    default thresholds (core/classify/labels.true_labels)."""
+    cfg = LabelsConfig()
+    return true_labels(vertices, cfg.static_mm, cfg.neighbourhood_mm,
+                       cfg.rigid_rms_mm).astype(np.uint8)
 
 
 def _warped(image: np.ndarray, grid: np.ndarray, flow: np.ndarray, shape: tuple[int, int]

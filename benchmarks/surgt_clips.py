@@ -36,10 +36,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from surgt_breathing import breathing_frames
-
-from surgrecon_cli.config import LabelsConfig
-from surgrecon_cli.core.classify.labels import true_labels
+from surgt_breathing import breathing_frames, spec_labels
 
 SURGT = Path(__file__).resolve().parents[1] / "tests" / "data" / "surgt"
 CLIP_FPS = 5  # frames a second the clips are converted at
@@ -104,9 +101,7 @@ def breathing_clip(frame: np.ndarray, opts: dict[str, float], out_dir: Path
     if opts["pitch"]:  # the turning rig sees the tissue turn the other way about its eye
         rots = np.stack([pitch_rotation(opts["pitch"], i) for i in range(length)])
         truth["vertices"] = np.einsum("tij,tvj->tvi", rots, truth["vertices"])
-        cfg = LabelsConfig()
-        truth["labels"] = true_labels(truth["vertices"], cfg.static_mm, cfg.neighbourhood_mm,
-                                      cfg.rigid_rms_mm).astype(np.uint8)
+        truth["labels"] = spec_labels(truth["vertices"])
     np.savez_compressed(out_dir / "clip.gt.npz", **truth)
     return [np.hstack(pair) for pair in pairs]
 
