@@ -3,6 +3,7 @@ a ROS 2 MCAP log and the config that runs it."""
 
 from __future__ import annotations
 
+import shlex
 from pathlib import Path
 
 import click
@@ -117,5 +118,5 @@ def convert_cmd(src: Path | None, out: Path, calibration: tuple[Path, ...], left
     click.echo(f"{result.log}: {counted(result.frames, 'frame')} of cameras "
                f"{', '.join(result.cameras)} ({result.source}; calibration lengths in "
                f"{result.units})")
-    click.echo(f"{result.config}: run it with  surgrecon run {result.log} -o RUN "
-               f"--config {result.config}")
+    click.echo(f"{result.config}: run it with  surgrecon run {shlex.quote(str(result.log))} "
+               f"-o RUN --config {shlex.quote(str(result.config))}")

@@ -10,6 +10,7 @@ A tool pose file becomes `/tf` world -> tool_tip at its own stamps.
 from __future__ import annotations
 
 import heapq
+import shlex
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import replace
 
@@ -200,7 +201,8 @@ def config_text(log_name: str, rig: Rig, poses: str, tools: int = 0) -> str:
     base = log_name.removesuffix(".mcap")
     lines = [
         f"# Written by `surgrecon convert` for {log_name}; run it with",
-        f"#   surgrecon run {log_name} -o runs/{base} --config {base}.toml",
+        f"#   surgrecon run {shlex.quote(log_name)} -o {shlex.quote('runs/' + base)} "
+        f"--config {shlex.quote(base + '.toml')}",
         f"# Cameras {names}; {poses}; calibration lengths read as {rig.units}.",
         "[topics]",
         f'image = "{IMAGE_TOPIC}"',
