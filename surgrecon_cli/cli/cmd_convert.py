@@ -57,7 +57,8 @@ def _cameras(ctx: click.Context, param: click.Parameter,
               help="One image folder or video per camera (repeat; instead of SRC).")
 @click.option("--stereo-layout", "layout", default="auto", show_default=True,
               type=click.Choice(["auto", "side-by-side", "top-bottom"]),
-              help="How a stereo video holds the two views (auto: from the calibrated size).")
+              help="How a stereo video holds the two views (auto: from the calibrated size; "
+              "with --scale-calibration, its shape).")
 @click.option("--units", type=click.Choice(["mm", "m"]),
               help="Unit of the calibration's lengths (T, baseline). Default: millimetres when "
               "the largest camera offset is above 1, else metres.")

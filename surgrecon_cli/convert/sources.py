@@ -11,6 +11,7 @@ lossy already; a PNG of a 1280x1024 frame is ~10x larger) or as PNG (`image_form
 
 from __future__ import annotations
 
+import math
 import re
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator, Sequence
@@ -255,17 +256,31 @@ def split_stereo(img: np.ndarray, layout: str) -> tuple[np.ndarray, np.ndarray]:
     return img[:half], img[half: 2 * half]
 
 
-def choose_layout(layout: str, size: tuple[int, int], eye: tuple[int, int]) -> str:
+def choose_layout(layout: str, size: tuple[int, int], eye: tuple[int, int],
+                  scale: bool = False) -> str:
     """The stereo layout of a `size` (w, h) video: as given, or (auto) the one whose halves have
-    the calibrated `eye` size (0, 0 = unknown: side by side when wider than high)."""
+    the calibrated `eye` size, or with `scale` (--scale-calibration: the video is resized) the
+    one whose halves alone have the calibrated aspect ratio within 20 % (0, 0 = unknown: side
+    by side when wider than high)."""
     if layout != "auto":
         return layout
     w, h = size
     if eye[0] and eye[1]:
-        if (w // 2, h) == eye:
-            return "side-by-side"
-        if (w, h // 2) == eye:
-            return "top-bottom"
+        halves = {"side-by-side": (w // 2, h), "top-bottom": (w, h // 2)}
+        for name, half in halves.items():
+            if half == eye:
+                return name
+        aspect = eye[0] / eye[1]
+        alike = [name for name, (hw, hh) in halves.items()
+                 if hh and abs(math.log(hw / hh / aspect)) < math.log(1.2)]
+        if scale and len(alike) == 1:
+            return alike[0]
+        if len(alike) == 1:
+            hw, hh = halves[alike[0]]
+            raise InputError(f"the stereo video is {w}x{h} px; its halves {alike[0]} ({hw}x{hh}) "
+                             f"have the shape of the calibrated {eye[0]}x{eye[1]} px but not "
+                             "its size: add --scale-calibration if the video is the calibrated "
+                             "images resized")
         raise InputError(f"the stereo video is {w}x{h} px; neither its halves side by side "
                          f"({w // 2}x{h}) nor top-bottom ({w}x{h // 2}) are the calibrated "
                          f"{eye[0]}x{eye[1]} px: give --stereo-layout (and --scale-calibration "

@@ -72,6 +72,22 @@ def _check_principal_point(cam: CameraCalibration, origin: str, size: tuple[int,
         "were resized")
 
 
+def _check_aspect(cam: CameraCalibration, origin: str, size: tuple[int, int]) -> None:
+    """--scale-calibration from the calibrated size to `size`: InputError when the two aspect
+    ratios differ by a factor of 3 or more. A resize keeps the aspect ratio (d-lfd's
+    640x480 -> 310x244: 5 %), a half side-by-side video halves it; a stereo video split the
+    wrong way changes it 4-fold, and scaled K to those halves, which hold half of each eye."""
+    (w, h), cw, ch = size, cam.width, cam.height
+    ratio = (w / h) / (cw / ch)
+    if 1 / 3 < ratio < 3:
+        return
+    raise InputError(f"image {origin} is {w}x{h} px; camera {cam.name!r}: the calibration says "
+                     f"{cw}x{ch} px, an aspect ratio {max(ratio, 1 / ratio):.3g} times "
+                     f"{'wider' if ratio > 1 else 'narrower'}, which no resize makes: a stereo "
+                     "video split the wrong way (--stereo-layout), or another camera's "
+                     "calibration?")
+
+
 def _blank(data: bytes) -> bool:
     """Whether encoded image bytes (JPEG / PNG) decode to one flat value (a black frame)."""
     import cv2
@@ -121,6 +137,7 @@ class _Sizes:
                 _check_principal_point(cam, image.origin, size)
                 self.sizes[k] = size
             elif self.first and self.scale and size != self.sizes[k]:
+                _check_aspect(cam, image.origin, size)
                 self.cameras[k] = scaled(cam, *size)
                 self.sizes[k] = size
             elif size != self.sizes[k]:
