@@ -67,7 +67,8 @@ def _cameras(ctx: click.Context, param: click.Parameter,
               "from the calibration's width/height to its images' (instead of an error).")
 @click.option("--fps", type=click.FloatRange(min=0, min_open=True),
               help="Frame rate of the images (default: a video's own times, else 30).")
-@click.option("--start-time", default=1.0, show_default=True, type=float, metavar="SECONDS",
+@click.option("--start-time", default=1.0, show_default=True, type=click.FloatRange(min=0),
+              metavar="SECONDS",
               help="Stamp of the first frame with --fps or a video's own times (not 0: ROS "
               "reads a zero stamp as unset).")
 @click.option("--stamps", type=_FILE,

@@ -64,6 +64,11 @@ def _seconds_ns(word: str, path: Path, number: int, what: str) -> int:
 
 
 def _increasing(stamps: np.ndarray, path: Path, what: str) -> None:
+    """InputError unless the stamps increase and none is negative (MCAP log times are
+    unsigned: a negative stamp ended convert in an internal error)."""
+    if len(stamps) and stamps[0] < 0:
+        raise InputError(f"{what} {path}: its first time, {stamps[0] / 1e9:.9g} s, is negative; "
+                         "log times cannot be: add the same constant to every time")
     bad = np.flatnonzero(np.diff(stamps) <= 0)
     if bad.size:
         raise InputError(f"{what} {path}: stamps must increase (entry {bad[0] + 2} is not "

@@ -183,6 +183,26 @@ def _frame_messages(rig: Rig, frames: Iterable[Frame], stamps: np.ndarray | None
                 t, frame_id, image.format, image.data)
 
 
+def _within_poses(stream: Iterator[Message], poses: PoseTrack) -> Iterator[Message]:
+    """The frames' messages; after the last, InputError when none of them lies within the
+    camera pose file's time span (its times on another clock than the frames', e.g. from 0
+    s while the frames start at --start-time): ingest would find no camera pose at all."""
+    lo, hi = int(poses.stamps_ns[0]), int(poses.stamps_ns[-1])
+    first = last = None
+    inside = False
+    for message in stream:
+        t = message[1]
+        first = t if first is None else first
+        last = t
+        inside = inside or lo <= t <= hi
+        yield message
+    if first is not None and last is not None and not inside:
+        raise InputError(f"--camera-poses: the poses span {lo / 1e9:.3f}..{hi / 1e9:.3f} s but "
+                         f"the frames {first / 1e9:.3f}..{last / 1e9:.3f} s, so no frame has a "
+                         "camera pose: give the frames' times on the pose file's clock "
+                         "(--stamps FILE, or --start-time and --fps)")
+
+
 def messages(rig: Rig, frames: Iterable[Frame], stamps: np.ndarray | None,
              start_ns: int, camera_poses: PoseTrack | None = None,
              tool_poses: Sequence[PoseTrack] = (), scale: bool = False) -> Iterator[Message]:
@@ -191,7 +211,7 @@ def messages(rig: Rig, frames: Iterable[Frame], stamps: np.ndarray | None,
     on /tf as `tool_frame(k)`."""
     streams = [_frame_messages(rig, frames, stamps, start_ns, camera_poses is None, scale)]
     if camera_poses is not None:
-        streams.append(_track(camera_poses, RIG))
+        streams = [_within_poses(streams[0], camera_poses), _track(camera_poses, RIG)]
     streams += [_track(track, tool_frame(k)) for k, track in enumerate(tool_poses)]
     merged = heapq.merge(*streams, key=lambda m: m[1])
     first = next(merged, None)
