@@ -87,11 +87,18 @@ def test_a_camera_pose_file_on_another_clock_is_refused(tmp_path: Path, capsys, 
     capsys.readouterr()
     assert main(args) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "--camera-poses" in err[0] and "0.000..0.400 s" in err[0]
+    assert len(err) == 1 and f"--camera-poses {tmp_path / 'c.tum'}:" in err[0]
+    assert "0.000..0.400 s" in err[0]
     assert "1.000..1.067 s" in err[0]  # frames 0..2 at 1 s + i / 30
     assert not out.exists() and not out.with_suffix(".toml").exists()
     assert main([*args, "--start-time", "0.1"]) == 0  # frames 0.1..0.167 s: within them
-    monkeypatch.setattr(write, "_within_poses", lambda stream, poses: stream)
+    tool = ["--tool-poses", str(tmp_path / "c.tum")]  # tool removal would be silently off
+    before = out.read_bytes()
+    assert main([*args[:-3], *tool, "-q"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"--tool-poses {tmp_path / 'c.tum'}:" in err[0]
+    assert out.read_bytes() == before
+    monkeypatch.setattr(write, "_within_poses", lambda stream, tracks: stream)
     assert main(args) == 0  # such a log, as another tool may write it
     assert main(["ingest", str(out), "-o", str(tmp_path / "run"), "-q", "--config",
                  str(out.with_suffix(".toml"))]) == 2

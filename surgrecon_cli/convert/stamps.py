@@ -30,11 +30,12 @@ logger = logging.getLogger(__name__)
 @dataclass(frozen=True)
 class PoseTrack:
     """Poses of one frame over time: stamps (N,) int64 ns, positions (N, 3) m, orientations
-    (N, 4) unit quaternions x y z w."""
+    (N, 4) unit quaternions x y z w; `source` the file they were read from."""
 
     stamps_ns: np.ndarray
     positions: np.ndarray
     orientations: np.ndarray
+    source: str = ""
 
 
 def _rows(path: Path, what: str) -> list[tuple[int, list[str]]]:
@@ -107,7 +108,8 @@ def read_tum(path: Path, what: str) -> PoseTrack:
     if bad.size:
         raise InputError(f"{what} {path} line {rows[bad[0]][0]}: not a finite position and "
                          "unit quaternion")
-    track = PoseTrack(np.array(stamps, dtype=np.int64), arr[:, :3], arr[:, 3:] / norms[:, None])
+    track = PoseTrack(np.array(stamps, dtype=np.int64), arr[:, :3], arr[:, 3:] / norms[:, None],
+                      str(path))
     _increasing(track.stamps_ns, path, what)
     span = float(np.ptp(track.positions, axis=0).max())
     reach = float(np.linalg.norm(track.positions, axis=1).max())

@@ -183,24 +183,29 @@ def _frame_messages(rig: Rig, frames: Iterable[Frame], stamps: np.ndarray | None
                 t, frame_id, image.format, image.data)
 
 
-def _within_poses(stream: Iterator[Message], poses: PoseTrack) -> Iterator[Message]:
+def _within_poses(stream: Iterator[Message],
+                  tracks: Sequence[tuple[str, PoseTrack]]) -> Iterator[Message]:
     """The frames' messages; after the last, InputError when none of them lies within the
-    camera pose file's time span (its times on another clock than the frames', e.g. from 0
-    s while the frames start at --start-time): ingest would find no camera pose at all."""
-    lo, hi = int(poses.stamps_ns[0]), int(poses.stamps_ns[-1])
+    time span of a pose file (named by its option in `tracks`): its times are on another
+    clock than the frames' (e.g. from 0 s while the frames start at --start-time), and
+    ingest would find no camera pose at all, or no tool pose (tool removal silently off)."""
     first = last = None
-    inside = False
+    inside = [False] * len(tracks)
     for message in stream:
         t = message[1]
         first = t if first is None else first
         last = t
-        inside = inside or lo <= t <= hi
+        inside = [was or int(track.stamps_ns[0]) <= t <= int(track.stamps_ns[-1])
+                  for was, (_, track) in zip(inside, tracks, strict=True)]
         yield message
-    if first is not None and last is not None and not inside:
-        raise InputError(f"--camera-poses: the poses span {lo / 1e9:.3f}..{hi / 1e9:.3f} s but "
-                         f"the frames {first / 1e9:.3f}..{last / 1e9:.3f} s, so no frame has a "
-                         "camera pose: give the frames' times on the pose file's clock "
-                         "(--stamps FILE, or --start-time and --fps)")
+    for was, (option, track) in zip(inside, tracks, strict=True):
+        if first is None or last is None or was:
+            continue
+        lo, hi = int(track.stamps_ns[0]), int(track.stamps_ns[-1])
+        raise InputError(f"{option}: the poses span {lo / 1e9:.3f}..{hi / 1e9:.3f} s but the "
+                         f"frames {first / 1e9:.3f}..{last / 1e9:.3f} s, so no frame has a pose "
+                         "from it: give the frames' times on the pose file's clock (--stamps "
+                         "FILE, or --start-time and --fps)")
 
 
 def messages(rig: Rig, frames: Iterable[Frame], stamps: np.ndarray | None,
@@ -209,9 +214,13 @@ def messages(rig: Rig, frames: Iterable[Frame], stamps: np.ndarray | None,
     """Every message of the log, in log-time order (rules in the module docstring). Frame
     stamps: `stamps` (N,) ns, else the frames' own (video times) after `start_ns`; tools
     on /tf as `tool_frame(k)`."""
-    streams = [_frame_messages(rig, frames, stamps, start_ns, camera_poses is None, scale)]
+    checked = [(f"--tool-poses {track.source}", track) for track in tool_poses]
     if camera_poses is not None:
-        streams = [_within_poses(streams[0], camera_poses), _track(camera_poses, RIG)]
+        checked.insert(0, (f"--camera-poses {camera_poses.source}", camera_poses))
+    streams = [_within_poses(
+        _frame_messages(rig, frames, stamps, start_ns, camera_poses is None, scale), checked)]
+    if camera_poses is not None:
+        streams.append(_track(camera_poses, RIG))
     streams += [_track(track, tool_frame(k)) for k, track in enumerate(tool_poses)]
     merged = heapq.merge(*streams, key=lambda m: m[1])
     first = next(merged, None)
