@@ -11,6 +11,7 @@ lossy already; a PNG of a 1280x1024 frame is ~10x larger) or as PNG (`image_form
 
 from __future__ import annotations
 
+import logging
 import math
 import re
 from collections import deque
@@ -36,6 +37,8 @@ LAYOUTS = ("auto", "side-by-side", "top-bottom")
 JPEG_QUALITY = 95
 _JPEG_MAGIC = b"\xff\xd8"
 _PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+logger = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -200,6 +203,13 @@ class VideoSource:
             except (av.error.FFmpegError, IndexError) as exc:
                 raise InputError(f"video {video}: cannot be read ({exc})") from None
         self.count: int | None = min(counts)
+        if len(set(counts)) > 1:
+            listing = ", ".join(f"{video} {n}" for video, n in zip(self.videos, counts,
+                                                                    strict=True))
+            logger.warning("the videos hold different numbers of frames (%s): the first %d of "
+                           "each are converted, the i-th frames of all videos forming frame i; "
+                           "a frame lost inside one video shifts every later pair: check that "
+                           "the last frames still match", listing, min(counts))
 
     def _decoded(self, video: Path) -> Iterator[tuple[int | None, np.ndarray]]:
         av = _import_av()
