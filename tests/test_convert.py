@@ -4,6 +4,7 @@ mcap_ros2, not by surgrecon), and the written config ingests it as written."""
 
 from __future__ import annotations
 
+import shlex
 from pathlib import Path
 
 import cv2
@@ -273,3 +274,29 @@ def test_scale_calibration_without_a_calibrated_size_is_refused(tmp_path: Path, 
     err = capsys.readouterr().err
     assert "no image size" in err and "imageSize" in err
     assert not out.exists()
+
+
+def test_printed_commands_survive_spaces_in_paths(tmp_path: Path, capsys):
+    """The commands convert prints (and writes atop OUT.toml), and ingest's hint at the
+    config beside the log, are split by a POSIX shell (shlex.split) into the same words as
+    the paths: a folder or name with a space or an accent was printed bare and the copied
+    command ran on `my` and `recs/é`."""
+    stereo_folder(tmp_path / "rec", frames=2, ext=".png")
+    opencv_calibration(tmp_path / "calib.yaml")
+    out = tmp_path / "my recs" / "é x.mcap"
+    out.parent.mkdir()
+    capsys.readouterr()
+    assert main(["convert", str(tmp_path / "rec"), "-o", str(out), "--calibration",
+                 str(tmp_path / "calib.yaml")]) == 0
+    line = capsys.readouterr().out.splitlines()[-1]
+    words = shlex.split(line.split("run it with", 1)[1])
+    assert words == ["surgrecon", "run", str(out), "-o", "RUN", "--config",
+                     str(out.with_suffix(".toml"))]
+    header = out.with_suffix(".toml").read_text(encoding="utf-8").splitlines()[1]
+    assert shlex.split(header.lstrip("# ")) == ["surgrecon", "run", "é x.mcap", "-o",
+                                                "runs/é x", "--config", "é x.toml"]
+    assert main(["ingest", str(out), "-o", str(tmp_path / "run"), "-q"]) == 2
+    err = capsys.readouterr().err
+    assert shlex.split(err.split("file: --config", 1)[1])[0] == str(out.with_suffix(".toml"))
+    info = err.split("`")[3]  # `surgrecon convert`, then `surgrecon info LOG --write-config FILE`
+    assert shlex.split(info) == ["surgrecon", "info", str(out), "--write-config", "FILE"]

@@ -322,3 +322,24 @@ def test_tum_of_the_recorded_streams_interpolate_to_the_ingested_poses(exported)
         assert valid.all()
         np.testing.assert_allclose(poses, log.poses[usable, c], rtol=0, atol=1e-9)
     assert len(read_tum_like_evo(RunLayout.tum_robot(tum))) > log.n_frames
+
+
+def test_tum_export_of_a_run_without_robot_is_read_by_evo(tmp_path: Path, capsys):
+    """A run without a robot has no tool pose: tool.tum is not written at all, as evo's
+    `read_tum_trajectory_file` refuses a file without a pose line ("TUM trajectory files
+    must have 8 entries per row"), so `evo_traj tum DIR/*.tum` failed on every converted
+    log. The cameras' files are written as before."""
+    log, run_dir, tum = tmp_path / "nr.mcap", tmp_path / "run", tmp_path / "tum"
+    assert main(["simulate", str(log), "--no-robot", "--frames", "2", "--cameras", "2",
+                 "--width", "64", "--height", "48", "-q"]) == 0
+    assert main(["ingest", str(log), "-o", str(run_dir), "-q", "--set", 'topics.tool_pose=""',
+                 "--set", 'topics.joint_states=""']) == 0
+    capsys.readouterr()
+    assert main(["export", str(run_dir), "--tum", str(tum), "-q"]) == 0
+    written = sorted(p.name for p in tum.glob("*.tum"))
+    assert written and "tool.tum" not in written and "tool_robot.tum" not in written
+    for path in tum.glob("*.tum"):
+        read_tum_like_evo(path)
+    assert len(read_tum_like_evo(RunLayout.tum_camera(tum, 0))) == 2  # one pose per frame
+    out = capsys.readouterr().out
+    assert "tool.tum not written" in out and "0 poses" not in out and "2 poses" in out

@@ -41,6 +41,9 @@ def test_failed_frame_is_isolated_and_named(copy_run, caplog):
     assert set(entry["frames_failed"]) == {"2"}
     message = entry["frames_failed"]["2"]
     assert "tracked" in message and "unobserved" in message and "{" not in message
+    # and why: the cameras without an image in that frame (here every one of them)
+    cameras = json.loads((copy_run / "run.json").read_text())["ingest"]["cameras"]
+    assert f"cameras {', '.join(repr(c) for c in cameras)} had no usable image" in message
     with np.load(RunLayout(copy_run).registration(2)) as z:
         assert bool(z["failed"]) and np.isnan(z["registered"]).all()
         # nothing was seen: unobserved, not outliers

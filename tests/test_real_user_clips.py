@@ -89,7 +89,8 @@ def test_images_smaller_than_an_unsized_calibration_are_refused(tmp_path: Path, 
 
 def test_a_resized_stereo_video_names_the_options_that_convert_it(tmp_path: Path, capsys):
     # A side-by-side video recorded at half the calibrated size: auto cannot pick the layout
-    # from the calibrated size, and the error names the two options that convert it.
+    # from the calibrated size; the error names --scale-calibration, with which auto picks
+    # the halves of the calibrated shape (side by side: 160x120 as 320x240, not 320x60).
     from convert_inputs import opencv_calibration, read_log, stereo_video
 
     stereo_video(tmp_path / "small.mkv", frames=2, size=(160, 120))
@@ -99,10 +100,36 @@ def test_a_resized_stereo_video_names_the_options_that_convert_it(tmp_path: Path
             str(tmp_path / "calib.yaml"), "-q"]
     assert main(args) == 2
     err = capsys.readouterr().err
-    assert "--stereo-layout" in err and "--scale-calibration" in err and not out.exists()
+    assert "--scale-calibration" in err and not out.exists()
+    assert main([*args, "--scale-calibration"]) == 0
+    info = read_log(out)["/camera/left/camera_info"][0][1]
+    assert (info.width, info.height) == (160, 120)
     assert main([*args, "--stereo-layout", "side-by-side", "--scale-calibration"]) == 0
     info = read_log(out)["/camera/left/camera_info"][0][1]
     assert (info.width, info.height) == (160, 120)
+
+
+def test_a_stereo_video_split_the_wrong_way_is_refused(tmp_path: Path, capsys):
+    # A top-bottom video (each eye 160x120, calibrated at 320x240) given as side by side with
+    # --scale-calibration: halves of 80x240 hold half of each eye, and K scaled by 0.25 in x
+    # and 1 in y was written without a word (the run then failed at the template, blaming the
+    # calibration). Refused in one line naming the layout; auto picks top-bottom.
+    from convert_inputs import opencv_calibration, read_log, stereo_video
+
+    stereo_video(tmp_path / "tb.mkv", frames=2, size=(160, 120), layout="top-bottom")
+    opencv_calibration(tmp_path / "calib.yaml", size=(320, 240))
+    out = tmp_path / "tb.mcap"
+    args = ["convert", str(tmp_path / "tb.mkv"), "-o", str(out), "--calibration",
+            str(tmp_path / "calib.yaml"), "--scale-calibration", "-q"]
+    capsys.readouterr()
+    assert main([*args, "--stereo-layout", "side-by-side"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--stereo-layout" in err[0] and "80x240" in err[0]
+    assert not out.exists() and not out.with_suffix(".toml").exists()
+    assert main(args) == 0
+    info = read_log(out)["/camera/left/camera_info"][0][1]
+    assert (info.width, info.height) == (160, 120)
+    assert abs(info.k[0] / info.k[4] - 520.0 / 518.0) < 1e-9  # K_LEFT fx / fy, scaled alike
 
 
 def test_a_stated_unit_that_makes_the_rig_metres_wide_is_warned_of(tmp_path: Path, capsys):

@@ -3,6 +3,7 @@ a ROS 2 MCAP log and the config that runs it."""
 
 from __future__ import annotations
 
+import shlex
 from pathlib import Path
 
 import click
@@ -56,7 +57,8 @@ def _cameras(ctx: click.Context, param: click.Parameter,
               help="One image folder or video per camera (repeat; instead of SRC).")
 @click.option("--stereo-layout", "layout", default="auto", show_default=True,
               type=click.Choice(["auto", "side-by-side", "top-bottom"]),
-              help="How a stereo video holds the two views (auto: from the calibrated size).")
+              help="How a stereo video holds the two views (auto: from the calibrated size; "
+              "with --scale-calibration, its shape).")
 @click.option("--units", type=click.Choice(["mm", "m"]),
               help="Unit of the calibration's lengths (T, baseline). Default: millimetres when "
               "the largest camera offset is above 1, else metres.")
@@ -65,7 +67,8 @@ def _cameras(ctx: click.Context, param: click.Parameter,
               "from the calibration's width/height to its images' (instead of an error).")
 @click.option("--fps", type=click.FloatRange(min=0, min_open=True),
               help="Frame rate of the images (default: a video's own times, else 30).")
-@click.option("--start-time", default=1.0, show_default=True, type=float, metavar="SECONDS",
+@click.option("--start-time", default=1.0, show_default=True, type=click.FloatRange(min=0),
+              metavar="SECONDS",
               help="Stamp of the first frame with --fps or a video's own times (not 0: ROS "
               "reads a zero stamp as unset).")
 @click.option("--stamps", type=_FILE,
@@ -117,5 +120,5 @@ def convert_cmd(src: Path | None, out: Path, calibration: tuple[Path, ...], left
     click.echo(f"{result.log}: {counted(result.frames, 'frame')} of cameras "
                f"{', '.join(result.cameras)} ({result.source}; calibration lengths in "
                f"{result.units})")
-    click.echo(f"{result.config}: run it with  surgrecon run {result.log} -o RUN "
-               f"--config {result.config}")
+    click.echo(f"{result.config}: run it with  surgrecon run {shlex.quote(str(result.log))} "
+               f"-o RUN --config {shlex.quote(str(result.config))}")

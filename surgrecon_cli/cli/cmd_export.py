@@ -40,6 +40,7 @@ def export_cmd(run_dir: Path, mcap_path: Path | None, tum_dir: Path | None, forc
     frame), as evo reads them (`evo_traj tum DIR/*.tum`): camera_CC.tum and tool.tum the
     poses interpolated to the images / frames (ingest/frames.npz), camera_CC_tracker.tum and
     tool_robot.tum the tracker's and the robot's streams as recorded (ingest/streams.npz).
+    A trajectory without any pose (the tool's, in a run without a robot) is not written.
 
     \b
     Examples:
@@ -47,7 +48,7 @@ def export_cmd(run_dir: Path, mcap_path: Path | None, tum_dir: Path | None, forc
       surgrecon export runs/sample --tum runs/sample-tum
       evo_traj tum runs/sample-tum/camera_00.tum runs/sample-tum/tool.tum --plot
     """
-    from ..errors import InputError
+    from ..errors import InputError, counted
 
     if mcap_path is None and tum_dir is None:
         raise InputError("nothing to export: give --mcap OUT.mcap and/or --tum DIR")
@@ -57,7 +58,12 @@ def export_cmd(run_dir: Path, mcap_path: Path | None, tum_dir: Path | None, forc
         from ..io.export.to_tum import export_tum
 
         for trajectory in export_tum(run_dir, tum_dir):
-            click.echo(f"{trajectory.name:<12} {trajectory.poses:>6} poses -> {trajectory.path}")
+            if trajectory.poses:
+                click.echo(f"{trajectory.name:<24} {counted(trajectory.poses, 'pose'):>10} -> "
+                           f"{trajectory.path}")
+            else:
+                click.echo(f"{trajectory.name:<24} {'no poses':>10}: {trajectory.path.name} "
+                           "not written (evo reads no trajectory without a pose)")
     if mcap_path is not None:
         from ..io.export.to_mcap import export_mcap
 

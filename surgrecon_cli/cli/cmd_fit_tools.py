@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import shlex
 from pathlib import Path
 from typing import Any
 
@@ -67,4 +68,5 @@ def fit_tools_cmd(run_dir: Path, groups: tuple[str, ...], frame: int, radius_mm:
             click.echo(f"{name}.camera_offsets = {list(cfg.camera_offsets)}")
     if write_config is not None:
         write_config.write_text(to_toml(new), encoding="utf-8")
-        click.echo(f"config -> {write_config}; run with --config {write_config}")
+        click.echo(f"config -> {write_config}; run with --config "
+                   f"{shlex.quote(str(write_config))}")

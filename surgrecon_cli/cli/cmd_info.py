@@ -3,6 +3,7 @@ config (the text and the config come from info)."""
 
 from __future__ import annotations
 
+import shlex
 from pathlib import Path
 from typing import Any
 
@@ -64,4 +65,4 @@ def info_cmd(log: Path, write_config: Path | None, force: bool, config: Any,
             raise InputError(f"{no_images_message(info.path)}; {write_config} not written")
         with atomic_open(write_config, "w") as f:
             f.write(topics_toml(info))
-        click.echo(f"wrote {write_config}: run with --config {write_config}")
+        click.echo(f"wrote {write_config}: run with --config {shlex.quote(str(write_config))}")

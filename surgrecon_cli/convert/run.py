@@ -106,7 +106,7 @@ def _source(req: ConvertRequest, rig: Rig) -> tuple[Any, tuple[str, ...], str]:
     video = VideoSource([req.src], None, req.image_format)
     first = rig.cameras[0] if rig.cameras else None
     eye = (first.width, first.height) if first is not None else (0, 0)
-    video.layout = choose_layout(req.layout, video.size, eye)
+    video.layout = choose_layout(req.layout, video.size, eye, req.scale_calibration)
     return video, names, f"stereo video, {video.layout}"
 
 

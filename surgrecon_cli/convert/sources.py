@@ -11,6 +11,8 @@ lossy already; a PNG of a 1280x1024 frame is ~10x larger) or as PNG (`image_form
 
 from __future__ import annotations
 
+import logging
+import math
 import re
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator, Sequence
@@ -35,6 +37,8 @@ LAYOUTS = ("auto", "side-by-side", "top-bottom")
 JPEG_QUALITY = 95
 _JPEG_MAGIC = b"\xff\xd8"
 _PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+logger = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -199,6 +203,13 @@ class VideoSource:
             except (av.error.FFmpegError, IndexError) as exc:
                 raise InputError(f"video {video}: cannot be read ({exc})") from None
         self.count: int | None = min(counts)
+        if len(set(counts)) > 1:
+            listing = ", ".join(f"{video} {n}" for video, n in zip(self.videos, counts,
+                                                                    strict=True))
+            logger.warning("the videos hold different numbers of frames (%s): the first %d of "
+                           "each are converted, the i-th frames of all videos forming frame i; "
+                           "a frame lost inside one video shifts every later pair: check that "
+                           "the last frames still match", listing, min(counts))
 
     def _decoded(self, video: Path) -> Iterator[tuple[int | None, np.ndarray]]:
         av = _import_av()
@@ -255,17 +266,31 @@ def split_stereo(img: np.ndarray, layout: str) -> tuple[np.ndarray, np.ndarray]:
     return img[:half], img[half: 2 * half]
 
 
-def choose_layout(layout: str, size: tuple[int, int], eye: tuple[int, int]) -> str:
+def choose_layout(layout: str, size: tuple[int, int], eye: tuple[int, int],
+                  scale: bool = False) -> str:
     """The stereo layout of a `size` (w, h) video: as given, or (auto) the one whose halves have
-    the calibrated `eye` size (0, 0 = unknown: side by side when wider than high)."""
+    the calibrated `eye` size, or with `scale` (--scale-calibration: the video is resized) the
+    one whose halves alone have the calibrated aspect ratio within 20 % (0, 0 = unknown: side
+    by side when wider than high)."""
     if layout != "auto":
         return layout
     w, h = size
     if eye[0] and eye[1]:
-        if (w // 2, h) == eye:
-            return "side-by-side"
-        if (w, h // 2) == eye:
-            return "top-bottom"
+        halves = {"side-by-side": (w // 2, h), "top-bottom": (w, h // 2)}
+        for name, half in halves.items():
+            if half == eye:
+                return name
+        aspect = eye[0] / eye[1]
+        alike = [name for name, (hw, hh) in halves.items()
+                 if hh and abs(math.log(hw / hh / aspect)) < math.log(1.2)]
+        if scale and len(alike) == 1:
+            return alike[0]
+        if len(alike) == 1:
+            hw, hh = halves[alike[0]]
+            raise InputError(f"the stereo video is {w}x{h} px; its halves {alike[0]} ({hw}x{hh}) "
+                             f"have the shape of the calibrated {eye[0]}x{eye[1]} px but not "
+                             "its size: add --scale-calibration if the video is the calibrated "
+                             "images resized")
         raise InputError(f"the stereo video is {w}x{h} px; neither its halves side by side "
                          f"({w // 2}x{h}) nor top-bottom ({w}x{h // 2}) are the calibrated "
                          f"{eye[0]}x{eye[1]} px: give --stereo-layout (and --scale-calibration "

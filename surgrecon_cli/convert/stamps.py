@@ -30,11 +30,12 @@ logger = logging.getLogger(__name__)
 @dataclass(frozen=True)
 class PoseTrack:
     """Poses of one frame over time: stamps (N,) int64 ns, positions (N, 3) m, orientations
-    (N, 4) unit quaternions x y z w."""
+    (N, 4) unit quaternions x y z w; `source` the file they were read from."""
 
     stamps_ns: np.ndarray
     positions: np.ndarray
     orientations: np.ndarray
+    source: str = ""
 
 
 def _rows(path: Path, what: str) -> list[tuple[int, list[str]]]:
@@ -64,6 +65,11 @@ def _seconds_ns(word: str, path: Path, number: int, what: str) -> int:
 
 
 def _increasing(stamps: np.ndarray, path: Path, what: str) -> None:
+    """InputError unless the stamps increase and none is negative (MCAP log times are
+    unsigned: a negative stamp ended convert in an internal error)."""
+    if len(stamps) and stamps[0] < 0:
+        raise InputError(f"{what} {path}: its first time, {stamps[0] / 1e9:.9g} s, is negative; "
+                         "log times cannot be: add the same constant to every time")
     bad = np.flatnonzero(np.diff(stamps) <= 0)
     if bad.size:
         raise InputError(f"{what} {path}: stamps must increase (entry {bad[0] + 2} is not "
@@ -102,7 +108,8 @@ def read_tum(path: Path, what: str) -> PoseTrack:
     if bad.size:
         raise InputError(f"{what} {path} line {rows[bad[0]][0]}: not a finite position and "
                          "unit quaternion")
-    track = PoseTrack(np.array(stamps, dtype=np.int64), arr[:, :3], arr[:, 3:] / norms[:, None])
+    track = PoseTrack(np.array(stamps, dtype=np.int64), arr[:, :3], arr[:, 3:] / norms[:, None],
+                      str(path))
     _increasing(track.stamps_ns, path, what)
     span = float(np.ptp(track.positions, axis=0).max())
     reach = float(np.linalg.norm(track.positions, axis=1).max())

@@ -10,6 +10,7 @@ A tool pose file becomes `/tf` world -> tool_tip at its own stamps.
 from __future__ import annotations
 
 import heapq
+import shlex
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import replace
 
@@ -71,6 +72,22 @@ def _check_principal_point(cam: CameraCalibration, origin: str, size: tuple[int,
         "were resized")
 
 
+def _check_aspect(cam: CameraCalibration, origin: str, size: tuple[int, int]) -> None:
+    """--scale-calibration from the calibrated size to `size`: InputError when the two aspect
+    ratios differ by a factor of 3 or more. A resize keeps the aspect ratio (d-lfd's
+    640x480 -> 310x244: 5 %), a half side-by-side video halves it; a stereo video split the
+    wrong way changes it 4-fold, and scaled K to those halves, which hold half of each eye."""
+    (w, h), cw, ch = size, cam.width, cam.height
+    ratio = (w / h) / (cw / ch)
+    if 1 / 3 < ratio < 3:
+        return
+    raise InputError(f"image {origin} is {w}x{h} px; camera {cam.name!r}: the calibration says "
+                     f"{cw}x{ch} px, an aspect ratio {max(ratio, 1 / ratio):.3g} times "
+                     f"{'wider' if ratio > 1 else 'narrower'}, which no resize makes: a stereo "
+                     "video split the wrong way (--stereo-layout), or another camera's "
+                     "calibration?")
+
+
 def _blank(data: bytes) -> bool:
     """Whether encoded image bytes (JPEG / PNG) decode to one flat value (a black frame)."""
     import cv2
@@ -120,6 +137,7 @@ class _Sizes:
                 _check_principal_point(cam, image.origin, size)
                 self.sizes[k] = size
             elif self.first and self.scale and size != self.sizes[k]:
+                _check_aspect(cam, image.origin, size)
                 self.cameras[k] = scaled(cam, *size)
                 self.sizes[k] = size
             elif size != self.sizes[k]:
@@ -165,13 +183,42 @@ def _frame_messages(rig: Rig, frames: Iterable[Frame], stamps: np.ndarray | None
                 t, frame_id, image.format, image.data)
 
 
+def _within_poses(stream: Iterator[Message],
+                  tracks: Sequence[tuple[str, PoseTrack]]) -> Iterator[Message]:
+    """The frames' messages; after the last, InputError when none of them lies within the
+    time span of a pose file (named by its option in `tracks`): its times are on another
+    clock than the frames' (e.g. from 0 s while the frames start at --start-time), and
+    ingest would find no camera pose at all, or no tool pose (tool removal silently off)."""
+    first = last = None
+    inside = [False] * len(tracks)
+    for message in stream:
+        t = message[1]
+        first = t if first is None else first
+        last = t
+        inside = [was or int(track.stamps_ns[0]) <= t <= int(track.stamps_ns[-1])
+                  for was, (_, track) in zip(inside, tracks, strict=True)]
+        yield message
+    for was, (option, track) in zip(inside, tracks, strict=True):
+        if first is None or last is None or was:
+            continue
+        lo, hi = int(track.stamps_ns[0]), int(track.stamps_ns[-1])
+        raise InputError(f"{option}: the poses span {lo / 1e9:.3f}..{hi / 1e9:.3f} s but the "
+                         f"frames {first / 1e9:.3f}..{last / 1e9:.3f} s, so no frame has a pose "
+                         "from it: give the frames' times on the pose file's clock (--stamps "
+                         "FILE, or --start-time and --fps)")
+
+
 def messages(rig: Rig, frames: Iterable[Frame], stamps: np.ndarray | None,
              start_ns: int, camera_poses: PoseTrack | None = None,
              tool_poses: Sequence[PoseTrack] = (), scale: bool = False) -> Iterator[Message]:
     """Every message of the log, in log-time order (rules in the module docstring). Frame
     stamps: `stamps` (N,) ns, else the frames' own (video times) after `start_ns`; tools
     on /tf as `tool_frame(k)`."""
-    streams = [_frame_messages(rig, frames, stamps, start_ns, camera_poses is None, scale)]
+    checked = [(f"--tool-poses {track.source}", track) for track in tool_poses]
+    if camera_poses is not None:
+        checked.insert(0, (f"--camera-poses {camera_poses.source}", camera_poses))
+    streams = [_within_poses(
+        _frame_messages(rig, frames, stamps, start_ns, camera_poses is None, scale), checked)]
     if camera_poses is not None:
         streams.append(_track(camera_poses, RIG))
     streams += [_track(track, tool_frame(k)) for k, track in enumerate(tool_poses)]
@@ -200,7 +247,8 @@ def config_text(log_name: str, rig: Rig, poses: str, tools: int = 0) -> str:
     base = log_name.removesuffix(".mcap")
     lines = [
         f"# Written by `surgrecon convert` for {log_name}; run it with",
-        f"#   surgrecon run {log_name} -o runs/{base} --config {base}.toml",
+        f"#   surgrecon run {shlex.quote(log_name)} -o {shlex.quote('runs/' + base)} "
+        f"--config {shlex.quote(base + '.toml')}",
         f"# Cameras {names}; {poses}; calibration lengths read as {rig.units}.",
         "[topics]",
         f'image = "{IMAGE_TOPIC}"',

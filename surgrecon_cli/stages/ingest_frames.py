@@ -300,7 +300,7 @@ def check_clocks(cams: Sequence[CameraStreams], stamps: Sequence[np.ndarray],
         return
     lines = []
     for cam, image_stamps, poses in zip(cams, stamps, pose_streams, strict=True):
-        pose_topic = cam.pose_topic
+        pose_topic = cam.pose_topic or config.topics.camera_pose  # "" when through the TF tree
         lines.append(
             f"camera {cam.camera_id}: images on {cam.image_topic} at "
             f"{_span(image_stamps)} ({reader.clock_of(cam.image_topic)}), poses on "

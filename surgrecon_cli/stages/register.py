@@ -155,15 +155,27 @@ def register_frame(run_dir: Path, frame: int, config: Config) -> dict:
     try:
         result = registrar.step(inputs, base)
     except GeometryError as exc:
+        why = str(exc) + _unusable_cameras(log, frame)
         write_registration(layout, frame, _artefact(
-            unregistered(len(template.points), len(registrar.rig.models)), base.frame,
-            str(exc)))
-        return {"frame": frame, "failed": str(exc), "base": base.frame}
+            unregistered(len(template.points), len(registrar.rig.models)), base.frame, why))
+        return {"frame": frame, "failed": why, "base": base.frame}
     result = replace(result, seconds_target=result.seconds_target + seconds_views)
     write_registration(layout, frame, _artefact(result, base.frame))
     return {"frame": frame, "base": base.frame, "seconds_target": result.seconds_target,
             "seconds_register": result.seconds_register, "converged": result.converged,
             "tracking_px": result.target.noise.tracking_px, **result.target.counts()}
+
+
+def _unusable_cameras(log: IngestedLog, frame: int) -> str:
+    """"; camera 'right' had no usable image ..." for the cameras a failed frame lacked (a
+    dropped or late image, no pose), else "": one eye missing from a stereo frame leaves
+    nothing to triangulate, and the counts alone did not say why."""
+    missing = [repr(c) for c, ok in zip(log.cameras, log.usable[frame], strict=True) if not ok]
+    if not missing:
+        return ""
+    which = f"camera {missing[0]}" if len(missing) == 1 else f"cameras {', '.join(missing)}"
+    return (f"; {which} had no usable image in this frame (dropped, late or without a pose: "
+            "see ingest's table)")
 
 
 def _artefact(result: FrameResult, base: int, error: str = "") -> FrameRegistration:

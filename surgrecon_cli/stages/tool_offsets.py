@@ -11,6 +11,7 @@ whose contrast reaches `min_contrast` (and beats no move) becomes that tool's
 from __future__ import annotations
 
 import dataclasses
+import shlex
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -69,7 +70,8 @@ def fit_run_tool_offsets(run_dir: Path, config: Config, frame: int = 0,
     instruments: 4 mm)."""
     layout = RunLayout(run_dir)
     if not layout.ingest_dir.is_dir():
-        raise InputError(f"{run_dir}: not ingested; run `surgrecon ingest LOG -o {run_dir}` "
+        raise InputError(f"{run_dir}: not ingested; run `surgrecon ingest LOG -o "
+                         f"{shlex.quote(str(run_dir))}` "
                          "first")
     log = load_ingested(layout.ingest_dir)
     if not 0 <= frame < log.n_frames:

@@ -7,8 +7,10 @@ frame at their own stamps (DIR/camera_CC_tracker.tum, DIR/tool_robot.tum), from
 RUN/ingest/streams.npz. Each line is `t tx ty tz qx qy qz qw`: t in
 seconds since the epoch (all nine decimals of the nanosecond stamp), the translation in
 metres and the unit quaternion (w >= 0) written with 17 significant digits, so that they
-read back to the same doubles. Frames without a pose (NaN) are left out. `#` lines say
-what the file holds. These are the files `evo_traj tum` and `evo_ape tum` read.
+read back to the same doubles. Frames without a pose (NaN) are left out, and a trajectory
+without any pose (tool.tum of a run without a robot) is not written: evo refuses a file
+without a pose line, so `evo_traj tum DIR/*.tum` would fail on it. `#` lines say what the
+file holds. These are the files `evo_traj tum` and `evo_ape tum` read.
 """
 
 from __future__ import annotations
@@ -26,7 +28,7 @@ from ..run.layout import RunLayout
 
 @dataclass(frozen=True)
 class Trajectory:
-    """One written TUM file: what it holds and how many poses."""
+    """One TUM file: what it holds and how many poses (0: not written, nothing to hold)."""
 
     path: Path
     name: str
@@ -51,8 +53,11 @@ def tum_lines(stamps_ns: np.ndarray, poses: np.ndarray) -> list[str]:
 
 
 def write_tum(path: Path, stamps_ns: np.ndarray, poses: np.ndarray, header: list[str]) -> int:
-    """Write one TUM file atomically (header lines become `#` comments); returns its poses."""
+    """Write one TUM file atomically (header lines become `#` comments); returns its poses.
+    Without any pose nothing is written (evo reads no file without a pose line)."""
     lines = tum_lines(stamps_ns, poses)
+    if not lines:
+        return 0
     comments = [f"# {line}" for line in header] + ["# t tx ty tz qx qy qz qw"]
     write_text(path, "\n".join(comments + lines) + "\n")
     return len(lines)

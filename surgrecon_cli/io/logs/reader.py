@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import hashlib
 import logging
+import shlex
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field, replace
 from functools import partial
@@ -144,12 +145,13 @@ class LogReader:
         if len(listed) > _MAX_LISTED:
             listed = [*listed[:_MAX_LISTED], f"... ({len(listed) - _MAX_LISTED} more)"]
         beside = Path(self.path).with_suffix(".toml")  # what `surgrecon convert` writes
-        given = (f"--config {beside} (written beside the log, e.g. by `surgrecon convert`), or "
-                 if beside.is_file() else "")
+        given = (f"--config {shlex.quote(str(beside))} (written beside the log, e.g. by "
+                 "`surgrecon convert`), or " if beside.is_file() else "")
         return TopicError(
             f"{self.path}: no topic for {wanted}; set [topics] in a --config file: {given}"
-            f"`surgrecon info {self.path} --write-config FILE` writes one (a robot role the "
-            "log does not record, tool_pose or joint_states, is set to \"\"); topics in the "
+            f"`surgrecon info {shlex.quote(str(self.path))} --write-config FILE` writes one (a "
+            "robot role the log does not record, tool_pose or joint_states, is set to \"\"); "
+            "topics in the "
             f"log{':' if listed else ': none'}", details=tuple(listed))
 
     def _early_check(self) -> None:

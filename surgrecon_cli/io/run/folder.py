@@ -14,6 +14,7 @@ from __future__ import annotations
 import hashlib
 import importlib.metadata
 import json
+import shlex
 from pathlib import Path
 from typing import Any
 
@@ -147,8 +148,9 @@ class RunFolder:
         """RunFolderError unless stage `name` completed."""
         if not self.is_done(name):
             status = self.stage_status(name) or "not run"
-            hint = (f"surgrecon ingest LOG.mcap -o {self.path}" if name == "ingest"
-                    else f"surgrecon {name} {self.path}")
+            where = shlex.quote(str(self.path))
+            hint = (f"surgrecon ingest LOG.mcap -o {where}" if name == "ingest"
+                    else f"surgrecon {name} {where}")
             raise RunFolderError(f"{self.path}: stage {name} is {status}; run `{hint}` first")
 
     def mark_stage(self, name: str, status: str, **info: Any) -> None:
