@@ -69,7 +69,7 @@ def rigid_fit_residuals(
         w = keep.astype(float)
     dst = np.where(keep[..., None], dst, 0.0)
     R, t = fit_rigid(src, dst, w)
-    pred = np.einsum("nij,nkj->nki", R, src) + t[:, None, :]
+    pred = src @ np.swapaxes(R, 1, 2) + t[:, None, :]
     residual = np.where(keep[..., None], dst - pred, 0.0)
     if information is not None:
         info = np.where(keep[..., None, None], np.asarray(information, float)[index], 0.0)
@@ -86,20 +86,22 @@ def _information_step(pred: np.ndarray, residual: np.ndarray, info: np.ndarray,
     (the normal equations in (ω, δ) are linear; the turn is applied exactly, as a depth
     error of 1 mm across a 5 mm neighbourhood can tilt the scalar fit by ~10°)."""
     target = pred + residual
+    n, k = keep.shape
     usable = (keep.sum(1) >= 3)[:, None, None]
     count = np.maximum(keep.sum(1), 1)[:, None]
     for _ in range(INFORMATION_STEPS):
         centre = (np.where(keep[..., None], pred, 0.0).sum(1) / count)[:, None, :]
         q = pred - centre
+        # info @ [-[q]x, I]: the members' rows stacked, so that the sums over members and
+        # axes are one (6, 3K) @ (3K, 6) product per neighbourhood
         jac = np.concatenate([-_skew(q), np.broadcast_to(np.eye(3), (*q.shape, 3))], -1)
-        weighted = np.einsum("nkab,nkbj->nkaj", info, jac)  # (N, K, 3, 6)
-        normal = np.einsum("nkai,nkaj->nij", jac, weighted)
-        rhs = np.einsum("nkaj,nka->nj", weighted, target - pred)
+        weighted = np.matmul(info, jac).reshape(n, 3 * k, 6)
+        normal = np.matmul(np.swapaxes(jac.reshape(n, 3 * k, 6), 1, 2), weighted)
+        rhs = np.matmul(np.swapaxes(weighted, 1, 2), (target - pred).reshape(n, 3 * k, 1))
         scale = np.trace(normal, axis1=1, axis2=2)[:, None, None]
-        step = np.linalg.solve(normal + (1e-12 * scale + 1e-30) * np.eye(6),
-                               rhs[..., None])[..., 0]
+        step = np.linalg.solve(normal + (1e-12 * scale + 1e-30) * np.eye(6), rhs)[..., 0]
         turn = Rotation.from_rotvec(np.where(usable[:, 0], step[:, :3], 0.0)).as_matrix()
-        pred = centre + np.einsum("nij,nkj->nki", turn, q) + np.where(
+        pred = centre + q @ np.swapaxes(turn, 1, 2) + np.where(
             usable[:, 0], step[:, 3:], 0.0)[:, None, :]
     return np.where(keep[..., None], target - pred, 0.0)
 

@@ -326,8 +326,7 @@ def departure_statistic(template: np.ndarray, positions: np.ndarray, covariance:
     weight = np.trace(info, axis1=1, axis2=2) / 3.0
     residual, keep = rigid_fit_residuals(template, positions, index, mask, weights=weight,
                                          information=info)
-    stat = np.einsum("mki,mkij,mkj->m", residual, info[index], residual)
-    return stat, 3.0 * keep.sum(1) - 6.0
+    return _energy(residual, info[index]), 3.0 * keep.sum(1) - 6.0
 
 
 def resolved_rms_mm(template: np.ndarray, positions: np.ndarray, covariance: np.ndarray,
@@ -352,11 +351,16 @@ def resolved_rms_mm(template: np.ndarray, positions: np.ndarray, covariance: np.
     total = np.trace(info, axis1=1, axis2=2)
     residual, keep = rigid_fit_residuals(template, positions, index, mask, weights=total / 3.0,
                                          information=info)
-    energy = np.einsum("mki,mkij,mkj->m", residual, info[index], residual)
+    energy = _energy(residual, info[index])
     norm = (total[index] * keep).sum(1)
     with np.errstate(invalid="ignore", divide="ignore"):
         out = np.sqrt(3.0 * energy / norm) * 1e3
     return np.where(keep.sum(1) >= 3, out, np.nan)
+
+
+def _energy(residual: np.ndarray, info: np.ndarray) -> np.ndarray:
+    """Σ_k r_kᵀ I_k r_k (M,) of residuals (M, K, 3) and information matrices (M, K, 3, 3)."""
+    return (np.matmul(info, residual[..., None])[..., 0] * residual).sum((1, 2))
 
 
 def _precisions(covariance: np.ndarray, variance_m2: float) -> np.ndarray:
