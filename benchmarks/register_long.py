@@ -5,7 +5,7 @@ r"""Hour-long logs (issue 27): one register worker registering 100,000 frames, i
         [--workdir /tmp/surgrecon-register-long] [--tracemalloc DEPTH] [--top 15]
 
 The 100,000-frame run of docs/frame-step-cost.md ("Long runs"): a 2-camera stereo
-endoscope at 96x80 (21 template points). On a shared machine give it a core by raising its
+endoscope at 96x80 (28 template points). On a shared machine give it a core by raising its
 scheduling autogroup once started (plain `nice` does not help against other sessions'
 autogroups):
 
