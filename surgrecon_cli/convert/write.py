@@ -189,23 +189,21 @@ def _within_poses(stream: Iterator[Message],
     time span of a pose file (named by its option in `tracks`): its times are on another
     clock than the frames' (e.g. from 0 s while the frames start at --start-time), and
     ingest would find no camera pose at all, or no tool pose (tool removal silently off)."""
-    first = last = None
-    inside = [False] * len(tracks)
+    times: list[int] = []
     for message in stream:
-        t = message[1]
-        first = t if first is None else first
-        last = t
-        inside = [was or int(track.stamps_ns[0]) <= t <= int(track.stamps_ns[-1])
-                  for was, (_, track) in zip(inside, tracks, strict=True)]
+        times.append(message[1])
         yield message
-    for was, (option, track) in zip(inside, tracks, strict=True):
-        if first is None or last is None or was:
-            continue
+    if not times:
+        return
+    stamps = np.array(times, dtype=np.int64)
+    for option, track in tracks:
         lo, hi = int(track.stamps_ns[0]), int(track.stamps_ns[-1])
+        if ((stamps >= lo) & (stamps <= hi)).any():
+            continue
         raise InputError(f"{option}: the poses span {lo / 1e9:.3f}..{hi / 1e9:.3f} s but the "
-                         f"frames {first / 1e9:.3f}..{last / 1e9:.3f} s, so no frame has a pose "
-                         "from it: give the frames' times on the pose file's clock (--stamps "
-                         "FILE, or --start-time and --fps)")
+                         f"frames {stamps.min() / 1e9:.3f}..{stamps.max() / 1e9:.3f} s, so no "
+                         "frame has a pose from it: give the frames' times on the pose file's "
+                         "clock (--stamps FILE, or --start-time and --fps)")
 
 
 def messages(rig: Rig, frames: Iterable[Frame], stamps: np.ndarray | None,

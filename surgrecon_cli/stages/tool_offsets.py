@@ -71,8 +71,7 @@ def fit_run_tool_offsets(run_dir: Path, config: Config, frame: int = 0,
     layout = RunLayout(run_dir)
     if not layout.ingest_dir.is_dir():
         raise InputError(f"{run_dir}: not ingested; run `surgrecon ingest LOG -o "
-                         f"{shlex.quote(str(run_dir))}` "
-                         "first")
+                         f"{shlex.quote(str(run_dir))}` first")
     log = load_ingested(layout.ingest_dir)
     if not 0 <= frame < log.n_frames:
         raise InputError(f"--frame {frame}: the run has frames 0..{log.n_frames - 1}")

@@ -151,8 +151,7 @@ class LogReader:
             f"{self.path}: no topic for {wanted}; set [topics] in a --config file: {given}"
             f"`surgrecon info {shlex.quote(str(self.path))} --write-config FILE` writes one (a "
             "robot role the log does not record, tool_pose or joint_states, is set to \"\"); "
-            "topics in the "
-            f"log{':' if listed else ': none'}", details=tuple(listed))
+            f"topics in the log{':' if listed else ': none'}", details=tuple(listed))
 
     def _early_check(self) -> None:
         """Check roles from the summary sections, when every file has an intact one."""
