@@ -18,6 +18,7 @@ from surgrecon_cli.core.classify.rules import (
     RegisteredFrame,
     classify_frame,
     displacement_covariance,
+    field_noise_scale,
     resolved_rms_mm,
     rigid_rms_mm,
     template_neighbourhoods,
@@ -138,3 +139,39 @@ def test_a_dent_the_tool_hides_is_deforming_where_the_tool_touches_it():
     far = r2 > 0.012**2
     assert (truth[far] == SHIFTING).all() and (labels(dented, touched)[far] == SHIFTING).all()
     assert (labels(shift, touched) == SHIFTING).all()
+
+
+def test_a_dent_along_the_lines_of_sight_counts_fully_where_the_field_is_smoother_than_its_noise():
+    """The 6-camera rig's case: depth known 5x worse than across (0.15 / 0.03 mm), a dent
+    pressed along the view. Weighted by that covariance, the dent's RMS is discounted below
+    deform_mm; the registered field here has no scatter at all, so its covariance overstates
+    its noise and the dent counts at its plain RMS. A field as noisy as its covariance keeps
+    the weights."""
+    cfg = ClassifyConfig()
+    template = _patch()
+    n = len(template)
+    r2 = (template[:, :2] ** 2).sum(1)
+    dented = template + np.array([0.003, 0.0, -0.001])
+    dented[:, 2] += 0.002 * np.exp(-r2 / (2 * 0.003**2))
+    depth, lateral = 0.15e-3, 0.03e-3
+    cov = _depth_cov(n, depth, lateral)
+    nb = template_neighbourhoods(template, cfg.neighbourhood_mm, cfg.min_neighbours,
+                                 cfg.max_neighbours)
+    index, mask = radius_neighbourhoods(template, cfg.neighbourhood_mm * 1e-3)
+    truth = label_rule(template, dented, index, mask, cfg.static_mm, cfg.deform_mm)
+    deforming = truth == DEFORMING
+    assert deforming.sum() >= 10
+    rows = np.arange(n)
+    weighted = resolved_rms_mm(template, dented, cov, nb, rows, cfg.deform_mm)
+    assert (weighted[deforming] >= cfg.deform_mm).mean() < 0.5
+    scale = field_noise_scale(template, dented, cov, nb, rows)
+    assert scale < 0.01
+    evidence = Evidence(sigma=np.full(n, depth), template_sigma=np.zeros(n), measured=dented,
+                        measured_sigma=np.full(n, depth), displacement_cov=cov,
+                        departure_cov=cov)
+    labels = classify_frame(template, RegisteredFrame(dented), nb, cfg,
+                            evidence=evidence).labels
+    assert (labels[deforming] == DEFORMING).all()
+    assert (labels[~deforming] != DEFORMING).all()
+    noise = np.random.default_rng(3).normal(0.0, 1.0, template.shape) * [lateral, lateral, depth]
+    assert field_noise_scale(template, template + noise, cov, nb, rows) > 0.7
