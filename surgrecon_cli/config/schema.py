@@ -317,7 +317,8 @@ class ClassifyConfig:
     )
     deform_mm: float = _doc(
         0.25, "deformation tolerance: a significant departure from rigid motion whose "
-        "noise-debiased RMS reaches this is deforming (mm; the spec's rule: 0.25)", bounds=(0, 1000)
+        "registered rigid-fit RMS, each direction counted by how well it is measured, reaches this "
+        "is deforming (mm; the spec's rule: 0.25)", bounds=(0, 1000)
     )
     neighbour_percentile: float = _doc(
         100.0, "transform_diff: percentile over the neighbours j (100 = max)", bounds=(0, 100)
