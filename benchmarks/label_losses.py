@@ -28,7 +28,7 @@ followed through the frames):
   own covariances (the independent part per point, the shared pose part once per frame),
   seed 0: what the tests make of data as noisy as the run says its data are; `... x
   measured scale` the same with the independent part scaled by what the frame's
-  neighbourhoods show (rules.noise_scale's lower-quartile ratio, not floored at 1).
+  neighbourhoods show (departure.noise_scale's lower-quartile ratio, not floored at 1).
 """
 
 from __future__ import annotations
@@ -38,11 +38,10 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
-from scipy.stats import chi2
 
 from surgrecon_cli.config import Config
 from surgrecon_cli.config.load import load_config
-from surgrecon_cli.core.classify import rules
+from surgrecon_cli.core.classify import departure, rules
 from surgrecon_cli.core.classify.labels import UNKNOWN
 from surgrecon_cli.core.evaluate.evaluation import true_point_labels
 from surgrecon_cli.core.evaluate.scoring import label_scores, map_to_surface
@@ -82,17 +81,13 @@ def decisions(template: np.ndarray, registered: np.ndarray, status: np.ndarray,
 
 def measured_scale(template: np.ndarray, registered: np.ndarray, evidence: rules.Evidence,
                    nb: rules.Neighbourhoods, config: Config) -> float:
-    """The frame's departures over what its covariances predict, as rules.noise_scale reads
+    """The frame's departures over what its covariances predict, as departure.noise_scale reads
     it but not floored at 1 (below 1: the covariances overstate the scatter)."""
     cfg = config.classify
     judged = np.flatnonzero(rules.labelled_motion(registered - template, evidence, cfg)[0])
-    stat, dof = rules.departure_statistic(template, evidence.measured, evidence.departure_cov,
-                                          nb, judged)
-    ok = (dof > 0) & np.isfinite(stat)
-    if not ok.any():
-        return 1.0
-    return float(np.quantile(stat[ok] / chi2.ppf(rules.SCALE_QUANTILE, dof[ok]),
-                             rules.SCALE_QUANTILE))
+    ratio = departure.departure_ratio(*departure.departure_statistic(
+        template, evidence.measured, evidence.departure_cov, nb, judged))
+    return 1.0 if ratio is None else ratio
 
 
 def noisy_truth(template: np.ndarray, moved: np.ndarray, evidence: rules.Evidence,

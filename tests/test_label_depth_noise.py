@@ -7,6 +7,7 @@ from __future__ import annotations
 import numpy as np
 
 from surgrecon_cli.config import ClassifyConfig
+from surgrecon_cli.core.classify.departure import field_noise_scale, resolved_rms_mm
 from surgrecon_cli.core.classify.labels import (
     DEFORMING,
     SHIFTING,
@@ -18,8 +19,6 @@ from surgrecon_cli.core.classify.rules import (
     RegisteredFrame,
     classify_frame,
     displacement_covariance,
-    field_noise_scale,
-    resolved_rms_mm,
     rigid_rms_mm,
     template_neighbourhoods,
 )

@@ -7,6 +7,7 @@ from __future__ import annotations
 import numpy as np
 
 from surgrecon_cli.config import ClassifyConfig
+from surgrecon_cli.core.classify.departure import departure_statistic, noise_scale
 from surgrecon_cli.core.classify.labels import (
     DEFORMING,
     SHIFTING,
@@ -17,8 +18,6 @@ from surgrecon_cli.core.classify.rules import (
     Evidence,
     RegisteredFrame,
     classify_frame,
-    departure_statistic,
-    noise_scale,
     template_neighbourhoods,
 )
 from surgrecon_cli.core.geometry.cameras import CameraModel, project

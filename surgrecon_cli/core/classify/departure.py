@@ -1,0 +1,130 @@
+"""How far each neighbourhood departs from one rigid motion, measured against the run's noise
+(step 3 of core/classify/rules.py): the chi-square departure statistic of its measured
+positions, the frame's noise scales, and the rigid-fit RMS of its registered positions with
+each direction counted by how well it is measured. Pure numpy; no I/O."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+from scipy.stats import chi2
+
+from .labels import rigid_fit_residuals
+
+if TYPE_CHECKING:
+    from .rules import Neighbourhoods
+
+SIGMA_FLOOR_M = 1e-6  # ours: a σ below a micrometre is numerical, not a measurement
+# Ours: the noise scale is read at the lower quartile of the neighbourhoods' departures, so
+# that up to 3/4 of them may truly deform (a stereo endoscope close to a dent sees mostly
+# the dent and its 5 mm surroundings; the median read too much deformation as noise there).
+SCALE_QUANTILE = 0.25
+# Ours: the registered field's scale (`field_noise_scale`) is read on this many labelled
+# neighbourhoods at most, spread evenly (against all of them it moves by up to 18 % on the
+# simulator's tuning runs, where it is 0.03-0.2 on `default`: the macro-F1 of 20 runs moves
+# by at most 0.001; 512 cost 60-80 ms a frame at 1,350-2,300 points), and is
+# kept above FIELD_SCALE_FLOOR (a field without scatter: the weights become the plain RMS's).
+FIELD_SAMPLE = 256
+FIELD_SCALE_FLOOR = 1e-3
+
+
+def departure_statistic(template: np.ndarray, positions: np.ndarray, covariance: np.ndarray,
+                        nb: Neighbourhoods, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """How far each neighbourhood (the point `rows` (M,) and its neighbours) departs from one
+    rigid motion, frame-0 template (N, 3) m to positions (N, 3) m with covariances
+    (N, 3, 3) m²: S (M,) = Σ_j r_jᵀ Σ_j⁻¹ r_j and its degrees of freedom 3n − 6 (M,) (n
+    usable members; S is chi-square with them under one rigid motion and the stated noise).
+    The fit is weighted by each member's full precision Σ⁻¹ (`rigid_fit_residuals` with
+    `information`), and S uses it too, so a direction the rig measures well counts fully
+    even where depth is poor, and one member's depth error does not tilt the fit.
+    Neighbourhoods with fewer than 3 usable members get dof <= 0."""
+    if len(rows) == 0:
+        return np.zeros(0), np.zeros(0)
+    index, mask = nb.members(rows)
+    info = _precisions(covariance, 0.0)
+    weight = np.trace(info, axis1=1, axis2=2) / 3.0
+    residual, keep = rigid_fit_residuals(template, positions, index, mask, weights=weight,
+                                         information=info)
+    return _energy(residual, info[index]), 3.0 * keep.sum(1) - 6.0
+
+
+def resolved_rms_mm(template: np.ndarray, positions: np.ndarray, covariance: np.ndarray,
+                    nb: Neighbourhoods, rows: np.ndarray, deform_mm: float) -> np.ndarray:
+    """The rigid-fit RMS (M,) mm of each neighbourhood (the point `rows` (M,) and its
+    neighbours, frame-0 template (N, 3) m to positions (N, 3) m), each direction counted by
+    how well it is measured: with W_j = (Σ_j + d²/3 I)⁻¹ (Σ_j (N, 3, 3) m² the member's noise
+    covariance, d = `deform_mm` spread over three axes: a direction of noise σ counts by
+    (d²/3) / (σ² + d²/3), alike where it is measured better than d/√3), RMS² = 3 Σ_j r_jᵀ
+    W_j r_j / Σ_j tr W_j over the members' residuals r_j of the fit weighted by W_j.
+    Without noise, or with the same isotropic noise for every member, it is the plain
+    rigid-fit RMS; on a narrow stereo baseline a residual along a line of sight known to
+    ±0.8 mm counts ~1/30 of one across it (±0.06 mm), and pure noise along it, however
+    large, adds at most d²/2 to RMS². Not debiased: the registered field is smoother than
+    its measurements (on the simulator, debiasing by their covariance cut deforming recall
+    from 0.89 to 0.62). Members without a finite covariance are left out; fewer than 3
+    left: NaN."""
+    if len(rows) == 0:
+        return np.zeros(0)
+    index, mask = nb.members(rows)
+    info = _precisions(covariance, (deform_mm * 1e-3) ** 2 / 3.0)
+    total = np.trace(info, axis1=1, axis2=2)
+    residual, keep = rigid_fit_residuals(template, positions, index, mask, weights=total / 3.0,
+                                         information=info)
+    energy = _energy(residual, info[index])
+    norm = (total[index] * keep).sum(1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out = np.sqrt(3.0 * energy / norm) * 1e3
+    return np.where(keep.sum(1) >= 3, out, np.nan)
+
+
+def _energy(residual: np.ndarray, info: np.ndarray) -> np.ndarray:
+    """Σ_k r_kᵀ I_k r_k (M,) of residuals (M, K, 3) and information matrices (M, K, 3, 3)."""
+    return (np.matmul(info, residual[..., None])[..., 0] * residual).sum((1, 2))
+
+
+def _precisions(covariance: np.ndarray, variance_m2: float) -> np.ndarray:
+    """(Σ + (variance_m2 + SIGMA_FLOOR_M²) I)⁻¹ (N, 3, 3) of covariances Σ (N, 3, 3) m²;
+    zero (the member carries no weight) where Σ is not finite."""
+    cov = np.asarray(covariance, float)
+    usable = np.isfinite(cov).all((1, 2))
+    info = np.zeros_like(cov)
+    info[usable] = np.linalg.inv(cov[usable] + np.eye(3) * (variance_m2 + SIGMA_FLOOR_M**2))
+    return info
+
+
+def noise_scale(stat: np.ndarray, dof: np.ndarray) -> float:
+    """The factor (>= 1) by which a frame's noise model understates the departures of its
+    neighbourhoods from one rigid motion: the lower quartile over neighbourhoods (dof > 0)
+    of S / the chi-square lower quartile of its dof (module docstring, step 3). 1 without
+    any."""
+    ratio = departure_ratio(stat, dof)
+    return 1.0 if ratio is None else max(1.0, ratio)
+
+
+def field_noise_scale(template: np.ndarray, registered: np.ndarray, covariance: np.ndarray,
+                      nb: Neighbourhoods, judged: np.ndarray) -> float:
+    """The factor (FIELD_SCALE_FLOOR..1) by which the registered field (N, 3) m departs from
+    one rigid motion less than its covariances (N, 3, 3) m² predict: the lower-quartile
+    ratio of `noise_scale` over the registered positions' `departure_statistic`, on up to
+    FIELD_SAMPLE of the labelled neighbourhoods `judged` (M,), capped at 1. The registered
+    field is the regularised solution: where it scatters less than its measurements'
+    covariance says, that covariance overstates its noise (on the 6-camera simulator
+    3-18 % of it, in variance), and `resolved_rms_mm` weighted by it would discount real
+    dents along the directions it calls poorly measured. Where it scatters more (narrow
+    stereo baselines, real breathing), the excess is not the depth noise the weights model,
+    and the covariance stays (module docstring, step 3). 1 without any neighbourhood."""
+    if len(judged) > FIELD_SAMPLE:
+        judged = judged[np.linspace(0, len(judged) - 1, FIELD_SAMPLE).round().astype(int)]
+    ratio = departure_ratio(*departure_statistic(template, registered, covariance, nb,
+                                                  judged))
+    return 1.0 if ratio is None else min(1.0, max(FIELD_SCALE_FLOOR, ratio))
+
+
+def departure_ratio(stat: np.ndarray, dof: np.ndarray) -> float | None:
+    """The lower quartile over neighbourhoods (dof > 0) of S (M,) / the chi-square lower
+    quartile of its dof (M,); None without any."""
+    ok = (dof > 0) & np.isfinite(stat)
+    if not ok.any():
+        return None
+    return float(np.quantile(stat[ok] / chi2.ppf(SCALE_QUANTILE, dof[ok]), SCALE_QUANTILE))
