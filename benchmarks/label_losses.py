@@ -86,7 +86,8 @@ def measured_scale(template: np.ndarray, registered: np.ndarray, evidence: rules
     cfg = config.classify
     judged = np.flatnonzero(rules.labelled_motion(registered - template, evidence, cfg)[0])
     ratio = departure.departure_ratio(*departure.departure_statistic(
-        template, evidence.measured, evidence.departure_cov, nb, judged))
+        template, evidence.measured, evidence.departure_cov, nb, judged),
+        departure.SCALE_QUANTILE)
     return 1.0 if ratio is None else ratio
 
 

@@ -47,7 +47,7 @@ core/registration/frame_step.py: σ is the RMS of a 3D position error, metres) a
    sight, stereo simulator deforming recall 0.64 -> 0.55; scaled down where the registered
    field itself scatters less than Σ_j predicts, `field_noise_scale`: on the 6-camera
    simulator the unscaled weights discounted dents along the lines of sight, deforming
-   recall 0.81 -> 0.85 on its tuning seeds with the scale).
+   recall 0.81 -> 0.83 on its tuning seeds with the scale).
    Both, or it is shifting. A point the tool touches (`Evidence.touched`: within the
    capsule's radius + margin of a tool whose pose the robot's kinematics give) needs no
    image evidence for the first question: the tool pressing it is the departure, measured
