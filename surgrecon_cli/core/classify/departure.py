@@ -31,7 +31,7 @@ FIELD_SCALE_FLOOR = 1e-3
 # Ours: the field's scale is read at the median, not at the noise scale's lower quartile: a
 # scale below 1 must err towards keeping the weights, and the lower quartile read the still
 # regions of the shipped sample, whose dents' surroundings scatter more (its deforming
-# precision 0.95 -> 0.88; at the median 0.94, recall 0.80 -> 0.81).
+# precision 0.95 -> 0.88; at the median 0.94, recall 0.80 -> 0.82).
 FIELD_QUANTILE = 0.5
 
 
