@@ -47,12 +47,8 @@ def departure_statistic(template: np.ndarray, positions: np.ndarray, covariance:
     Neighbourhoods with fewer than 3 usable members get dof <= 0."""
     if len(rows) == 0:
         return np.zeros(0), np.zeros(0)
-    index, mask = nb.members(rows)
-    info = _precisions(covariance, 0.0)
-    weight = np.trace(info, axis1=1, axis2=2) / 3.0
-    residual, keep = rigid_fit_residuals(template, positions, index, mask, weights=weight,
-                                         information=info)
-    return _energy(residual, info[index]), 3.0 * keep.sum(1) - 6.0
+    energy, keep, _ = _weighted_fit_energy(template, positions, covariance, nb, rows, 0.0)
+    return energy, 3.0 * keep.sum(1) - 6.0
 
 
 def resolved_rms_mm(template: np.ndarray, positions: np.ndarray, covariance: np.ndarray,
@@ -72,21 +68,29 @@ def resolved_rms_mm(template: np.ndarray, positions: np.ndarray, covariance: np.
     left: NaN."""
     if len(rows) == 0:
         return np.zeros(0)
-    index, mask = nb.members(rows)
-    info = _precisions(covariance, (deform_mm * 1e-3) ** 2 / 3.0)
-    total = np.trace(info, axis1=1, axis2=2)
-    residual, keep = rigid_fit_residuals(template, positions, index, mask, weights=total / 3.0,
-                                         information=info)
-    energy = _energy(residual, info[index])
-    norm = (total[index] * keep).sum(1)
+    energy, keep, total = _weighted_fit_energy(template, positions, covariance, nb, rows,
+                                               (deform_mm * 1e-3) ** 2 / 3.0)
+    norm = (total * keep).sum(1)
     with np.errstate(invalid="ignore", divide="ignore"):
         out = np.sqrt(3.0 * energy / norm) * 1e3
     return np.where(keep.sum(1) >= 3, out, np.nan)
 
 
-def _energy(residual: np.ndarray, info: np.ndarray) -> np.ndarray:
-    """Σ_k r_kᵀ I_k r_k (M,) of residuals (M, K, 3) and information matrices (M, K, 3, 3)."""
-    return (np.matmul(info, residual[..., None])[..., 0] * residual).sum((1, 2))
+def _weighted_fit_energy(template: np.ndarray, positions: np.ndarray, covariance: np.ndarray,
+                         nb: Neighbourhoods, rows: np.ndarray, variance_m2: float
+                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each neighbourhood's (the point `rows` (M,) and its neighbours) rigid fit from the
+    frame-0 template (N, 3) m to positions (N, 3) m, weighted by every member's information
+    I_j = (Σ_j + variance_m2 I)⁻¹ (`_precisions`, Σ_j covariance (N, 3, 3) m²): the energy
+    Σ_j r_jᵀ I_j r_j (M,) of its residuals, the members used (M, K) bool and tr I_j (M, K)."""
+    index, mask = nb.members(rows)
+    info = _precisions(covariance, variance_m2)
+    total = np.trace(info, axis1=1, axis2=2)
+    residual, keep = rigid_fit_residuals(template, positions, index, mask, weights=total / 3.0,
+                                         information=info)
+    member_info = info[index]
+    energy = (np.matmul(member_info, residual[..., None])[..., 0] * residual).sum((1, 2))
+    return energy, keep, total[index]
 
 
 def _precisions(covariance: np.ndarray, variance_m2: float) -> np.ndarray:
