@@ -28,7 +28,12 @@ followed through the frames):
   own covariances (the independent part per point, the shared pose part once per frame),
   seed 0: what the tests make of data as noisy as the run says its data are; `... x
   measured scale` the same with the independent part scaled by what the frame's
-  neighbourhoods show (departure.noise_scale's lower-quartile ratio, not floored at 1).
+  neighbourhoods show (departure.noise_scale's lower-quartile ratio, not floored at 1);
+- the labels' sensitivity: the truly deforming point-frames whose true rigid-fit RMS is
+  below / at least the run's deformation floor (labels.npz floor_mm: the smallest departure
+  along the lines of sight labelled deforming), and the share of each labelled deforming;
+  neighbourhoods with a member over the truth's holes or beyond its border
+  (scoring.on_mesh_rim: the truth is wrong there) are left out.
 """
 
 from __future__ import annotations
@@ -44,7 +49,7 @@ from surgrecon_cli.config.load import load_config
 from surgrecon_cli.core.classify import departure, rules
 from surgrecon_cli.core.classify.labels import UNKNOWN
 from surgrecon_cli.core.evaluate.evaluation import true_point_labels
-from surgrecon_cli.core.evaluate.scoring import label_scores, map_to_surface
+from surgrecon_cli.core.evaluate.scoring import label_scores, map_to_surface, on_mesh_rim
 from surgrecon_cli.io.logs.ground_truth import load_ground_truth
 from surgrecon_cli.io.run.artefacts import read_labels, read_registration
 from surgrecon_cli.io.run.ingest_store import load_ingested
@@ -116,11 +121,14 @@ def analyse(run_dir: Path, gt_path: Path) -> None:
     truth = true_point_labels(mapping, gt.faces, gt.labels)
     start = mapping.follow(gt.vertices[0], gt.faces)
     log = load_ingested(layout.ingest_dir)
-    stored = read_labels(layout, truth.shape).labels
+    stored_labels = read_labels(layout, truth.shape)
+    stored = stored_labels.labels
+    members, member_mask = nb.members(np.arange(len(template)))
+    on_rim = (on_mesh_rim(mapping, gt.faces)[members] & member_mask).any(1)
     rng = np.random.default_rng(0)
     rows: dict[str, list[np.ndarray]] = {k: [] for k in (
         "truth", "label", "step", "true_disp", "error", "disp", "rule", "clean", "noisy",
-        "scaled")}
+        "scaled", "true_rms", "floor", "rim")}
     scales = []
     agree = 0
     for k in range(1, log.n_frames):
@@ -140,6 +148,9 @@ def analyse(run_dir: Path, gt_path: Path) -> None:
         rows["error"].append(np.linalg.norm(evidence.measured - true_now, axis=1) * 1e3)
         rows["disp"].append(np.linalg.norm(registered - template, axis=1) * 1e3)
         rms = rules.rigid_rms_mm(start, true_now, nb)
+        rows["true_rms"].append(rms)
+        rows["floor"].append(stored_labels.floor_mm[k])
+        rows["rim"].append(on_rim)
         rows["rule"].append(np.where(np.linalg.norm(moved, axis=1) * 1e3 < cfg.static_mm, 0,
                                      np.where(rms > cfg.deform_mm, 2, 1)))
         scales.append(measured_scale(template, registered, evidence, nb, config))
@@ -176,6 +187,15 @@ def analyse(run_dir: Path, gt_path: Path) -> None:
         de = s["per_class"]["deforming"]
         print(f"  bound, {name:28s} macro-F1 {s['macro_f1']:.3f}  P/R de "
               f"{de['precision']:.3f} / {de['recall']:.3f}")
+    deforming = (t == CLASSES.index("deforming")) & ~data["rim"] & np.isfinite(data["floor"])
+    for name, side in (("below", data["true_rms"] < data["floor"]),
+                       ("at or above", data["true_rms"] >= data["floor"])):
+        m = deforming & side
+        found = float(np.mean(data["label"][m] == CLASSES.index("deforming"))) if m.any() \
+            else float("nan")
+        print(f"  truly deforming, true RMS {name:11s} the floor (median "
+              f"{np.nanmedian(data['floor'][deforming]) if deforming.any() else np.nan:.2f} mm): "
+              f"{m.sum():6d}, labelled deforming {found:.2f}")
     unknown_share = float((data["label"] == UNKNOWN).mean())
     print(f"  unknown {unknown_share:.1%}; departures / covariances (unfloored noise scale) "
           f"median over frames {np.median(scales):.2f}")

@@ -79,7 +79,8 @@ def known_run(copy_run: Path, pipeline_log: Path):
     static2 = np.flatnonzero(truth[2] == STATIC)[:10]
     labels[2, static2] = DEFORMING
     write_labels(layout, FrameLabels(labels, labels, np.zeros(labels.shape),
-                                     np.zeros(labels.shape), np.zeros(labels.shape, np.uint8)))
+                                     np.zeros(labels.shape), np.zeros(labels.shape),
+                                     np.zeros(labels.shape, np.uint8)))
     return copy_run, gt, truth, labels
 
 

@@ -9,6 +9,7 @@ from html.parser import HTMLParser
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from surgrecon_cli.config import Config
 from surgrecon_cli.io.run.folder import RunFolder
@@ -92,6 +93,8 @@ def test_full_report(pipeline_run):
                     "error_median_mm", "macro_f1"):
             assert np.isfinite(float(row[col])), col
         assert float(row["residual_median_mm"]) <= float(row["residual_p95_mm"])
+        # a departure counts from deform_mm at best (every direction measured well)
+        assert float(row["deform_floor_median_mm"]) >= 0.25 * (1 - 1e-6)
 
     summary = json.loads((run_dir / "metrics" / "summary.json").read_text(),
                          parse_constant=lambda c: (_ for _ in ()).throw(AssertionError(c)))
@@ -100,6 +103,9 @@ def test_full_report(pipeline_run):
     assert summary["camera_pairs"]["groups"] and summary["camera_pairs"]["sequence"]
     assert summary["evaluation"]["registration_error_mm"]["count"] == n * (n_frames - 1)
     assert {"ingest", "build-template", "register", "classify"} <= set(summary["seconds"])
+    floors = [float(r["deform_floor_median_mm"]) for r in rows[1:]]
+    assert summary["classify"]["deform_floor_mm"] == pytest.approx(float(np.median(floors)),
+                                                                   rel=1e-6)
 
 
 def test_report_with_only_the_template(copy_run):

@@ -44,6 +44,7 @@ FIGURES: tuple[tuple[str, str, str], ...] = (
     ("shifting fraction", "summary", "classes_frames_1_on.fractions.shifting"),
     ("deforming fraction", "summary", "classes_frames_1_on.fractions.deforming"),
     ("unknown fraction", "summary", "classes_frames_1_on.fractions.unknown"),
+    ("deformation floor (mm)", "summary", "classify.deform_floor_mm"),
     ("residual median (mm)", "summary", "residual_mm.median"),
     ("residual p95 (mm)", "summary", "residual_mm.p95"),
     ("displacement p95 (mm)", "summary", "displacement_mm.p95"),

@@ -51,7 +51,10 @@ class FrameFigures:
     (frame 0: NaN); quality of frames 1..; sampled (K,) frames with their per-point
     residual_sampled and displacement_sampled (mm, K arrays); residual_max_mm and
     displacement_max_mm over every frame 1..; class_counts (T, 4) points per class
-    (CLASS_CODES order) or None before classify."""
+    (CLASS_CODES order) or None before classify; deform_floor_mm (T,) the median over the
+    labelled points of the smallest departure along the lines of sight labelled deforming
+    (labels.npz floor_mm; NaN for frame 0 or without labelled points), None before
+    classify."""
 
     status_counts: np.ndarray
     residual_mm: np.ndarray
@@ -68,6 +71,7 @@ class FrameFigures:
     residual_max_mm: float
     displacement_max_mm: float
     class_counts: np.ndarray | None
+    deform_floor_mm: np.ndarray | None
 
 
 @dataclass
@@ -88,16 +92,21 @@ class FrameAccumulator:
         self.failed, self.converged = np.zeros(t, bool), np.ones(t, bool)
         self.tracking_px, self.seconds = np.full(t, np.nan), np.full((t, 2), np.nan)
         self.class_counts = np.zeros((t, len(CLASS_CODES)), np.int64)
+        self.deform_floor_mm = np.full(t, np.nan)
         self._sampled = set(sampled_frames(t).tolist())
         self._lists = {"errors": [""] * t, "quality": [], "residual": [], "displacement": []}
         self.maxima = [np.nan, np.nan]
 
-    def add(self, k: int, reg: FrameRegistration | None, labels: np.ndarray | None) -> None:
-        """Frame k: its registration (None for frame 0) and labels (N,) (None before
-        classify)."""
+    def add(self, k: int, reg: FrameRegistration | None, labels: np.ndarray | None,
+            floor_mm: np.ndarray | None = None) -> None:
+        """Frame k: its registration (None for frame 0), labels (N,) and deformation floor
+        (N,) mm (None before classify)."""
         if labels is not None:
             found = np.bincount(labels, minlength=256)
             self.class_counts[k] = [found[c] for c in CLASS_CODES.values()]
+        if k > 0 and floor_mm is not None:
+            floor = floor_mm[np.isfinite(floor_mm)]
+            self.deform_floor_mm[k] = float(np.median(floor)) if floor.size else np.nan
         if reg is None:
             self.displacement[k] = 0.0
             return
@@ -129,4 +138,5 @@ class FrameAccumulator:
             self.converged, tuple(lists["errors"]), self.tracking_px, self.seconds,
             lists["quality"], np.array(sorted(self._sampled), int), lists["residual"],
             lists["displacement"], float(self.maxima[0]), float(self.maxima[1]),
-            self.class_counts if self.classified else None)
+            self.class_counts if self.classified else None,
+            self.deform_floor_mm if self.classified else None)

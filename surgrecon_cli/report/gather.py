@@ -104,10 +104,14 @@ def _read_frames(layout: RunLayout, template: np.ndarray, n_frames: int,
     n = len(template)
     acc = FrameAccumulator(template, n_frames, classified)
     with contextlib.ExitStack() as stack:
-        labels = stack.enter_context(npz_rows(layout.labels, "labels")) if classified else None
+        labels = floor = None
+        if classified:
+            labels = stack.enter_context(npz_rows(layout.labels, "labels"))
+            floor = stack.enter_context(npz_rows(layout.labels, "floor_mm"))
         for k in range(n_frames):
             acc.add(k, read_registration(layout, k, n) if k else None,
-                    None if labels is None else labels.read(k))
+                    None if labels is None else labels.read(k),
+                    None if floor is None else floor.read(k))
     return acc.result()
 
 

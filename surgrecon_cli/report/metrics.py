@@ -17,7 +17,7 @@ from ..core.classify.labels import STATUS_NAMES
 from ..core.classify.quality import GOOD_2SIGMA, Verdict, pooled_within_2sigma, verdict
 from ..io.run.metrics import finite_json
 from .caveats import run_caveats
-from .frames import CLASS_CODES, STATUS_CODES, stats
+from .frames import CLASS_CODES, STATUS_CODES, FrameFigures, stats
 from .gather import RunData
 
 CLASS_COLUMNS = tuple(CLASS_CODES)
@@ -26,7 +26,7 @@ FRAME_COLUMNS = (
     "frame", "time_s", "points", *CLASS_COLUMNS, *STATUS_COLUMNS,
     "residual_median_mm", "residual_p95_mm",
     "displacement_median_mm", "displacement_p95_mm", "displacement_max_mm",
-    "seconds_target", "seconds_register",
+    "deform_floor_median_mm", "seconds_target", "seconds_register",
     "observed_fraction", "unobserved_fraction", "outlier_fraction", "unknown_fraction",
     "sigma_median_mm", "residual_over_sigma", "residual_within_2sigma", "failed",
     "converged", "trustworthy",
@@ -147,6 +147,8 @@ def frame_rows(data: RunData) -> list[dict[str, Any]]:
         if frames is not None:
             (row["displacement_median_mm"], row["displacement_p95_mm"],
              row["displacement_max_mm"]) = (float(x) for x in frames.displacement_mm[k])
+            if frames.deform_floor_mm is not None and k > 0:
+                row["deform_floor_median_mm"] = float(frames.deform_floor_mm[k])
         if k in reg_eval:
             e = reg_eval[k]
             row["error_median_mm"], row["error_p95_mm"], row["error_max_mm"] = (
@@ -155,6 +157,28 @@ def frame_rows(data: RunData) -> list[dict[str, Any]]:
             row["macro_f1"] = label_eval[k].get("macro_f1")
         rows.append(row)
     return rows
+
+
+def deform_floor_mm(frames: FrameFigures | None) -> float | None:
+    """The median over frames 1.. of each frame's median deformation floor (mm: the
+    smallest departure along the lines of sight labelled deforming); None before classify
+    or without labelled points."""
+    floors = None if frames is None or frames.deform_floor_mm is None else (
+        frames.deform_floor_mm[1:])
+    if floors is None or not np.isfinite(floors).any():
+        return None
+    return float(np.nanmedian(floors))
+
+
+def floor_words(floor_mm: float | None, deform_mm: float) -> str:
+    """What the run's deformation floor (mm, `deform_floor_mm`) means for its labels; "" when
+    it is deform_mm itself (within 5 %) or unknown."""
+    if floor_mm is None or floor_mm <= deform_mm * 1.05:
+        return ""
+    return (f"Along the direction each point is measured worst (on a stereo rig, its line "
+            f"of sight), a departure counts from {floor_mm:.2f} mm (median over frames and "
+            "labelled points, metrics/frames.csv deform_floor_median_mm): shallower bends "
+            "along it are labelled shifting.")
 
 
 def _per_frame(evaluation: dict[str, Any] | None, part: str) -> dict[int, dict[str, Any]]:
@@ -241,5 +265,6 @@ def run_summary(data: RunData, noise: dict[str, Any] | None, rows: list[dict[str
                            "significance": config.classify.significance,
                            "max_sigma_mm": config.classify.max_sigma_mm,
                            "deform_mm": config.classify.deform_mm,
+                           "deform_floor_mm": deform_floor_mm(frames),
                            "measure": config.classify.measure}
     return finite_json(summary)

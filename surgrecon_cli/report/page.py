@@ -32,7 +32,7 @@ from . import html as rh
 from .figures import cloud_key
 from .frames import FrameFigures
 from .gather import CloudView, RunData
-from .metrics import TIMED_STAGES, Metrics, calibration_tile, stage_seconds
+from .metrics import TIMED_STAGES, Metrics, calibration_tile, floor_words, stage_seconds
 
 Figures = Mapping[str, bytes]
 
@@ -44,7 +44,7 @@ def compose(layout: RunLayout, data: RunData, metrics: Metrics, views: list[Clou
     sections = [_overview(data, metrics), _cameras(data, pngs)]
     if data.frames is not None and metrics.noise is not None and log.n_frames > 1:
         sections.append(_quality(data, data.frames, metrics, pngs))
-    sections += [_labels(config, pngs), _clouds(views, pngs), _registration(pngs),
+    sections += [_labels(config, metrics, pngs), _clouds(views, pngs), _registration(pngs),
                  contact_section(data, config, pngs), _timing(data.run, pngs)]
     if data.evaluation:
         sections.append(_evaluation(data.evaluation, pngs))
@@ -237,14 +237,16 @@ def _quality(data: RunData, frames: FrameFigures, metrics: Metrics,
     return sec
 
 
-def _labels(config: Config, pngs: Figures) -> rh.Section:
+def _labels(config: Config, metrics: Metrics, pngs: Figures) -> rh.Section:
     """Points per class and per reprojection status over time."""
     c = config.classify
+    sensitivity = floor_words(metrics.summary.get("classify", {}).get("deform_floor_mm"),
+                              c.deform_mm)
     return rh.Section("labels", "Labels over time").add(
         *_place(pngs, "class-counts",
                 f"Static: registered displacement below {c.static_mm:g} mm; deforming: "
                 f"neighbourhood ({c.neighbourhood_mm:g} mm) {c.measure} at or above "
-                f"{c.deform_mm:g} mm; shifting otherwise."),
+                f"{c.deform_mm:g} mm; shifting otherwise. {sensitivity}"),
         *_place(pngs, "status-counts",
                 "Intra-camera inliers (frame-0 position still reprojects: static evidence), "
                 "inter-camera inliers (re-triangulated: dynamic), outliers, and points not "

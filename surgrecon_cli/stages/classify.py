@@ -4,13 +4,12 @@ Reads the template and every registered frame (io/run/artefacts.py); intra-camer
 classified from their own re-triangulated pixels (`static_verdicts_checked`); the points the
 logged tools touch are found (`frame_inputs`: the deforming test takes the touch as evidence);
 a frame's points whose evidence does not support a label (core/quality.unsupported_points) are
-unknown. Writes
-RUN/classify/labels.npz (`io/artefacts.FrameLabels`: labels after hysteresis, raw labels, the
-displacement and deformation measures, reprojection status) and every frame's labelled
-cloud RUN/clouds/FFFFFF.ply, written once, here: positions, template colours, point_id,
-label, residual (m, NaN without a target), sigma (m) and the reprojection status and
-views of its target (frame 0, the reference, all static: the template's n_views,
-reprojection_px and sigma).
+unknown. Writes RUN/classify/labels.npz (`io/artefacts.FrameLabels`: labels after hysteresis,
+raw labels, the displacement, deformation and deformation-floor measures, reprojection
+status) and every frame's labelled cloud RUN/clouds/FFFFFF.ply, written once, here:
+positions, template colours, point_id, label, residual (m, NaN without a target), sigma (m)
+and the reprojection status and views of its target (frame 0, the reference, all static:
+the template's n_views, reprojection_px and sigma).
 """
 
 from __future__ import annotations
@@ -41,6 +40,7 @@ from ..core.geometry.cameras import CameraModel
 from ..core.geometry.tool import points_near_tool
 from ..core.noise.frame_noise import retriangulate
 from ..core.noise.model import NoiseModel, covariance_sigma, noise_from_report
+from ..errors import RunFolderError
 from ..executors import Executor, Task
 from ..executors.serial import SerialExecutor
 from ..io.run.artefacts import (
@@ -62,7 +62,7 @@ logger = logging.getLogger(__name__)
 STAGE = "classify"
 # The arrays of labels.npz (T, N), as io/artefacts.write_labels stores them.
 _LABEL_DTYPES = {"labels": np.uint8, "raw_labels": np.uint8, "displacement_mm": np.float32,
-                 "deformation_mm": np.float32, "status": np.uint8}
+                 "deformation_mm": np.float32, "floor_mm": np.float32, "status": np.uint8}
 # Labelled clouds written per executor call (their label rows are in memory meanwhile).
 _CLOUD_BLOCK = 64
 
@@ -127,7 +127,9 @@ def classify_one_frame(run_dir: Path, frame: int, config: Config) -> int:
     quality = frame_quality(frame, FrameFit(
         reg.status, reg.sigma.astype(float), reg.residual.astype(float),
         reg.target_sigma.astype(float), bool(reg.failed), bool(reg.converged), reg.error))
-    classes.labels[unsupported_points(quality, reg.status, classes.labels)] = UNKNOWN
+    unsupported = unsupported_points(quality, reg.status, classes.labels)
+    classes.labels[unsupported] = UNKNOWN
+    classes.floor_mm[unsupported] = np.nan
     write_npz(layout.classified(frame), **_rows(classes, reg.status))
     return frame
 
@@ -138,6 +140,7 @@ def _rows(classes: FrameClasses, status: np.ndarray) -> dict[str, np.ndarray]:
     return {"raw_labels": classes.labels.astype(np.uint8),
             "displacement_mm": classes.displacement_mm.astype(np.float32),
             "deformation_mm": classes.deformation_mm.astype(np.float32),
+            "floor_mm": classes.floor_mm.astype(np.float32),
             "status": status.astype(np.uint8)}
 
 
@@ -287,7 +290,7 @@ def write_labels_streaming(layout: RunLayout, n_frames: int, n: int,
         for k in range(n_frames - 1, 0, -1):
             rows["persists"].write(k, ahead.step(_classified(layout, k)["raw_labels"]))
         first = FrameClasses(labels=np.full(n, STATIC, np.uint8), displacement_mm=np.zeros(n),
-                             deformation_mm=np.full(n, np.nan))
+                             deformation_mm=np.full(n, np.nan), floor_mm=np.full(n, np.nan))
         current = first.labels.copy()
         counts = dict.fromkeys([*CLASS_NAMES.values(), "unknown"], 0)
         changed = 0
@@ -313,7 +316,12 @@ def write_labels_streaming(layout: RunLayout, n_frames: int, n: int,
 
 def _classified(layout: RunLayout, frame: int) -> dict[str, np.ndarray]:
     """The rows `classify_one_frame` wrote for a frame."""
-    with np.load(layout.classified(frame), allow_pickle=False) as z:
+    path = layout.classified(frame)
+    with np.load(path, allow_pickle=False) as z:
+        missing = [name for name in _LABEL_DTYPES if name != "labels" and name not in z.files]
+        if missing:
+            raise RunFolderError(f"{path}: no {', '.join(missing)} (an older surgrecon wrote "
+                                 f"it); re-run `surgrecon classify {layout.root}`")
         return {name: z[name] for name in _LABEL_DTYPES if name != "labels"}
 
 

@@ -1,7 +1,9 @@
 """How far each neighbourhood departs from one rigid motion, measured against the run's noise
 (step 3 of core/classify/rules.py): the chi-square departure statistic of its measured
-positions, the frame's noise scales, and the rigid-fit RMS of its registered positions with
-each direction counted by how well it is measured. Pure numpy; no I/O."""
+positions, the frame's noise scales, the rigid-fit RMS of its registered positions with
+each direction counted by how well it is measured, and the smallest departure along the
+least-known directions that this RMS counts as deformation (the labels' floor). Pure numpy;
+no I/O."""
 
 from __future__ import annotations
 
@@ -74,6 +76,29 @@ def resolved_rms_mm(template: np.ndarray, positions: np.ndarray, covariance: np.
     with np.errstate(invalid="ignore", divide="ignore"):
         out = np.sqrt(3.0 * energy / norm) * 1e3
     return np.where(keep.sum(1) >= 3, out, np.nan)
+
+
+def deform_floor_mm(covariance: np.ndarray, nb: Neighbourhoods, rows: np.ndarray,
+                    deform_mm: float) -> np.ndarray:
+    """The smallest departure (M,) mm that `resolved_rms_mm` counts as `deform_mm` when it
+    lies along every member's least-known direction (on a stereo rig, its line of sight):
+    a residual r_j = D u_j reads RMS² = 3 D² Σ_j λ_min(W_j) / Σ_j tr W_j, so D =
+    deform_mm √(Σ_j tr W_j / (3 Σ_j λ_min(W_j))), W_j = (Σ_j + deform_mm²/3 I)⁻¹ over the
+    members of each neighbourhood (the point `rows` (M,) and its neighbours) with a finite
+    covariance (N, 3, 3) m². `deform_mm` itself where every direction is measured better
+    than deform_mm/√3; NaN with fewer than 3 such members. What a user reads as the labels'
+    sensitivity: a bend along the lines of sight below it is called shifting."""
+    if len(rows) == 0:
+        return np.zeros(0)
+    index, mask = nb.members(rows)
+    info = _precisions(covariance, (deform_mm * 1e-3) ** 2 / 3.0)
+    least = np.linalg.eigvalsh(info)[:, 0]
+    total = np.trace(info, axis1=1, axis2=2)
+    keep = mask & (total[index] > 0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        floor = deform_mm * np.sqrt((total[index] * keep).sum(1)
+                                    / (3.0 * (least[index] * keep).sum(1)))
+    return np.where(keep.sum(1) >= 3, floor, np.nan)
 
 
 def _weighted_fit_energy(template: np.ndarray, positions: np.ndarray, covariance: np.ndarray,

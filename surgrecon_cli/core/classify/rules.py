@@ -47,7 +47,9 @@ core/registration/frame_step.py: σ is the RMS of a 3D position error, metres) a
    sight, stereo simulator deforming recall 0.64 -> 0.55; scaled down where the registered
    field itself scatters less than Σ_j predicts, `field_noise_scale`: on the 6-camera
    simulator the unscaled weights discounted dents along the lines of sight, deforming
-   recall 0.81 -> 0.83 on its tuning seeds with the scale).
+   recall 0.81 -> 0.83 on its tuning seeds with the scale; what that leaves visible is
+   reported per point, `FrameClasses.floor_mm`: the smallest departure along the
+   members' least-known directions that reaches `deform_mm`, `deform_floor_mm`).
    Both, or it is shifting. A point the tool touches (`Evidence.touched`: within the
    capsule's radius + margin of a tool whose pose the robot's kinematics give) needs no
    image evidence for the first question: the tool pressing it is the departure, measured
@@ -92,6 +94,7 @@ from ...config import ClassifyConfig
 from ...errors import GeometryError
 from .departure import (
     SIGMA_FLOOR_M,
+    deform_floor_mm,
     departure_statistic,
     field_noise_scale,
     noise_scale,
@@ -180,12 +183,16 @@ class RegisteredFrame:
 
 @dataclass(frozen=True)
 class FrameClasses:
-    """One frame: labels (N,) uint8, displacement_mm (N,) ‖T_i p̃_i − p_i‖ and
-    deformation_mm (N,) the shifting/deforming measure (NaN where not computed)."""
+    """One frame: labels (N,) uint8, displacement_mm (N,) ‖T_i p̃_i − p_i‖,
+    deformation_mm (N,) the shifting/deforming measure (NaN where not computed) and
+    floor_mm (N,) the smallest departure along the lines of sight that would count as
+    deforming (`departure.deform_floor_mm`; deform_mm without noise, NaN where the point
+    is not labelled or the measure is "transform_diff")."""
 
     labels: np.ndarray
     displacement_mm: np.ndarray
     deformation_mm: np.ndarray
+    floor_mm: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -346,6 +353,7 @@ def classify_frame(template: np.ndarray, frame: RegisteredFrame, nb: Neighbourho
     labels = np.full(n, UNKNOWN, np.uint8)
     labels[known] = STATIC
     deformation = np.full(n, np.nan)
+    floor = np.full(n, np.nan)
     rows = np.flatnonzero(dynamic)
     if transforms is not None and cfg.measure == "transform_diff":
         measure = transform_difference_mm(template, np.asarray(transforms, float), nb,
@@ -364,16 +372,19 @@ def classify_frame(template: np.ndarray, frame: RegisteredFrame, nb: Neighbourho
             significant |= np.asarray(evidence.touched, bool)[rows]
         field_scale = field_noise_scale(template, registered, evidence.departure_cov, nb,
                                         judged)
-        measure = resolved_rms_mm(template, registered, field_scale * np.asarray(
-            evidence.departure_cov, float), nb, rows, cfg.deform_mm)
+        weights_cov = field_scale * np.asarray(evidence.departure_cov, float)
+        measure = resolved_rms_mm(template, registered, weights_cov, nb, rows, cfg.deform_mm)
         deforming = significant & (measure >= cfg.deform_mm)
+        floor[judged] = deform_floor_mm(weights_cov, nb, judged, cfg.deform_mm)
     else:
         measure = rigid_rms_mm(template, registered, nb, rows)
         deforming = measure >= cfg.deform_mm
+        floor[known] = cfg.deform_mm
     deformation[rows] = measure
     # A neighbourhood too small to measure (NaN) cannot show deformation: shifting.
     labels[rows] = np.where(deforming, DEFORMING, SHIFTING)
-    return FrameClasses(labels=labels, displacement_mm=disp, deformation_mm=deformation)
+    return FrameClasses(labels=labels, displacement_mm=disp, deformation_mm=deformation,
+                        floor_mm=floor)
 
 
 def classify_sequence(template: np.ndarray, registered: np.ndarray, cfg: ClassifyConfig,

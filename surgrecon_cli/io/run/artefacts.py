@@ -244,13 +244,15 @@ def read_registration(layout: RunLayout, frame: int, n_points: int) -> FrameRegi
 @dataclass(frozen=True)
 class FrameLabels:
     """Labels of every frame (T, N): labels after hysteresis, raw_labels before it,
-    displacement_mm and deformation_mm (the measures behind them), status (reprojection
-    check; frame 0: intra)."""
+    displacement_mm and deformation_mm (the measures behind them), floor_mm (the smallest
+    departure along the lines of sight labelled deforming), status (reprojection check;
+    frame 0: intra)."""
 
     labels: np.ndarray
     raw_labels: np.ndarray
     displacement_mm: np.ndarray
     deformation_mm: np.ndarray
+    floor_mm: np.ndarray
     status: np.ndarray
 
 
@@ -259,6 +261,7 @@ def write_labels(layout: RunLayout, labels: FrameLabels) -> None:
               raw_labels=labels.raw_labels.astype(np.uint8),
               displacement_mm=labels.displacement_mm.astype(np.float32),
               deformation_mm=labels.deformation_mm.astype(np.float32),
+              floor_mm=labels.floor_mm.astype(np.float32),
               status=labels.status.astype(np.uint8))
 
 
@@ -267,9 +270,11 @@ def read_labels(layout: RunLayout, shape: tuple[int, int]) -> FrameLabels:
     path = layout.labels
     z = _load_npz(path, "classify", "labels")
     _check_shapes(path, z, {k: shape for k in ("labels", "raw_labels", "displacement_mm",
-                                               "deformation_mm", "status")}, "classify")
+                                               "deformation_mm", "floor_mm", "status")},
+                  "classify")
     return FrameLabels(z["labels"], z["raw_labels"], z["displacement_mm"].astype(float),
-                       z["deformation_mm"].astype(float), z["status"])
+                       z["deformation_mm"].astype(float), z["floor_mm"].astype(float),
+                       z["status"])
 
 
 # ---------------------------------------------------------------------- deformation
