@@ -31,7 +31,7 @@ def test_fresh_run_writes_every_stage(pipeline_run):
     assert all(run.is_done(stage) for stage in STAGES)
     n_frames = run.read()["ingest"]["frames"]
     with np.load(run_dir / "classify" / "labels.npz") as z:
-        labels = z["labels"]
+        labels, floors = z["labels"], z["floor_mm"]
     assert labels.shape[0] == n_frames and (labels[0] == STATIC).all()
     assert not (labels == UNKNOWN).all(axis=1).any()
     clouds = sorted((run_dir / "clouds").glob("*.ply"))
@@ -41,6 +41,9 @@ def test_fresh_run_writes_every_stage(pipeline_run):
         for name, dtype in SPEC_TYPES.items():
             assert cloud[name].dtype == np.dtype(dtype), (path, name)
         np.testing.assert_array_equal(cloud["label"], labels[k][cloud["point_id"]])
+        if k:  # the floor in metres beside each point, NaN exactly where it is not labelled
+            np.testing.assert_allclose(cloud["deform_floor"],
+                                       floors[k][cloud["point_id"]] * 1e-3, rtol=1e-6)
     _labels_beat_trivial_classifiers(result.evaluation["labels"]["overall"])
 
 

@@ -260,10 +260,11 @@ def run_classify(run_dir: Path, config: Config,
         executor.run([classify_task(layout.root, config, k) for k in todo], advance)
         counts, changed = write_labels_streaming(layout, n_frames, n,
                                                  config.classify.hysteresis_frames)
-        with npz_rows(layout.labels, "labels") as labels:
+        with (npz_rows(layout.labels, "labels") as labels,
+              npz_rows(layout.labels, "floor_mm") as floors):
             for start in range(0, n_frames, _CLOUD_BLOCK):
                 executor.run([Task(str(k), write_labelled_cloud,
-                                   (layout.root.absolute(), k, labels.read(k)))
+                                   (layout.root.absolute(), k, labels.read(k), floors.read(k)))
                               for k in range(start, min(start + _CLOUD_BLOCK, n_frames))],
                              advance)
         shutil.rmtree(layout.classified_dir, ignore_errors=True)
@@ -325,10 +326,12 @@ def _classified(layout: RunLayout, frame: int) -> dict[str, np.ndarray]:
         return {name: z[name] for name in _LABEL_DTYPES if name != "labels"}
 
 
-def write_labelled_cloud(run_dir: Path, frame: int, labels: np.ndarray) -> None:
+def write_labelled_cloud(run_dir: Path, frame: int, labels: np.ndarray,
+                         floor_mm: np.ndarray) -> None:
     """Write frame k's labelled cloud (a task): the template for frame 0; else the
     registered positions, or for a frame that failed, the positions of the base it was
-    to be registered from (its points are unknown)."""
+    to be registered from (its points are unknown), with each point's deformation floor
+    floor_mm (N,) mm (stored in metres, as every length of the cloud)."""
     layout = RunLayout(run_dir)
     template = read_template(layout)
     n = len(template.points)
@@ -344,7 +347,8 @@ def write_labelled_cloud(run_dir: Path, frame: int, labels: np.ndarray) -> None:
         positions = template.points if base.failed else base.registered
     write_frame_cloud(layout, frame, positions, template.rgb, labels, reg.residual,
                       {"status": reg.status.astype(np.uint8), "views": reg.views.astype(np.uint8),
-                       "sigma": reg.sigma.astype(np.float32)})
+                       "sigma": reg.sigma.astype(np.float32),
+                       "deform_floor": (floor_mm * 1e-3).astype(np.float32)})
 
 
 def pipeline_step(ctx: StageContext, progress: Callable[[float], None]) -> None:
