@@ -121,3 +121,19 @@ def test_report_with_only_the_template(copy_run):
     columns, rows = _rows(files.frames_csv)
     assert columns == list(FRAME_COLUMNS) and rows[1]["static"] == "" and rows[1]["intra"] == ""
     assert run.is_done("report")
+
+
+def test_per_frame_plots_label_their_ticks_by_frame(monkeypatch):
+    """A log of more frames than ticks: every tick of a per-frame box plot sits at a frame
+    and is labelled with that frame's number, not the box's rank."""
+    from surgrecon_cli.report import plots
+
+    drawn: list = []
+    monkeypatch.setattr(plots, "to_png", lambda fig: drawn.append(fig) or b"")
+    frames = np.arange(5, 81, 2)  # 38 sampled frames: 5, 7, ..., 79
+    values = [np.random.default_rng(int(k)).random(20) for k in frames]
+    plots.per_frame_boxes(frames, values, "displacement", "mm", lines={"static": 1.0})
+    ax = drawn[0].axes[0]
+    ticks = ax.get_xticks()
+    assert len(ticks) <= 20 and set(ticks) <= set(frames.tolist())
+    assert [t.get_text() for t in ax.get_xticklabels()] == [f"{t:g}" for t in ticks]

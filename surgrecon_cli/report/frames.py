@@ -54,7 +54,8 @@ class FrameFigures:
     (CLASS_CODES order) or None before classify; deform_floor_mm (T,) the median over the
     labelled points of the smallest departure along the lines of sight labelled deforming
     (labels.npz floor_mm; NaN for frame 0 or without labelled points), None before
-    classify."""
+    classify; floor_sampled the sampled frames' per-point floors (mm, K arrays of the
+    labelled points), None before classify."""
 
     status_counts: np.ndarray
     residual_mm: np.ndarray
@@ -72,6 +73,7 @@ class FrameFigures:
     displacement_max_mm: float
     class_counts: np.ndarray | None
     deform_floor_mm: np.ndarray | None
+    floor_sampled: list[np.ndarray] | None
 
 
 @dataclass
@@ -94,7 +96,8 @@ class FrameAccumulator:
         self.class_counts = np.zeros((t, len(CLASS_CODES)), np.int64)
         self.deform_floor_mm = np.full(t, np.nan)
         self._sampled = set(sampled_frames(t).tolist())
-        self._lists = {"errors": [""] * t, "quality": [], "residual": [], "displacement": []}
+        self._lists = {"errors": [""] * t, "quality": [], "residual": [], "displacement": [],
+                       "floor": []}
         self.maxima = [np.nan, np.nan]
 
     def add(self, k: int, reg: FrameRegistration | None, labels: np.ndarray | None,
@@ -122,6 +125,8 @@ class FrameAccumulator:
         if k in self._sampled:
             self._lists["residual"].append(residual)
             self._lists["displacement"].append(displacement)
+            if floor_mm is not None:
+                self._lists["floor"].append(floor_mm[np.isfinite(floor_mm)])
         self.failed[k], self.converged[k] = reg.failed, reg.converged
         self._lists["errors"][k] = reg.error
         self.tracking_px[k] = reg.tracking_px
@@ -139,4 +144,5 @@ class FrameAccumulator:
             lists["quality"], np.array(sorted(self._sampled), int), lists["residual"],
             lists["displacement"], float(self.maxima[0]), float(self.maxima[1]),
             self.class_counts if self.classified else None,
-            self.deform_floor_mm if self.classified else None)
+            self.deform_floor_mm if self.classified else None,
+            lists["floor"] if self.classified else None)

@@ -240,13 +240,14 @@ def _quality(data: RunData, frames: FrameFigures, metrics: Metrics,
 def _labels(config: Config, metrics: Metrics, pngs: Figures) -> rh.Section:
     """Points per class and per reprojection status over time."""
     c = config.classify
-    sensitivity = floor_words(metrics.summary.get("classify", {}).get("deform_floor_mm"),
-                              c.deform_mm)
+    sensitivity = floor_words(metrics.summary["classify"].get("deform_floor_mm"), c.deform_mm)
     return rh.Section("labels", "Labels over time").add(
         *_place(pngs, "class-counts",
                 f"Static: registered displacement below {c.static_mm:g} mm; deforming: "
                 f"neighbourhood ({c.neighbourhood_mm:g} mm) {c.measure} at or above "
                 f"{c.deform_mm:g} mm; shifting otherwise. {sensitivity}"),
+        *_place(pngs, "deform-floor", "Each labelled point's deformation floor per frame "
+                "(boxes: quartiles, whiskers: 5–95 %)."),
         *_place(pngs, "status-counts",
                 "Intra-camera inliers (frame-0 position still reprojects: static evidence), "
                 "inter-camera inliers (re-triangulated: dynamic), outliers, and points not "
