@@ -198,15 +198,27 @@ def test_the_floor_is_deform_mm_where_every_direction_is_measured_well():
     n, nb = len(template), _nb(template, cfg)
     rows = np.arange(n)
     for cov in (np.zeros((n, 3, 3)), _depth_cov(n, 0.01e-3, 0.01e-3)):
-        assert np.allclose(deform_floor_mm(cov, nb, rows, cfg.deform_mm), cfg.deform_mm,
-                           rtol=1e-6)
+        floor = deform_floor_mm(template, cov, nb, rows, cfg.deform_mm)
+        assert np.allclose(floor, cfg.deform_mm, rtol=1e-6)
     # never below deform_mm, whatever the covariances' shape
     a = np.random.default_rng(4).normal(0.0, 0.3e-3, (n, 3, 3))
-    floor = deform_floor_mm(a @ a.transpose(0, 2, 1), nb, rows, cfg.deform_mm)
+    floor = deform_floor_mm(template, a @ a.transpose(0, 2, 1), nb, rows, cfg.deform_mm)
     assert (floor >= cfg.deform_mm * (1 - 1e-9)).all()
-    # a member without a covariance carries no weight; fewer than 3 left: NaN
-    cov = np.full((n, 3, 3), np.nan)
-    assert np.isnan(deform_floor_mm(cov, nb, rows, cfg.deform_mm)).all()
+    # a member without a covariance or a position carries no weight; fewer than 3: NaN
+    assert np.isnan(deform_floor_mm(template, np.full((n, 3, 3), np.nan), nb, rows,
+                                    cfg.deform_mm)).all()
+    unseen = np.full_like(template, np.nan)
+    assert np.isnan(deform_floor_mm(unseen, _depth_cov(n, 0.4e-3, 0.03e-3), nb, rows,
+                                    cfg.deform_mm)).all()
+    # members left out are not counted: a neighbourhood whose badly measured members are
+    # unseen has the floor of its well measured ones
+    cov = _depth_cov(n, 0.01e-3, 0.01e-3)
+    bad = np.arange(n) % 2 == 1
+    cov[bad] = _depth_cov(int(bad.sum()), 0.4e-3, 0.03e-3)
+    positions = np.where(bad[:, None], np.nan, template)
+    kept = deform_floor_mm(positions, cov, nb, rows, cfg.deform_mm)
+    assert np.allclose(kept[np.isfinite(kept)], cfg.deform_mm, rtol=1e-6)
+    assert (deform_floor_mm(template, cov, nb, rows, cfg.deform_mm) > cfg.deform_mm).all()
 
 
 def test_a_dent_along_the_view_counts_from_the_floor_not_below():
@@ -218,7 +230,7 @@ def test_a_dent_along_the_view_counts_from_the_floor_not_below():
     n, nb = len(template), _nb(template, cfg)
     rows = np.arange(n)
     cov = _depth_cov(n, 0.4e-3, 0.03e-3)
-    floor = deform_floor_mm(cov, nb, rows, cfg.deform_mm)
+    floor = deform_floor_mm(template, cov, nb, rows, cfg.deform_mm)
     assert np.nanmin(floor) > 2 * cfg.deform_mm  # depth noise far above deform_mm/√3
     r2 = (template[:, :2] ** 2).sum(1)
     core = r2 < 0.0025**2
@@ -245,7 +257,7 @@ def test_classify_frame_reports_the_floor_of_its_labelled_points():
     cov = _depth_cov(n, depth, lateral)
     shift = template + np.array([0.003, 0.0, 0.0])
     noise = np.random.default_rng(5).normal(0.0, 1.0, template.shape) * [lateral, lateral, depth]
-    full = deform_floor_mm(cov, nb, np.arange(n), cfg.deform_mm)
+    full = deform_floor_mm(template, cov, nb, np.arange(n), cfg.deform_mm)
 
     def classes(positions: np.ndarray, with_evidence: bool = True):
         positions = positions.copy()

@@ -73,12 +73,12 @@ def figure_tasks(data: RunData, metrics: Metrics, views: list[CloudView],
         tasks.append(Task("residual", partial(
             plots.per_frame_boxes, frames.sampled, frames.residual_sampled,
             "data residual", "mm")))
-        if frames.floor_sampled is not None:
+        if frames.floor_sampled is not None and any(f.size for f in frames.floor_sampled):
             deform_mm = config.classify.deform_mm
             tasks.append(Task("deform-floor", partial(
                 plots.per_frame_boxes, frames.sampled, frames.floor_sampled,
-                "deformation floor: the smallest bend along the lines of sight labelled "
-                "deforming", "mm", lines={f"deform_mm {deform_mm:g} mm": deform_mm})))
+                "deformation floor: the rigid-fit RMS a bend along the lines of sight needs",
+                "mm", lines={f"deform_mm {deform_mm:g} mm": deform_mm})))
     if data.deformation is not None and tool_known(log.tool_poses).any():
         tasks.extend(deformation_tasks(data, config))  # none without a tool pose: unmeasured
     seconds = stage_seconds(data.run)

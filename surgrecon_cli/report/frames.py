@@ -52,10 +52,11 @@ class FrameFigures:
     residual_sampled and displacement_sampled (mm, K arrays); residual_max_mm and
     displacement_max_mm over every frame 1..; class_counts (T, 4) points per class
     (CLASS_CODES order) or None before classify; deform_floor_mm (T,) the median over the
-    labelled points of the smallest departure along the lines of sight labelled deforming
-    (labels.npz floor_mm; NaN for frame 0 or without labelled points), None before
-    classify; floor_sampled the sampled frames' per-point floors (mm, K arrays of the
-    labelled points), None before classify."""
+    labelled points of the rigid-fit RMS a bend along the lines of sight needs to be
+    labelled deforming (labels.npz floor_mm; NaN for frame 0, without labelled points or
+    in a run classified before the floor was stored), None before classify;
+    floor_sampled the sampled frames' per-point floors (mm, K arrays of the labelled
+    points; empty without a stored floor), None before classify."""
 
     status_counts: np.ndarray
     residual_mm: np.ndarray

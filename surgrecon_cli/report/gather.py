@@ -107,7 +107,9 @@ def _read_frames(layout: RunLayout, template: np.ndarray, n_frames: int,
         labels = floor = None
         if classified:
             labels = stack.enter_context(npz_rows(layout.labels, "labels"))
-            floor = stack.enter_context(npz_rows(layout.labels, "floor_mm"))
+            with np.load(layout.labels, allow_pickle=False) as z:  # the directory only
+                stored = "floor_mm" in z.files  # not in runs classified before it was
+            floor = stack.enter_context(npz_rows(layout.labels, "floor_mm")) if stored else None
         for k in range(n_frames):
             acc.add(k, read_registration(layout, k, n) if k else None,
                     None if labels is None else labels.read(k),

@@ -159,10 +159,10 @@ def frame_rows(data: RunData) -> list[dict[str, Any]]:
     return rows
 
 
-def deform_floor_mm(frames: FrameFigures | None) -> float | None:
+def median_deform_floor_mm(frames: FrameFigures | None) -> float | None:
     """The median over frames 1.. of each frame's median deformation floor (mm: the
-    smallest departure along the lines of sight labelled deforming); None before classify
-    or without labelled points."""
+    rigid-fit RMS a departure along the lines of sight needs to count as deforming); None
+    before classify or without labelled points."""
     floors = None if frames is None or frames.deform_floor_mm is None else (
         frames.deform_floor_mm[1:])
     if floors is None or not np.isfinite(floors).any():
@@ -176,8 +176,9 @@ def floor_words(floor_mm: float | None, deform_mm: float) -> str:
     if floor_mm is None or floor_mm <= deform_mm * 1.05:
         return ""
     return (f"Along the direction each point is measured worst (on a stereo rig, its line "
-            f"of sight), a departure counts from {floor_mm:.2f} mm (median over frames and "
-            "labelled points, metrics/frames.csv deform_floor_median_mm): shallower bends "
+            f"of sight), a bend counts as deforming once its neighbourhood's rigid-fit RMS "
+            f"reaches {floor_mm:.2f} mm (median over frames and labelled points, "
+            f"metrics/frames.csv deform_floor_median_mm), not {deform_mm:g} mm: smaller bends "
             "along it are labelled shifting.")
 
 
@@ -265,6 +266,6 @@ def run_summary(data: RunData, noise: dict[str, Any] | None, rows: list[dict[str
                            "significance": config.classify.significance,
                            "max_sigma_mm": config.classify.max_sigma_mm,
                            "deform_mm": config.classify.deform_mm,
-                           "deform_floor_mm": deform_floor_mm(frames),
+                           "deform_floor_mm": median_deform_floor_mm(frames),
                            "measure": config.classify.measure}
     return finite_json(summary)

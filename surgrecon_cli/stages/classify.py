@@ -42,6 +42,7 @@ from ..core.noise.frame_noise import retriangulate
 from ..core.noise.model import NoiseModel, covariance_sigma, noise_from_report
 from ..errors import RunFolderError
 from ..executors import Executor, Task
+from ..executors.heap import adapted_heap
 from ..executors.serial import SerialExecutor
 from ..io.run.artefacts import (
     FrameRegistration,
@@ -87,6 +88,7 @@ TemplateInputs = tuple[np.ndarray, Neighbourhoods, TemplateNoise]
 @functools.lru_cache(maxsize=4)
 def _cached_template(run_dir: str, _stamp: tuple[tuple[int, ...], ...], neighbourhood_mm: float,
                      min_neighbours: int, max_neighbours: int) -> TemplateInputs:
+    adapted_heap()  # each frame's fits build and free (N, K, 9) arrays of ~20 MB
     layout = RunLayout(run_dir)
     template = read_template(layout).points
     nb = template_neighbourhoods(template, neighbourhood_mm, min_neighbours, max_neighbours)

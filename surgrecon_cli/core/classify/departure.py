@@ -78,23 +78,26 @@ def resolved_rms_mm(template: np.ndarray, positions: np.ndarray, covariance: np.
     return np.where(keep.sum(1) >= 3, out, np.nan)
 
 
-def deform_floor_mm(covariance: np.ndarray, nb: Neighbourhoods, rows: np.ndarray,
-                    deform_mm: float) -> np.ndarray:
-    """The smallest departure (M,) mm that `resolved_rms_mm` counts as `deform_mm` when it
-    lies along every member's least-known direction (on a stereo rig, its line of sight):
-    a residual r_j = D u_j reads RMS² = 3 D² Σ_j λ_min(W_j) / Σ_j tr W_j, so D =
-    deform_mm √(Σ_j tr W_j / (3 Σ_j λ_min(W_j))), W_j = (Σ_j + deform_mm²/3 I)⁻¹ over the
-    members of each neighbourhood (the point `rows` (M,) and its neighbours) with a finite
-    covariance (N, 3, 3) m². `deform_mm` itself where every direction is measured better
-    than deform_mm/√3; NaN with fewer than 3 such members. What a user reads as the labels'
-    sensitivity: a bend along the lines of sight below it is called shifting."""
+def deform_floor_mm(positions: np.ndarray, covariance: np.ndarray, nb: Neighbourhoods,
+                    rows: np.ndarray, deform_mm: float) -> np.ndarray:
+    """The rigid-fit RMS (M,) mm that a departure along every member's least-known
+    direction (on a stereo rig, its line of sight) needs for `resolved_rms_mm` to count it
+    as `deform_mm`: fit residuals r_j = D u_j read RMS² = 3 D² Σ_j λ_min(W_j) / Σ_j tr W_j,
+    so D = deform_mm √(Σ_j tr W_j / (3 Σ_j λ_min(W_j))), W_j = (Σ_j + deform_mm²/3 I)⁻¹
+    over the members of each neighbourhood (the point `rows` (M,) and its neighbours) the
+    measure uses: a finite position (N, 3) and covariance (N, 3, 3) m². D is a bound on
+    what is left after the neighbourhood's rigid fit, as deform_mm is (a shift or turn of
+    the whole neighbourhood leaves nothing); `deform_mm` itself where every direction is
+    measured better than deform_mm/√3; NaN with fewer than 3 members. The labels'
+    sensitivity: a bend along the lines of sight whose rigid-fit RMS is below it is
+    called shifting (deforming also needs the departure test)."""
     if len(rows) == 0:
         return np.zeros(0)
     index, mask = nb.members(rows)
     info = _precisions(covariance, (deform_mm * 1e-3) ** 2 / 3.0)
     least = np.linalg.eigvalsh(info)[:, 0]
     total = np.trace(info, axis1=1, axis2=2)
-    keep = mask & (total[index] > 0)
+    keep = mask & (total[index] > 0) & np.isfinite(positions[index]).all(-1)
     with np.errstate(invalid="ignore", divide="ignore"):
         floor = deform_mm * np.sqrt((total[index] * keep).sum(1)
                                     / (3.0 * (least[index] * keep).sum(1)))

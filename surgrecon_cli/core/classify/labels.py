@@ -16,6 +16,7 @@ from scipy.spatial.transform import Rotation
 from ..geometry.poses import fit_rigid
 
 INFORMATION_STEPS = 3  # Gauss-Newton steps of the information-weighted rigid fit
+FIT_BLOCKS = 8  # ours: blocks of neighbourhoods of similar width (`rigid_fit_residuals`)
 
 STATIC, SHIFTING, DEFORMING, UNKNOWN = 0, 1, 2, 255
 CLASS_NAMES = {STATIC: "static", SHIFTING: "shifting", DEFORMING: "deforming"}
@@ -57,7 +58,29 @@ def rigid_fit_residuals(
     stereo baseline measures depth ~20x worse than across, and scalar weights let one
     member's depth error tilt the fit, which then leaves residuals across the lines of
     sight of the others (a still real SurgT scene at 360x288: 116 of ~4,200 labelled
-    point-frames called deforming with scalar weights, 1 with the information)."""
+    point-frames called deforming with scalar weights, 1 with the information).
+
+    Neighbourhoods are fitted in FIT_BLOCKS blocks of rows of similar width (the last
+    member's column), each cut to its widest row: within 5 mm a neighbourhood holds 6 to
+    129 members, and padding every row to the widest doubled the work."""
+    n, k = mask.shape
+    span = np.where(mask.any(1), k - np.argmax(mask[:, ::-1], axis=1), 0)
+    residual = np.zeros((n, k, 3))
+    keep = np.zeros((n, k), bool)
+    for block in np.array_split(np.argsort(span, kind="stable"), min(FIT_BLOCKS, max(n, 1))):
+        width = int(span[block].max()) if len(block) else 0
+        if width == 0:
+            continue
+        residual[block, :width], keep[block, :width] = _rigid_fit_block(
+            reference, moved, index[block, :width], mask[block, :width], weights, information)
+    return residual, keep
+
+
+def _rigid_fit_block(
+    reference: np.ndarray, moved: np.ndarray, index: np.ndarray, mask: np.ndarray,
+    weights: np.ndarray | None, information: np.ndarray | None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """`rigid_fit_residuals` of neighbourhoods index (M, K), mask (M, K)."""
     src = reference[index]
     dst = moved[index]
     keep = mask & np.isfinite(dst).all(-1)
@@ -84,34 +107,51 @@ def _information_step(pred: np.ndarray, residual: np.ndarray, info: np.ndarray,
     (N, K, 3) and residuals of a fit with scalar weights: INFORMATION_STEPS Gauss-Newton
     steps, each turning the fitted positions by ω about their mean and shifting them by δ
     (the normal equations in (ω, δ) are linear; the turn is applied exactly, as a depth
-    error of 1 mm across a 5 mm neighbourhood can tilt the scalar fit by ~10°)."""
+    error of 1 mm across a 5 mm neighbourhood can tilt the scalar fit by ~10°).
+
+    With J_j = [−[q_j]×, I] (q_j the member about the mean) the normal matrix Σ J_jᵀ I_j J_j
+    has the blocks Σ [q_j]× I_j (turn-shift), −Σ [q_j]× I_j [q_j]× (turn-turn) and Σ I_j:
+    with [q]×_ab = ε_aeb q_e they are contractions of the member sums Σ q_e I_bc and
+    Σ q_e q_f I_bc, each one batched (9 x K) @ (K x 9) product per neighbourhood."""
     target = pred + residual
     n, k = keep.shape
-    usable = (keep.sum(1) >= 3)[:, None, None]
+    usable = keep.sum(1) >= 3
     count = np.maximum(keep.sum(1), 1)[:, None]
+    info_flat = info.reshape(n, k, 9)
+    shift_shift = info_flat.sum(1).reshape(n, 3, 3)
+    normal = np.empty((n, 6, 6))
     for _ in range(INFORMATION_STEPS):
         centre = (np.where(keep[..., None], pred, 0.0).sum(1) / count)[:, None, :]
         q = pred - centre
-        # info @ [-[q]x, I]: the members' rows stacked, so that the sums over members and
-        # axes are one (6, 3K) @ (3K, 6) product per neighbourhood
-        jac = np.concatenate([-_skew(q), np.broadcast_to(np.eye(3), (*q.shape, 3))], -1)
-        weighted = np.matmul(info, jac).reshape(n, 3 * k, 6)
-        normal = np.matmul(np.swapaxes(jac.reshape(n, 3 * k, 6), 1, 2), weighted)
-        rhs = np.matmul(np.swapaxes(weighted, 1, 2), (target - pred).reshape(n, 3 * k, 1))
+        first = np.matmul(np.swapaxes(q, 1, 2), info_flat).reshape(n, 3, 3, 3)
+        pairs = (q[..., :, None] * q[..., None, :]).reshape(n, k, 9)
+        second = np.matmul(np.swapaxes(pairs, 1, 2), info_flat).reshape(n, 3, 3, 3, 3)
+        turn_shift = np.einsum("aeb,nebc->nac", _LEVI_CIVITA, first)
+        normal[:, :3, :3] = -np.einsum("aeb,cfd,nefbc->nad", _LEVI_CIVITA, _LEVI_CIVITA,
+                                       second, optimize=True)
+        normal[:, :3, 3:] = turn_shift
+        normal[:, 3:, :3] = np.swapaxes(turn_shift, 1, 2)
+        normal[:, 3:, 3:] = shift_shift
+        info_r = np.matmul(info, (target - pred)[..., None])[..., 0]
+        rhs = np.concatenate([np.einsum("aeb,nke,nkb->na", _LEVI_CIVITA, q, info_r,
+                                        optimize=True), info_r.sum(1)], -1)
         scale = np.trace(normal, axis1=1, axis2=2)[:, None, None]
-        step = np.linalg.solve(normal + (1e-12 * scale + 1e-30) * np.eye(6), rhs)[..., 0]
-        turn = Rotation.from_rotvec(np.where(usable[:, 0], step[:, :3], 0.0)).as_matrix()
+        step = np.linalg.solve(normal + (1e-12 * scale + 1e-30) * np.eye(6), rhs[..., None])[..., 0]
+        turn = Rotation.from_rotvec(np.where(usable[:, None], step[:, :3], 0.0)).as_matrix()
         pred = centre + q @ np.swapaxes(turn, 1, 2) + np.where(
-            usable[:, 0], step[:, 3:], 0.0)[:, None, :]
+            usable[:, None], step[:, 3:], 0.0)[:, None, :]
     return np.where(keep[..., None], target - pred, 0.0)
 
 
-def _skew(v: np.ndarray) -> np.ndarray:
-    """Cross-product matrices [v]x (..., 3, 3) of vectors v (..., 3)."""
-    zero = np.zeros(v.shape[:-1])
-    return np.stack([np.stack([zero, -v[..., 2], v[..., 1]], -1),
-                     np.stack([v[..., 2], zero, -v[..., 0]], -1),
-                     np.stack([-v[..., 1], v[..., 0], zero], -1)], -2)
+def _levi_civita() -> np.ndarray:
+    """ε (3, 3, 3): +1 on even permutations of (0, 1, 2), −1 on odd ones, else 0."""
+    eps = np.zeros((3, 3, 3))
+    for a, b, c in ((0, 1, 2), (1, 2, 0), (2, 0, 1)):
+        eps[a, b, c], eps[a, c, b] = 1.0, -1.0
+    return eps
+
+
+_LEVI_CIVITA = _levi_civita()
 
 
 def rigid_fit_rms(

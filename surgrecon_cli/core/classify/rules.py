@@ -48,8 +48,8 @@ core/registration/frame_step.py: σ is the RMS of a 3D position error, metres) a
    field itself scatters less than Σ_j predicts, `field_noise_scale`: on the 6-camera
    simulator the unscaled weights discounted dents along the lines of sight, deforming
    recall 0.81 -> 0.83 on its tuning seeds with the scale; what that leaves visible is
-   reported per point, `FrameClasses.floor_mm`: the smallest departure along the
-   members' least-known directions that reaches `deform_mm`, `deform_floor_mm`).
+   reported per point, `FrameClasses.floor_mm`: the rigid-fit RMS a departure along the
+   members' least-known directions needs to reach `deform_mm`, `deform_floor_mm`).
    Both, or it is shifting. A point the tool touches (`Evidence.touched`: within the
    capsule's radius + margin of a tool whose pose the robot's kinematics give) needs no
    image evidence for the first question: the tool pressing it is the departure, measured
@@ -185,7 +185,7 @@ class RegisteredFrame:
 class FrameClasses:
     """One frame: labels (N,) uint8, displacement_mm (N,) ‖T_i p̃_i − p_i‖,
     deformation_mm (N,) the shifting/deforming measure (NaN where not computed) and
-    floor_mm (N,) the smallest departure along the lines of sight that would count as
+    floor_mm (N,) the rigid-fit RMS a departure along the lines of sight needs to count as
     deforming (`departure.deform_floor_mm`; deform_mm without noise, NaN where the point
     is not labelled or the measure is "transform_diff")."""
 
@@ -375,7 +375,7 @@ def classify_frame(template: np.ndarray, frame: RegisteredFrame, nb: Neighbourho
         weights_cov = field_scale * np.asarray(evidence.departure_cov, float)
         measure = resolved_rms_mm(template, registered, weights_cov, nb, rows, cfg.deform_mm)
         deforming = significant & (measure >= cfg.deform_mm)
-        floor[judged] = deform_floor_mm(weights_cov, nb, judged, cfg.deform_mm)
+        floor[judged] = deform_floor_mm(registered, weights_cov, nb, judged, cfg.deform_mm)
     else:
         measure = rigid_rms_mm(template, registered, nb, rows)
         deforming = measure >= cfg.deform_mm

@@ -244,9 +244,10 @@ def read_registration(layout: RunLayout, frame: int, n_points: int) -> FrameRegi
 @dataclass(frozen=True)
 class FrameLabels:
     """Labels of every frame (T, N): labels after hysteresis, raw_labels before it,
-    displacement_mm and deformation_mm (the measures behind them), floor_mm (the smallest
-    departure along the lines of sight labelled deforming), status (reprojection check;
-    frame 0: intra)."""
+    displacement_mm and deformation_mm (the measures behind them), floor_mm (the rigid-fit
+    RMS a bend along the lines of sight needs to be labelled deforming; NaN at frame 0,
+    where points are unknown, and in runs classified before it was stored), status
+    (reprojection check; frame 0: intra)."""
 
     labels: np.ndarray
     raw_labels: np.ndarray
@@ -270,11 +271,12 @@ def read_labels(layout: RunLayout, shape: tuple[int, int]) -> FrameLabels:
     path = layout.labels
     z = _load_npz(path, "classify", "labels")
     _check_shapes(path, z, {k: shape for k in ("labels", "raw_labels", "displacement_mm",
-                                               "deformation_mm", "floor_mm", "status")},
-                  "classify")
+                                               "deformation_mm", "status")}, "classify")
+    if "floor_mm" in z:
+        _check_shapes(path, z, {"floor_mm": shape}, "classify")
+    floor = z["floor_mm"].astype(float) if "floor_mm" in z else np.full(shape, np.nan)
     return FrameLabels(z["labels"], z["raw_labels"], z["displacement_mm"].astype(float),
-                       z["deformation_mm"].astype(float), z["floor_mm"].astype(float),
-                       z["status"])
+                       z["deformation_mm"].astype(float), floor, z["status"])
 
 
 # ---------------------------------------------------------------------- deformation

@@ -55,8 +55,8 @@ _DOCS = {
     "views": "cameras that tracked the point",
     "n_views": "cameras that saw the point",
     "sigma": "RMS 3D position uncertainty (m); NaN = unknown",
-    "deform_floor": "smallest departure along the lines of sight labelled deforming (m); "
-                    "NaN = not labelled",
+    "deform_floor": "rigid-fit RMS a bend along the lines of sight needs to be labelled "
+                    "deforming (m); NaN = not labelled",
     "reprojection_px": "RMS reprojection error (px)",
     "correspondence": "target vertex index (-1 = none)",
     "outlier": "1 = matched but the residual is above registration.outlier_mm",
