@@ -139,6 +139,7 @@ def test_cloud_fields_equal_the_ply_bit_for_bit(exported, messages):
             v.dtype.itemsize for v in got.values())
         shared = set(got) & set(ply)
         assert {"x", "y", "z", "point_id", "label", "residual", "sigma"} <= shared
+        assert k == 0 or "deform_floor" in shared
         for name in shared - {"red", "green", "blue"}:  # colours are by class, not texture
             assert got[name].dtype == ply[name].dtype, name
             assert got[name].tobytes() == ply[name].tobytes(), (k, name)

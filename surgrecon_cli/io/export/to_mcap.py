@@ -6,9 +6,10 @@ time in the source log (RUN/ingest/frames.npz `stamps_ns`). Per frame k:
   /surgrecon/cloud          foxglove.PointCloud  the labelled cloud RUN/clouds/k.ply in the
                             world: x y z (float32 m, the PLY's values), red green blue alpha
                             (uint8, by class), point_id (int32), label (uint8), residual
-                            (float32 m, NaN = no target), sigma (float32 m), displacement_mm
-                            (float32), then status / views (frames >= 1) or n_views /
-                            reprojection_px (frame 0)
+                            (float32 m, NaN = no target), sigma (float32 m), deform_floor
+                            (float32 m, frames >= 1), displacement_mm (float32), then
+                            status / views (frames >= 1) or n_views / reprojection_px
+                            (frame 0)
   /surgrecon/target         foxglove.PointCloud  the measured targets (frame 0: the template)
   /surgrecon/tf             foxglove.FrameTransforms  world -> camera_CC, world -> tool (and
                                                       tool_1, ... for `[[tools]]`)
@@ -210,8 +211,8 @@ def _write_frame(out: McapOut, layout: RunLayout, log: IngestedLog, config: Conf
     columns = [("x", "<f4", cloud["x"]), ("y", "<f4", cloud["y"]), ("z", "<f4", cloud["z"]),
                *_rgba(class_colours(cloud["label"])), ("point_id", "<i4", cloud["point_id"]),
                ("label", "u1", cloud["label"]), ("residual", "<f4", cloud["residual"])]
-    if "sigma" in cloud:
-        columns.append(("sigma", "<f4", cloud["sigma"]))
+    columns += [(name, "<f4", cloud[name]) for name in ("sigma", "deform_floor")
+                if name in cloud]
     columns.append(("displacement_mm", "<f4", displacement_mm[ids]))
     columns += [(name, dtype, values[ids]) for name, dtype, values in extra]
     columns += [(name, "u1", cloud[name]) for name in ("status", "views", "n_views")
