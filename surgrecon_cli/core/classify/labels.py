@@ -111,8 +111,8 @@ def _information_step(pred: np.ndarray, residual: np.ndarray, info: np.ndarray,
 
     With J_j = [−[q_j]×, I] (q_j the member about the mean) the normal matrix Σ J_jᵀ I_j J_j
     has the blocks Σ [q_j]× I_j (turn-shift), −Σ [q_j]× I_j [q_j]× (turn-turn) and Σ I_j:
-    with [q]×_ab = ε_aeb q_e they are contractions of the member sums Σ q_e I_bc and
-    Σ q_e q_f I_bc, each one batched (9 x K) @ (K x 9) product per neighbourhood."""
+    with [q]×_ab = ε_aeb q_e they are the member sums Σ q_e I_bc and Σ q_e q_f I_bc (each
+    one batched (9 x K) @ (K x 9) product per neighbourhood) times constant matrices of ε."""
     target = pred + residual
     n, k = keep.shape
     usable = keep.sum(1) >= 3
@@ -123,18 +123,18 @@ def _information_step(pred: np.ndarray, residual: np.ndarray, info: np.ndarray,
     for _ in range(INFORMATION_STEPS):
         centre = (np.where(keep[..., None], pred, 0.0).sum(1) / count)[:, None, :]
         q = pred - centre
-        first = np.matmul(np.swapaxes(q, 1, 2), info_flat).reshape(n, 3, 3, 3)
+        q_t = np.swapaxes(q, 1, 2)
+        first = np.matmul(q_t, info_flat).reshape(n, 9, 3)  # Σ q_e I_bc, rows (e, b)
         pairs = (q[..., :, None] * q[..., None, :]).reshape(n, k, 9)
-        second = np.matmul(np.swapaxes(pairs, 1, 2), info_flat).reshape(n, 3, 3, 3, 3)
-        turn_shift = np.einsum("aeb,nebc->nac", _LEVI_CIVITA, first)
-        normal[:, :3, :3] = -np.einsum("aeb,cfd,nefbc->nad", _LEVI_CIVITA, _LEVI_CIVITA,
-                                       second, optimize=True)
+        second = np.matmul(np.swapaxes(pairs, 1, 2), info_flat).reshape(n, 81)
+        turn_shift = np.matmul(_EPS_AEB, first)  # ε_aeb Σ q_e I_bc
+        normal[:, :3, :3] = (second @ _TURN_TURN).reshape(n, 3, 3)
         normal[:, :3, 3:] = turn_shift
         normal[:, 3:, :3] = np.swapaxes(turn_shift, 1, 2)
         normal[:, 3:, 3:] = shift_shift
         info_r = np.matmul(info, (target - pred)[..., None])[..., 0]
-        rhs = np.concatenate([np.einsum("aeb,nke,nkb->na", _LEVI_CIVITA, q, info_r,
-                                        optimize=True), info_r.sum(1)], -1)
+        moment = np.matmul(q_t, info_r).reshape(n, 9) @ _EPS_AEB.T  # ε_aeb Σ q_e (I r)_b
+        rhs = np.concatenate([moment, info_r.sum(1)], -1)
         scale = np.trace(normal, axis1=1, axis2=2)[:, None, None]
         step = np.linalg.solve(normal + (1e-12 * scale + 1e-30) * np.eye(6), rhs[..., None])[..., 0]
         turn = Rotation.from_rotvec(np.where(usable[:, None], step[:, :3], 0.0)).as_matrix()
@@ -152,6 +152,9 @@ def _levi_civita() -> np.ndarray:
 
 
 _LEVI_CIVITA = _levi_civita()
+_EPS_AEB = _LEVI_CIVITA.reshape(3, 9)  # ε_a,(e b): [q]× I = ε_aeb q_e I_bc
+# −ε_aeb ε_cfd as an (e f b c) x (a d) matrix: −Σ [q]× I [q]× from Σ q_e q_f I_bc
+_TURN_TURN = -np.einsum("aeb,cfd->efbcad", _LEVI_CIVITA, _LEVI_CIVITA).reshape(81, 9)
 
 
 def rigid_fit_rms(
