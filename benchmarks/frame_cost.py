@@ -33,6 +33,11 @@ exist in WORKDIR), then on one thread (BLAS and OpenCV, as a worker):
   of core/registration) plus, per ADMM iteration the registration needed (counted by a
   `register` of the template to the frame's target), one solve and the mat-vecs with D,
   Dᵀ, B, Bᵀ.
+- classify, after the register stage in the same child: `stages.classify.classify_one_frame`
+  of frames 2..F-1 (frame 1 first, untimed), per frame, beside its floor: the spec's rule
+  on the same registered positions, one unweighted rigid fit of every neighbourhood
+  (`labels.rigid_fit_rms`). In `surgrecon run` the frames are classified on the register
+  workers, so a frame's CPU is the register stage's plus this.
 
 Times are process CPU seconds (robust to other load on the machine; wall time is printed
 beside the total). Ratios = measured / floor, per part and in total; all figures are ours,
@@ -116,8 +121,15 @@ def measured(run: Path, frames: int, config: Config) -> dict[str, float]:
     # The frame step reports wall seconds; scale them to CPU with the run's CPU/wall ratio.
     scale = (total / n) / wall_total
     parts = {"target": target / n * scale, "registration": solve / n * scale}
+    from surgrecon_cli.stages.classify import classify_one_frame
+
+    classify_one_frame(run, 1, config)  # the process's classify set-up, untimed
+    start = time.process_time()
+    for k in range(2, frames):
+        classify_one_frame(run, k, config)
     return {"total": total / n, "wall": wall_total, **parts,
-            "rest": total / n - parts["target"] - parts["registration"]}
+            "rest": total / n - parts["target"] - parts["registration"],
+            "classify": (time.process_time() - start) / n}
 
 
 def measured_by(code: Path | None, run: Path, frames: int) -> dict[str, float]:
@@ -198,9 +210,26 @@ def registration_floor(run: Path, frame: int, config: Config) -> dict[str, float
             "iterations": float(iterations[0])}
 
 
+def classify_floor(run: Path, frames: int, config: Config) -> float:
+    """Per-frame CPU seconds of the spec's rule on the registered positions of frames
+    2..frames-1: one unweighted rigid fit of every template neighbourhood, the least work
+    that asks whether each neighbourhood follows one rigid motion."""
+    from surgrecon_cli.core.classify.labels import rigid_fit_rms
+    from surgrecon_cli.stages.classify import template_and_neighbourhoods
+
+    template, nb, _ = template_and_neighbourhoods(run, config)
+    index, mask = nb.members()
+    layout = RunLayout(run)
+    positions = [read_registration(layout, k, len(template)).registered.astype(float)
+                 for k in range(2, frames)]
+    return sum(cpu_seconds(lambda p=p: rigid_fit_rms(template, p, index, mask))
+               for p in positions) / len(positions)
+
+
 def row(label: str, case: str, m: dict[str, float], t: dict[str, float],
-        r: dict[str, float]) -> str:
-    """One table row: the measured parts of `m` beside the floors t (tracking), r (ADMM)."""
+        r: dict[str, float], c: float) -> str:
+    """One table row: the measured parts of `m` beside the floors t (tracking), r (ADMM)
+    and c (classify)."""
     f_target = t["decode"] + t["pyramid"] + t["klt"]
     f_reg = r["solve"] + r["admm"]
     floor = f_target + f_reg
@@ -209,7 +238,8 @@ def row(label: str, case: str, m: dict[str, float], t: dict[str, float],
             f"{m['target'] / f_target:5.1f} | {m['registration']:6.3f} {f_reg:6.3f} "
             f"{m['registration'] / f_reg:5.1f} {r['iterations']:5.0f} | "
             f"{m['rest']:5.3f} | {t['decode']:.3f} {t['pyramid']:.3f} {t['klt']:.3f} "
-            f"{r['solve']:.3f} {r['admm']:.3f}")
+            f"{r['solve']:.3f} {r['admm']:.3f} | {m['classify']:6.3f} {c:6.3f} "
+            f"{m['classify'] / c:5.1f}")
 
 
 def main() -> None:
@@ -238,7 +268,8 @@ def main() -> None:
     args.workdir.mkdir(parents=True, exist_ok=True)
     head = (f"{'case':>12} {'code':>6} | {'wall s':>6} {'cpu s':>6} {'floor':>6} {'ratio':>5} | "
             f"{'target':>6} {'floor':>6} {'ratio':>5} | {'regist':>6} {'floor':>6} {'ratio':>5}"
-            f" {'iters':>5} | {'rest':>5} | decode pyramid klt solve admm (floor, s)")
+            f" {'iters':>5} | {'rest':>5} | decode pyramid klt solve admm (floor, s) | "
+            f"{'classify':>6} {'floor':>6} {'ratio':>5}")
     print(head)
     for case in args.cases:
         size, cameras = case.split(":")
@@ -256,8 +287,9 @@ def main() -> None:
         rows = [(label, min(runs[label], key=lambda m: m["total"])) for label, _ in codes]
         t = tracking_floor(run, args.floor_levels, config.target.klt_window_px)
         r = registration_floor(run, args.frames - 1, config)
+        c = classify_floor(run, args.frames, config)
         for label, m in rows:
-            print(row(label, case, m, t, r), flush=True)
+            print(row(label, case, m, t, r, c), flush=True)
 
 
 if __name__ == "__main__":
