@@ -108,8 +108,8 @@ class FrameAccumulator:
         if labels is not None:
             found = np.bincount(labels, minlength=256)
             self.class_counts[k] = [found[c] for c in CLASS_CODES.values()]
-        if k > 0 and floor_mm is not None:
-            floor = floor_mm[np.isfinite(floor_mm)]
+        floor = None if floor_mm is None else floor_mm[np.isfinite(floor_mm)]
+        if k > 0 and floor is not None:
             self.deform_floor_mm[k] = float(np.median(floor)) if floor.size else np.nan
         if reg is None:
             self.displacement[k] = 0.0
@@ -126,8 +126,8 @@ class FrameAccumulator:
         if k in self._sampled:
             self._lists["residual"].append(residual)
             self._lists["displacement"].append(displacement)
-            if floor_mm is not None:
-                self._lists["floor"].append(floor_mm[np.isfinite(floor_mm)])
+            if floor is not None:
+                self._lists["floor"].append(floor)
         self.failed[k], self.converged[k] = reg.failed, reg.converged
         self._lists["errors"][k] = reg.error
         self.tracking_px[k] = reg.tracking_px

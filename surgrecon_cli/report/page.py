@@ -357,6 +357,3 @@ def _place(pngs: Figures, name: str, caption: str) -> list[str]:
 
 def _fmt_mm(value: Any) -> str:
     return "–" if value is None else f"{value:.2f} mm"
-
-
-# -- contact and indentation (issue 17) --------------------------------------------------------
