@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import base64
 import csv
+import itertools
 import json
 from html.parser import HTMLParser
 from pathlib import Path
@@ -135,5 +136,28 @@ def test_per_frame_plots_label_their_ticks_by_frame(monkeypatch):
     plots.per_frame_boxes(frames, values, "displacement", "mm", lines={"static": 1.0})
     ax = drawn[0].axes[0]
     ticks = ax.get_xticks()
-    assert len(ticks) <= 20 and set(ticks) <= set(frames.tolist())
+    assert len(ticks) >= 2 and set(ticks) <= set(frames.tolist())
     assert [t.get_text() for t in ax.get_xticklabels()] == [f"{t:g}" for t in ticks]
+
+
+def test_frame_ticks_do_not_overlap(monkeypatch):
+    """The quality panel's half-width axes over 38 frames: the frame numbers on x, drawn,
+    keep a space between them (they touched at 19 ticks), and still mark at least every
+    10th frame."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    from surgrecon_cli.report import plots
+
+    drawn: list = []
+    monkeypatch.setattr(plots, "to_png", lambda fig: drawn.append(fig) or b"")
+    frames = np.arange(1, 39)
+    shares = {"observed": np.full(38, 0.9), "outlier": np.full(38, 0.05)}
+    plots.quality_over_time(frames, shares, np.full(38, 0.9), np.full(38, 0.1))
+    fig = drawn[0]
+    FigureCanvasAgg(fig).draw()
+    for ax in fig.axes:
+        boxes = sorted((t.get_window_extent() for t in ax.get_xticklabels()),
+                       key=lambda b: b.x0)
+        assert len(boxes) >= 38 // 10
+        gap_px = 0.05 * fig.dpi  # a visible space between two numbers (0.05 in)
+        assert all(b.x0 - a.x1 >= gap_px for a, b in itertools.pairwise(boxes))

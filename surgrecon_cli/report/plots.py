@@ -39,6 +39,10 @@ def to_png(fig: Figure) -> bytes:
     return buf.getvalue()
 
 
+TICK_DIGIT_IN = 0.09  # width of a tick label's digit at the style's 9 pt (in)
+TICK_GAP_IN = 0.2  # least space between two tick labels (in)
+
+
 def new_figure(width: float, height: float) -> Figure:
     return Figure(figsize=(width, height), layout="constrained")
 
@@ -257,12 +261,21 @@ def label_frame_axes(ax, frames: np.ndarray, ylabel: str, title: str,
 
 
 def thin_ticks(ax, frames: np.ndarray) -> None:
+    """x ticks at frames (T,), labelled by frame number (a box plot's own labels count its
+    boxes, not the frames), as many as the axes' width holds side by side: at the
+    multiples of a round step (1, 2, 5, 10, 20, ...) where the frames have two or more,
+    else every k-th frame."""
     frames = np.asarray(frames)
     if len(frames) == 0:
         return
-    step = max(int(np.ceil(len(frames) / 20)), 1)
-    ticks = frames[::step]
-    # labelled by frame number: a box plot's own labels count its boxes, not the frames
+    width_in = ax.get_position().width * ax.figure.get_figwidth()
+    digits = max(len(f"{t:g}") for t in frames)
+    fit = max(int(width_in / (TICK_DIGIT_IN * digits + TICK_GAP_IN)), 2)
+    span = float(frames.max() - frames.min()) + 1.0
+    step = next(s for s in (m * 10**e for e in range(12) for m in (1, 2, 5)) if span / s <= fit)
+    ticks = frames[np.isclose(np.mod(frames, step), 0)]
+    if len(ticks) < 2:
+        ticks = frames[::max(int(np.ceil(len(frames) / fit)), 1)]
     ax.set_xticks(ticks, labels=[f"{t:g}" for t in ticks])
 
 
