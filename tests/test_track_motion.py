@@ -25,8 +25,7 @@ from surgrecon_cli.core.target.frame_inputs import (
 )
 from surgrecon_cli.core.target.track_points import (
     _chain,
-    _direct_camera,
-    _unmasked,
+    _direct,
     find_points,
     scene_motion,
     visible_points,
@@ -262,31 +261,44 @@ def test_tissue_pressed_by_the_tool_is_tracked_through_the_previous_frame(press)
     assert np.median(rest["via"]) < 1.2 * np.median(rest["direct"]) + 0.1
 
 
-def test_points_lost_on_the_way_are_tracked_straight_as_among_every_point(press):
-    # A frame chained through its previous one tracks straight from the base only the
-    # points the chain lost (and those their neighbour retries look at): per camera the
-    # same tracks as tracking every point straight (KLT tracks each point alone), here on
-    # the pressed tissue, where the neighbour retries move the guesses.
+def test_points_lost_on_the_way_are_tracked_straight_guided_by_the_chained_tracks(press):
+    # A frame chained through its previous one tracks straight from the base the points the
+    # chain lost; where a lost point's own guess (the scene's motion) fails, as on the
+    # pressed tissue, the chained tracks around it say how far the press moved it. Here the
+    # chain lost a third of the dent and a ninth of the rest, and found the others at their
+    # true pixels.
     scene, cfg, points, views = press
     start = np.stack([project(scene.vertices[0][points], scene.true_poses[0, c], m)[0]
                       for c, m in enumerate(scene.models)], 1)
+    target = np.stack([project(scene.vertices[2][points], scene.true_poses[2, c], m)[0]
+                       for c, m in enumerate(scene.models)], 1)
     latest = scene.vertices[0][points]
     base = Sighting(views[0], scene.poses[0], start)
     frame = FrameInput(4, views[2], scene.poses[2], scene.tool_poses[2])
     rig = _rig(scene, cfg)
     moved = scene.vertices[2][points] - scene.vertices[0][points]
-    lost = np.linalg.norm(moved - np.median(moved, 0), axis=1) > 1e-3  # the dent ...
-    lost[::9] = True  # ... and points spread over the view
-    _, every_found, motion = _direct_camera(latest, base, frame, rig, 0, (lost, None))
-    assert motion is not None and every_found.sum() > 0.5 * lost.sum()
-    for c in range(1, len(scene.models)):
-        pixels, found, _ = _direct_camera(latest, base, frame, rig, c, (lost, motion))
-        reference, ref_found = _chain(latest, base, frame, rig, c, motion)
-        ref_found &= lost
-        ref_found[ref_found] = _unmasked(reference[ref_found], frame, rig, c)
-        assert found.sum() > 0.5 * lost.sum()
-        assert np.array_equal(found, ref_found)
-        assert np.array_equal(pixels[found], reference[found])
+    dent = np.linalg.norm(moved - np.median(moved, 0), axis=1) > 1e-3
+    lost = dent & (np.arange(len(points)) % 3 == 0)
+    lost[::9] = True
+    assert dent.sum() >= 20
+    pressed = lost & dent
+    near = {"guided": 0, "alone": 0}  # pressed points found within 3 px, over the cameras
+    for c in range(len(scene.models)):
+        chained = np.where(lost[:, None], np.nan, target[:, c])
+        motion = scene_motion(latest[~lost], chained[~lost], scene.models[c], scene.poses[2, c])
+        assert motion is not None
+        for name, around in (("guided", chained), ("alone", np.full_like(chained, np.nan))):
+            pixels, found = _direct(latest, base, frame, rig, c, (lost, motion, around))
+            assert not found[~lost].any()
+            error = np.linalg.norm(pixels - target[:, c], axis=1)
+            near[name] += int((found & (error < 3.0))[pressed].sum())
+            # Off the dent the scene's motion is enough: within a pixel.
+            spread = lost & ~dent
+            assert np.mean(found[spread] & (error[spread] < 1.0)) >= 0.8
+    # On the dent, a tracked 5.7 mm press deforms the texture (few straight tracks hold,
+    # test above); the chained neighbours' flow finds at least twice as many (measured on
+    # seed 101: 7 of 46 views against 2).
+    assert near["guided"] >= max(2 * near["alone"], 5)
 
 
 def test_a_frame_chained_through_its_previous_frame_starts_from_the_held_chain(sweep):

@@ -43,10 +43,10 @@ Per camera:
 A frame whose previous frame is not its base (re-basing every N_T >= 2 frames) is chained
 through the previous frame's images (base -> previous -> frame, `_via`: the previous
 frame's chained pixels are held in `Rig.chains` when this process tracked it, else tracked
-again), with the points lost on the way tracked directly from the base (`_direct_camera`:
-every point in the first camera, for the scene's motion, then those points alone with the
-points their neighbour retries look at; the same tracks as tracking every point directly):
-one frame's step of tissue pressed by a tool. Points lost in the chain are tracked again
+again), with the points lost on the way tracked directly from the base (`_direct`: guided
+by the scene's motion the first camera's chained tracks show, those that fail tracked again
+from the flow of the chained tracks around them): one frame's step of tissue pressed by a
+tool. Points lost in the chain are tracked again
 from their guess moved by the median departure of the tracks found around them
 (core/target/tracking.neighbour_flow), and the anchor step's guesses are moved the same way
 by the chained tracks around them.
@@ -59,7 +59,6 @@ from functools import partial
 
 import cv2
 import numpy as np
-from scipy.spatial import cKDTree
 
 from ...config import TargetConfig
 from ..geometry.cameras import CameraModel, in_image, project, undistort_pixels
@@ -71,8 +70,6 @@ from .reacquire import descriptor_motion
 from .stereo_check import disparity_errors, stereo_match
 from .template_lock import lock_groups, lock_to_template, shared_drift
 from .tracking import (
-    NEIGHBOUR_RADIUS_PX,
-    NEIGHBOUR_ROUNDS,
     TrackingView,
     TrackPrior,
     apply_motion,
@@ -251,55 +248,36 @@ def _via(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig) -> Sig
 
 
 def _direct(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig, c: int,
-            lost: tuple[np.ndarray, tuple[np.ndarray, float] | None]
+            lost: tuple[np.ndarray, tuple[np.ndarray, float] | None, np.ndarray]
             ) -> tuple[np.ndarray, np.ndarray]:
     """`_chain` from the base straight into `frame` for camera c of the points lost (N,)
-    bool on the way through the previous frame, guided by the scene's motion (lost[1],
-    `scene_motion`; None: piloted), with the tracks of tracking every point: first the lost
-    points alone without neighbour retries (KLT tracks each point alone), then those that
-    failed again with every point within NEIGHBOUR_ROUNDS x NEIGHBOUR_RADIUS_PX of one in
-    the base image (each round of neighbour retries, core/target/tracking.
-    retrack_from_neighbours, looks at the tracks within NEIGHBOUR_RADIUS_PX, whose own
-    retries looked as far again), the failed ones' first tracks not tracked again (with a
-    known motion, each point's are the same in any company) and the retries limited to
-    the points the failed ones' retries see. Pixels (N, 2) of the lost points (NaN = not
-    found), found (N,). (Every point tracked directly cost a second chain: ~0.1 s of a
-    5-camera 640x512 frame.)"""
-    rows, predicted = lost
+    bool on the way through the previous frame (lost[0]), guided by the scene's motion
+    (lost[1], `scene_motion`; None: piloted); those that fail are tracked again from their
+    guesses moved by the flow of the tracks the chain found around them (lost[2], (N, 2)
+    px, NaN = not found; their departures from the same straight guesses), as
+    `retrack_from_neighbours` does. Pixels (N, 2) of the lost points (NaN = not found),
+    found (N,)."""
+    rows, predicted, chained = lost
     prev, cur = base.views[c], frame.views[c]
     assert prev is not None and cur is not None
     idx, start, prior = _straight_inputs(latest, base, frame, rig, c, (rows, predicted))
-    tracked, ok, _ = track_first(prev, cur, start, prior, rig.cfg)
-    pixels = np.full((len(latest), 2), np.nan)
-    pixels[idx[ok]] = tracked[ok]
-    failed = np.zeros(len(latest), bool)
-    failed[idx[~ok]] = True
-    if failed.any():
-        start = _starts(latest, base, rig.models[c], c)
-        has = np.flatnonzero(np.isfinite(start).all(1))
-        reach = NEIGHBOUR_ROUNDS * NEIGHBOUR_RADIUS_PX
-        near = cKDTree(start[failed]).query(start[has], k=1, distance_upper_bound=reach)[0]
-        around = failed.copy()
-        around[has[np.isfinite(near)]] = True
+    tracked, ok, guess = track_first(prev, cur, start, prior, rig.cfg)
+    # The chained tracks' departures from their own straight guesses (the same in any
+    # subset) guide the retries; not after pilots, whose image motion moved the lost
+    # points' guesses and not theirs.
+    if np.isfinite(prior.motion_px) and not ok.all():
+        around = np.isfinite(chained).all(1) & ~rows
         near_idx, near_start, near_prior = _straight_inputs(latest, base, frame, rig, c,
                                                             (around, predicted))
-        if np.isfinite(near_prior.motion_px):  # no pilots: the first tracks above hold
-            again, again_ok = np.empty((len(near_idx), 2)), np.empty(len(near_idx), bool)
-            known = np.isin(near_idx, idx)
-            at = np.searchsorted(idx, near_idx[known])
-            again[known], again_ok[known] = tracked[at], ok[at]
-            again[~known], again_ok[~known], _ = track_first(
-                prev, cur, near_start[~known],
-                TrackPrior(near_prior.guess[~known], near_prior.motion_px), rig.cfg)
-            guess = near_prior.guess
-        else:
-            again, again_ok, guess = track_first(prev, cur, near_start, near_prior, rig.cfg)
-        wanted = failed[near_idx]
-        again, again_ok = retrack_from_neighbours((prev, cur), near_start, guess,
-                                                  (again, again_ok), rig.cfg, wanted)
-        back = wanted & again_ok
-        pixels[near_idx[back]] = again[back]
-    pixels = np.where(rows[:, None], pixels, np.nan)
+        count = len(idx)
+        tracked, ok = retrack_from_neighbours(
+            (prev, cur), np.vstack([start, near_start]),
+            np.vstack([guess, near_prior.guess]),
+            (np.vstack([tracked, chained[near_idx]]),
+             np.concatenate([ok, np.ones(len(near_idx), bool)])), rig.cfg)
+        tracked, ok = tracked[:count], ok[:count]
+    pixels = np.full((len(latest), 2), np.nan)
+    pixels[idx[ok]] = tracked[ok]
     return pixels, np.isfinite(pixels).all(1)
 
 
@@ -312,27 +290,6 @@ def _straight_inputs(latest: np.ndarray, base: Sighting, frame: FrameInput, rig:
     rows, predicted = subset
     only = Sighting(base.views, base.poses, np.where(rows[:, None, None], base.pixels, np.nan))
     return _chain_inputs(latest, only, replace(frame, previous=None), rig, c, predicted)
-
-
-def _direct_camera(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig, c: int,
-                   lost: tuple[np.ndarray, tuple[np.ndarray, float] | None]
-                   ) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, float] | None]:
-    """The points lost (lost[0], (N,) bool) on the way through the previous frame, tracked
-    from the base straight into camera c: pixels (N, 2) (NaN = not found, or masked:
-    `_unmasked`), found (N,) and the scene's motion these straight tracks show. Until that
-    motion is known (lost[1] None: the first camera), every point is tracked, piloted, and
-    the motion measured on them (`_scene`); then only the lost ones (`_direct`), guided by
-    it: the tracks, guesses and neighbour flows of tracking every point straight."""
-    rows, straight = lost
-    if straight is None:
-        pixels, found = _chain(latest, base, replace(frame, previous=None), rig, c)
-        straight = _scene(latest, pixels, found, rig.models[c], frame.poses[c])
-        found &= rows
-    else:
-        pixels, found = _direct(latest, base, frame, rig, c, (rows, straight))
-    idx = np.flatnonzero(found)
-    found[idx] = _unmasked(pixels[idx], frame, rig, c)
-    return np.where(found[:, None], pixels, np.nan), found, straight
 
 
 def _unmasked(pixels: np.ndarray, frame: FrameInput, rig: Rig, c: int) -> np.ndarray:
@@ -377,7 +334,7 @@ def find_points(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig,
     found = np.zeros((n, n_cams), bool)
     localisation = np.full((n, n_cams), np.inf)
     chained = np.full((n, n_cams, 2), np.nan)  # by the chain alone (for rig.chains)
-    predicted = straight = None  # the scene's motion the chain's / the direct tracks show
+    predicted = None  # the scene's motion the first camera's chained tracks show
     drift = np.full((n, n_cams, 2), np.nan)  # the lock's corrections (NaN: none)
     for c in range(n_cams):
         cur, prev = frame.views[c], base.views[c]
@@ -385,12 +342,13 @@ def find_points(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig,
             continue
         px, ok = _chain(latest, base, frame, rig, c, predicted)
         chain_ok = ok.copy()
-        if direct is not None:  # lost on the way through the previous frame: tracked directly
-            back, back_ok, straight = _direct_camera(latest, direct, frame, rig, c,
-                                                     (~ok, straight))
-            px[back_ok], ok[back_ok] = back[back_ok], True
         if predicted is None:  # the first camera whose tracks show it
             predicted = _scene(latest, px, ok, models[c], cur_poses[c])
+        if direct is not None:  # lost on the way through the previous frame: tracked directly
+            back, back_ok = _direct(latest, direct, frame, rig, c,
+                                    (~ok, predicted, np.where(ok[:, None], px, np.nan)))
+            back_ok[back_ok] = _unmasked(back[back_ok], frame, rig, c)
+            px[back_ok], ok[back_ok] = back[back_ok], True
         anchor = None if anchor_views is None else anchor_views[c]
         if anchor is not None and template is not None:
             px, ok = _anchor(anchor, cur, template.pixels[:, c], px, models[c], cfg)
