@@ -7,8 +7,6 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any
 
-import numpy as np
-
 from ..config import Config
 from ..core.measure.indentation import NOT_MEASURED, tool_known
 from . import html as rh
@@ -29,10 +27,10 @@ def contact_section(data: RunData, config: Config, pngs: Mapping[str, bytes]) ->
               ""),
              ("deepest indentation", _mm(summary.get("max_indentation_mm"),
                                          summary.get("max_indentation_sigma_mm")), ""),
-             ("largest deformed area", _num(summary.get("max_area_mm2"), "mm²"), ""),
-             ("largest indented volume", _num(summary.get("max_volume_mm3"), "mm³"), "")]
+             ("largest deformed area", rh.number(summary.get("max_area_mm2"), "mm²"), ""),
+             ("largest indented volume", rh.number(summary.get("max_volume_mm3"), "mm³"), "")]
     if d.youngs_modulus_kpa > 0:
-        items.append(("force proxy (model)", _num(summary.get("max_force_n"), "N"), ""))
+        items.append(("force proxy (model)", rh.number(summary.get("max_force_n"), "N"), ""))
     if not known.any():
         items = [(name, NOT_MEASURED, "") for name, _value, _mood in items]
     sec.add(rh.tiles(items))
@@ -91,10 +89,10 @@ def contact_section(data: RunData, config: Config, pngs: Mapping[str, bytes]) ->
                           "largest area", "largest volume", "smallest clearance"),
                          [(t.get("name", ""), t.get("pose", ""),
                            _contact_frames(t, series.n_frames),
-                           _num(t.get("max_indentation_mm"), "mm"),
-                           _num(t.get("max_area_mm2"), "mm²"),
-                           _num(t.get("max_volume_mm3"), "mm³"),
-                           _num(t.get("min_clearance_mm"), "mm")) for t in extra]))
+                           rh.number(t.get("max_indentation_mm"), "mm"),
+                           rh.number(t.get("max_area_mm2"), "mm²"),
+                           rh.number(t.get("max_volume_mm3"), "mm³"),
+                           rh.number(t.get("min_clearance_mm"), "mm")) for t in extra]))
     scores = (data.evaluation or {}).get("deformation")
     if scores:
         sec.add(_scores(scores))
@@ -118,12 +116,12 @@ def _scores(s: dict[str, Any]) -> str:
          f"{s['onset_frame']} / {s['release_frame']} (truth {s['true_onset_frame']} / "
          f"{s['true_release_frame']})", "within 1 frame", verdict("contact_events")),
         ("indentation error, frames in contact (median)",
-         f"{_num(depth['median'], 'mm')} ({_share(share['median'])})",
+         f"{rh.number(depth['median'], 'mm')} ({_share(share['median'])})",
          "≤ 0.3 mm or ≤ 10 %", verdict("indentation")),
         ("deformed area error (median)", _share(s["area_error_share"]["median"]), "≤ 20 %",
          verdict("area")),
         ("out of contact: false contacts, |depth| / σ (max)",
-         f"{free['false_contacts']}, {_num(free['depth_over_sigma_max'], '')}",
+         f"{free['false_contacts']}, {rh.number(free['depth_over_sigma_max'])}",
          "0, ≤ 2", verdict("breathing")),
     ]
     if goals and all(v == NOT_MEASURED for v in goals.values()):
@@ -131,14 +129,8 @@ def _scores(s: dict[str, Any]) -> str:
     return rh.table(("against ground truth", "measured", "goal", ""), rows)
 
 
-def _num(value: Any, unit: str) -> str:
-    if value is None or not np.isfinite(value):
-        return "–"
-    return f"{value:.3g} {unit}".rstrip()
-
-
 def _mm(value: Any, sigma: Any) -> str:
-    text = _num(value, "mm")
+    text = rh.number(value, "mm")
     return text if sigma is None or text == "–" else f"{text} ± {sigma:.2g}"
 
 

@@ -13,6 +13,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+import numpy as np
+
 _CSS = """
 :root { --ink:#1f2933; --muted:#66788a; --line:#e4e7eb; --accent:#4C78A8; --bg:#f7f9fb; }
 * { box-sizing: border-box; }
@@ -129,6 +131,14 @@ def render(title: str, subtitle: str, sections: Sequence[Section], footer: str =
         f"<nav>{nav}</nav><main>{body}</main>"
         f"<footer>{html.escape(footer)}</footer></body></html>\n"
     )
+
+
+def number(value: Any, unit: str = "") -> str:
+    """A measured value to 3 significant digits with its unit; "–" when it is missing (None
+    or not finite)."""
+    if value is None or not np.isfinite(value):
+        return "–"
+    return f"{value:.3g} {unit}".rstrip()
 
 
 def _cell(value: Any) -> str:

@@ -195,19 +195,19 @@ def _quality(data: RunData, frames: FrameFigures, metrics: Metrics,
     sec = rh.Section("quality", "Quality (no ground truth needed)")
     sec.add(rh.table(("measured noise (1σ per axis)", "value"), [
         ("pixel noise at frame 0 (template residuals per degree of freedom)",
-         _fmt_num(noise.get("pixel_px"), "px")),
+         rh.number(noise.get("pixel_px"), "px")),
         ("of which localisation (each camera's median residual taken out)",
-         _fmt_num(noise.get("localisation_px"), "px")),
+         rh.number(noise.get("localisation_px"), "px")),
         ("largest systematic offset of a camera's views (the median residual: a calibration "
          "error, or the frame-0 pose error of a camera on its own tracker)",
          _largest_offset(noise.get("calibration_offset_px") or {})),
         ("tracker position jitter (median over cameras)",
-         _fmt_num(float(np.median(jitter)) if jitter else None, "mm")),
+         rh.number(float(np.median(jitter)) if jitter else None, "mm")),
         ("tracker rotation jitter (median over cameras)",
-         _fmt_num(float(np.median(jitter_deg)) if jitter_deg else None, "°")),
+         rh.number(float(np.median(jitter_deg)) if jitter_deg else None, "°")),
         ("tracking noise (each tracked patch's Cramér-Rao bound plus what the frame's "
          "re-triangulated residuals show beyond the model; median over frames)",
-         _fmt_num(noise.get("tracking_px"), "px")),
+         rh.number(noise.get("tracking_px"), "px")),
         ("cameras sharing one tracked body (pose error rigid for the group)",
          "; ".join(", ".join(g) for g in bodies) or "none"),
     ]))
@@ -295,11 +295,7 @@ def _largest_offset(offsets: dict[str, list[float | None]]) -> str:
     if not lengths:
         return "–"
     camera = max(lengths, key=lengths.__getitem__)
-    return f"{_fmt_num(lengths[camera], 'px')} ({camera})"
-
-
-def _fmt_num(value: Any, unit: str) -> str:
-    return "–" if value is None or not np.isfinite(value) else f"{value:.3g} {unit}"
+    return f"{rh.number(lengths[camera], 'px')} ({camera})"
 
 
 def _evaluation(ev: dict[str, Any], pngs: Figures) -> rh.Section:
