@@ -46,10 +46,9 @@ frame's chained pixels are held in `Rig.chains` when this process tracked it, el
 again), with the points lost on the way tracked directly from the base (`_direct`: guided
 by the scene's motion the first camera's chained tracks show, those that fail tracked again
 from the flow of the chained tracks around them): one frame's step of tissue pressed by a
-tool. Points lost in the chain are tracked again
-from their guess moved by the median departure of the tracks found around them
-(core/target/tracking.neighbour_flow), and the anchor step's guesses are moved the same way
-by the chained tracks around them.
+tool. Points lost in the chain are tracked again from their guess moved by the median
+departure of the tracks found around them (core/target/tracking.neighbour_flow), and the
+anchor step's guesses are moved the same way by the chained tracks around them.
 """
 
 from __future__ import annotations
@@ -266,7 +265,7 @@ def _direct(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig, c: 
     # subset) guide the retries; not after pilots, whose image motion moved the lost
     # points' guesses and not theirs.
     if np.isfinite(prior.motion_px) and not ok.all():
-        around = np.isfinite(chained).all(1) & ~rows
+        around = np.isfinite(chained).all(1)
         near_idx, near_start, near_prior = _straight_inputs(latest, base, frame, rig, c,
                                                             (around, predicted))
         count = len(idx)
