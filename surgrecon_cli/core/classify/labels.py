@@ -111,35 +111,36 @@ def _information_step(pred: np.ndarray, residual: np.ndarray, info: np.ndarray,
 
     With J_j = [−[q_j]×, I] (q_j the member about the mean) the normal matrix Σ J_jᵀ I_j J_j
     has the blocks Σ [q_j]× I_j (turn-shift), −Σ [q_j]× I_j [q_j]× (turn-turn) and Σ I_j:
-    with [q]×_ab = ε_aeb q_e they are the member sums Σ q_e I_bc and Σ q_e q_f I_bc (each
-    one batched (9 x K) @ (K x 9) product per neighbourhood) times constant matrices of ε."""
+    with [q]×_ab = ε_aeb q_e they are the member sums Σ q_e I_bc and Σ q_e q_f I_bc (e <= f;
+    each one batched product per neighbourhood) times constant matrices of ε."""
     target = pred + residual
     n, k = keep.shape
     usable = keep.sum(1) >= 3
     count = np.maximum(keep.sum(1), 1)[:, None]
+    members = keep.astype(float)[:, None, :]  # (N, 1, K): sums over members as products
     info_flat = info.reshape(n, k, 9)
-    shift_shift = info_flat.sum(1).reshape(n, 3, 3)
+    shift_shift = np.matmul(members, info_flat).reshape(n, 3, 3)
     normal = np.empty((n, 6, 6))
     for _ in range(INFORMATION_STEPS):
-        centre = (np.where(keep[..., None], pred, 0.0).sum(1) / count)[:, None, :]
+        centre = (np.matmul(members, pred)[:, 0] / count)[:, None, :]
         q = pred - centre
         q_t = np.swapaxes(q, 1, 2)
         first = np.matmul(q_t, info_flat).reshape(n, 9, 3)  # Σ q_e I_bc, rows (e, b)
-        pairs = (q[..., :, None] * q[..., None, :]).reshape(n, k, 9)
-        second = np.matmul(np.swapaxes(pairs, 1, 2), info_flat).reshape(n, 81)
+        pairs = np.stack([q_t[:, e] * q_t[:, f] for e, f in _SYMMETRIC_PAIRS], 1)  # (N, 6, K)
+        second = np.matmul(pairs, info_flat).reshape(n, 54)  # Σ q_e q_f I_bc, e <= f
         turn_shift = np.matmul(_EPS_AEB, first)  # ε_aeb Σ q_e I_bc
         normal[:, :3, :3] = (second @ _TURN_TURN).reshape(n, 3, 3)
         normal[:, :3, 3:] = turn_shift
         normal[:, 3:, :3] = np.swapaxes(turn_shift, 1, 2)
         normal[:, 3:, 3:] = shift_shift
-        info_r = np.matmul(info, (target - pred)[..., None])[..., 0]
+        info_r = np.einsum("nkab,nkb->nka", info, target - pred)  # batched 3x3 products
         moment = np.matmul(q_t, info_r).reshape(n, 9) @ _EPS_AEB.T  # ε_aeb Σ q_e (I r)_b
-        rhs = np.concatenate([moment, info_r.sum(1)], -1)
+        rhs = np.concatenate([moment, np.matmul(members, info_r)[:, 0]], -1)
         scale = np.trace(normal, axis1=1, axis2=2)[:, None, None]
         step = np.linalg.solve(normal + (1e-12 * scale + 1e-30) * np.eye(6), rhs[..., None])[..., 0]
         turn = Rotation.from_rotvec(np.where(usable[:, None], step[:, :3], 0.0)).as_matrix()
-        pred = centre + q @ np.swapaxes(turn, 1, 2) + np.where(
-            usable[:, None], step[:, 3:], 0.0)[:, None, :]
+        pred = q @ np.swapaxes(turn, 1, 2) + (
+            centre + np.where(usable[:, None], step[:, 3:], 0.0)[:, None, :])
     return np.where(keep[..., None], target - pred, 0.0)
 
 
@@ -151,10 +152,19 @@ def _levi_civita() -> np.ndarray:
     return eps
 
 
+def _turn_turn() -> np.ndarray:
+    """−ε_aeb ε_cfd as an (e f b c) x (a d) matrix (54, 9) over the pairs e <= f
+    (`_SYMMETRIC_PAIRS`; q_e q_f is symmetric, so the (f, e) rows join the (e, f) ones):
+    −Σ [q]× I [q]× from the sums Σ q_e q_f I_bc."""
+    full = -np.einsum("aeb,cfd->efbcad", _LEVI_CIVITA, _LEVI_CIVITA).reshape(3, 3, 9, 9)
+    return np.stack([full[e, f] + (full[f, e] if e != f else 0.0)
+                     for e, f in _SYMMETRIC_PAIRS]).reshape(54, 9)
+
+
 _LEVI_CIVITA = _levi_civita()
 _EPS_AEB = _LEVI_CIVITA.reshape(3, 9)  # ε_a,(e b): [q]× I = ε_aeb q_e I_bc
-# −ε_aeb ε_cfd as an (e f b c) x (a d) matrix: −Σ [q]× I [q]× from Σ q_e q_f I_bc
-_TURN_TURN = -np.einsum("aeb,cfd->efbcad", _LEVI_CIVITA, _LEVI_CIVITA).reshape(81, 9)
+_SYMMETRIC_PAIRS = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+_TURN_TURN = _turn_turn()
 
 
 def rigid_fit_rms(
