@@ -117,7 +117,7 @@ def _weighted_fit_energy(template: np.ndarray, positions: np.ndarray, covariance
     residual, keep = rigid_fit_residuals(template, positions, index, mask, weights=total / 3.0,
                                          information=info)
     member_info = info[index]
-    energy = (np.matmul(member_info, residual[..., None])[..., 0] * residual).sum((1, 2))
+    energy = (np.einsum("nkab,nkb->nka", member_info, residual) * residual).sum((1, 2))
     return energy, keep, total[index]
 
 

@@ -124,9 +124,11 @@ def fit_rigid(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = Non
     if weights is None:
         weights = np.ones(src.shape[:-1])
     w = weights / np.maximum(weights.sum(-1, keepdims=True), 1e-300)
-    mu_s = np.einsum("...n,...ni->...i", w, src)
-    mu_d = np.einsum("...n,...ni->...i", w, dst)
-    S = np.einsum("...n,...ni,...nj->...ij", w, dst - mu_d[..., None, :], src - mu_s[..., None, :])
+    # weighted sums as batched products (numpy's three-operand einsum is ~2x slower)
+    mu_s = np.matmul(w[..., None, :], src)[..., 0, :]
+    mu_d = np.matmul(w[..., None, :], dst)[..., 0, :]
+    S = np.matmul(np.swapaxes((dst - mu_d[..., None, :]) * w[..., None], -1, -2),
+                  src - mu_s[..., None, :])
     R = nearest_rotation(S)
     t = mu_d - np.einsum("...ij,...j->...i", R, mu_s)
     return R, t
