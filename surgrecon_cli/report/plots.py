@@ -283,19 +283,20 @@ def quality_over_time(frames: np.ndarray, fractions: dict[str, np.ndarray],
                       sigma_mm: np.ndarray, residual_ratio: np.ndarray) -> bytes:
     """Quality panel: shares of points per frame (left) and median σ / residual ratio
     (right)."""
-    fig = new_figure(9.0, 3.2)
+    fig = new_figure(9.0, 3.5)
     left, right = fig.subplots(1, 2)
     for name, values in fractions.items():
         left.plot(frames, values * 100, marker="o", ms=3, label=name)
     left.set_ylim(0, 100)
     label_frame_axes(left, frames, "% of template points", "what the data support")
-    left.legend(fontsize=8)
     right.plot(frames, sigma_mm, marker="o", ms=3, color="tab:blue", label="median σ (mm)")
     right.plot(frames, residual_ratio, marker="s", ms=3, color="tab:red",
                label="residual / σ_target")
     right.axhline(1.0, color="grey", lw=0.8, ls=":")
     label_frame_axes(right, frames, "mm  /  ratio", "uncertainty and fit")
-    right.legend(fontsize=8)
+    for ax in (left, right):  # below the axes, in one row: never over a curve
+        ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.2),
+                  ncol=len(ax.get_legend_handles_labels()[1]))
     return to_png(fig)
 
 
