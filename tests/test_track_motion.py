@@ -265,8 +265,8 @@ def test_points_lost_on_the_way_are_tracked_straight_guided_by_the_chained_track
     # A frame chained through its previous one tracks straight from the base the points the
     # chain lost; where a lost point's own guess (the scene's motion) fails, as on the
     # pressed tissue, the chained tracks around it say how far the press moved it. Here the
-    # chain lost a third of the dent and a ninth of the rest, and found the others at their
-    # true pixels.
+    # chain lost every 2nd, 3rd or 4th point of the dent and every 9th of the rest, and
+    # found the others at their true pixels.
     scene, cfg, points, views = press
     start = np.stack([project(scene.vertices[0][points], scene.true_poses[0, c], m)[0]
                       for c, m in enumerate(scene.models)], 1)
@@ -278,27 +278,32 @@ def test_points_lost_on_the_way_are_tracked_straight_guided_by_the_chained_track
     rig = _rig(scene, cfg)
     moved = scene.vertices[2][points] - scene.vertices[0][points]
     dent = np.linalg.norm(moved - np.median(moved, 0), axis=1) > 1e-3
-    lost = dent & (np.arange(len(points)) % 3 == 0)
-    lost[::9] = True
-    assert dent.sum() >= 20
-    pressed = lost & dent
-    near = {"guided": 0, "alone": 0}  # pressed points found within 3 px, over the cameras
-    for c in range(len(scene.models)):
-        chained = np.where(lost[:, None], np.nan, target[:, c])
-        motion = scene_motion(latest[~lost], chained[~lost], scene.models[c], scene.poses[2, c])
-        assert motion is not None
-        for name, around in (("guided", chained), ("alone", np.full_like(chained, np.nan))):
-            pixels, found = _direct(latest, base, frame, rig, c, (lost, motion, around))
-            assert not found[~lost].any()
-            error = np.linalg.norm(pixels - target[:, c], axis=1)
-            near[name] += int((found & (error < 3.0))[pressed].sum())
-            # Off the dent the scene's motion is enough: within a pixel.
-            spread = lost & ~dent
-            assert np.mean(found[spread] & (error[spread] < 1.0)) >= 0.8
-    # On the dent, a tracked 5.7 mm press deforms the texture (few straight tracks hold,
-    # test above); the chained neighbours' flow finds at least twice as many (measured on
-    # seed 101: 7 of 46 views against 2).
-    assert near["guided"] >= max(2 * near["alone"], 5)
+    assert dent.sum() >= 40
+    total = {"guided": 0, "alone": 0}
+    for every in (2, 3, 4):
+        lost = dent & (np.arange(len(points)) % every == 0)
+        lost[::9] = True
+        pressed = lost & dent
+        near = {"guided": 0, "alone": 0}  # pressed points found within 3 px, both cameras
+        for c in range(len(scene.models)):
+            chained = np.where(lost[:, None], np.nan, target[:, c])
+            motion = scene_motion(latest[~lost], chained[~lost], scene.models[c],
+                                  scene.poses[2, c])
+            assert motion is not None
+            for name, around in (("guided", chained), ("alone", np.full_like(chained, np.nan))):
+                pixels, found = _direct(latest, base, frame, rig, c, (lost, motion, around))
+                assert not found[~lost].any()
+                error = np.linalg.norm(pixels - target[:, c], axis=1)
+                near[name] += int((found & (error < 3.0))[pressed].sum())
+                # Off the dent the scene's motion is enough: within a pixel.
+                spread = lost & ~dent
+                assert np.mean(found[spread] & (error[spread] < 1.0)) >= 0.8
+        assert near["guided"] >= near["alone"]
+        total = {k: total[k] + near[k] for k in total}
+    # A 5.7 mm press deforms the texture, so few straight tracks hold on the dent (the test
+    # above); the chained neighbours' flow finds more of them (measured on seed 101: 34 of
+    # 186 views against 24).
+    assert total["guided"] >= total["alone"] + 5
 
 
 def test_a_frame_chained_through_its_previous_frame_starts_from_the_held_chain(sweep):
