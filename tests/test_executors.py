@@ -26,7 +26,7 @@ from surgrecon_cli.executors import (
 from surgrecon_cli.io.run.folder import RunFolder
 from surgrecon_cli.pipeline import run_pipeline
 from surgrecon_cli.stages.classify import run_classify
-from surgrecon_cli.stages.register import base_frame
+from surgrecon_cli.stages.register import base_frame, tracks_locked
 
 KINDS = ("serial", "processes", "dask")
 
@@ -174,6 +174,17 @@ def test_config_rejects_unknown_executor_and_scheduler_without_dask():
 def test_frames_depend_only_on_their_base():
     assert [base_frame(k, 2) for k in range(1, 8)] == [0, 0, 2, 2, 4, 4, 6]
     assert [base_frame(k, 0) for k in range(1, 5)] == [0, 0, 0, 0]
+
+
+@pytest.mark.parametrize("every", [0, 1, 2, 3])
+def test_frames_some_later_frame_starts_from_keep_the_template_lock(every: int):
+    """A frame's tracks go unlocked only where they cannot carry drift on: the frame is one
+    step from its base and no later frame's base (a failed base: two steps, locked)."""
+    later_bases = {base_frame(j, every) for j in range(1, 40)}
+    for k in range(1, 30):
+        base = base_frame(k, every)
+        assert tracks_locked(k, base, every) == (k in later_bases or k - 1 != base), k
+    assert tracks_locked(3, 0, 2)  # frame 2 failed: frame 3 is tracked from frame 0
 
 
 # ---- the pipeline on every executor ---------------------------------------------------

@@ -62,6 +62,14 @@ def base_frame(frame: int, update_every: int) -> int:
     return ((frame - 1) // update_every) * update_every if update_every else 0
 
 
+def tracks_locked(frame: int, base: int, update_every: int) -> bool:
+    """Whether `frame`'s tracks are locked to the template (`FrameInput.lock`): all but
+    those of a frame one step from its base (the registered frame it is tracked from) that
+    is no later frame's base."""
+    is_base = update_every > 0 and frame % update_every == 0
+    return frame - 1 != base or is_base
+
+
 def _load_base(layout: RunLayout, log: IngestedLog, frame: int, update_every: int,
                template: TemplateData) -> BaseState:
     """The base state of `frame` with its views; a failed base frame is replaced by its own
@@ -122,14 +130,15 @@ def _registrar(run_dir: str, _identity: tuple, config: Config) -> FrameRegistrar
 
 def _frame_input(log: IngestedLog, config: Config, frame: int,
                  images: list[np.ndarray | None] | None = None,
-                 previous: FrameInput | None = None) -> FrameInput:
+                 previous: FrameInput | None = None, lock: bool = True) -> FrameInput:
     """A frame's tracking views, usable poses and tools (with each camera's view of them
     where `tool.camera_offsets` moves them), its RGB images when new points are to be
-    triangulated, and the frame tracked through on the way from the base."""
+    triangulated, the frame tracked through on the way from the base, and whether its
+    tracks are locked to the template (`FrameInput.lock`)."""
     tools = tool_poses(log, config, frame)
     return FrameInput(frame, frame_views(log, frame), log.usable_poses(frame), tools, images,
                       camera_tool_pose=tools_per_camera(tools, log, config),
-                      previous=previous)
+                      previous=previous, lock=lock)
 
 
 def register_frame(run_dir: Path, frame: int, config: Config) -> dict:
@@ -150,7 +159,8 @@ def register_frame(run_dir: Path, frame: int, config: Config) -> dict:
     # the previous frame, when it lies after the base, is tracked through
     # (core/target/track_points._via)
     previous = _frame_input(log, config, frame - 1) if frame - 1 > base.frame else None
-    inputs = _frame_input(log, config, frame, images, previous)
+    inputs = _frame_input(log, config, frame, images, previous,
+                          lock=tracks_locked(frame, base.frame, every))
     seconds_views = time.perf_counter() - start  # counted with the target: its images
     try:
         result = registrar.step(inputs, base)

@@ -122,7 +122,11 @@ class FrameInput:
     triangulated into its target, its RGB images (H, W, 3) uint8 (else None);
     `camera_tool_pose` (C, K, 4, 4): each camera's view of the tools (`tool.camera_offsets`),
     None = every camera sees them at `tool_pose`; `previous`: the frame before it when that
-    is not the base (None: none or not given), tracked through (core/target/track_points)."""
+    is not the base (None: none or not given), tracked through (core/target/track_points);
+    `lock`: whether its tracks are locked to the template's images (track_points' step 3;
+    False for a frame one step from its base that is no later frame's base: its tracks
+    carry one KLT step's drift, which the lock does not reduce, and nothing starts from
+    them)."""
 
     index: int
     views: list[TrackingView | None]
@@ -131,6 +135,7 @@ class FrameInput:
     images: list[np.ndarray | None] | None = None
     camera_tool_pose: np.ndarray | None = None
     previous: FrameInput | None = None
+    lock: bool = True
 
     @property
     def seen_tools(self) -> np.ndarray:

@@ -34,7 +34,10 @@ Per camera:
    taken out; cameras of one narrow stereo head share each point's correction (the mean of
    their views', `shared_drift`), which keeps the pair's disparity. The chained pixels held
    for the next frame (`rig.chains`) stay as tracked, so that a frame tracked again through
-   its previous frame finds the same ones;
+   its previous frame finds the same ones. A frame one step from its base that is no
+   later frame's base is not locked (`FrameInput.lock`): one step from a locked base leaves
+   too little drift for the lock to take out (the simulator's tuning logs registered
+   within ±0.002 mm median of the locked frames);
 4. stereo: the two views of a point in a narrow stereo pair (a `lock_groups` group of two
    cameras) are moved apart so that their disparity is the one the pair's images of this
    instant show (core/target/stereo_check.py): a view that slipped along its epipolar line
@@ -59,7 +62,6 @@ from functools import partial
 import cv2
 import numpy as np
 
-from ...config import TargetConfig
 from ..geometry.cameras import CameraModel, in_image, project, undistort_pixels
 from ..geometry.poses import invert_pose
 from ..geometry.tool import tool_pixel_mask
@@ -194,14 +196,18 @@ def _chain_inputs(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Ri
     return idx, start[idx], prior
 
 
-def _anchor(anchor: TrackingView, cur: TrackingView, anchor_pixels: np.ndarray,
-            pixels: np.ndarray, model: CameraModel, cfg: TargetConfig
-            ) -> tuple[np.ndarray, np.ndarray]:
-    """Step 2 for one camera: the chained pixels (N, 2) (NaN = not found) and found (N,),
-    with the points not found re-acquired from the template's image, from where the image
-    motion since the template puts them: fitted to the chained tracks, or where they are
-    too few (tracking lost), to ORB matches between the two images
-    (core/reacquire.descriptor_motion)."""
+def _anchor(anchor: TrackingView, anchor_pixels: np.ndarray, pixels: np.ndarray,
+            frame: FrameInput, rig: Rig, c: int) -> tuple[np.ndarray, np.ndarray]:
+    """Step 2 for camera c: the chained pixels (N, 2) (NaN = not found) and found (N,),
+    with the points not found re-acquired from the template's image `anchor` (the points
+    at anchor_pixels (N, 2) px there), from where the image motion since the template puts
+    them: fitted to the chained tracks, or where they are too few (tracking lost), to ORB
+    matches between the two images (core/reacquire.descriptor_motion). A point guessed
+    behind a tool (`_unmasked`) is not tracked: its track would have to leave the tool's
+    mask, which the guesses' error does not reach (on the 5-camera frame-cost log, of ~20
+    such points a frame that tracked, none ended outside the mask)."""
+    cur, model = frame.views[c], rig.models[c]
+    assert cur is not None  # find_points skips unusable cameras
     found = np.isfinite(pixels).all(1)
     has = np.isfinite(anchor_pixels).all(1) & in_image(
         np.nan_to_num(anchor_pixels, nan=-1e9), model, KLT_BORDER_PX)
@@ -220,8 +226,9 @@ def _anchor(anchor: TrackingView, cur: TrackingView, anchor_pixels: np.ndarray,
     near = np.isfinite(local).all(1)
     guess[lost[near]] += local[near]
     idx = np.flatnonzero(has & ~found & in_image(guess, model, KLT_BORDER_PX))
+    idx = idx[_unmasked(guess[idx], frame, rig, c)]
     tracked, ok, _ = track_adaptive(anchor, cur, anchor_pixels[idx], TrackPrior(guess[idx]),
-                                    cfg)
+                                    rig.cfg)
     pixels = pixels.copy()
     pixels[idx[ok]] = tracked[ok]
     return pixels, np.isfinite(pixels).all(1)
@@ -259,22 +266,25 @@ def _direct(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig, c: 
     rows, predicted, chained = lost
     prev, cur = base.views[c], frame.views[c]
     assert prev is not None and cur is not None
-    idx, start, prior = _straight_inputs(latest, base, frame, rig, c, (rows, predicted))
-    tracked, ok, guess = track_first(prev, cur, start, prior, rig.cfg)
-    # The chained tracks' departures from their own straight guesses (the same in any
-    # subset) guide the retries; not after pilots, whose image motion moved the lost
-    # points' guesses and not theirs.
-    if np.isfinite(prior.motion_px) and not ok.all():
-        around = np.isfinite(chained).all(1)
-        near_idx, near_start, near_prior = _straight_inputs(latest, base, frame, rig, c,
-                                                            (around, predicted))
-        count = len(idx)
+    # The chained tracks' departures from their own straight guesses guide the retries;
+    # not after pilots (no predicted motion), whose image motion moved the lost points'
+    # guesses and not theirs. A point's start and guess are the same in any subset: the
+    # lost points and the chained ones are set up at once.
+    around = np.isfinite(chained).all(1) if predicted is not None else np.zeros_like(rows)
+    both, start, prior = _straight_inputs(latest, base, frame, rig, c,
+                                          (rows | around, predicted))
+    mine = rows[both]
+    idx, near = both[mine], both[~mine]
+    alternative = None if prior.alternative is None else prior.alternative[mine]
+    tracked, ok, guess = track_first(prev, cur, start[mine], TrackPrior(
+        prior.guess[mine], prior.motion_px, alternative), rig.cfg)
+    if predicted is not None and not ok.all():
         tracked, ok = retrack_from_neighbours(
-            (prev, cur), np.vstack([start, near_start]),
-            np.vstack([guess, near_prior.guess]),
-            (np.vstack([tracked, chained[near_idx]]),
-             np.concatenate([ok, np.ones(len(near_idx), bool)])), rig.cfg)
-        tracked, ok = tracked[:count], ok[:count]
+            (prev, cur), np.vstack([start[mine], start[~mine]]),
+            np.vstack([guess, prior.guess[~mine]]),
+            (np.vstack([tracked, chained[near]]),
+             np.concatenate([ok, np.ones(len(near), bool)])), rig.cfg)
+        tracked, ok = tracked[:len(idx)], ok[:len(idx)]
     pixels = np.full((len(latest), 2), np.nan)
     pixels[idx[ok]] = tracked[ok]
     return pixels, np.isfinite(pixels).all(1)
@@ -350,10 +360,11 @@ def find_points(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig,
             px[back_ok], ok[back_ok] = back[back_ok], True
         anchor = None if anchor_views is None else anchor_views[c]
         if anchor is not None and template is not None:
-            px, ok = _anchor(anchor, cur, template.pixels[:, c], px, models[c], cfg)
-            drift[:, c] = lock_to_template(anchor, cur, template.pixels[:, c],
-                                           np.where(ok[:, None], px, np.nan),
-                                           cfg.klt_window_px, template.neighbours[c])
+            px, ok = _anchor(anchor, template.pixels[:, c], px, frame, rig, c)
+            if frame.lock:
+                drift[:, c] = lock_to_template(anchor, cur, template.pixels[:, c],
+                                               np.where(ok[:, None], px, np.nan),
+                                               cfg.klt_window_px, template.neighbours[c])
         rows = np.flatnonzero(ok)
         rows = rows[_unmasked(px[rows], frame, rig, c)]
         pixels[rows, c] = px[rows]
@@ -364,7 +375,7 @@ def find_points(latest: np.ndarray, base: Sighting, frame: FrameInput, rig: Rig,
         chained[mine, c] = px[mine]
     if frame.previous is None and rig.chains is not None:
         rig.chains.put(rig.chains.key(latest, base, frame.index), chained)
-    if np.isfinite(drift).any():  # not when tracking without anchors (`_via`)
+    if anchor_views is not None and template is not None:  # not without anchors (`_via`)
         groups = lock_groups(cur_poses[:, :3, 3], latest)
         pixels += np.where(found[..., None], shared_drift(drift, groups), 0.0)
         for pair in (g for g in groups if len(g) == 2):
