@@ -105,8 +105,9 @@ def test_full_report(pipeline_run):
     assert summary["evaluation"]["registration_error_mm"]["count"] == n * (n_frames - 1)
     assert {"ingest", "build-template", "register", "classify"} <= set(summary["seconds"])
     floors = [float(r["deform_floor_median_mm"]) for r in rows[1:]]
+    # frames.csv holds 6 significant digits: half a unit of the last is up to 5e-6 of it
     assert summary["classify"]["deform_floor_mm"] == pytest.approx(float(np.median(floors)),
-                                                                   rel=1e-6)
+                                                                   rel=5e-6)
 
 
 def test_report_with_only_the_template(copy_run):
