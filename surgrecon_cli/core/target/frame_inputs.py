@@ -125,8 +125,7 @@ class FrameInput:
     is not the base (None: none or not given), tracked through (core/target/track_points);
     `lock`: whether its tracks are locked to the template's images (track_points' step 3;
     False for a frame one step from its base that is no later frame's base: its tracks
-    carry one KLT step's drift, which the lock does not reduce, and nothing starts from
-    them)."""
+    carry one KLT step's drift, and nothing starts from them)."""
 
     index: int
     views: list[TrackingView | None]

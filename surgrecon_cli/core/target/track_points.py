@@ -35,9 +35,10 @@ Per camera:
    their views', `shared_drift`), which keeps the pair's disparity. The chained pixels held
    for the next frame (`rig.chains`) stay as tracked, so that a frame tracked again through
    its previous frame finds the same ones. A frame one step from its base that is no
-   later frame's base is not locked (`FrameInput.lock`): one step from a locked base leaves
-   too little drift for the lock to take out (the simulator's tuning logs registered
-   within ±0.002 mm median of the locked frames);
+   later frame's base is not locked (`FrameInput.lock`): nothing starts from its tracks,
+   so their one step of drift goes no further (on real-texture SurgT clips turned 3.5° a
+   frame their error rose from ~0.085 to ~0.10 px, which the frame's measured tracking
+   noise follows; no registered position or label moved, docs/tracking-speed.md);
 4. stereo: the two views of a point in a narrow stereo pair (a `lock_groups` group of two
    cameras) are moved apart so that their disparity is the one the pair's images of this
    instant show (core/target/stereo_check.py): a view that slipped along its epipolar line
