@@ -65,9 +65,8 @@ def base_frame(frame: int, update_every: int) -> int:
 def tracks_locked(frame: int, base: int, update_every: int) -> bool:
     """Whether `frame`'s tracks are locked to the template (`FrameInput.lock`): all but
     those of a frame one step from its base (the registered frame it is tracked from) that
-    is no later frame's base."""
-    is_base = update_every > 0 and frame % update_every == 0
-    return frame - 1 != base or is_base
+    is no later frame's base (the next frame's base is the latest: `base_frame`)."""
+    return frame - 1 != base or base_frame(frame + 1, update_every) == frame
 
 
 def _load_base(layout: RunLayout, log: IngestedLog, frame: int, update_every: int,
