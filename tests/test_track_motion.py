@@ -33,11 +33,15 @@ from surgrecon_cli.core.target.track_points import (
 from surgrecon_cli.core.target.tracking import (
     NEIGHBOUR_RADIUS_PX,
     NEIGHBOUR_TRACKS,
+    SPECULAR_CHROMA,
+    SPECULAR_MARGIN_PX,
+    SPECULAR_VALUE,
     TrackingView,
     klt_crops,
     klt_track,
     neighbour_flow,
     specular_mask,
+    specular_zone,
     tracking_view,
 )
 from surgrecon_cli.sim.variants import variant_config
@@ -134,6 +138,31 @@ def test_points_lost_by_the_chain_are_reacquired_from_the_template_images(sweep)
     assert np.percentile(error[~lost[:, None] & found & seen], 95) < 1.0  # chained
     # Re-acquired after 4 frames (~12 deg) of changed perspective: within a pixel or so.
     assert np.percentile(error[lost[:, None] & found & seen], 95) < 1.5
+
+
+@pytest.mark.parametrize("rows", [(0, 3), (40, 44), (93, 96), None])
+def test_the_highlights_and_their_zone_are_those_of_the_per_pixel_rule(rows):
+    # Near-white, low-chroma pixels in a band of rows (at the top, inside, at the bottom,
+    # none) among bright coloured ones that are not highlights: the mask found from the
+    # grey image's bright rows and its zone grown on the band are the rule applied to every
+    # pixel and a square dilation of the whole image (scipy).
+    from scipy.ndimage import binary_dilation
+
+    rng = np.random.default_rng(7)
+    image = rng.integers(0, 256, (96, 120, 3)).astype(np.uint8)
+    image[:, :, 2] = np.minimum(image[:, :, 2], 150)  # chroma > 40 wherever red or green >= 235
+    if rows is not None:
+        band = image[rows[0]:rows[1]]
+        band[rng.random(band.shape[:2]) < 0.2] = rng.integers(236, 256, 3)
+    top, low = image.max(2).astype(int), image.min(2).astype(int)
+    expected = (top >= SPECULAR_VALUE) & (top - low <= SPECULAR_CHROMA)
+    assert expected.any() == (rows is not None)
+    grey = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
+    assert (specular_mask(image, grey) == expected).all()
+    assert (specular_mask(image) == expected).all()
+    side = 2 * SPECULAR_MARGIN_PX + 1
+    grown = binary_dilation(expected, np.ones((side, side), bool))
+    assert (specular_zone(expected) == grown).all()
 
 
 def test_tracks_on_a_specular_highlight_are_refused():

@@ -37,7 +37,11 @@ def tracking_image(image: np.ndarray) -> np.ndarray:
     Gaussian blur, re-centred on 128). Tissue that tilts under the tool changes its shading
     over a KLT window; brightness constancy then fails the same way in every view, and the
     tracks slide consistently (measured: dent targets 0.3-0.5 mm off with a 0.1 mm sigma)."""
-    grey = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
+    return shading_removed(cv2.cvtColor(image, cv2.COLOR_RGB2GRAY))
+
+
+def shading_removed(grey: np.ndarray) -> np.ndarray:
+    """`tracking_image` of the image whose grey (H, W) uint8 (cv2's RGB2GRAY) is `grey`."""
     return cv2.addWeighted(grey, 2.0, shading(grey), -2.0, 128.0, dtype=cv2.CV_8U)
 
 
@@ -86,11 +90,22 @@ class TrackingView:
         return bool(self.specular.any())
 
 
-def specular_mask(image: np.ndarray) -> np.ndarray:
+def specular_mask(image: np.ndarray, grey: np.ndarray | None = None) -> np.ndarray:
     """Saturated specular highlights of an RGB image (H, W, 3) uint8: near-white pixels of
     low chroma (max of RGB >= SPECULAR_VALUE, max - min <= SPECULAR_CHROMA), (H, W) bool.
     A highlight moves with the light, not with the tissue: a KLT window on it follows the
-    light."""
+    light. grey: the image's grey (H, W) uint8 (cv2's RGB2GRAY), if at hand: a highlight's
+    channels are all at least SPECULAR_VALUE - SPECULAR_CHROMA, so is their weighted mean,
+    and only the rows between the first and last grey pixel that bright are examined (the
+    same mask)."""
+    if grey is not None:
+        brightest = cv2.reduce(grey, 1, cv2.REDUCE_MAX).ravel()  # per row: ~10x numpy's
+        rows = np.flatnonzero(brightest >= SPECULAR_VALUE - SPECULAR_CHROMA)
+        mask = np.zeros(grey.shape, bool)
+        if len(rows):
+            band = slice(rows[0], rows[-1] + 1)
+            mask[band] = specular_mask(image[band])
+        return mask
     r, g, b = cv2.split(image)  # per-pixel max / min of 3 channels: ~50x numpy's reduce
     top = cv2.max(cv2.max(r, g), b)
     bright = top >= SPECULAR_VALUE
@@ -103,18 +118,24 @@ def specular_mask(image: np.ndarray) -> np.ndarray:
 def specular_zone(highlight: np.ndarray) -> np.ndarray:
     """Highlights (H, W) bool grown by SPECULAR_MARGIN_PX: where a feature or track is not
     trusted (its window is dominated by the highlight's edges)."""
-    if not highlight.any():
-        return np.zeros(highlight.shape, bool)
+    rows = np.flatnonzero(cv2.reduce(highlight.view(np.uint8), 1, cv2.REDUCE_MAX).ravel())
+    grown = np.zeros(highlight.shape, bool)
+    if not len(rows):
+        return grown
+    # only the rows within the margin of a highlight's (the same zone)
+    band = slice(max(rows[0] - SPECULAR_MARGIN_PX, 0), rows[-1] + SPECULAR_MARGIN_PX + 1)
     side = 2 * SPECULAR_MARGIN_PX + 1
-    return cv2.dilate(highlight.astype(np.uint8), np.ones((side, side), np.uint8)) > 0
+    grown[band] = cv2.dilate(highlight[band].view(np.uint8), np.ones((side, side), np.uint8)) > 0
+    return grown
 
 
 def tracking_view(image: np.ndarray) -> TrackingView:
     """The `TrackingView` of an RGB image (H, W, 3) uint8: highlights (`specular_mask`) are
     set to the neutral grey 128 of `tracking_image`, and `specular` (H, W) bool marks them
     grown (`specular_zone`), where tracks are refused."""
-    grey = tracking_image(image)
-    highlight = specular_mask(image)
+    plain = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
+    grey = shading_removed(plain)
+    highlight = specular_mask(image, plain)
     grey[highlight] = 128
     grey.flags.writeable = False  # shared by every frame tracked from this image
     grey_f32 = grey.astype(np.float32)
