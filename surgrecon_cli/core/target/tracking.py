@@ -99,8 +99,7 @@ def specular_mask(image: np.ndarray, grey: np.ndarray | None = None) -> np.ndarr
     and only the rows between the first and last grey pixel that bright are examined (the
     same mask)."""
     if grey is not None:
-        brightest = cv2.reduce(grey, 1, cv2.REDUCE_MAX).ravel()  # per row: ~10x numpy's
-        rows = np.flatnonzero(brightest >= SPECULAR_VALUE - SPECULAR_CHROMA)
+        rows = _rows_reaching(grey, SPECULAR_VALUE - SPECULAR_CHROMA)
         mask = np.zeros(grey.shape, bool)
         if len(rows):
             band = slice(rows[0], rows[-1] + 1)
@@ -118,7 +117,7 @@ def specular_mask(image: np.ndarray, grey: np.ndarray | None = None) -> np.ndarr
 def specular_zone(highlight: np.ndarray) -> np.ndarray:
     """Highlights (H, W) bool grown by SPECULAR_MARGIN_PX: where a feature or track is not
     trusted (its window is dominated by the highlight's edges)."""
-    rows = np.flatnonzero(cv2.reduce(highlight.view(np.uint8), 1, cv2.REDUCE_MAX).ravel())
+    rows = _rows_reaching(highlight.view(np.uint8), 1)
     grown = np.zeros(highlight.shape, bool)
     if not len(rows):
         return grown
@@ -127,6 +126,12 @@ def specular_zone(highlight: np.ndarray) -> np.ndarray:
     side = 2 * SPECULAR_MARGIN_PX + 1
     grown[band] = cv2.dilate(highlight[band].view(np.uint8), np.ones((side, side), np.uint8)) > 0
     return grown
+
+
+def _rows_reaching(image: np.ndarray, level: int) -> np.ndarray:
+    """The rows (K,) of image (H, W) uint8 holding a value of at least `level`, ascending
+    (each row's maximum by cv2.reduce: ~10x numpy's)."""
+    return np.flatnonzero(cv2.reduce(image, 1, cv2.REDUCE_MAX).ravel() >= level)
 
 
 def tracking_view(image: np.ndarray) -> TrackingView:
